@@ -1,0 +1,61 @@
+"""Result types returned by :meth:`beo_ros.core.bank.ModelBank.estimate`."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+UNKNOWN_LABEL = 'unknown'
+
+
+@dataclass
+class Hypothesis:
+    """One (class, yaw) pose hypothesis; ``score`` is a log-likelihood (higher is better)."""
+
+    label: str
+    yaw: float
+    score: float
+
+
+@dataclass
+class Estimate:
+    """What the bank says about one observed object.
+
+    Grid quantities are in the *observed* grid frame (axes x, y, z; z up; voxel centres at integer
+    indices, rotation centre at ``(N-1)/2``).
+
+    Attributes:
+        label: best class name, or ``'unknown'`` when no class explains the object.
+        scores: class name -> calibrated probability (sums to 1 over the classes).
+        yaw: radians, right-handed rotation about +z that maps the canonical model onto the object.
+        completion: float32 (N,N,N) occupancy probability.
+        variance: float32 (N,N,N) predictive variance of the occupancy.
+        hypotheses: top (class, yaw) hypotheses, best first.
+        timings: seconds per stage ('pose', 'completion', 'classify', 'total', ...).
+        grid: int8 (N,N,N) labelled input grid (1 occupied, 0 free, -1 unknown).
+        pose: float64 (4,4) object frame in the input frame (only from ``estimate_points``): the
+            translation is the object centre in metres, the rotation is ``yaw`` about the up vector.
+        grid_to_input: float64 (4,4) maps homogeneous grid index coordinates to the input frame
+            (only from ``estimate_points``).
+        completed_points: float32 (m,3) centres of voxels with probability >= threshold, input frame
+            (only from ``estimate_points``), and ``completed_probability`` float32 (m,).
+    """
+
+    label: str
+    scores: dict
+    yaw: float
+    completion: np.ndarray
+    variance: np.ndarray
+    hypotheses: list = field(default_factory=list)
+    timings: dict = field(default_factory=dict)
+    features: np.ndarray | None = None
+    grid: np.ndarray | None = None
+    pose: np.ndarray | None = None
+    grid_to_input: np.ndarray | None = None
+    completed_points: np.ndarray | None = None
+    completed_probability: np.ndarray | None = None
+
+    @property
+    def probability(self) -> float:
+        """Probability of ``label`` (0 for 'unknown')."""
+        return float(self.scores.get(self.label, 0.0))
