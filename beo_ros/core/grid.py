@@ -1,0 +1,103 @@
+"""Voxel grid conventions and yaw rotation of labelled grids.
+
+Conventions used everywhere in beo_ros:
+- a grid is an array (N, N, N) indexed [x, y, z], z up;
+- labelled grids are int8: 1 occupied, 0 free, -1 unknown;
+- voxel centres sit at integer indices; rotations about +z turn about the grid's vertical
+  centre line through ``c = (N - 1) / 2``.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+OCCUPIED, FREE, UNKNOWN = 1, 0, -1
+UNITS = ('normalized', 'metric')
+ANCHORS = ('center', 'bottom')
+
+
+@dataclass(frozen=True)
+class GridSpec:
+    """How points in metres map to a model's voxel grid.
+
+    Attributes:
+        size: N, the grid is (N, N, N).
+        units: 'normalized' scales each object so its largest extent spans ``fill * N`` voxels (as
+            the ModelNet training grids); 'metric' uses a fixed ``voxel_size`` in metres.
+        voxel_size: metres per voxel, for 'metric' only.
+        fill: fraction of the grid the largest extent spans, for 'normalized' only.
+        anchor: 'center' puts the object's bounding-box centre at the grid centre; 'bottom' puts
+            its lowest point (the support plane) at the bottom of the grid, centred in x, y.
+    """
+
+    size: int = 32
+    units: str = 'normalized'
+    voxel_size: float = 0.0
+    fill: float = 1.0
+    anchor: str = 'center'
+
+    def __post_init__(self):
+        if int(self.size) != self.size or not 4 <= self.size <= 256:
+            raise ValueError(f'GridSpec.size must be an integer in [4, 256], got {self.size!r}')
+        if self.units not in UNITS:
+            raise ValueError(f'GridSpec.units must be one of {UNITS}, got {self.units!r}')
+        if self.units == 'metric' and not (np.isfinite(self.voxel_size) and self.voxel_size > 0):
+            raise ValueError(f'metric GridSpec needs voxel_size > 0, got {self.voxel_size!r}')
+        if not 0 < self.fill <= 1:
+            raise ValueError(f'GridSpec.fill must be in (0, 1], got {self.fill!r}')
+        if self.anchor not in ANCHORS:
+            raise ValueError(f'GridSpec.anchor must be one of {ANCHORS}, got {self.anchor!r}')
+
+    @property
+    def shape(self) -> tuple:
+        return (self.size,) * 3
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> 'GridSpec':
+        known = {k: d[k] for k in ('size', 'units', 'voxel_size', 'fill', 'anchor') if k in d}
+        return cls(**known)
+
+
+def yaw_matrix(yaw: float) -> np.ndarray:
+    """(3, 3) right-handed rotation by ``yaw`` radians about +z."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def yaw_source_index(n: int, yaws: np.ndarray) -> np.ndarray:
+    """Nearest-neighbour gather maps for rotating an (n, n, n) grid by each yaw about +z.
+
+    Returns int32 (len(yaws), n**3): flat index into the *source* grid for every voxel of the
+    rotated grid, or ``n**3`` (one past the end) where the source lies outside the grid. The
+    rotated grid is ``src_padded[idx]`` with ``src_padded = append(src.ravel(), fill)``.
+    """
+    yaws = np.atleast_1d(np.asarray(yaws, dtype=np.float64))
+    c = (n - 1) / 2.0
+    ii, jj = np.meshgrid(np.arange(n) - c, np.arange(n) - c, indexing='ij')
+    ct, st = np.cos(yaws)[:, None, None], np.sin(yaws)[:, None, None]
+    # destination p = R(yaw) q  =>  source q = R(-yaw) p
+    sx = np.rint(ct * ii + st * jj + c).astype(np.int64)
+    sy = np.rint(-st * ii + ct * jj + c).astype(np.int64)
+    inside = (sx >= 0) & (sx < n) & (sy >= 0) & (sy < n)
+    col = np.where(inside, sx * n * n + sy * n, -1)  # (Y, n, n) base index of each column
+    k = np.arange(n)
+    idx = np.where(col[..., None] >= 0, col[..., None] + k, n ** 3)
+    return idx.reshape(len(yaws), n ** 3).astype(np.int32)
+
+
+def rotate_grid(grid: np.ndarray, yaw: float, fill=0) -> np.ndarray:
+    """Rotate an (N, N, N) grid by ``yaw`` radians about +z (nearest neighbour).
+
+    Voxels whose source falls outside the grid get ``fill`` (0 = free/empty; use -1 for unknown).
+    """
+    grid = np.asarray(grid)
+    if grid.ndim != 3 or len(set(grid.shape)) != 1:
+        raise ValueError(f'grid must be (N, N, N), got shape {grid.shape}')
+    n = grid.shape[0]
+    idx = yaw_source_index(n, [yaw])[0]
+    src = np.append(grid.ravel(), np.asarray(fill, dtype=grid.dtype))
+    return src[idx].reshape(grid.shape)
