@@ -1,0 +1,335 @@
+"""Read and write PCD (Point Cloud Data, PCL) files without PCL.
+
+Supports ``DATA ascii``, ``binary`` and ``binary_compressed`` (LZF, decoded in pure Python) for
+any field layout (TYPE I/U/F, SIZE 1/2/4/8, COUNT >= 1). Organized clouds keep their
+``width``/``height``; arrays are flat in row-major order (index = row * width + col).
+"""
+from __future__ import annotations
+
+import os
+import struct
+from dataclasses import dataclass, field
+
+import numpy as np
+
+DATA_KINDS = ('ascii', 'binary', 'binary_compressed')
+_TYPES = {('I', 1): 'i1', ('I', 2): '<i2', ('I', 4): '<i4', ('I', 8): '<i8',
+          ('U', 1): 'u1', ('U', 2): '<u2', ('U', 4): '<u4', ('U', 8): '<u8',
+          ('F', 4): '<f4', ('F', 8): '<f8'}
+_MAX_HEADER_LINES = 64
+
+
+class PCDError(ValueError):
+    """A PCD file (or the data given to :func:`write_pcd`) is malformed or unsupported."""
+
+
+@dataclass
+class PCDData:
+    """Content of one PCD file.
+
+    Attributes:
+        fields: name -> array (n,) for COUNT 1 fields, (n, count) otherwise; dtype from TYPE/SIZE.
+        width, height: cloud organisation (height 1 for unorganized clouds), n = width * height.
+        viewpoint: (7,) float64 sensor pose ``tx ty tz qw qx qy qz``.
+        data: 'ascii', 'binary' or 'binary_compressed' (how the file stored the points).
+    """
+
+    fields: dict
+    width: int
+    height: int
+    viewpoint: np.ndarray = field(default_factory=lambda: np.array([0, 0, 0, 1, 0, 0, 0.0]))
+    data: str = 'binary'
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        return self.fields[name]
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.fields
+
+    @property
+    def n_points(self) -> int:
+        return self.width * self.height
+
+    def xyz(self) -> np.ndarray:
+        """(n, 3) float array of the x, y, z fields."""
+        return np.stack([self.fields[k] for k in 'xyz'], axis=1)
+
+
+# ----------------------------------------------------------------------------------- LZF codec
+
+def lzf_decompress(data: bytes, expected_size: int) -> bytes:
+    """Decode a raw LZF stream (liblzf format, as PCL writes it) of ``expected_size`` bytes."""
+    src = memoryview(bytes(data))
+    n = len(src)
+    out = bytearray()
+    i = 0
+    try:
+        while i < n:
+            c = src[i]
+            i += 1
+            if c < 32:  # literal run of c + 1 bytes
+                j = i + c + 1
+                if j > n:
+                    raise PCDError('LZF: literal run past end of input')
+                out += src[i:j]
+                i = j
+                continue
+            length = c >> 5
+            if length == 7:
+                length += src[i]
+                i += 1
+            length += 2
+            off = ((c & 0x1F) << 8 | src[i]) + 1
+            i += 1
+            start = len(out) - off
+            if start < 0:
+                raise PCDError('LZF: back reference before start of output')
+            if off >= length:
+                out += out[start:start + length]
+            else:  # overlapping copy repeats the last `off` bytes
+                pattern = out[start:]
+                reps = -(-length // off)
+                out += (pattern * reps)[:length]
+    except IndexError:
+        raise PCDError('LZF: truncated input') from None
+    if len(out) != expected_size:
+        raise PCDError(f'LZF: decoded {len(out)} bytes, header says {expected_size}')
+    return bytes(out)
+
+
+def lzf_compress(data: bytes) -> bytes:
+    """Encode ``data`` as a valid raw LZF stream (greedy, 3-byte hash; pure Python, for fixtures).
+
+    Slow (about 1 MB/s); meant for test fixtures and small clouds, not for bulk data.
+    """
+    data = bytes(data)
+    n = len(data)
+    out = bytearray()
+    lit = bytearray()
+    table = {}
+
+    def flush():
+        for k in range(0, len(lit), 32):
+            chunk = lit[k:k + 32]
+            out.append(len(chunk) - 1)
+            out.extend(chunk)
+        lit.clear()
+
+    i = 0
+    while i < n:
+        ref = -1
+        if i + 2 < n:
+            key = data[i:i + 3]
+            ref = table.get(key, -1)
+            table[key] = i
+        off = i - ref - 1
+        if ref >= 0 and off < 8192:
+            maxlen = min(264, n - i)
+            length = 3
+            while length < maxlen and data[ref + length] == data[i + length]:
+                length += 1
+            flush()
+            L = length - 2
+            if L < 7:
+                out.append((L << 5) | (off >> 8))
+            else:
+                out.append((7 << 5) | (off >> 8))
+                out.append(L - 7)
+            out.append(off & 0xFF)
+            i += length
+        else:
+            lit.append(data[i])
+            i += 1
+    flush()
+    return bytes(out)
+
+
+# ----------------------------------------------------------------------------------- reading
+
+def _parse_header(f, path) -> tuple:
+    header = {}
+    for _ in range(_MAX_HEADER_LINES):
+        raw = f.readline()
+        if not raw:
+            raise PCDError(f'{path}: end of file inside the header (no DATA line)')
+        try:
+            line = raw.decode('ascii').strip()
+        except UnicodeDecodeError:
+            raise PCDError(f'{path}: header is not ASCII text (not a PCD file?)') from None
+        if not line or line.startswith('#'):
+            continue
+        key, _, rest = line.partition(' ')
+        header[key.upper()] = rest.split()
+        if key.upper() == 'DATA':
+            return header
+    raise PCDError(f'{path}: no DATA line in the first {_MAX_HEADER_LINES} header lines')
+
+
+def _layout(header: dict, path) -> tuple:
+    """-> (names, numpy dtypes, counts, width, height, viewpoint, data kind)."""
+    for k in ('FIELDS', 'SIZE', 'TYPE', 'WIDTH', 'HEIGHT', 'DATA'):
+        if k not in header:
+            raise PCDError(f'{path}: header misses {k}')
+    names = header['FIELDS']
+    nf = len(names)
+    try:
+        sizes = [int(s) for s in header['SIZE']]
+        counts = [int(s) for s in header.get('COUNT', ['1'] * nf)]
+        width, height = int(header['WIDTH'][0]), int(header['HEIGHT'][0])
+        viewpoint = np.array([float(v) for v in header.get('VIEWPOINT', '0 0 0 1 0 0 0'.split())])
+        points = int(header['POINTS'][0]) if 'POINTS' in header else width * height
+    except (ValueError, IndexError):
+        raise PCDError(f'{path}: non-numeric SIZE/COUNT/WIDTH/HEIGHT/VIEWPOINT/POINTS') from None
+    types = [t.upper() for t in header['TYPE']]
+    if nf == 0 or not (len(sizes) == len(types) == len(counts) == nf):
+        raise PCDError(f'{path}: FIELDS/SIZE/TYPE/COUNT lengths differ '
+                       f'({nf}, {len(sizes)}, {len(types)}, {len(counts)})')
+    if len(set(names)) != nf:
+        raise PCDError(f'{path}: duplicate field names {names}')
+    dtypes = []
+    for name, t, s, c in zip(names, types, sizes, counts):
+        if (t, s) not in _TYPES:
+            raise PCDError(f'{path}: field {name!r} has unsupported TYPE {t} SIZE {s}')
+        if c < 1:
+            raise PCDError(f'{path}: field {name!r} has COUNT {c} < 1')
+        dtypes.append(np.dtype(_TYPES[(t, s)]))
+    if width < 0 or height < 0:
+        raise PCDError(f'{path}: bad WIDTH {width} / HEIGHT {height}')
+    if points != width * height:
+        raise PCDError(f'{path}: POINTS {points} != WIDTH*HEIGHT {width * height}')
+    if viewpoint.shape != (7,):
+        raise PCDError(f'{path}: VIEWPOINT needs 7 numbers, got {viewpoint.size}')
+    kind = header['DATA'][0].lower() if header['DATA'] else ''
+    if kind not in DATA_KINDS:
+        raise PCDError(f'{path}: unsupported DATA {kind!r} (expected one of {DATA_KINDS})')
+    return names, dtypes, counts, width, height, viewpoint, kind
+
+
+def _shape(arr: np.ndarray, count: int) -> np.ndarray:
+    return arr if count == 1 else arr.reshape(-1, count)
+
+
+def read_pcd(path) -> PCDData:
+    """Read a PCD file (ascii, binary or binary_compressed). Raises :class:`PCDError`."""
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise PCDError(f'{path}: no such file')
+    with open(path, 'rb') as f:
+        header = _parse_header(f, path)
+        body = f.read()
+    names, dtypes, counts, width, height, viewpoint, kind = _layout(header, path)
+    n = width * height
+    fields = {}
+    if kind == 'ascii':
+        lines = [ln for ln in body.decode('ascii', errors='replace').splitlines() if ln.strip()]
+        ncol = sum(counts)
+        if len(lines) != n:
+            raise PCDError(f'{path}: {len(lines)} ascii data lines, expected {n}')
+        try:
+            table = np.array([ln.split() for ln in lines], dtype=np.float64) if n else \
+                np.zeros((0, ncol))
+        except ValueError:
+            raise PCDError(f'{path}: ascii data rows are not {ncol} numbers each') from None
+        if table.ndim != 2 or table.shape[1] != ncol:
+            raise PCDError(f'{path}: ascii data rows are not {ncol} numbers each')
+        col = 0
+        for name, dt, c in zip(names, dtypes, counts):
+            fields[name] = _shape(table[:, col:col + c].astype(dt).ravel(), c)
+            col += c
+    elif kind == 'binary':
+        rec = np.dtype([(f'f{i}', dt, (c,)) for i, (dt, c) in enumerate(zip(dtypes, counts))])
+        need = rec.itemsize * n
+        if len(body) < need:
+            raise PCDError(f'{path}: binary data has {len(body)} bytes, expected {need}')
+        arr = np.frombuffer(body, dtype=rec, count=n)
+        for i, (name, c) in enumerate(zip(names, counts)):
+            fields[name] = _shape(np.ascontiguousarray(arr[f'f{i}']).ravel(), c)
+    else:
+        if len(body) < 8:
+            raise PCDError(f'{path}: binary_compressed data misses its size header')
+        csize, usize = struct.unpack('<II', body[:8])
+        need = sum(dt.itemsize * c for dt, c in zip(dtypes, counts)) * n
+        if usize != need:
+            raise PCDError(f'{path}: uncompressed size {usize} != {need} expected from the header')
+        if len(body) - 8 < csize:
+            raise PCDError(f'{path}: compressed data truncated ({len(body) - 8} < {csize} bytes)')
+        raw = lzf_decompress(body[8:8 + csize], usize) if usize else b''
+        pos = 0  # structure of arrays: all values of field 0, then field 1, ...
+        for name, dt, c in zip(names, dtypes, counts):
+            nbytes = dt.itemsize * c * n
+            fields[name] = _shape(np.frombuffer(raw, dtype=dt, count=c * n, offset=pos).copy(), c)
+            pos += nbytes
+    return PCDData(fields=fields, width=width, height=height, viewpoint=viewpoint, data=kind)
+
+
+# ----------------------------------------------------------------------------------- writing
+
+def _pcd_type(dt: np.dtype) -> tuple:
+    dt = np.dtype(dt)
+    if dt.kind == 'f' and dt.itemsize in (4, 8):
+        return 'F', dt.itemsize
+    if dt.kind == 'i' and dt.itemsize in (1, 2, 4, 8):
+        return 'I', dt.itemsize
+    if dt.kind in 'ub' and dt.itemsize in (1, 2, 4, 8):
+        return 'U', dt.itemsize
+    raise PCDError(f'unsupported dtype {dt} for PCD')
+
+
+def write_pcd(path, fields: dict, width: int | None = None, height: int = 1,
+              viewpoint=(0, 0, 0, 1, 0, 0, 0), data: str = 'binary') -> None:
+    """Write ``fields`` (name -> (n,) or (n, count) array) as a PCD v0.7 file.
+
+    ``width * height`` must equal n (``width`` defaults to n / height). ``data`` is 'binary'
+    (default), 'ascii' or 'binary_compressed' (pure-Python LZF; slow for big clouds).
+    """
+    if not fields:
+        raise PCDError('write_pcd needs at least one field')
+    if data not in DATA_KINDS:
+        raise PCDError(f'data must be one of {DATA_KINDS}, got {data!r}')
+    arrays = []
+    for name, a in fields.items():
+        a = np.asarray(a)
+        if a.dtype == bool:
+            a = a.astype(np.uint8)
+        if a.ndim == 1:
+            a = a[:, None]
+        if a.ndim != 2 or not str(name) or any(ch.isspace() for ch in str(name)):
+            raise PCDError(f'field {name!r} must be a non-blank name with a (n,) or (n, c) array')
+        arrays.append((str(name), a))
+    n = arrays[0][1].shape[0]
+    if any(a.shape[0] != n for _, a in arrays):
+        raise PCDError('all fields must have the same number of points')
+    if width is None:
+        width = n // height if height else 0
+    if width * height != n:
+        raise PCDError(f'width*height = {width}*{height} != {n} points')
+    types = [_pcd_type(a.dtype) for _, a in arrays]
+    vp = ' '.join(f'{float(v):g}' for v in viewpoint)
+    header = ('# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\n'
+              f'FIELDS {" ".join(nm for nm, _ in arrays)}\n'
+              f'SIZE {" ".join(str(s) for _, s in types)}\n'
+              f'TYPE {" ".join(t for t, _ in types)}\n'
+              f'COUNT {" ".join(str(a.shape[1]) for _, a in arrays)}\n'
+              f'WIDTH {width}\nHEIGHT {height}\nVIEWPOINT {vp}\nPOINTS {n}\nDATA {data}\n')
+    dts = [np.dtype(_TYPES[t]) for t in types]
+    with open(path, 'wb') as f:
+        f.write(header.encode('ascii'))
+        if data == 'ascii':
+            cols = []
+            for (_, a), (t, _) in zip(arrays, types):
+                for j in range(a.shape[1]):
+                    v = a[:, j]
+                    cols.append([repr(float(x)) if t == 'F' else str(int(x)) for x in v])
+            f.write(''.join(' '.join(row) + '\n' for row in zip(*cols)).encode('ascii'))
+        elif data == 'binary':
+            rec = np.dtype([(f'f{i}', dt, (a.shape[1],)) for i, (dt, (_, a))
+                            in enumerate(zip(dts, arrays))])
+            out = np.empty(n, dtype=rec)
+            for i, (dt, (_, a)) in enumerate(zip(dts, arrays)):
+                out[f'f{i}'] = a.astype(dt)
+            f.write(out.tobytes())
+        else:
+            raw = b''.join(a.astype(dt).tobytes() for dt, (_, a) in zip(dts, arrays))
+            comp = lzf_compress(raw)
+            f.write(struct.pack('<II', len(comp), len(raw)))
+            f.write(comp)
