@@ -1,0 +1,248 @@
+"""PointCloud2 <-> numpy and pose conversions against clouds built by hand."""
+import array
+import math
+
+import numpy as np
+import pytest
+from geometry_msgs.msg import Pose
+from sensor_msgs.msg import PointCloud2, PointField
+from std_msgs.msg import Header
+
+from beo_ros.ros.conversions import (
+    CloudFormatError, cloud_to_xyz, matrix_to_pose, pose_to_matrix, quaternion_to_rotation,
+    rotation_to_quaternion, xyz_to_cloud, yaw_quaternion)
+
+F32, F64 = PointField.FLOAT32, PointField.FLOAT64
+NP = {PointField.FLOAT32: 'f4', PointField.FLOAT64: 'f8', PointField.UINT8: 'u1',
+      PointField.INT16: 'i2', PointField.UINT32: 'u4'}
+
+
+def hand_cloud(points, layout, point_step, *, height=1, row_pad=0, big=False, extra=None):
+    """Pack ``points`` (n, 3) by hand with ``layout`` = [(name, offset, datatype), ...].
+
+    Rows of an organized cloud (height > 1) get ``row_pad`` zero bytes of padding each.
+    ``extra`` maps other field names to per-point values.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    n = len(points)
+    width = n // height
+    assert width * height == n
+    order = '>' if big else '<'
+    row_step = width * point_step + row_pad
+    raw = bytearray(row_step * height)
+    for name, off, dt in layout:
+        values = points[:, 'xyz'.index(name)] if name in 'xyz' else np.asarray(extra[name])
+        enc = np.asarray(values).astype(order + NP[dt])
+        for i in range(n):
+            r, c = divmod(i, width)
+            start = r * row_step + c * point_step + off
+            raw[start:start + enc.itemsize] = enc[i:i + 1].tobytes()  # keeps byte order
+    msg = PointCloud2()
+    msg.header = Header(frame_id='cam')
+    msg.height, msg.width = height, width
+    msg.fields = [PointField(name=name, offset=off, datatype=dt, count=1)
+                  for name, off, dt in layout]
+    msg.is_bigendian = big
+    msg.point_step, msg.row_step = point_step, row_step
+    msg.data = array.array('B', bytes(raw))
+    msg.is_dense = False
+    return msg
+
+
+@pytest.fixture
+def pts():
+    return np.random.default_rng(1).uniform(-2, 2, size=(24, 3))
+
+
+def test_round_trip_with_probability(pts):
+    prob = np.linspace(0, 1, len(pts), dtype=np.float32)
+    msg = xyz_to_cloud(pts, Header(frame_id='base'), {'probability': prob})
+    assert [f.name for f in msg.fields] == ['x', 'y', 'z', 'probability']
+    assert msg.point_step == 16 and msg.row_step == 16 * len(pts) and msg.is_dense
+    out, dropped = cloud_to_xyz(msg)
+    assert dropped == 0 and out.dtype == np.float64 and out.shape == pts.shape
+    np.testing.assert_allclose(out, pts, atol=1e-6)
+    rec = np.frombuffer(bytes(msg.data), dtype='<f4').reshape(-1, 4)
+    np.testing.assert_array_equal(rec[:, 3], prob)
+
+
+def test_empty_round_trip():
+    msg = xyz_to_cloud(np.zeros((0, 3)), Header(), {'probability': np.zeros(0)})
+    out, dropped = cloud_to_xyz(msg)
+    assert out.shape == (0, 3) and dropped == 0
+
+
+@pytest.mark.parametrize('layout,step', [
+    ([('x', 0, F32), ('y', 4, F32), ('z', 8, F32)], 12),
+    ([('z', 0, F32), ('x', 4, F32), ('y', 8, F32)], 16),           # reordered, tail padding
+    ([('rgb', 0, PointField.UINT32), ('y', 4, F32), ('i', 8, PointField.INT16),
+      ('x', 12, F32), ('z', 20, F32)], 32),                       # interleaved other fields
+    ([('x', 0, F64), ('y', 8, F64), ('z', 16, F64)], 24),           # float64
+    ([('y', 0, F64), ('z', 8, F32), ('x', 16, F64)], 24),           # mixed widths
+])
+@pytest.mark.parametrize('big', [False, True])
+def test_field_orders_types_endianness(pts, layout, step, big):
+    extra = {'rgb': np.arange(len(pts)), 'i': -np.arange(len(pts))}
+    msg = hand_cloud(pts, layout, step, big=big, extra=extra)
+    out, dropped = cloud_to_xyz(msg)
+    assert dropped == 0
+    f64 = all(dt == F64 for name, _, dt in layout if name in 'xyz')
+    np.testing.assert_allclose(out, pts, atol=0 if f64 else 1e-6)
+
+
+def test_organized_with_row_padding(pts):
+    layout = [('x', 0, F32), ('y', 4, F32), ('z', 8, F32)]
+    msg = hand_cloud(pts, layout, 16, height=4, row_pad=7)
+    assert msg.height == 4 and msg.width == 6 and msg.row_step == 6 * 16 + 7
+    out, dropped = cloud_to_xyz(msg)
+    np.testing.assert_allclose(out, pts, atol=1e-6)  # row-major order is kept
+    assert dropped == 0
+
+
+def test_organized_missing_last_row_padding_is_accepted(pts):
+    msg = hand_cloud(pts, [('x', 0, F32), ('y', 4, F32), ('z', 8, F32)], 12, height=3, row_pad=4)
+    msg.data = msg.data[:-4]  # some drivers omit the padding of the final row
+    np.testing.assert_allclose(cloud_to_xyz(msg)[0], pts, atol=1e-6)
+
+
+def test_nan_and_inf_are_dropped_and_counted(pts):
+    bad = pts.copy()
+    bad[[1, 5, 9], [0, 1, 2]] = np.nan
+    bad[11, 0] = np.inf
+    bad[12, 2] = -np.inf
+    msg = hand_cloud(bad, [('x', 0, F32), ('y', 4, F32), ('z', 8, F32)], 12, height=2)
+    out, dropped = cloud_to_xyz(msg)
+    keep = np.isfinite(bad).all(axis=1)
+    assert dropped == 5 and out.shape == (len(pts) - 5, 3)
+    np.testing.assert_allclose(out, pts[keep], atol=1e-6)
+
+
+def test_all_nan_gives_empty(pts):
+    msg = hand_cloud(np.full_like(pts, np.nan), [('x', 0, F64), ('y', 8, F64), ('z', 16, F64)], 24)
+    out, dropped = cloud_to_xyz(msg)
+    assert out.shape == (0, 3) and dropped == len(pts)
+
+
+def test_empty_cloud_without_data():
+    msg = PointCloud2()
+    msg.fields = [PointField(name=k, offset=4 * i, datatype=F32, count=1)
+                  for i, k in enumerate('xyz')]
+    out, dropped = cloud_to_xyz(msg)
+    assert out.shape == (0, 3) and dropped == 0
+
+
+def test_unorganized_zero_row_step_tolerated(pts):
+    msg = hand_cloud(pts, [('x', 0, F32), ('y', 4, F32), ('z', 8, F32)], 12)
+    msg.row_step = 0
+    np.testing.assert_allclose(cloud_to_xyz(msg)[0], pts, atol=1e-6)
+
+
+def _good(pts):
+    return hand_cloud(pts, [('x', 0, F32), ('y', 4, F32), ('z', 8, F32)], 12, height=2)
+
+
+@pytest.mark.parametrize('breaker,match', [
+    (lambda m: setattr(m, 'fields', m.fields[1:]), 'lacks field.*x'),
+    (lambda m: setattr(m, 'fields', m.fields[:2]), 'lacks field.*z'),
+    (lambda m: setattr(m, 'fields', []), 'lacks field'),
+    (lambda m: setattr(m.fields[0], 'datatype', PointField.INT16), 'datatype'),
+    (lambda m: setattr(m.fields[2], 'datatype', 42), 'datatype'),
+    (lambda m: m.fields.append(PointField(name='y', offset=0, datatype=F32, count=1)),
+     'duplicate'),
+    (lambda m: setattr(m, 'point_step', 8), 'overruns point_step'),         # smaller than fields
+    (lambda m: setattr(m.fields[2], 'offset', 10), 'overruns point_step'),
+    (lambda m: setattr(m, 'point_step', 0), 'point_step'),
+    (lambda m: setattr(m, 'data', m.data[:-5]), 'needs'),                    # truncated
+    (lambda m: setattr(m, 'data', array.array('B')), 'needs'),              # no data at all
+    (lambda m: setattr(m, 'width', m.width * 2), 'row_step'),                # header lies
+    (lambda m: setattr(m, 'row_step', 11), 'row_step'),                     # organized, too small
+])
+def test_malformed_clouds_raise_named_error(pts, breaker, match):
+    msg = _good(pts)
+    breaker(msg)
+    with pytest.raises(CloudFormatError, match=match):
+        cloud_to_xyz(msg)
+    assert issubclass(CloudFormatError, ValueError)
+
+
+def test_xyz_to_cloud_rejects_bad_shapes():
+    with pytest.raises(ValueError):
+        xyz_to_cloud(np.zeros((4, 2)), Header())
+    with pytest.raises(ValueError):
+        xyz_to_cloud(np.zeros((4, 3)), Header(), {'p': np.zeros(3)})
+    with pytest.raises(ValueError):
+        xyz_to_cloud(np.zeros((4, 3)), Header(), {'x': np.zeros(4)})
+
+
+def _random_rotation(rng):
+    q = rng.normal(size=4)
+    return quaternion_to_rotation(q)
+
+
+def test_pose_round_trip():
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        t = np.eye(4)
+        t[:3, :3] = _random_rotation(rng)
+        t[:3, 3] = rng.normal(size=3)
+        pose = matrix_to_pose(t)
+        assert isinstance(pose, Pose)
+        q = [pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w]
+        assert abs(np.linalg.norm(q) - 1) < 1e-12 and q[3] >= 0
+        np.testing.assert_allclose(pose_to_matrix(pose), t, atol=1e-12)
+    for r in (np.diag([1, -1, -1]), np.diag([-1, 1, -1]), np.diag([-1, -1, 1])):  # 180 deg
+        np.testing.assert_allclose(quaternion_to_rotation(rotation_to_quaternion(r)), r,
+                                   atol=1e-12)
+    with pytest.raises(ValueError):
+        matrix_to_pose(np.full((4, 4), np.nan))
+
+
+@pytest.mark.parametrize('up', [(0, 0, 1), (0, -1, 0), (1, 2, 3)])
+def test_yaw_quaternion_rotates_about_up(up):
+    yaw = 0.7
+    q = yaw_quaternion(yaw, up)
+    r = quaternion_to_rotation([q.x, q.y, q.z, q.w])
+    u = np.asarray(up, float) / np.linalg.norm(up)
+    np.testing.assert_allclose(r @ u, u, atol=1e-12)  # the axis is fixed
+    assert math.isclose(np.trace(r), 1 + 2 * math.cos(yaw), abs_tol=1e-12)
+    if up == (0, 0, 1):
+        np.testing.assert_allclose(r[:2, :2], [[math.cos(yaw), -math.sin(yaw)],
+                                               [math.sin(yaw), math.cos(yaw)]], atol=1e-12)
+    with pytest.raises(ValueError):
+        yaw_quaternion(1.0, (0, 0, 0))
+
+
+def test_estimate_to_msg():
+    conv = pytest.importorskip('beo_ros.ros.conversions')
+    try:
+        conv.interfaces()
+    except ImportError as e:
+        pytest.skip(f'beo_interfaces not built: {e}')
+    from beo_ros.core.estimate import Estimate, Hypothesis
+    pose = np.eye(4)
+    pose[:3, :3] = quaternion_to_rotation([0, 0, math.sin(0.25), math.cos(0.25)])
+    pose[:3, 3] = [1.0, 2.0, 0.5]
+    local = np.array([[-0.2, -0.1, -0.3], [0.2, 0.1, 0.3], [0.0, 0.0, 0.0]])
+    g2i = np.eye(4) * 0.01
+    g2i[3, 3] = 1
+    est = Estimate(label='chair', scores={'chair': 0.8, 'table': 0.2}, yaw=0.5,
+                   completion=np.zeros((4, 4, 4), np.float32),
+                   variance=np.zeros((4, 4, 4), np.float32),
+                   hypotheses=[Hypothesis('chair', 0.5, -1.0), Hypothesis('table', 1.0, -3.0)],
+                   pose=pose, grid_to_input=g2i,
+                   completed_points=(local @ pose[:3, :3].T + pose[:3, 3]).astype(np.float32),
+                   completed_probability=np.array([0.9, 0.8, 0.7], np.float32))
+    h = Header(frame_id='cam')
+    m = conv.estimate_to_msg(est, h, '/in', 0.25, include_cloud=True,
+                             class_names=['table', 'chair'])
+    assert m.label == 'chair' and abs(m.probability - 0.8) < 1e-6
+    assert list(m.class_names) == ['table', 'chair']
+    np.testing.assert_allclose(m.class_probabilities, [0.2, 0.8], atol=1e-6)
+    np.testing.assert_allclose(pose_to_matrix(m.pose), pose, atol=1e-9)
+    np.testing.assert_allclose([m.dimensions.x, m.dimensions.y, m.dimensions.z],
+                               [0.41, 0.21, 0.61], atol=1e-5)
+    assert [hh.label for hh in m.hypotheses] == ['chair', 'table']
+    assert m.source_topic == '/in' and abs(m.latency - 0.25) < 1e-6 and m.status == 'ok'
+    assert m.completed_cloud.width == 3 and m.completed_cloud.header.frame_id == 'cam'
+    m2 = conv.estimate_to_msg(est, h, '/in', 0.0, include_cloud=False)
+    assert m2.completed_cloud.width == 0 and list(m2.class_names) == ['chair', 'table']
