@@ -1,0 +1,260 @@
+"""Cloud-level front end: one segmented partial point cloud -> labelled, gravity-aligned grid.
+
+Frames:
+- *input frame*: whatever frame ``points``, ``sensor_origin`` and ``up`` are given in (metres);
+- *aligned frame*: z = ``up``; x = horizontal direction from the sensor toward the object's
+  centroid (so yaw 0 of the grid means "the grid's +x looks away from the sensor"); y = z x x;
+- *grid index coordinates* (i, j, k): voxel centres at integers, voxel (i, j, k) covers
+  [i - 0.5, i + 0.5] x ... ; the grid axes are the aligned axes scaled by the voxel size.
+
+``ViewGrid.grid_to_input`` maps homogeneous grid index coordinates to the input frame.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+from scipy import ndimage
+
+from .grid import FREE, OCCUPIED, UNKNOWN, GridSpec
+
+MIN_POINTS = 10
+_RAY_MARGIN = 0.25  # voxels: a ray stops this short of the voxel centre it is cast at
+
+
+@dataclass
+class ViewGrid:
+    """A labelled view grid and where it sits.
+
+    Attributes:
+        grid: int8 (N, N, N) indexed [x, y, z]: 1 occupied, 0 free, -1 unknown (occluded).
+        grid_to_input: float64 (4, 4), homogeneous grid index coords (i, j, k, 1) -> input frame.
+        voxel_size_m: edge of one voxel in metres.
+        n_points: number of finite input points that fell inside the grid.
+    """
+
+    grid: np.ndarray
+    grid_to_input: np.ndarray
+    voxel_size_m: float
+    n_points: int
+
+    @property
+    def input_to_grid(self) -> np.ndarray:
+        """float64 (4, 4) inverse of ``grid_to_input``."""
+        return np.linalg.inv(self.grid_to_input)
+
+
+# ----------------------------------------------------------------------------------- validation
+
+def _check_points(points, min_points: int) -> np.ndarray:
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f'points must be an (n, 3) array, got shape {pts.shape}')
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if len(pts) < min_points:
+        raise ValueError(f'need at least {min_points} finite points, got {len(pts)}')
+    return pts
+
+
+def _check_vec(v, name: str, unit: bool = False) -> np.ndarray:
+    v = np.asarray(v, dtype=np.float64)
+    if v.shape != (3,) or not np.isfinite(v).all():
+        raise ValueError(f'{name} must be a finite 3-vector, got {np.asarray(v)!r}')
+    if unit:
+        n = np.linalg.norm(v)
+        if n < 1e-9:
+            raise ValueError(f'{name} must be non-zero, got {v!r}')
+        v = v / n
+    return v
+
+
+def aligned_frame(up, sensor_origin, target) -> np.ndarray:
+    """(3, 3) rotation whose columns are the aligned x, y, z axes expressed in the input frame.
+
+    z = unit ``up``; x = horizontal (perpendicular to up) direction from ``sensor_origin`` to
+    ``target``, or an arbitrary fixed horizontal direction when the sensor is straight above/below.
+    """
+    z = _check_vec(up, 'up', unit=True)
+    h = np.asarray(target, float) - np.asarray(sensor_origin, float)
+    h = h - z * (h @ z)
+    if np.linalg.norm(h) < 1e-9 * max(1.0, np.linalg.norm(target)):
+        h = np.eye(3)[np.argmin(np.abs(z))]  # world axis least parallel to up
+        h = h - z * (h @ z)
+    x = h / np.linalg.norm(h)
+    y = np.cross(z, x)
+    return np.stack([x, y, z], axis=1)
+
+
+# ----------------------------------------------------------------------------------- ray casting
+
+_FACES = []  # (axis, side, 4 corner offsets ccw seen from outside) for the 6 cube faces
+for _ax in range(3):
+    _u, _v = (_ax + 1) % 3, (_ax + 2) % 3
+    for _side in (-1, 1):
+        _c = np.zeros((4, 3))
+        _c[:, _ax] = 0.5 * _side
+        _c[:, _u] = [-0.5, 0.5, 0.5, -0.5]
+        _c[:, _v] = [-0.5, -0.5, 0.5, 0.5]
+        _FACES.append((_ax, _side, _c))
+
+
+def cube_surface(blocked: np.ndarray) -> tuple:
+    """Triangles of the exposed faces of the voxel cubes in bool (N, N, N) ``blocked``.
+
+    Returns (vertices float32 (4F, 3) in grid index coords, triangles uint32 (2F, 3)).
+    """
+    padded = np.pad(blocked, 1)
+    verts, tris = [], []
+    base = 0
+    for ax, side, corners in _FACES:
+        nb = np.roll(padded, -side, axis=ax)[1:-1, 1:-1, 1:-1]
+        idx = np.argwhere(blocked & ~nb)
+        if len(idx) == 0:
+            continue
+        v = (idx[:, None, :] + corners[None]).reshape(-1, 3)
+        q = base + 4 * np.arange(len(idx))[:, None]
+        t = np.concatenate([q + [0, 1, 2], q + [0, 2, 3]], axis=0)
+        verts.append(v)
+        tris.append(t)
+        base += len(v)
+    if not verts:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint32)
+    return (np.concatenate(verts).astype(np.float32), np.concatenate(tris).astype(np.uint32))
+
+
+def label_free_unknown(occupied: np.ndarray, origin_grid, close_holes: bool = True) -> np.ndarray:
+    """Label a grid from its occupied voxels and the sensor position by ray casting.
+
+    Args:
+        occupied: bool (N, N, N).
+        origin_grid: (3,) sensor position in grid index coordinates (may be inside the grid).
+        close_holes: block rays with a morphological closing of ``occupied`` (fills one-voxel
+            holes of sparse surfaces so they do not leak free space behind the object).
+
+    Returns int8 (N, N, N): 1 occupied; -1 where the segment from the sensor to the voxel centre
+    crosses an occupied cube first (occluded); 0 otherwise (in front of the surface or outside
+    the silhouette).
+    """
+    n = occupied.shape[0]
+    o = np.asarray(origin_grid, dtype=np.float64)
+    blocked = occupied.copy()
+    if close_holes and occupied.any():
+        blocked |= ndimage.binary_closing(np.pad(occupied, 2), np.ones((3, 3, 3), bool))[2:-2, 2:-2, 2:-2]
+    sensor_voxel = np.floor(o + 0.5).astype(int)
+    if np.all((sensor_voxel >= 0) & (sensor_voxel < n)):
+        blocked[tuple(sensor_voxel)] = False  # never block the sensor's own voxel
+    out = np.full(occupied.shape, FREE, dtype=np.int8)
+    verts, tris = cube_surface(blocked)
+    if len(tris):
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.core.Tensor(verts), o3d.core.Tensor(tris))
+        centres = np.indices(occupied.shape, dtype=np.float64).reshape(3, -1).T
+        d = centres - o
+        dist = np.linalg.norm(d, axis=1)
+        # scale so that t = 1 is _RAY_MARGIN voxels short of the centre
+        scale = np.maximum(dist - _RAY_MARGIN, 0.0) / np.maximum(dist, 1e-12)
+        rays = np.empty((len(d), 6), np.float32)
+        rays[:, :3] = o
+        rays[:, 3:] = d * scale[:, None]
+        hit = scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0, tfar=1.0).numpy()
+        hit &= dist > _RAY_MARGIN
+        out.reshape(-1)[hit] = UNKNOWN
+    out[occupied] = OCCUPIED
+    return out
+
+
+# ----------------------------------------------------------------------------------- front end
+
+def voxelize_view(points, sensor_origin, up, spec: GridSpec, center=None, floor=None,
+                  min_points: int = MIN_POINTS, close_holes: bool = True) -> ViewGrid:
+    """Voxelize one segmented partial view into a labelled, gravity-aligned grid.
+
+    Args:
+        points: (n, 3) object points in the input frame (metres); non-finite rows are dropped.
+        sensor_origin: (3,) sensor position in the input frame.
+        up: (3,) gravity-up direction in the input frame (any non-zero length).
+        spec: grid size, units ('normalized' / 'metric') and anchor ('center' / 'bottom').
+        center: optional (3,) input-frame point placed at the grid's anchor point: the grid centre
+            ((N-1)/2 on all axes) for anchor 'center', the centre of the grid floor
+            ((N-1)/2, (N-1)/2, -0.5) for 'bottom'. Overrides the heuristics below.
+        floor: optional height of the support plane along unit ``up`` (``up . p = floor``), used
+            as the object's bottom for anchor 'bottom' (e.g. ``-d`` of a table plane n.p + d = 0).
+
+    Placement heuristic (without ``center``): only the front of the object is seen, so the
+    horizontal footprint is assumed to be as deep (along the aligned x, away from the sensor) as
+    its largest observed horizontal extent: the estimated box spans x in
+    [x_min, x_min + max(ext_x, ext_y)], y over the observed y range, and z over the observed
+    z range (from ``floor`` for 'bottom' when given). That box's centre goes to the grid centre
+    ('center'), or its bottom-face centre to the grid floor centre ('bottom'). 'normalized' scales
+    the box's largest extent to ``spec.fill * N`` voxels (it equals the observed largest extent);
+    'metric' uses ``spec.voxel_size``. Points falling outside the grid are dropped.
+
+    Occupied voxels are those containing a point; the rest are free/unknown by ray casting from
+    the sensor (see :func:`label_free_unknown`).
+    """
+    pts = _check_points(points, min_points)
+    origin = _check_vec(sensor_origin, 'sensor_origin')
+    upv = _check_vec(up, 'up', unit=True)
+    if center is not None:
+        center = _check_vec(center, 'center')
+    if floor is not None and not np.isfinite(floor):
+        raise ValueError(f'floor must be finite, got {floor!r}')
+    n = spec.size
+    rot = aligned_frame(upv, origin, pts.mean(axis=0))
+    q = pts @ rot  # aligned-frame coordinates (same origin as the input frame)
+    lo, hi = q.min(axis=0), q.max(axis=0)
+    if floor is not None and spec.anchor == 'bottom':
+        lo[2] = min(lo[2], float(floor))
+    ext = hi - lo
+    depth = max(ext[0], ext[1])
+    box_lo = lo
+    box_hi = np.array([lo[0] + depth, hi[1], hi[2]])
+    if spec.units == 'normalized':
+        largest = float(max(depth, ext[1], ext[2]))
+        voxel = largest / (spec.fill * n) if largest > 0 else 1e-3
+    else:
+        voxel = float(spec.voxel_size)
+    c = (n - 1) / 2.0
+    if spec.anchor == 'center':
+        anchor_idx = np.array([c, c, c])
+        anchor_al = 0.5 * (box_lo + box_hi)
+    else:
+        anchor_idx = np.array([c, c, -0.5])
+        anchor_al = np.array([0.5 * (box_lo[0] + box_hi[0]), 0.5 * (box_lo[1] + box_hi[1]),
+                              box_lo[2]])
+    anchor_in = rot @ anchor_al if center is None else center
+    g2i = np.eye(4)
+    g2i[:3, :3] = voxel * rot
+    g2i[:3, 3] = anchor_in - voxel * rot @ anchor_idx
+    # points -> continuous grid index coords
+    g = (pts - g2i[:3, 3]) @ rot / voxel
+    tol = 1e-6
+    inside = np.all((g >= -0.5 - tol) & (g <= n - 0.5 + tol), axis=1)
+    idx = np.clip(np.floor(g[inside] + 0.5), 0, n - 1).astype(np.intp)
+    occ = np.zeros(spec.shape, dtype=bool)
+    occ[idx[:, 0], idx[:, 1], idx[:, 2]] = True
+    origin_grid = (origin - g2i[:3, 3]) @ rot / voxel
+    grid = label_free_unknown(occ, origin_grid, close_holes=close_holes)
+    return ViewGrid(grid=grid, grid_to_input=g2i, voxel_size_m=float(voxel),
+                    n_points=int(inside.sum()))
+
+
+def grid_to_points(grid_or_prob, grid_to_input, threshold: float = 0.5) -> tuple:
+    """Centres of voxels with value >= ``threshold``, in the input frame.
+
+    Args:
+        grid_or_prob: (N, N, N) labelled grid or occupancy probabilities, indexed [x, y, z].
+        grid_to_input: (4, 4) homogeneous grid index coords -> input frame.
+
+    Returns (points float32 (m, 3), values float32 (m,)).
+    """
+    g = np.asarray(grid_or_prob)
+    if g.ndim != 3:
+        raise ValueError(f'grid must be 3-D, got shape {g.shape}')
+    t = np.asarray(grid_to_input, dtype=np.float64)
+    if t.shape != (4, 4) or not np.isfinite(t).all():
+        raise ValueError('grid_to_input must be a finite (4, 4) matrix')
+    idx = np.argwhere(g >= threshold)
+    pts = idx @ t[:3, :3].T + t[:3, 3]
+    return pts.astype(np.float32), g[tuple(idx.T)].astype(np.float32)
