@@ -1,0 +1,875 @@
+"""rosbag2 tools for beo_ros, without ros2cli or rosbag2: replay, record and PCD-scene conversion.
+
+Bags are read and written with the pure-Python ``rosbags`` library (sqlite3 ``.db3`` and ``.mcap``
+storage, detected from the bag's metadata), and messages cross into rclpy as raw CDR bytes
+(``rclpy.serialization``) -- the same wire format, so nothing is converted on the way.
+
+Console entry points:
+
+``beo-replay BAG``
+    Plays the ``sensor_msgs/PointCloud2`` topics of a bag (all topics with ``--all-topics``, or the
+    ones named with ``--topics``) into the live graph, timed by the bag's receive timestamps divided
+    by ``--rate`` (``--rate 0``: as fast as possible). Header stamps are left as recorded. Reports
+    per-topic counts and the wall duration as a table (``--json`` for machine-readable output).
+    In-process use: :func:`replay`.
+
+``beo-record TOPIC[:TYPE] ... -o BAG``
+    Records topics to a new bag until SIGINT, ``--duration`` or ``--count``. Types are discovered
+    from the graph or given as ``TOPIC:pkg/msg/Type``. Message definitions of types that the
+    rosbags Jazzy typestore lacks (e.g. ``beo_interfaces/msg/ObjectEstimate``) are parsed from the
+    package's ``.msg`` files, so the bag is self-describing. In-process use: :func:`record`.
+
+``beo-pcd2bag SCENE.pcd ... -o BAG``
+    Labelled organized tabletop scenes (OSD format) -> one bag with, per scene (stamps spaced by
+    ``--period``, first at t0):
+
+    - ``--topic`` (default ``/beo/input``), ``sensor_msgs/PointCloud2``: one cloud per segmented
+      object (points x y z float32, frame ``camera``, sensor at the origin), all with the scene's
+      stamp; objects with fewer than ``--min-points`` points are skipped;
+    - ``/beo/up``, ``geometry_msgs/Vector3Stamped``: unit up vector (table normal pointing towards
+      the camera side), frame ``camera``, same stamp;
+    - ``/beo/table_plane``, ``std_msgs/Float64MultiArray``: plane ``[a, b, c, d]`` with
+      ``a x + b y + c z + d = 0``, ``(a, b, c)`` the up vector above, in the camera frame.
+
+    The receive timestamp of every message equals its header stamp.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import os
+import re
+import signal
+import sys
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+STORAGES = ('sqlite3', 'mcap')
+CLOUD_TYPE = 'sensor_msgs/msg/PointCloud2'
+UP_TOPIC = '/beo/up'
+PLANE_TOPIC = '/beo/table_plane'
+DEFAULT_INPUT_TOPIC = '/beo/input'
+DEFAULT_FRAME = 'camera'
+
+
+# ---------------------------------------------------------------------------------------------
+# message types
+# ---------------------------------------------------------------------------------------------
+
+def normalize_msgtype(name: str) -> str:
+    """'pkg/Type', 'pkg/msg/Type' or 'pkg.msg.Type' -> 'pkg/msg/Type'."""
+    parts = [p for p in re.split(r'[/.]', name.strip()) if p]
+    if len(parts) == 2:
+        parts = [parts[0], 'msg', parts[1]]
+    if len(parts) != 3 or parts[1] != 'msg':
+        raise ValueError(f'not a message type name: {name!r} (expected pkg/msg/Type)')
+    return '/'.join(parts)
+
+
+def import_msg_class(msgtype: str):
+    """The rclpy message class of 'pkg/msg/Type'."""
+    pkg, _, name = normalize_msgtype(msgtype).split('/')
+    if pkg == 'beo_interfaces':
+        from beo_ros.ros.env import ensure_ament_prefix
+        ensure_ament_prefix()
+    return getattr(importlib.import_module(f'{pkg}.msg'), name)
+
+
+def msgtype_of(msg) -> str:
+    """'pkg/msg/Type' of an rclpy message instance or class."""
+    cls = msg if isinstance(msg, type) else type(msg)
+    return f'{cls.__module__.split(".")[0]}/msg/{cls.__name__}'
+
+
+def _msg_search_dirs(pkg: str) -> list:
+    """Directories that may hold ``pkg``'s ``.msg`` files: ament prefixes, then this checkout."""
+    dirs = []
+    prefixes = os.environ.get('AMENT_PREFIX_PATH', '')
+    if pkg == 'beo_interfaces':
+        try:
+            from beo_ros.ros.env import ensure_ament_prefix
+            ensure_ament_prefix()
+            prefixes = os.environ.get('AMENT_PREFIX_PATH', '')
+        except Exception:  # noqa: BLE001 - the source checkout below still works
+            pass
+    for prefix in [p for p in prefixes.split(os.pathsep) if p] + [sys.prefix]:
+        dirs.append(Path(prefix) / 'share' / pkg / 'msg')
+    try:  # next to the python package (some wheels ship the definitions there)
+        mod = importlib.import_module(pkg)
+        for p in getattr(mod, '__path__', []):
+            dirs.append(Path(p) / 'msg')
+    except Exception:  # noqa: BLE001
+        pass
+    dirs.append(Path(__file__).resolve().parents[2] / pkg / 'msg')  # source checkout
+    return dirs
+
+
+def _find_msg_file(msgtype: str) -> Path | None:
+    pkg, _, name = msgtype.split('/')
+    for d in _msg_search_dirs(pkg):
+        f = d / f'{name}.msg'
+        if f.is_file():
+            return f
+    return None
+
+
+def _referenced_types(obj) -> set:
+    """Every 'pkg/msg/Type' string nested anywhere in a rosbags field definition."""
+    out = set()
+    if isinstance(obj, str):
+        if re.fullmatch(r'[A-Za-z0-9_]+/msg/[A-Za-z0-9_]+', obj):
+            out.add(obj)
+    elif isinstance(obj, (tuple, list)):
+        for x in obj:
+            out |= _referenced_types(x)
+    return out
+
+
+_TYPESTORE = None
+_TYPESTORE_LOCK = threading.Lock()
+
+
+def get_typestore(msgtypes=()):
+    """The rosbags ROS 2 Jazzy typestore with ``msgtypes`` (and what they use) registered.
+
+    Types missing from the stock store are parsed from their ``.msg`` files (ament share
+    directories, or this source checkout for ``beo_interfaces``). Raises ``KeyError`` if a
+    definition cannot be found.
+    """
+    global _TYPESTORE
+    from rosbags.typesys import Stores, get_types_from_msg
+    from rosbags.typesys import get_typestore as _get
+
+    with _TYPESTORE_LOCK:
+        if _TYPESTORE is None:
+            _TYPESTORE = _get(Stores.ROS2_JAZZY)
+        store = _TYPESTORE
+        todo = [normalize_msgtype(t) for t in msgtypes]
+        seen = set()
+        while todo:
+            t = todo.pop()
+            if t in seen:
+                continue
+            seen.add(t)
+            if t not in store.fielddefs:
+                f = _find_msg_file(t)
+                if f is None:
+                    raise KeyError(f'no message definition found for {t}')
+                store.register(get_types_from_msg(f.read_text(), t))
+            todo.extend(_referenced_types(store.fielddefs[t]) - seen)
+        return store
+
+
+# ---------------------------------------------------------------------------------------------
+# bag I/O
+# ---------------------------------------------------------------------------------------------
+
+def _storage_plugin(storage: str):
+    from rosbags.rosbag2 import StoragePlugin
+    if storage not in STORAGES:
+        raise ValueError(f'storage must be one of {STORAGES}, got {storage!r}')
+    return StoragePlugin.SQLITE3 if storage == 'sqlite3' else StoragePlugin.MCAP
+
+
+def detect_storage(bag_path) -> str:
+    """'sqlite3' or 'mcap' for a bag directory (from metadata.yaml / file suffix) or file."""
+    p = Path(bag_path)
+    meta = p / 'metadata.yaml'
+    if meta.is_file():
+        m = re.search(r'storage_identifier:\s*(\S+)', meta.read_text())
+        if m:
+            return m.group(1).strip('\'"')
+    files = [p] if p.is_file() else list(p.glob('*'))
+    for f in files:
+        if f.suffix == '.mcap':
+            return 'mcap'
+        if f.suffix == '.db3':
+            return 'sqlite3'
+    raise ValueError(f'{bag_path}: not a rosbag2 bag (no metadata.yaml, .db3 or .mcap)')
+
+
+def _qos_for_bag(reliable: bool = True, transient_local: bool = False):
+    """The offered QoS stored in the bag metadata (as ros2 bag writes it)."""
+    from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
+                                    QosReliability, QosTime)
+    zero = QosTime(sec=0, nsec=0)
+    return Qos(history=QosHistory.UNKNOWN, depth=0,
+               reliability=QosReliability.RELIABLE if reliable else QosReliability.BEST_EFFORT,
+               durability=QosDurability.TRANSIENT_LOCAL if transient_local
+               else QosDurability.VOLATILE,
+               deadline=zero, lifespan=zero, liveliness=QosLiveliness.AUTOMATIC,
+               liveliness_lease_duration=zero, avoid_ros_namespace_conventions=False)
+
+
+class BagWriter:
+    """Writes rclpy messages (or raw CDR bytes) to a new rosbag2 bag.
+
+    >>> with BagWriter(path, storage='mcap') as w:
+    ...     w.write('/beo/input', cloud_msg, stamp_ns)
+    """
+
+    def __init__(self, path, storage: str = 'sqlite3'):
+        from rosbags.rosbag2 import Writer
+        self.path = Path(path)
+        self.storage = storage
+        self._writer = Writer(self.path, version=Writer.VERSION_LATEST,
+                              storage_plugin=_storage_plugin(storage))
+        self._conns = {}
+        self.counts = {}
+
+    def open(self):
+        self._writer.open()
+        return self
+
+    def close(self):
+        self._writer.close()
+
+    def __enter__(self):
+        return self.open()
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def add_topic(self, topic: str, msgtype: str, *, reliable: bool = True,
+                  transient_local: bool = False):
+        msgtype = normalize_msgtype(msgtype)
+        if topic in self._conns:
+            if self._conns[topic].msgtype != msgtype:
+                raise ValueError(f'{topic}: already has type {self._conns[topic].msgtype}')
+            return self._conns[topic]
+        store = get_typestore([msgtype])
+        conn = self._writer.add_connection(
+            topic, msgtype, typestore=store,
+            offered_qos_profiles=[_qos_for_bag(reliable, transient_local)])
+        self._conns[topic] = conn
+        self.counts[topic] = 0
+        return conn
+
+    def write(self, topic: str, msg, stamp_ns: int, msgtype: str | None = None):
+        """Write one message; ``msg`` is an rclpy message, or CDR bytes with ``msgtype`` given."""
+        if isinstance(msg, (bytes, bytearray, memoryview)):
+            if msgtype is None and topic not in self._conns:
+                raise ValueError('raw bytes need msgtype for a new topic')
+            data = bytes(msg)
+        else:
+            from rclpy.serialization import serialize_message
+            msgtype = msgtype or msgtype_of(msg)
+            data = serialize_message(msg)
+        conn = self._conns.get(topic) or self.add_topic(topic, msgtype)
+        self._writer.write(conn, int(stamp_ns), data)
+        self.counts[topic] += 1
+
+
+def read_bag(bag_path, topics=None):
+    """Yield ``(topic, msgtype, timestamp_ns, raw_cdr_bytes)`` in timestamp order."""
+    from rosbags.rosbag2 import Reader
+    with Reader(Path(bag_path)) as reader:
+        conns = [c for c in reader.connections if topics is None or c.topic in topics]
+        if not conns:
+            return
+        for conn, t, raw in reader.messages(connections=conns):
+            yield conn.topic, conn.msgtype, t, bytes(raw)
+
+
+def read_messages(bag_path, topics=None):
+    """Yield ``(topic, rclpy_message, timestamp_ns)``, deserialized with rclpy."""
+    from rclpy.serialization import deserialize_message
+    classes = {}
+    for topic, msgtype, t, raw in read_bag(bag_path, topics):
+        if msgtype not in classes:
+            classes[msgtype] = import_msg_class(msgtype)
+        yield topic, deserialize_message(raw, classes[msgtype]), t
+
+
+def bag_info(bag_path) -> dict:
+    """Storage, duration and ``{topic: {'type', 'count'}}`` of a bag."""
+    from rosbags.rosbag2 import Reader
+    with Reader(Path(bag_path)) as reader:
+        topics = {}
+        for c in reader.connections:
+            d = topics.setdefault(c.topic, {'type': c.msgtype, 'count': 0})
+            d['count'] += c.msgcount
+        return {'path': str(bag_path), 'storage': detect_storage(bag_path),
+                'start_ns': reader.start_time if reader.message_count else 0,
+                'duration_s': reader.duration / 1e9 if reader.message_count else 0.0,
+                'message_count': reader.message_count, 'topics': topics}
+
+
+# ---------------------------------------------------------------------------------------------
+# replay
+# ---------------------------------------------------------------------------------------------
+
+@dataclass
+class TopicStats:
+    topic: str            # topic published on (after remapping)
+    bag_topic: str        # topic in the bag
+    msgtype: str
+    count: int = 0
+    bytes: int = 0
+    subscribers: int = 0  # matched subscriptions when replay ended
+
+
+@dataclass
+class ReplayStats:
+    """What :func:`replay` sent."""
+
+    bag: str
+    storage: str
+    rate: float
+    loops: int = 0                      # completed passes over the bag
+    messages: int = 0
+    bytes: int = 0
+    wall_s: float = 0.0                 # from the first to the last publish
+    bag_span_s: float = 0.0             # bag timestamp span of one pass
+    waited_s: float = 0.0               # time spent in --wait-subscribers
+    interrupted: bool = False
+    topics: dict = field(default_factory=dict)   # published topic -> TopicStats
+
+    @property
+    def messages_per_s(self) -> float:
+        return self.messages / self.wall_s if self.wall_s > 0 else float('inf')
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d['messages_per_s'] = round(self.messages_per_s, 3) if self.wall_s > 0 else None
+        d['mbytes_per_s'] = (round(self.bytes / 1e6 / self.wall_s, 3) if self.wall_s > 0
+                             else None)
+        return d
+
+    def table(self) -> str:
+        rows = [('topic', 'bag topic', 'type', 'count', 'MB', 'subs')]
+        for s in self.topics.values():
+            rows.append((s.topic, s.bag_topic, s.msgtype, str(s.count), f'{s.bytes / 1e6:.2f}',
+                         str(s.subscribers)))
+        widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+        lines = ['  '.join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
+        lines.insert(1, '  '.join('-' * w for w in widths))
+        rate = 'max' if self.rate == 0 else f'{self.rate:g}x'
+        lines.append(f'{self.messages} messages, {self.bytes / 1e6:.2f} MB in {self.wall_s:.3f} s '
+                     f'(bag span {self.bag_span_s:.3f} s, rate {rate}, {self.loops} pass(es)'
+                     f'{", interrupted" if self.interrupted else ""})')
+        return '\n'.join(lines)
+
+
+def parse_remaps(remaps) -> dict:
+    """['OLD:=NEW', ...] -> {OLD: NEW}."""
+    out = {}
+    for r in remaps or ():
+        if ':=' not in r:
+            raise ValueError(f'remap must be OLD:=NEW, got {r!r}')
+        old, new = r.split(':=', 1)
+        if not old or not new:
+            raise ValueError(f'remap must be OLD:=NEW, got {r!r}')
+        out[old] = new
+    return out
+
+
+def make_qos(kind: str = 'reliable', depth: int = 10):
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    if kind not in ('reliable', 'best_effort'):
+        raise ValueError(f'qos must be reliable or best_effort, got {kind!r}')
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+                      reliability=ReliabilityPolicy.RELIABLE if kind == 'reliable'
+                      else ReliabilityPolicy.BEST_EFFORT,
+                      durability=DurabilityPolicy.VOLATILE)
+
+
+def _sleep_until(deadline: float, stop: threading.Event | None) -> bool:
+    """Sleep until time.monotonic() >= deadline; False if ``stop`` got set first."""
+    while True:
+        left = deadline - time.monotonic()
+        if stop is not None and stop.is_set():
+            return False
+        if left <= 0:
+            return True
+        time.sleep(min(left, 0.05))
+
+
+def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
+           rate: float = 1.0, loop: bool = False, loops: int | None = None,
+           qos: str = 'reliable', depth: int = 10, wait_subscribers: int = 0,
+           wait_timeout: float = 10.0, stop: threading.Event | None = None,
+           on_publish=None) -> ReplayStats:
+    """Publish the messages of a bag with ``node``'s publishers; returns what was sent.
+
+    Args:
+        bag_path: rosbag2 directory (sqlite3 or mcap) or a single ``.db3``/``.mcap`` file.
+        node: an rclpy Node; it need not be spun (publishing does not need an executor).
+        topics: bag topics to play (any type); default: every PointCloud2 topic, or every topic
+            with ``all_topics``.
+        remap: ``{bag_topic: published_topic}`` or a list of ``'OLD:=NEW'`` strings.
+        rate: timing factor: a message is sent at ``t0 + (stamp - first_stamp) / rate``; ``0``
+            publishes as fast as possible.
+        loop: repeat until ``stop`` is set; ``loops`` caps the number of passes (default 1).
+        qos: 'reliable' or 'best_effort' (history keep-last ``depth``, volatile).
+        wait_subscribers: before sending, wait until every played topic has at least this many
+            matched subscriptions, at most ``wait_timeout`` s (then raise ``TimeoutError``).
+        stop: set it (e.g. from a signal handler) to end early; ``stats.interrupted`` is then True.
+        on_publish: ``callable(published_topic, raw_bytes, bag_stamp_ns)`` after every publish.
+    """
+    from rosbags.rosbag2 import Reader
+    if rate < 0:
+        raise ValueError(f'rate must be >= 0, got {rate}')
+    remap = parse_remaps(remap) if isinstance(remap, (list, tuple)) else dict(remap or {})
+    bag_path = Path(bag_path)
+    n_passes = loops if loops is not None else (None if loop else 1)
+    stats = ReplayStats(bag=str(bag_path), storage=detect_storage(bag_path), rate=float(rate))
+
+    with Reader(bag_path) as reader:
+        if topics:
+            wanted = set(topics)
+            missing = wanted - {c.topic for c in reader.connections}
+            if missing:
+                raise KeyError(f'topics not in bag {bag_path}: {sorted(missing)}')
+            conns = [c for c in reader.connections if c.topic in wanted]
+        elif all_topics:
+            conns = list(reader.connections)
+        else:
+            conns = [c for c in reader.connections if c.msgtype == CLOUD_TYPE]
+        pubs = {}
+        for c in conns:
+            out = remap.get(c.topic, c.topic)
+            if c.topic not in pubs:
+                pubs[c.topic] = node.create_publisher(import_msg_class(c.msgtype), out,
+                                                      make_qos(qos, depth))
+                stats.topics[out] = TopicStats(out, c.topic, c.msgtype)
+        if not conns:
+            return stats
+
+        if wait_subscribers > 0:
+            t_wait = time.monotonic()
+            deadline = t_wait + wait_timeout
+            while any(p.get_subscription_count() < wait_subscribers for p in pubs.values()):
+                if stop is not None and stop.is_set():
+                    stats.interrupted = True
+                    return stats
+                if time.monotonic() > deadline:
+                    short = {p.topic_name: p.get_subscription_count() for p in pubs.values()
+                             if p.get_subscription_count() < wait_subscribers}
+                    raise TimeoutError(f'waited {wait_timeout:g} s for {wait_subscribers} '
+                                       f'subscriber(s); matched: {short}')
+                time.sleep(0.02)
+            stats.waited_s = time.monotonic() - t_wait
+
+        t_first = t_last = None
+        while n_passes is None or stats.loops < n_passes:
+            t_start = None
+            bag_t0 = bag_t1 = None
+            for conn, t, raw in reader.messages(connections=conns):
+                if bag_t0 is None:
+                    bag_t0 = t
+                bag_t1 = t
+                if rate > 0:
+                    if t_start is None:
+                        t_start = time.monotonic()
+                    if not _sleep_until(t_start + (t - bag_t0) / 1e9 / rate, stop):
+                        stats.interrupted = True
+                        break
+                elif stop is not None and stop.is_set():
+                    stats.interrupted = True
+                    break
+                data = bytes(raw)
+                pubs[conn.topic].publish(data)
+                now = time.monotonic()
+                t_first = now if t_first is None else t_first
+                t_last = now
+                ts = stats.topics[remap.get(conn.topic, conn.topic)]
+                ts.count += 1
+                ts.bytes += len(data)
+                stats.messages += 1
+                stats.bytes += len(data)
+                if on_publish is not None:
+                    on_publish(ts.topic, data, t)
+            if bag_t0 is not None:
+                stats.bag_span_s = (bag_t1 - bag_t0) / 1e9
+            if stats.interrupted:
+                break
+            stats.loops += 1
+            if bag_t0 is None:  # nothing to play: don't spin forever with --loop
+                break
+        for s, p in zip(stats.topics.values(), pubs.values()):
+            s.subscribers = p.get_subscription_count()
+    stats.wall_s = (t_last - t_first) if t_first is not None else 0.0
+    return stats
+
+
+# ---------------------------------------------------------------------------------------------
+# record
+# ---------------------------------------------------------------------------------------------
+
+@dataclass
+class RecordStats:
+    bag: str
+    storage: str
+    messages: int = 0
+    wall_s: float = 0.0
+    stopped_by: str = ''
+    topics: dict = field(default_factory=dict)   # topic -> {'type', 'count'}
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def table(self) -> str:
+        rows = [('topic', 'type', 'count')] + [(t, d['type'], str(d['count']))
+                                               for t, d in self.topics.items()]
+        widths = [max(len(r[i]) for r in rows) for i in range(3)]
+        lines = ['  '.join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
+        lines.insert(1, '  '.join('-' * w for w in widths))
+        lines.append(f'{self.messages} messages in {self.wall_s:.3f} s -> {self.bag} '
+                     f'({self.storage}, stopped by {self.stopped_by})')
+        return '\n'.join(lines)
+
+
+def parse_topic_specs(specs) -> dict:
+    """['/a', '/b:pkg/msg/T', ...] -> {'/a': None, '/b': 'pkg/msg/T'}."""
+    out = {}
+    for s in specs:
+        topic, sep, typ = s.partition(':')
+        if not topic:
+            raise ValueError(f'bad topic spec {s!r}')
+        out[topic] = normalize_msgtype(typ) if sep else None
+    return out
+
+
+def resolve_topic_types(node, topics: dict, wait: float = 10.0,
+                        stop: threading.Event | None = None) -> dict:
+    """Fill in ``None`` types from the graph (waiting up to ``wait`` s); ``KeyError`` if not found."""
+    topics = {node.resolve_topic_name(t): typ for t, typ in topics.items()}
+    deadline = time.monotonic() + wait
+    while True:
+        missing = [t for t, typ in topics.items() if typ is None]
+        if not missing:
+            return topics
+        graph = dict(node.get_topic_names_and_types())
+        for t in missing:
+            if graph.get(t):
+                topics[t] = normalize_msgtype(graph[t][0])
+        if all(typ is not None for typ in topics.values()):
+            return topics
+        if time.monotonic() > deadline or (stop is not None and stop.is_set()):
+            raise KeyError('no publisher found within {:g} s for: {}'.format(
+                wait, ', '.join(t for t, typ in topics.items() if typ is None)))
+        time.sleep(0.05)
+
+
+def _subscription_qos(node, topic: str, depth: int = 100):
+    """Reliable/transient-local only if every current publisher offers it (as ros2 bag does)."""
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    infos = node.get_publishers_info_by_topic(topic)
+    reliable = bool(infos) and all(i.qos_profile.reliability == ReliabilityPolicy.RELIABLE
+                                   for i in infos)
+    latched = bool(infos) and all(i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+                                  for i in infos)
+    if not infos:
+        reliable = True
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+                      reliability=ReliabilityPolicy.RELIABLE if reliable
+                      else ReliabilityPolicy.BEST_EFFORT,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL if latched
+                      else DurabilityPolicy.VOLATILE)
+
+
+def record(node, bag_path, topics, *, storage: str = 'sqlite3', wait: float = 10.0,
+           duration: float | None = None, count: int | None = None,
+           stop: threading.Event | None = None, ready: threading.Event | None = None,
+           executor=None) -> RecordStats:
+    """Record ``topics`` to a new bag at ``bag_path``, spinning ``node`` in the calling thread.
+
+    Args:
+        node: rclpy Node that only this call spins (its context must be initialized).
+        topics: ``{topic: msgtype or None}`` / list of ``'TOPIC[:TYPE]'``; ``None`` types are
+            discovered from the graph within ``wait`` s.
+        duration: stop after this many seconds of recording; ``count``: after this many messages
+            in total; ``stop``: an Event to end the recording (e.g. set by SIGINT).
+        ready: set once all subscriptions exist (useful to start publishers in tests).
+    Messages are stored as received (raw CDR), stamped with the node clock at receipt.
+    """
+    from rclpy.executors import SingleThreadedExecutor
+    if isinstance(topics, (list, tuple)):
+        topics = parse_topic_specs(topics)
+    stop = stop or threading.Event()
+    topics = resolve_topic_types(node, dict(topics), wait, stop)
+    stats = RecordStats(bag=str(bag_path), storage=storage)
+    writer = BagWriter(bag_path, storage)
+    own_exec = executor is None
+    executor = executor or SingleThreadedExecutor(context=node.context)
+    subs = []
+    pending = []
+    lock = threading.Lock()
+
+    def callback_for(topic):
+        def cb(raw):
+            with lock:
+                pending.append((topic, node.get_clock().now().nanoseconds, bytes(raw)))
+        return cb
+
+    with writer:
+        for topic, typ in topics.items():
+            qos = _subscription_qos(node, topic)
+            writer.add_topic(topic, typ,
+                             reliable=qos.reliability.name == 'RELIABLE',
+                             transient_local=qos.durability.name == 'TRANSIENT_LOCAL')
+            subs.append(node.create_subscription(import_msg_class(typ), topic, callback_for(topic),
+                                                 qos, raw=True))
+            stats.topics[topic] = {'type': typ, 'count': 0}
+        if own_exec:
+            executor.add_node(node)
+        if ready is not None:
+            ready.set()
+        t0 = time.monotonic()
+        try:
+            while True:
+                executor.spin_once(timeout_sec=0.05)
+                with lock:
+                    batch, pending[:] = list(pending), []
+                for topic, t, raw in batch:
+                    if count is not None and stats.messages >= count:
+                        break
+                    writer.write(topic, raw, t, topics[topic])
+                    stats.topics[topic]['count'] += 1
+                    stats.messages += 1
+                if count is not None and stats.messages >= count:
+                    stats.stopped_by = 'count'
+                    break
+                if duration is not None and time.monotonic() - t0 >= duration:
+                    stats.stopped_by = 'duration'
+                    break
+                if stop.is_set():
+                    stats.stopped_by = 'stop'
+                    break
+        finally:
+            stats.wall_s = time.monotonic() - t0
+            for s in subs:
+                node.destroy_subscription(s)
+            if own_exec:
+                executor.remove_node(node)
+                executor.shutdown()
+    return stats
+
+
+# ---------------------------------------------------------------------------------------------
+# PCD scenes -> bag
+# ---------------------------------------------------------------------------------------------
+
+def _stamp(ns: int):
+    from builtin_interfaces.msg import Time
+    return Time(sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
+
+
+def scene_messages(scene_path, *, frame_id: str = DEFAULT_FRAME, min_points: int = 50):
+    """Segment one labelled scene: ``(clouds [(object_id, (n,3) float32)], up (3,), plane (4,))``."""
+    import numpy as np
+
+    from beo_ros.core import scans
+    scene = scans.load_scene(scene_path)
+    objects = scans.segment_objects(scene, min_points=min_points)
+    plane = np.asarray(scans.fit_table_plane(scene), dtype=np.float64).ravel()
+    if plane.shape[0] != 4:
+        raise ValueError(f'fit_table_plane returned {plane!r}, expected (a, b, c, d)')
+    plane = plane / np.linalg.norm(plane[:3])
+    return objects, plane[:3].copy(), plane
+
+
+def pcd_to_bag(scenes, bag_path, *, storage: str = 'sqlite3', topic: str = DEFAULT_INPUT_TOPIC,
+               frame_id: str = DEFAULT_FRAME, period: float = 1.0, min_points: int = 50,
+               t0_ns: int = 1_700_000_000_000_000_000) -> dict:
+    """Write the segmented objects of labelled PCD scenes to a bag (see the module docstring).
+
+    Returns ``{'bag', 'storage', 'scenes': [{'scene', 'stamp_ns', 'objects': [{'id', 'points',
+    'centroid'}], 'up', 'plane'}], 'topics': {topic: count}}``.
+    """
+    import numpy as np
+    from geometry_msgs.msg import Vector3, Vector3Stamped
+    from std_msgs.msg import Float64MultiArray, Header
+
+    from beo_ros.ros.conversions import xyz_to_cloud
+    summary = {'bag': str(bag_path), 'storage': storage, 'scenes': [], 'topics': {}}
+    with BagWriter(bag_path, storage) as w:
+        w.add_topic(topic, CLOUD_TYPE)
+        w.add_topic(UP_TOPIC, 'geometry_msgs/msg/Vector3Stamped')
+        w.add_topic(PLANE_TOPIC, 'std_msgs/msg/Float64MultiArray')
+        for i, scene in enumerate(scenes):
+            objects, up, plane = scene_messages(scene, frame_id=frame_id, min_points=min_points)
+            ns = int(t0_ns + round(i * period * 1e9))
+            header = Header(stamp=_stamp(ns), frame_id=frame_id)
+            entry = {'scene': str(scene), 'stamp_ns': ns, 'objects': [],
+                     'up': up.tolist(), 'plane': plane.tolist()}
+            for obj_id, pts in objects:
+                pts = np.asarray(pts, dtype=np.float32)
+                w.write(topic, xyz_to_cloud(pts, header), ns)
+                entry['objects'].append({'id': int(obj_id), 'points': int(len(pts)),
+                                         'centroid': pts.mean(axis=0).tolist()})
+            w.write(UP_TOPIC, Vector3Stamped(header=header, vector=Vector3(
+                x=float(up[0]), y=float(up[1]), z=float(up[2]))), ns)
+            w.write(PLANE_TOPIC, Float64MultiArray(data=[float(v) for v in plane]), ns)
+            summary['scenes'].append(entry)
+        summary['topics'] = dict(w.counts)
+    return summary
+
+
+# ---------------------------------------------------------------------------------------------
+# command line
+# ---------------------------------------------------------------------------------------------
+
+def _install_sigint(stop: threading.Event):
+    def handler(signum, frame):  # noqa: ARG001
+        if stop.is_set():  # second Ctrl-C: give up immediately
+            raise KeyboardInterrupt
+        stop.set()
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+
+
+def _ros_setup():
+    os.environ.setdefault('RCUTILS_LOGGING_BUFFERED_STREAM', '1')
+    try:
+        from beo_ros.ros.env import ensure_ament_prefix
+        ensure_ament_prefix()
+    except Exception:  # noqa: BLE001 - only needed for beo_interfaces types
+        pass
+
+
+def replay_main(argv=None) -> int:
+    p = argparse.ArgumentParser(
+        prog='beo-replay', description='Play the PointCloud2 topics of a rosbag2 bag (sqlite3 or '
+        'mcap) into the ROS 2 graph, timed by the bag timestamps.')
+    p.add_argument('bag', help='bag directory (or a single .db3 / .mcap file)')
+    p.add_argument('-r', '--remap', action='append', default=[], metavar='OLD:=NEW',
+                   help='publish bag topic OLD on NEW (repeatable)')
+    p.add_argument('--rate', type=float, default=1.0,
+                   help='speed factor on the bag timing; 0 = as fast as possible (default 1)')
+    p.add_argument('--loop', action='store_true', help='replay until interrupted')
+    p.add_argument('--topics', nargs='+', metavar='TOPIC',
+                   help='bag topics to play, any type (default: all PointCloud2 topics)')
+    p.add_argument('--all-topics', action='store_true', help='play every topic of the bag')
+    p.add_argument('--qos', choices=('reliable', 'best_effort'), default='reliable',
+                   help='publisher reliability (default reliable; keep-last, volatile)')
+    p.add_argument('--depth', type=int, default=10, help='publisher history depth (default 10)')
+    p.add_argument('--wait-subscribers', type=int, default=0, metavar='N',
+                   help='wait until every played topic has N matched subscribers')
+    p.add_argument('--wait-timeout', type=float, default=10.0, metavar='S',
+                   help='give up waiting for subscribers after S seconds (default 10; exit 3)')
+    p.add_argument('--node-name', default='beo_replay')
+    p.add_argument('--json', action='store_true', help='print the report as JSON')
+    args = p.parse_args(argv)
+    if args.rate < 0:
+        p.error('--rate must be >= 0')
+    try:
+        remap = parse_remaps(args.remap)
+    except ValueError as e:
+        p.error(str(e))
+    if not Path(args.bag).exists():
+        p.error(f'no such bag: {args.bag}')
+    _ros_setup()
+    import rclpy
+    stop = threading.Event()
+    rclpy.init(args=None, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+    node = rclpy.create_node(args.node_name)
+    _install_sigint(stop)
+    code = 0
+    try:
+        stats = replay(args.bag, node, topics=args.topics, all_topics=args.all_topics,
+                       remap=remap, rate=args.rate, loop=args.loop, qos=args.qos,
+                       depth=args.depth, wait_subscribers=args.wait_subscribers,
+                       wait_timeout=args.wait_timeout, stop=stop)
+        time.sleep(0.2)  # let reliable transports drain before the publishers go away
+        print(json.dumps(stats.to_dict(), indent=2) if args.json else stats.table())
+        if stats.messages == 0 and not stats.interrupted:
+            print('beo-replay: nothing to play (no matching topics)', file=sys.stderr)
+            code = 1
+    except TimeoutError as e:
+        print(f'beo-replay: {e}', file=sys.stderr)
+        code = 3
+    except KeyError as e:
+        print(f'beo-replay: {e.args[0]}', file=sys.stderr)
+        code = 2
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+def record_main(argv=None) -> int:
+    p = argparse.ArgumentParser(
+        prog='beo-record', description='Record ROS 2 topics to a new rosbag2 bag (sqlite3 or '
+        'mcap) until Ctrl-C, --duration or --count.')
+    p.add_argument('topics', nargs='+', metavar='TOPIC[:TYPE]',
+                   help='topic, optionally with its type (e.g. /beo/estimates:'
+                   'beo_interfaces/msg/ObjectEstimate); otherwise discovered from the graph')
+    p.add_argument('-o', '--output', required=True, metavar='BAG', help='new bag directory')
+    p.add_argument('--storage', choices=STORAGES, default='sqlite3')
+    p.add_argument('--wait', type=float, default=10.0, metavar='S',
+                   help='seconds to wait for publishers of untyped topics (default 10; exit 2)')
+    p.add_argument('--duration', type=float, metavar='S', help='stop after S seconds')
+    p.add_argument('--count', type=int, metavar='N', help='stop after N messages (all topics)')
+    p.add_argument('--node-name', default='beo_record')
+    p.add_argument('--json', action='store_true', help='print the report as JSON')
+    args = p.parse_args(argv)
+    try:
+        specs = parse_topic_specs(args.topics)
+    except ValueError as e:
+        p.error(str(e))
+    if Path(args.output).exists():
+        p.error(f'{args.output} exists already')
+    _ros_setup()
+    import rclpy
+    stop = threading.Event()
+    rclpy.init(args=None, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+    node = rclpy.create_node(args.node_name)
+    _install_sigint(stop)
+    code = 0
+    try:
+        stats = record(node, args.output, specs, storage=args.storage, wait=args.wait,
+                       duration=args.duration, count=args.count, stop=stop)
+        print(json.dumps(stats.to_dict(), indent=2) if args.json else stats.table())
+    except KeyError as e:
+        print(f'beo-record: {e.args[0]}', file=sys.stderr)
+        code = 2
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+def pcd2bag_main(argv=None) -> int:
+    p = argparse.ArgumentParser(
+        prog='beo-pcd2bag', description='Labelled organized PCD scenes (OSD format) -> rosbag2 bag '
+        f'with one PointCloud2 per segmented object, the table-implied up vector on {UP_TOPIC} '
+        f'(geometry_msgs/Vector3Stamped) and the table plane a,b,c,d on {PLANE_TOPIC} '
+        '(std_msgs/Float64MultiArray), all in the camera frame.')
+    p.add_argument('scenes', nargs='+', metavar='SCENE.pcd')
+    p.add_argument('-o', '--output', required=True, metavar='BAG', help='new bag directory')
+    p.add_argument('--storage', choices=STORAGES, default='sqlite3')
+    p.add_argument('--topic', default=DEFAULT_INPUT_TOPIC,
+                   help=f'object cloud topic (default {DEFAULT_INPUT_TOPIC})')
+    p.add_argument('--frame', default=DEFAULT_FRAME, help=f'frame id (default {DEFAULT_FRAME})')
+    p.add_argument('--period', type=float, default=1.0, metavar='S',
+                   help='seconds between scenes (default 1)')
+    p.add_argument('--min-points', type=int, default=50,
+                   help='skip objects with fewer points (default 50)')
+    p.add_argument('--json', action='store_true', help='print the summary as JSON')
+    args = p.parse_args(argv)
+    missing = [s for s in args.scenes if not Path(s).is_file()]
+    if missing:
+        p.error(f'no such file: {", ".join(missing)}')
+    if Path(args.output).exists():
+        p.error(f'{args.output} exists already')
+    summary = pcd_to_bag(args.scenes, args.output, storage=args.storage, topic=args.topic,
+                         frame_id=args.frame, period=args.period, min_points=args.min_points)
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        for s in summary['scenes']:
+            up = ', '.join(f'{v:+.3f}' for v in s['up'])
+            print(f'{Path(s["scene"]).name}: {len(s["objects"])} object(s) '
+                  f'({", ".join(str(o["points"]) for o in s["objects"])} points), up ({up})')
+        print(' '.join(f'{t}: {n}' for t, n in summary['topics'].items()) + f' -> {args.output} '
+              f'({args.storage})')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(replay_main())
