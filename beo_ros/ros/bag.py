@@ -659,18 +659,22 @@ def _stamp(ns: int):
     return Time(sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
 
 
-def scene_messages(scene_path, *, frame_id: str = DEFAULT_FRAME, min_points: int = 50):
-    """Segment one labelled scene: ``(clouds [(object_id, (n,3) float32)], up (3,), plane (4,))``."""
+def scene_messages(scene_path, *, min_points: int = 50):
+    """Segment one labelled scene -> ``(objects [(object_id, (n,3) points)], up (3,), plane (4,))``.
+
+    Objects come from the OSD labels (``scans.segment_objects``), the up vector from a RANSAC fit
+    of the table points (``scans.fit_table_plane``), oriented towards the sensor.
+    """
     import numpy as np
 
     from beo_ros.core import scans
     scene = scans.load_scene(scene_path)
-    objects = scans.segment_objects(scene, min_points=min_points)
-    plane = np.asarray(scans.fit_table_plane(scene), dtype=np.float64).ravel()
-    if plane.shape[0] != 4:
-        raise ValueError(f'fit_table_plane returned {plane!r}, expected (a, b, c, d)')
-    plane = plane / np.linalg.norm(plane[:3])
-    return objects, plane[:3].copy(), plane
+    objects = sorted(scans.segment_objects(scene, min_points=min_points).items())
+    up, d = scans.fit_table_plane(scene)
+    up = np.asarray(up, dtype=np.float64)
+    norm = np.linalg.norm(up)
+    up, d = up / norm, float(d) / norm
+    return objects, up, np.array([up[0], up[1], up[2], d])
 
 
 def pcd_to_bag(scenes, bag_path, *, storage: str = 'sqlite3', topic: str = DEFAULT_INPUT_TOPIC,
@@ -692,7 +696,7 @@ def pcd_to_bag(scenes, bag_path, *, storage: str = 'sqlite3', topic: str = DEFAU
         w.add_topic(UP_TOPIC, 'geometry_msgs/msg/Vector3Stamped')
         w.add_topic(PLANE_TOPIC, 'std_msgs/msg/Float64MultiArray')
         for i, scene in enumerate(scenes):
-            objects, up, plane = scene_messages(scene, frame_id=frame_id, min_points=min_points)
+            objects, up, plane = scene_messages(scene, min_points=min_points)
             ns = int(t0_ns + round(i * period * 1e9))
             header = Header(stamp=_stamp(ns), frame_id=frame_id)
             entry = {'scene': str(scene), 'stamp_ns': ns, 'objects': [],
