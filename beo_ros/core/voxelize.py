@@ -123,7 +123,43 @@ def cube_surface(blocked: np.ndarray) -> tuple:
     return (np.concatenate(verts).astype(np.float32), np.concatenate(tris).astype(np.uint32))
 
 
-def label_free_unknown(occupied: np.ndarray, origin_grid, close_holes: bool = True) -> np.ndarray:
+def cube_soup(voxels: np.ndarray) -> tuple:
+    """All 12 triangles of each voxel cube at int (k, 3) indices (no face culling).
+
+    Returns (vertices float32 (24k, 3), triangles uint32 (12k, 3)) in grid index coords.
+    """
+    corners = np.concatenate([c for _, _, c in _FACES])  # (24, 3), 4 per face
+    v = (voxels[:, None, :] + corners[None]).reshape(-1, 3)
+    q = 4 * np.arange(6 * len(voxels))[:, None]
+    t = np.concatenate([q + [0, 1, 2], q + [0, 2, 3]], axis=0)
+    return v.astype(np.float32), t.astype(np.uint32)
+
+
+def _relevant_occluders(occ_pts_grid: np.ndarray, origin_grid: np.ndarray, n: int) -> np.ndarray:
+    """Unique voxel indices of occluder points that may lie between the sensor and the grid."""
+    idx = np.floor(occ_pts_grid + 0.5).astype(np.int64)
+    lo = idx.min(axis=0)
+    span = idx.max(axis=0) - lo + 1
+    key = np.unique(((idx[:, 0] - lo[0]) * span[1] + idx[:, 1] - lo[1]) * span[2] + idx[:, 2] - lo[2])
+    idx = np.stack(np.unravel_index(key, tuple(span)), axis=1) + lo
+    c = np.full(3, (n - 1) / 2.0)
+    radius = np.sqrt(3) * n / 2.0 + 1.0  # bounding sphere of the grid (+ one voxel)
+    to_c = c - origin_grid
+    dc = np.linalg.norm(to_c)
+    d = idx - origin_grid
+    dist = np.linalg.norm(d, axis=1)
+    keep = dist <= dc + radius
+    if dc > radius:  # sensor outside the sphere: keep voxels within the sphere's view cone
+        # a voxel cube (half-diagonal sqrt(3)/2) at distance r subtends arcsin(0.87 / r)
+        own = np.arcsin(np.minimum(1.0, np.sqrt(3) / 2 / np.maximum(dist, 1e-9)))
+        half = np.arcsin(radius / dc) + own
+        cosang = (d @ to_c) / np.maximum(dist * dc, 1e-12)
+        keep &= cosang >= np.cos(np.minimum(half, np.pi))
+    return idx[keep]
+
+
+def label_free_unknown(occupied: np.ndarray, origin_grid, close_holes: bool = True,
+                       occluder_voxels=None) -> np.ndarray:
     """Label a grid from its occupied voxels and the sensor position by ray casting.
 
     Args:
@@ -131,6 +167,8 @@ def label_free_unknown(occupied: np.ndarray, origin_grid, close_holes: bool = Tr
         origin_grid: (3,) sensor position in grid index coordinates (may be inside the grid).
         close_holes: block rays with a morphological closing of ``occupied`` (fills one-voxel
             holes of sparse surfaces so they do not leak free space behind the object).
+        occluder_voxels: optional int (k, 3) grid indices (may lie outside the grid) of other
+            geometry that blocks rays (e.g. neighbouring objects) but is not this object.
 
     Returns int8 (N, N, N): 1 occupied; -1 where the segment from the sensor to the voxel centre
     crosses an occupied cube first (occluded); 0 otherwise (in front of the surface or outside
@@ -140,12 +178,16 @@ def label_free_unknown(occupied: np.ndarray, origin_grid, close_holes: bool = Tr
     o = np.asarray(origin_grid, dtype=np.float64)
     blocked = occupied.copy()
     if close_holes and occupied.any():
-        blocked |= ndimage.binary_closing(np.pad(occupied, 2), np.ones((3, 3, 3), bool))[2:-2, 2:-2, 2:-2]
+        closed = ndimage.binary_closing(np.pad(occupied, 2), np.ones((3, 3, 3), bool))
+        blocked |= closed[2:-2, 2:-2, 2:-2]
     sensor_voxel = np.floor(o + 0.5).astype(int)
     if np.all((sensor_voxel >= 0) & (sensor_voxel < n)):
         blocked[tuple(sensor_voxel)] = False  # never block the sensor's own voxel
     out = np.full(occupied.shape, FREE, dtype=np.int8)
     verts, tris = cube_surface(blocked)
+    if occluder_voxels is not None and len(occluder_voxels):
+        ov, ot = cube_soup(np.asarray(occluder_voxels))
+        verts, tris = np.concatenate([verts, ov]), np.concatenate([tris, ot + len(verts)])
     if len(tris):
         scene = o3d.t.geometry.RaycastingScene()
         scene.add_triangles(o3d.core.Tensor(verts), o3d.core.Tensor(tris))
@@ -167,7 +209,8 @@ def label_free_unknown(occupied: np.ndarray, origin_grid, close_holes: bool = Tr
 # ----------------------------------------------------------------------------------- front end
 
 def voxelize_view(points, sensor_origin, up, spec: GridSpec, center=None, floor=None,
-                  min_points: int = MIN_POINTS, close_holes: bool = True) -> ViewGrid:
+                  occluders=None, min_points: int = MIN_POINTS,
+                  close_holes: bool = True) -> ViewGrid:
     """Voxelize one segmented partial view into a labelled, gravity-aligned grid.
 
     Args:
@@ -180,6 +223,9 @@ def voxelize_view(points, sensor_origin, up, spec: GridSpec, center=None, floor=
             ((N-1)/2, (N-1)/2, -0.5) for 'bottom'. Overrides the heuristics below.
         floor: optional height of the support plane along unit ``up`` (``up . p = floor``), used
             as the object's bottom for anchor 'bottom' (e.g. ``-d`` of a table plane n.p + d = 0).
+        occluders: optional (m, 3) input-frame points of *other* geometry (neighbouring objects,
+            not the support plane) that can hide parts of the grid from the sensor; voxels behind
+            (or inside) them become unknown instead of free. Non-finite rows are ignored.
 
     Placement heuristic (without ``center``): only the front of the object is seen, so the
     horizontal footprint is assumed to be as deep (along the aligned x, away from the sensor) as
@@ -235,7 +281,13 @@ def voxelize_view(points, sensor_origin, up, spec: GridSpec, center=None, floor=
     occ = np.zeros(spec.shape, dtype=bool)
     occ[idx[:, 0], idx[:, 1], idx[:, 2]] = True
     origin_grid = (origin - g2i[:3, 3]) @ rot / voxel
-    grid = label_free_unknown(occ, origin_grid, close_holes=close_holes)
+    occ_vox = None
+    if occluders is not None:
+        o_pts = np.asarray(occluders, dtype=np.float64).reshape(-1, 3)
+        o_pts = o_pts[np.isfinite(o_pts).all(axis=1)]
+        if len(o_pts):
+            occ_vox = _relevant_occluders((o_pts - g2i[:3, 3]) @ rot / voxel, origin_grid, n)
+    grid = label_free_unknown(occ, origin_grid, close_holes=close_holes, occluder_voxels=occ_vox)
     return ViewGrid(grid=grid, grid_to_input=g2i, voxel_size_m=float(voxel),
                     n_points=int(inside.sum()))
 

@@ -1,0 +1,87 @@
+"""Meshes -> solid voxel grids in the ModelNet training convention.
+
+Convention (as the shipped binvox ModelNet10 grids): the mesh's axis-aligned bounding box keeps
+its aspect ratio, its largest extent spans all N voxels (continuous grid coords [-0.5, N - 0.5]),
+it is centred at (N-1)/2 on every axis, z up (mesh +z -> grid k), and the interior of closed
+surfaces is filled.
+"""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import trimesh
+from scipy import ndimage
+
+MESH_EXTENSIONS = ('.off', '.obj', '.stl', '.ply')
+
+
+class MeshError(ValueError):
+    """A mesh file is missing, unreadable or has no triangles."""
+
+
+def load_mesh(path) -> trimesh.Trimesh:
+    """Load an OFF/OBJ/STL/PLY file as one triangle mesh (scenes are concatenated).
+
+    Raises :class:`MeshError` (a ValueError; FileNotFoundError-like message for missing files).
+    """
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise MeshError(f'{path}: no such mesh file')
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in MESH_EXTENSIONS:
+        raise MeshError(f'{path}: unsupported mesh format {ext!r} (expected {MESH_EXTENSIONS})')
+    try:
+        mesh = trimesh.load(path, force='mesh', process=False)
+    except Exception as exc:  # trimesh raises many types on corrupt input
+        raise MeshError(f'{path}: cannot parse mesh ({type(exc).__name__}: {exc})') from exc
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise MeshError(f'{path}: mesh has no triangles')
+    v = np.asarray(mesh.vertices)
+    if not np.isfinite(v).all():
+        raise MeshError(f'{path}: mesh has non-finite vertices')
+    if np.ptp(v, axis=0).max() <= 0:
+        raise MeshError(f'{path}: mesh is degenerate (zero extent)')
+    return mesh
+
+
+def mesh_to_grid_transform(mesh, size: int = 32) -> np.ndarray:
+    """float64 (4, 4) mapping mesh coordinates to continuous grid index coordinates."""
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    largest = float((hi - lo).max())
+    if not np.isfinite(largest) or largest <= 0:
+        raise MeshError('mesh has zero or non-finite extent')
+    s = size / largest
+    t = np.eye(4)
+    t[:3, :3] *= s
+    t[:3, 3] = (size - 1) / 2.0 - s * 0.5 * (lo + hi)
+    return t
+
+
+def voxelize_mesh(mesh, size: int = 32, fill: bool = True, density: float = 32.0,
+                  seed: int = 0) -> np.ndarray:
+    """Solid bool (size, size, size) occupancy of ``mesh`` indexed [x, y, z].
+
+    The surface is sampled (``density`` points per square voxel, plus all vertices; fixed
+    ``seed``) and the samples are quantised to voxels; with ``fill`` enclosed cavities are filled
+    (6-connected background), like binvox. Open meshes stay hollow where their surface does not
+    enclose a volume. (Subdividing to half-voxel edges gives the same grid within ~1% IoU but is
+    ~30x slower on ModelNet meshes.)
+    """
+    if isinstance(mesh, (str, os.PathLike)):
+        mesh = load_mesh(mesh)
+    if int(size) != size or size < 2:
+        raise ValueError(f'size must be an integer >= 2, got {size!r}')
+    t = mesh_to_grid_transform(mesh, size)
+    v = np.asarray(mesh.vertices, dtype=np.float64) @ t[:3, :3].T + t[:3, 3]
+    scaled = trimesh.Trimesh(v, np.asarray(mesh.faces), process=False)
+    count = int(min(max(scaled.area * density, 1000), 4_000_000))
+    samples, _ = trimesh.sample.sample_surface(scaled, count, seed=seed)
+    pts = np.concatenate([samples, v])
+    idx = np.clip(np.floor(pts + 0.5), 0, size - 1).astype(np.intp)
+    grid = np.zeros((size,) * 3, dtype=bool)
+    grid[idx[:, 0], idx[:, 1], idx[:, 2]] = True
+    if fill:
+        grid = ndimage.binary_fill_holes(grid)
+    return grid

@@ -1,0 +1,160 @@
+"""Tabletop scenes (OSD-style organized PCD scans): load, segment objects, fit the table, voxelize.
+
+Camera frame (PCL/Kinect optical): x right, y down, z forward, sensor at the origin, metres.
+OSD labels: 0 invalid, 1-9 the supporting table, >= 20 object parts with object id = label // 10
+(so the first object has id 2).
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+
+from .grid import GridSpec
+from .pcd import PCDError, read_pcd
+from .voxelize import MIN_POINTS, ViewGrid, voxelize_view
+
+TABLE_LABELS = (1, 9)  # inclusive range
+FIRST_OBJECT_LABEL = 20
+TABLETOP_SPEC = GridSpec(size=32, units='metric', voxel_size=0.5 / 32, anchor='bottom')
+
+
+@dataclass
+class Scene:
+    """One organized scan.
+
+    Attributes:
+        points: float32 (H*W, 3) camera frame, NaN where invalid (row-major, index = r * W + c).
+        labels: uint32 (H*W,), 0 where the file has no label field.
+        rgb: uint8 (H*W, 3), zeros where the file has no colour.
+        width, height: W, H.
+        path: file it came from ('' if built in memory).
+    """
+
+    points: np.ndarray
+    labels: np.ndarray
+    rgb: np.ndarray
+    width: int
+    height: int
+    path: str = ''
+
+
+def load_scene(path) -> Scene:
+    """Read an OSD-style PCD (fields x y z, optional label, rgba/rgb). Raises PCDError."""
+    pcd = read_pcd(path)
+    if not all(k in pcd for k in 'xyz'):
+        raise PCDError(f'{path}: no x/y/z fields')
+    n = pcd.n_points
+    pts = pcd.xyz().astype(np.float32)
+    labels = pcd['label'].astype(np.uint32).reshape(n) if 'label' in pcd else np.zeros(n, np.uint32)
+    rgb = np.zeros((n, 3), np.uint8)
+    for key in ('rgba', 'rgb'):
+        if key in pcd:
+            v = pcd[key].reshape(n)
+            v = v.view(np.uint32) if v.dtype.itemsize == 4 else v.astype(np.uint32)
+            rgb = np.stack([(v >> 16) & 255, (v >> 8) & 255, v & 255], axis=1).astype(np.uint8)
+            break
+    return Scene(points=pts, labels=labels, rgb=rgb, width=pcd.width, height=pcd.height,
+                 path=os.fspath(path))
+
+
+def _finite(points) -> np.ndarray:
+    return np.isfinite(points).all(axis=1)
+
+
+def segment_objects(scene: Scene, min_points: int = MIN_POINTS) -> dict:
+    """Object id (label // 10) -> float64 (n, 3) finite camera-frame points, ids ascending.
+
+    Objects with fewer than ``min_points`` finite points are left out.
+    """
+    ok = _finite(scene.points) & (scene.labels >= FIRST_OBJECT_LABEL)
+    ids = scene.labels[ok] // 10
+    pts = scene.points[ok].astype(np.float64)
+    out = {}
+    for oid in np.unique(ids):
+        sel = pts[ids == oid]
+        if len(sel) >= min_points:
+            out[int(oid)] = sel
+    return out
+
+
+def fit_table_plane(scene_or_points, labels=None, distance_threshold: float = 0.01,
+                    iterations: int = 500, sensor_origin=(0.0, 0.0, 0.0)) -> tuple:
+    """Fit the support plane by RANSAC (open3d ``segment_plane``) + least-squares refinement.
+
+    Args:
+        scene_or_points: a :class:`Scene`, or (n, 3) points (camera frame).
+        labels: (n,) labels for raw points; table points are labels 1-9. With no table labels
+            (or no labels) all finite points are used and the dominant plane is taken.
+
+    Returns (up float64 (3,), d float): unit plane normal oriented toward the sensor side and
+    offset with ``up . p + d = 0`` on the plane; ``up . sensor_origin + d > 0`` is the sensor's
+    height above the table.
+    """
+    if isinstance(scene_or_points, Scene):
+        pts, labels = scene_or_points.points, scene_or_points.labels
+    else:
+        pts = np.asarray(scene_or_points)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise ValueError(f'points must be (n, 3), got shape {pts.shape}')
+    pts = np.asarray(pts, dtype=np.float64)
+    ok = _finite(pts)
+    if labels is not None:
+        labels = np.asarray(labels).reshape(-1)
+        table = ok & (labels >= TABLE_LABELS[0]) & (labels <= TABLE_LABELS[1])
+        if table.sum() >= 3:
+            ok = table
+    sel = pts[ok]
+    if len(sel) < 3:
+        raise ValueError(f'need at least 3 finite points to fit a plane, got {len(sel)}')
+    o3d.utility.random.seed(0)
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sel))
+    _, inliers = cloud.segment_plane(distance_threshold, 3, iterations)
+    inl = sel[np.asarray(inliers)]
+    centroid = inl.mean(axis=0)
+    normal = np.linalg.svd(inl - centroid, full_matrices=False)[2][2]
+    d = -float(normal @ centroid)
+    if normal @ np.asarray(sensor_origin, float) + d < 0:
+        normal, d = -normal, -d
+    return normal, d
+
+
+def object_view(points, up, plane_d: float, spec: GridSpec = TABLETOP_SPEC,
+                sensor_origin=(0.0, 0.0, 0.0), occluders=None, stacked_tol: float = 0.03,
+                **kw) -> ViewGrid:
+    """Voxelize one tabletop object standing on the table plane ``up . p + plane_d = 0``.
+
+    Args:
+        points: (n, 3) object points, camera frame.
+        up, plane_d: the table plane as returned by :func:`fit_table_plane`
+            (``object_view(pts, *plane)``).
+        occluders: optional (m, 3) points of the *other* objects (see :func:`scene_occluders`);
+            voxels they hide from the camera become unknown.
+        stacked_tol: metres; when the object's lowest point is higher than this above the table
+            (it stands on another object), its own lowest point is the grid floor instead.
+        kw: passed to :func:`~beo_ros.core.voxelize.voxelize_view`.
+
+    The grid floor is the table plane (for anchor 'bottom'); x, y follow the
+    :func:`~beo_ros.core.voxelize.voxelize_view` placement heuristic; free/unknown come from ray
+    casting from ``sensor_origin`` (the camera).
+    """
+    up = np.asarray(up, dtype=np.float64)
+    norm = np.linalg.norm(up)
+    if up.shape != (3,) or not np.isfinite(up).all() or norm < 1e-9:
+        raise ValueError(f'up must be a finite non-zero 3-vector, got {up!r}')
+    floor = -float(plane_d) / norm  # height of the plane along the unit up vector
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim == 2 and pts.shape[1] == 3:
+        h = pts[np.isfinite(pts).all(axis=1)] @ (up / norm)
+        if len(h) and h.min() - floor > stacked_tol:
+            floor = None
+    return voxelize_view(points, sensor_origin, up, spec, floor=floor, occluders=occluders, **kw)
+
+
+def scene_occluders(scene: Scene, object_id: int) -> np.ndarray:
+    """float64 (m, 3) finite points of every other object (labels >= 20, id != ``object_id``)."""
+    ok = _finite(scene.points) & (scene.labels >= FIRST_OBJECT_LABEL)
+    ok &= scene.labels // 10 != object_id
+    return scene.points[ok].astype(np.float64)
