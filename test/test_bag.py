@@ -450,7 +450,8 @@ def test_pcd2bag_osd(tmp_path, storage):
     scenes = _osd_scenes(['learn0', 'learn33'])
     out = tmp_path / 'osd'
     assert bag.pcd2bag_main([*map(str, scenes), '-o', str(out), '--storage', storage,
-                             '--period', '0.5', '--min-points', '1']) == 0
+                             '--period', '0.5', '--object-period', '0.25',
+                             '--min-points', '1']) == 0
     info = bag.bag_info(out)
     assert info['storage'] == storage
     n_objects = sum(len(_scene_object_ids(s)) for s in scenes)
@@ -459,22 +460,33 @@ def test_pcd2bag_osd(tmp_path, storage):
     assert info['topics']['/beo/up']['type'] == 'geometry_msgs/msg/Vector3Stamped'
     assert info['topics']['/beo/up']['count'] == 2
     assert info['topics']['/beo/table_plane']['count'] == 2
-    by_stamp = {}
+    scenes_read = []   # split the bag at each /beo/up: [up, plane, clouds...] per scene
+    stamps = []
     for topic, m, t in bag.read_messages(out):
-        by_stamp.setdefault(t, {}).setdefault(topic, []).append(m)
-    assert sorted(by_stamp) == [T0, T0 + 500_000_000]
-    for t, msgs in by_stamp.items():
-        (up,) = msgs['/beo/up']
-        (plane,) = msgs['/beo/table_plane']
+        stamps.append(t)
+        if topic == '/beo/up':
+            scenes_read.append({'t': t, 'up': m, 'clouds': []})
+        elif topic == '/beo/table_plane':
+            scenes_read[-1]['plane'] = m
+        else:
+            assert m.header.stamp.sec * 10**9 + m.header.stamp.nanosec == t
+            scenes_read[-1]['clouds'].append(m)
+    assert stamps == sorted(stamps)
+    cloud_stamps = [T0 + j * 250_000_000 for j in range(len(scenes_read[0]['clouds']))]
+    assert [s['t'] for s in scenes_read] == [T0, max(T0 + 500_000_000, cloud_stamps[-1] + 250_000_000)]
+    # clouds have unique stamps; up and plane share the scene's first cloud's stamp
+    assert len(set(stamps)) == len(stamps) - 2 * len(scenes_read)
+    for sc, path in zip(scenes_read, scenes):
+        assert len(sc['clouds']) == len(_scene_object_ids(path))
+        up, plane = sc['up'], sc['plane']
         u = np.array([up.vector.x, up.vector.y, up.vector.z])
         assert up.header.frame_id == 'camera'
         assert np.linalg.norm(u) == pytest.approx(1.0, abs=1e-6)
         np.testing.assert_allclose(np.array(plane.data)[:3], u)
         # camera frame (z forward, y down): the table normal points "up" = mostly -y
         assert u[1] < -0.5
-        for m in msgs['/beo/input']:
+        for m in sc['clouds']:
             assert m.header.frame_id == 'camera'
-            assert m.header.stamp.sec * 10**9 + m.header.stamp.nanosec == t
             pts, dropped = cloud_to_xyz(m)
             assert dropped == 0 and len(pts) > 0 and np.isfinite(pts).all()
             assert 0.3 < np.median(pts[:, 2]) < 3.0     # in front of the camera, Kinect range

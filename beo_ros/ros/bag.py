@@ -20,18 +20,21 @@ Console entry points:
     package's ``.msg`` files, so the bag is self-describing. In-process use: :func:`record`.
 
 ``beo-pcd2bag SCENE.pcd ... -o BAG``
-    Labelled organized tabletop scenes (OSD format) -> one bag with, per scene (stamps spaced by
-    ``--period``, first at t0):
+    Labelled organized tabletop scenes (OSD format) -> one bag with, per scene (scenes ``--period``
+    apart):
 
     - ``--topic`` (default ``/beo/input``), ``sensor_msgs/PointCloud2``: one cloud per segmented
-      object (points x y z float32, frame ``camera``, sensor at the origin), all with the scene's
-      stamp; objects with fewer than ``--min-points`` points are skipped;
+      object (points x y z float32, frame ``camera``, sensor at the origin); objects with fewer
+      than ``--min-points`` points are skipped. The objects of a scene follow each other
+      ``--object-period`` apart (first at the scene stamp) so that each has a unique stamp and a
+      node that keeps only the latest cloud gets time to process each one;
     - ``/beo/up``, ``geometry_msgs/Vector3Stamped``: unit up vector (table normal pointing towards
-      the camera side), frame ``camera``, same stamp;
+      the camera side, from an open3d RANSAC fit of the table points), frame ``camera``, scene
+      stamp;
     - ``/beo/table_plane``, ``std_msgs/Float64MultiArray``: plane ``[a, b, c, d]`` with
-      ``a x + b y + c z + d = 0``, ``(a, b, c)`` the up vector above, in the camera frame.
+      ``a x + b y + c z + d = 0``, ``(a, b, c)`` the up vector above (camera frame), scene stamp.
 
-    The receive timestamp of every message equals its header stamp.
+    Each message's bag (receive) timestamp equals its header stamp.
 """
 from __future__ import annotations
 
@@ -53,6 +56,7 @@ UP_TOPIC = '/beo/up'
 PLANE_TOPIC = '/beo/table_plane'
 DEFAULT_INPUT_TOPIC = '/beo/input'
 DEFAULT_FRAME = 'camera'
+T0_NS = 1_700_000_000_000_000_000  # first stamp written by pcd2bag (and the demo)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -678,19 +682,27 @@ def scene_messages(scene_path, *, min_points: int = 50):
 
 
 def pcd_to_bag(scenes, bag_path, *, storage: str = 'sqlite3', topic: str = DEFAULT_INPUT_TOPIC,
-               frame_id: str = DEFAULT_FRAME, period: float = 1.0, min_points: int = 50,
-               t0_ns: int = 1_700_000_000_000_000_000) -> dict:
+               frame_id: str = DEFAULT_FRAME, period: float = 2.0, object_period: float = 0.25,
+               min_points: int = 50, t0_ns: int = T0_NS) -> dict:
     """Write the segmented objects of labelled PCD scenes to a bag (see the module docstring).
 
+    Scene ``i`` starts at ``t0 + i * period`` (or ``object_period`` after the previous scene's last
+    object if that is later); its up vector and plane carry that stamp, its objects follow
+    ``object_period`` apart (first one at the scene stamp), so every cloud has a unique stamp.
+
     Returns ``{'bag', 'storage', 'scenes': [{'scene', 'stamp_ns', 'objects': [{'id', 'points',
-    'centroid'}], 'up', 'plane'}], 'topics': {topic: count}}``.
+    'centroid', 'stamp_ns'}], 'up', 'plane'}], 'topics': {topic: count}}``.
     """
     import numpy as np
     from geometry_msgs.msg import Vector3, Vector3Stamped
     from std_msgs.msg import Float64MultiArray, Header
 
     from beo_ros.ros.conversions import xyz_to_cloud
+    if period < 0 or object_period < 0:
+        raise ValueError('period and object_period must be >= 0')
     summary = {'bag': str(bag_path), 'storage': storage, 'scenes': [], 'topics': {}}
+    step = int(round(object_period * 1e9))
+    last = None
     with BagWriter(bag_path, storage) as w:
         w.add_topic(topic, CLOUD_TYPE)
         w.add_topic(UP_TOPIC, 'geometry_msgs/msg/Vector3Stamped')
@@ -698,17 +710,22 @@ def pcd_to_bag(scenes, bag_path, *, storage: str = 'sqlite3', topic: str = DEFAU
         for i, scene in enumerate(scenes):
             objects, up, plane = scene_messages(scene, min_points=min_points)
             ns = int(t0_ns + round(i * period * 1e9))
+            if last is not None:
+                ns = max(ns, last + max(step, 1))
             header = Header(stamp=_stamp(ns), frame_id=frame_id)
             entry = {'scene': str(scene), 'stamp_ns': ns, 'objects': [],
                      'up': up.tolist(), 'plane': plane.tolist()}
-            for obj_id, pts in objects:
-                pts = np.asarray(pts, dtype=np.float32)
-                w.write(topic, xyz_to_cloud(pts, header), ns)
-                entry['objects'].append({'id': int(obj_id), 'points': int(len(pts)),
-                                         'centroid': pts.mean(axis=0).tolist()})
             w.write(UP_TOPIC, Vector3Stamped(header=header, vector=Vector3(
                 x=float(up[0]), y=float(up[1]), z=float(up[2]))), ns)
             w.write(PLANE_TOPIC, Float64MultiArray(data=[float(v) for v in plane]), ns)
+            last = ns
+            for j, (obj_id, pts) in enumerate(objects):
+                t = ns + j * step if step else ns + j
+                pts = np.asarray(pts, dtype=np.float32)
+                w.write(topic, xyz_to_cloud(pts, Header(stamp=_stamp(t), frame_id=frame_id)), t)
+                entry['objects'].append({'id': int(obj_id), 'points': int(len(pts)),
+                                         'centroid': pts.mean(axis=0).tolist(), 'stamp_ns': t})
+                last = t
             summary['scenes'].append(entry)
         summary['topics'] = dict(w.counts)
     return summary
@@ -850,8 +867,10 @@ def pcd2bag_main(argv=None) -> int:
     p.add_argument('--topic', default=DEFAULT_INPUT_TOPIC,
                    help=f'object cloud topic (default {DEFAULT_INPUT_TOPIC})')
     p.add_argument('--frame', default=DEFAULT_FRAME, help=f'frame id (default {DEFAULT_FRAME})')
-    p.add_argument('--period', type=float, default=1.0, metavar='S',
-                   help='seconds between scenes (default 1)')
+    p.add_argument('--period', type=float, default=2.0, metavar='S',
+                   help='seconds between scenes (default 2)')
+    p.add_argument('--object-period', type=float, default=0.25, metavar='S',
+                   help='seconds between the objects of one scene (default 0.25)')
     p.add_argument('--min-points', type=int, default=50,
                    help='skip objects with fewer points (default 50)')
     p.add_argument('--json', action='store_true', help='print the summary as JSON')
@@ -862,7 +881,8 @@ def pcd2bag_main(argv=None) -> int:
     if Path(args.output).exists():
         p.error(f'{args.output} exists already')
     summary = pcd_to_bag(args.scenes, args.output, storage=args.storage, topic=args.topic,
-                         frame_id=args.frame, period=args.period, min_points=args.min_points)
+                         frame_id=args.frame, period=args.period,
+                         object_period=args.object_period, min_points=args.min_points)
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
