@@ -1,0 +1,4 @@
+from beo_ros.ros.node import main
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,595 @@
+"""The beo_ros ROS 2 node: classify, orient and complete segmented object clouds.
+
+Subscribes to every topic in ``input_topics`` (sensor_msgs/PointCloud2, sensor-data QoS) and
+publishes, in the input cloud's frame:
+
+- ``~/estimates`` beo_interfaces/ObjectEstimate (label, class probabilities, pose, dimensions),
+- ``~/completed`` sensor_msgs/PointCloud2 (x y z probability) of the completed object,
+- ``~/pose`` geometry_msgs/PoseStamped (object centre, yaw about the up axis),
+- ``~/markers`` visualization_msgs/MarkerArray (label text + box) for RViz,
+- ``/diagnostics`` diagnostic_msgs/DiagnosticArray (rates, stage latencies, counters).
+
+Services ``~/classify`` and ``~/complete`` take one cloud each. Each input topic keeps only its
+latest unprocessed cloud; a worker thread does the estimation so services stay responsive.
+"""
+from __future__ import annotations
+
+import collections
+import math
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PoseStamped
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                ParameterType, SetParametersResult)
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import qos_profile_sensor_data
+from rclpy.time import Time
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Header
+from visualization_msgs.msg import Marker, MarkerArray
+
+from beo_ros.ros.conversions import (CloudFormatError, cloud_to_xyz, completed_cloud,
+                                     estimate_to_msg, interfaces, object_dimensions)
+
+try:  # optional: TF gives the up vector when base_frame is set
+    import tf2_ros
+except ImportError:  # tf2_ros is not on PyPI; parameters are used instead
+    tf2_ros = None
+
+DEFAULT_MODEL = 'modelnet10_32'
+LOG_THROTTLE_SEC = 5.0
+LATENCY_WINDOW = 200  # samples kept per stage for the p50 in diagnostics
+
+
+class StartupError(RuntimeError):
+    """The node cannot start (bad model directory, bad parameters, interfaces not built)."""
+
+
+class InputRejected(ValueError):
+    """One input cloud or request cannot be estimated; ``kind`` names the counter."""
+
+    def __init__(self, message: str, kind: str = 'rejected'):
+        super().__init__(message)
+        self.kind = kind
+
+
+def default_model_dir() -> str:
+    """Shipped model dir: the installed share dir when present, else the package source tree."""
+    try:
+        from ament_index_python.packages import get_package_share_directory
+        p = Path(get_package_share_directory('beo_ros')) / 'models' / DEFAULT_MODEL
+        if p.is_dir():
+            return str(p)
+    except Exception:  # not installed through ament (PackageNotFoundError, no prefix path)
+        pass
+    return str(Path(__file__).resolve().parents[2] / 'models' / DEFAULT_MODEL)
+
+
+def load_bank(model_dir: str):
+    """Load a model bank, turning every failure into a StartupError naming the path."""
+    path = Path(model_dir or default_model_dir()).expanduser()
+    if not path.exists():
+        raise StartupError(f"model_dir '{path}' does not exist")
+    if not path.is_dir():
+        raise StartupError(f"model_dir '{path}' is not a directory")
+    try:
+        import beo_ros
+        load_models = getattr(beo_ros, 'load_models', None)
+        if load_models is None:
+            from beo_ros.core.bank import load_models
+        return load_models(str(path))
+    except Exception as e:  # ModelError names the bad file; anything else is wrapped
+        raise StartupError(f"cannot load models from '{path}': {type(e).__name__}: {e}") from e
+
+
+def _vector_reason(name, value, nonzero=False):
+    v = list(value)
+    if len(v) != 3:
+        return f'{name} must have 3 elements, got {len(v)}'
+    if not all(math.isfinite(x) for x in v):
+        return f'{name} must be finite, got {v}'
+    if nonzero and math.sqrt(sum(x * x for x in v)) < 1e-9:
+        return f'{name} must be non-zero'
+    return None
+
+
+def _fdesc(description, lo=None, hi=None, read_only=False):
+    d = ParameterDescriptor(description=description, read_only=read_only)
+    if lo is not None:
+        d.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi),
+                                                     step=0.0)]
+    return d
+
+
+def _idesc(description, lo, hi, read_only=False):
+    return ParameterDescriptor(description=description, read_only=read_only,
+                               integer_range=[IntegerRange(from_value=lo, to_value=hi, step=1)])
+
+
+class BeoNode(Node):
+    """Bayesian Eigenobjects estimator node (default name ``beo``).
+
+    Args:
+        node_name: ROS node name.
+        bank: optional already-loaded model bank (skips ``model_dir`` loading; for embedding
+            and tests).
+        **kwargs: passed to :class:`rclpy.node.Node` (context, namespace, parameter_overrides...).
+
+    Raises:
+        StartupError: the models cannot be loaded (message names the path/file), a parameter
+            is invalid, or beo_interfaces is not built.
+    """
+
+    def __init__(self, node_name: str = 'beo', *, bank=None, **kwargs):
+        super().__init__(node_name, **kwargs)
+        self._worker = None
+        self._destroyed = False
+        try:
+            self._setup(bank)
+        except BaseException:
+            self._shutdown_worker()
+            super().destroy_node()
+            self._destroyed = True
+            raise
+
+    # ------------------------------------------------------------------ setup
+    def _setup(self, bank):
+        try:
+            self._msgs = interfaces()
+            import beo_interfaces.srv as srvs
+        except ImportError as e:
+            raise StartupError(f'beo_interfaces is not available ({e}); run scripts/setup') from e
+        try:
+            self._declare_parameters()
+        except Exception as e:  # out-of-range / wrong-type overrides
+            raise StartupError(f'invalid parameter: {type(e).__name__}: {e}') from e
+        for name in ('sensor_origin', 'up_vector', 'min_points', 'max_points'):
+            reason = self._check(name, self.get_parameter(name).value, self._params())
+            if reason:
+                raise StartupError(f'invalid parameter: {reason}')
+
+        self._bank_lock = threading.Lock()
+        self._svc_waiting = 0
+        self._svc_lock = threading.Lock()
+        if bank is None:
+            model_dir = self.get_parameter('model_dir').value or default_model_dir()
+            bank = load_bank(model_dir)
+            self.get_logger().info(f"loaded models from '{model_dir}': classes {bank.classes}")
+        self._bank = bank
+
+        self._stats_lock = threading.Lock()
+        self._counters = collections.Counter({k: 0 for k in (
+            'received', 'processed', 'dropped_stale', 'rejected', 'rejected_format',
+            'rejected_too_few_points', 'errors', 'downsampled', 'nonfinite_points',
+            'service_calls', 'service_failures')})
+        self._latency = collections.defaultdict(lambda: collections.deque(maxlen=LATENCY_WINDOW))
+        self._last_diag = (time.monotonic(), collections.Counter(self._counters))
+
+        self._tf_buffer = None
+        self._tf_listener = None
+        if self.get_parameter('base_frame').value and tf2_ros is None:
+            self.get_logger().warning('base_frame is set but tf2_ros is not installed; using the '
+                                      'sensor_origin and up_vector parameters')
+
+        sub_group = MutuallyExclusiveCallbackGroup()
+        self._svc_group = ReentrantCallbackGroup()
+        self._timer_group = MutuallyExclusiveCallbackGroup()
+        self._pub_estimate = self.create_publisher(self._msgs.ObjectEstimate, '~/estimates', 10)
+        self._pub_completed = self.create_publisher(PointCloud2, '~/completed', 10)
+        self._pub_pose = self.create_publisher(PoseStamped, '~/pose', 10)
+        self._pub_markers = self.create_publisher(MarkerArray, '~/markers', 10)
+        self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+
+        self._cond = threading.Condition()
+        self._slots = {}  # resolved topic -> (PointCloud2, receipt monotonic time)
+        self._stop = False
+        self._topics = []
+        for topic in self.get_parameter('input_topics').value:
+            topic = self.resolve_topic_name(topic)
+            self.create_subscription(
+                PointCloud2, topic, lambda msg, t=topic: self._on_cloud(msg, t),
+                qos_profile_sensor_data, callback_group=sub_group)
+            self._topics.append(topic)
+        self._topic_index = {}
+
+        self._srv_classify = self.create_service(srvs.Classify, '~/classify', self._on_classify,
+                                                 callback_group=self._svc_group)
+        self._srv_complete = self.create_service(srvs.Complete, '~/complete', self._on_complete,
+                                                 callback_group=self._svc_group)
+        self._diag_timer = self.create_timer(self.get_parameter('diagnostics_period').value,
+                                             self._publish_diagnostics,
+                                             callback_group=self._timer_group)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+        self._worker = threading.Thread(target=self._worker_loop, name='beo_worker', daemon=True)
+        self._worker.start()
+        self.get_logger().info(f'listening on {self._topics}')
+
+    def _declare_parameters(self):
+        d = self.declare_parameter
+        d('model_dir', default_model_dir(), ParameterDescriptor(
+            description="Directory of the trained BEO model bank ('' = the shipped "
+                        f"models/{DEFAULT_MODEL}); changing it reloads the models",
+            type=ParameterType.PARAMETER_STRING))
+        d('input_topics', ['/beo/input'], ParameterDescriptor(
+            description='PointCloud2 topics of segmented objects (one object per cloud)',
+            type=ParameterType.PARAMETER_STRING_ARRAY, read_only=True))
+        d('base_frame', '', ParameterDescriptor(
+            description="Gravity-aligned frame (z up) looked up in TF to get the up vector; "
+                        "'' uses the up_vector parameter (TF only when tf2_ros is installed)",
+            type=ParameterType.PARAMETER_STRING))
+        d('sensor_origin', [0.0, 0.0, 0.0], ParameterDescriptor(
+            description='Sensor position in the cloud frame (m), for free-space carving',
+            type=ParameterType.PARAMETER_DOUBLE_ARRAY))
+        d('up_vector', [0.0, 0.0, 1.0], ParameterDescriptor(
+            description='Gravity-up direction in the cloud frame (e.g. [0, -1, 0] for a camera '
+                        'optical frame held level)', type=ParameterType.PARAMETER_DOUBLE_ARRAY))
+        d('yaw_step_deg', 1.0, _fdesc('Yaw search resolution (degrees)', 0.25, 45.0))
+        d('min_points', 30, _idesc('Fewer finite points than this: the cloud is rejected',
+                                   1, 1_000_000))
+        d('max_points', 50000, _idesc('More points than this: random downsampling (fixed seed)',
+                                      10, 100_000_000))
+        d('completion_threshold', 0.5, _fdesc(
+            'Occupancy probability for a voxel to be in the completed cloud', 0.0, 1.0))
+        d('publish_completed', True, ParameterDescriptor(
+            description='Publish ~/completed (x y z probability)',
+            type=ParameterType.PARAMETER_BOOL))
+        d('diagnostics_period', 1.0, _fdesc('Seconds between /diagnostics messages', 0.1, 60.0))
+
+    def _params(self) -> dict:
+        return {p: self.get_parameter(p).value for p in (
+            'model_dir', 'base_frame', 'sensor_origin', 'up_vector', 'yaw_step_deg',
+            'min_points', 'max_points', 'completion_threshold', 'publish_completed',
+            'diagnostics_period')}
+
+    @staticmethod
+    def _check(name, value, merged) -> str | None:
+        """Reason why ``value`` is invalid for parameter ``name`` (None when it is fine)."""
+        if name == 'sensor_origin':
+            return _vector_reason(name, value)
+        if name == 'up_vector':
+            return _vector_reason(name, value, nonzero=True)
+        if name in ('min_points', 'max_points') and merged['min_points'] > merged['max_points']:
+            return (f"min_points ({merged['min_points']}) must not exceed max_points "
+                    f"({merged['max_points']})")
+        return None
+
+    def _on_set_parameters(self, params) -> SetParametersResult:
+        merged = self._params()
+        merged.update({p.name: p.value for p in params})
+        for p in params:
+            reason = self._check(p.name, p.value, merged)
+            if reason:
+                return SetParametersResult(successful=False, reason=reason)
+        new = {p.name: p.value for p in params}
+        if 'model_dir' in new and new['model_dir'] != self.get_parameter('model_dir').value:
+            try:
+                bank = load_bank(new['model_dir'])
+            except StartupError as e:
+                return SetParametersResult(successful=False, reason=str(e))
+            with self._bank_lock:
+                self._bank = bank
+            self.get_logger().info(f"reloaded models from '{new['model_dir']}'")
+        if 'diagnostics_period' in new:
+            self._diag_timer.cancel()
+            self.destroy_timer(self._diag_timer)
+            self._diag_timer = self.create_timer(new['diagnostics_period'],
+                                                 self._publish_diagnostics,
+                                                 callback_group=self._timer_group)
+        return SetParametersResult(successful=True)
+
+    # ------------------------------------------------------------------ inputs
+    def _count(self, key, n=1):
+        with self._stats_lock:
+            self._counters[key] += n
+
+    def _on_cloud(self, msg, topic):
+        """Subscription callback: keep only the latest cloud per topic."""
+        with self._cond:
+            self._count('received')
+            if topic in self._slots:
+                self._count('dropped_stale')
+            self._slots[topic] = (msg, time.monotonic())
+            self._cond.notify()
+
+    def _worker_loop(self):
+        while True:
+            with self._cond:
+                while not self._slots and not self._stop:
+                    self._cond.wait()
+                if self._stop:
+                    return
+                topic = min(self._slots, key=lambda t: self._slots[t][1])  # oldest first
+                msg, t_recv = self._slots.pop(topic)
+            try:
+                self._process(topic, msg, t_recv)
+            except Exception as e:  # never let one cloud kill the worker
+                self._count('errors')
+                self.get_logger().error(f'estimation failed for a cloud on {topic}: '
+                                        f'{type(e).__name__}: {e}',
+                                        throttle_duration_sec=LOG_THROTTLE_SEC)
+
+    def _reject(self, where, err: InputRejected):
+        self._count('rejected')
+        if err.kind != 'rejected':
+            self._count(err.kind)
+        self.get_logger().warning(f'rejected input from {where}: {err}',
+                                  throttle_duration_sec=LOG_THROTTLE_SEC)
+
+    def _prepare(self, cloud, p, origin=None, up=None):
+        """Cloud -> (points (n,3) float64, sensor origin (3,), up (3,)) in the cloud frame."""
+        try:
+            pts, n_bad = cloud_to_xyz(cloud)
+        except CloudFormatError as e:
+            raise InputRejected(f'malformed PointCloud2: {e}', 'rejected_format') from e
+        if n_bad:
+            self._count('nonfinite_points', n_bad)
+        if len(pts) < p['min_points']:
+            raise InputRejected(
+                f'{len(pts)} finite points ({n_bad} non-finite dropped) < min_points '
+                f"{p['min_points']}", 'rejected_too_few_points')
+        if len(pts) > p['max_points']:
+            keep = np.random.default_rng(0).choice(len(pts), p['max_points'], replace=False)
+            pts = pts[np.sort(keep)]
+            self._count('downsampled')
+        if up is None:
+            up = self._tf_up(cloud.header.frame_id, p)
+        if up is None:
+            up = p['up_vector']
+        if origin is None:
+            origin = p['sensor_origin']
+        for name, v, nz in (('sensor_origin', origin, False), ('up', up, True)):
+            reason = _vector_reason(name, v, nonzero=nz)
+            if reason:
+                raise InputRejected(reason)
+        return pts, np.asarray(origin, dtype=np.float64), np.asarray(up, dtype=np.float64)
+
+    def _tf_up(self, frame_id, p):
+        """Up (+z of base_frame) in ``frame_id`` from TF, or None when TF is not used."""
+        if not p['base_frame'] or tf2_ros is None or not frame_id:
+            return None
+        if self._tf_buffer is None:
+            self._tf_buffer = tf2_ros.Buffer()
+            self._tf_listener = tf2_ros.TransformListener(self._tf_buffer, self)
+        try:
+            tf = self._tf_buffer.lookup_transform(frame_id, p['base_frame'], Time())
+        except Exception as e:
+            raise InputRejected(f"no transform {p['base_frame']} -> {frame_id}: {e}") from e
+        x, y, z, w = (tf.transform.rotation.x, tf.transform.rotation.y,
+                      tf.transform.rotation.z, tf.transform.rotation.w)
+        return [2 * (x * z + y * w), 2 * (y * z - x * w), 1 - 2 * (x * x + y * y)]
+
+    def _estimate(self, pts, origin, up, p, threshold, priority=False):
+        """Run the bank under its lock (service calls go first); core ValueError -> InputRejected."""
+        if priority:
+            with self._svc_lock:
+                self._svc_waiting += 1
+            try:
+                self._bank_lock.acquire()
+            finally:
+                with self._svc_lock:
+                    self._svc_waiting -= 1
+        else:
+            while self._svc_waiting > 0:  # let pending service calls go first
+                time.sleep(0.001)
+            self._bank_lock.acquire()
+        try:
+            bank = self._bank
+            try:
+                est = bank.estimate_points(pts, sensor_origin=origin, up=up,
+                                           yaw_step_deg=p['yaw_step_deg'], threshold=threshold)
+            except ValueError as e:
+                raise InputRejected(f'estimator rejected the cloud: {e}') from e
+            return est, list(bank.classes)
+        finally:
+            self._bank_lock.release()
+
+    def _record(self, stage, seconds):
+        with self._stats_lock:
+            self._latency[stage].append(float(seconds))
+
+    @staticmethod
+    def _status(est, threshold):
+        if est.completed_points is None or len(est.completed_points) == 0:
+            return f'no voxel reaches completion probability {threshold:g}'
+        return 'ok'
+
+    def _process(self, topic, msg, t_recv):
+        t0 = time.monotonic()
+        self._record('queue_wait', t0 - t_recv)
+        p = self._params()
+        try:
+            pts, origin, up = self._prepare(msg, p)
+            t1 = time.monotonic()
+            self._record('convert', t1 - t0)
+            est, classes = self._estimate(pts, origin, up, p, p['completion_threshold'])
+        except InputRejected as e:
+            self._reject(topic, e)
+            return
+        t2 = time.monotonic()
+        self._record('estimate', t2 - t1)
+        for stage, sec in (est.timings or {}).items():
+            self._record(f'core_{stage}', sec)
+        header = msg.header
+        status = self._status(est, p['completion_threshold'])
+        out = estimate_to_msg(est, header, topic, time.monotonic() - t_recv, include_cloud=False,
+                              status=status, class_names=classes)
+        self._pub_estimate.publish(out)
+        self._pub_pose.publish(PoseStamped(header=header, pose=out.pose))
+        if p['publish_completed']:
+            self._pub_completed.publish(completed_cloud(est, header))
+        self._pub_markers.publish(self._markers(est, out, header, topic, up))
+        t3 = time.monotonic()
+        self._record('publish', t3 - t2)
+        self._record('end_to_end', t3 - t_recv)
+        self._count('processed')
+
+    def _markers(self, est, out, header, topic, up) -> MarkerArray:
+        """Label text above the object and its box, ids unique per input topic."""
+        idx = self._topic_index.setdefault(topic, len(self._topic_index))
+        up = np.asarray(up, dtype=np.float64)
+        up = up / np.linalg.norm(up)
+        centre = np.array([out.pose.position.x, out.pose.position.y, out.pose.position.z])
+        d = object_dimensions(est)
+        if est.completed_points is not None and len(est.completed_points):
+            height = float(np.max((np.asarray(est.completed_points) - centre) @ up))
+        else:
+            height = 0.0
+        box = Marker(header=header, ns='beo', id=2 * idx, type=Marker.CUBE, action=Marker.ADD)
+        box.pose = out.pose
+        box.scale.x, box.scale.y, box.scale.z = (max(float(v), 0.01) for v in d)
+        box.color.r, box.color.g, box.color.b, box.color.a = 0.1, 0.8, 0.3, 0.35
+        text = Marker(header=header, ns='beo', id=2 * idx + 1, type=Marker.TEXT_VIEW_FACING,
+                      action=Marker.ADD)
+        pos = centre + up * (max(height, 0.0) + 0.08)
+        text.pose.position.x, text.pose.position.y, text.pose.position.z = (float(v) for v in pos)
+        text.pose.orientation.w = 1.0
+        text.scale.z = 0.08
+        text.color.r = text.color.g = text.color.b = text.color.a = 1.0
+        text.text = f'{out.label} {out.probability:.0%}'
+        return MarkerArray(markers=[box, text])
+
+    # ------------------------------------------------------------------ services
+    def _on_classify(self, request, response):
+        return self._serve(request, response, complete=False)
+
+    def _on_complete(self, request, response):
+        return self._serve(request, response, complete=True)
+
+    def _serve(self, request, response, complete):
+        t0 = time.monotonic()
+        name = (self._srv_complete if complete else self._srv_classify).srv_name
+        self._count('service_calls')
+        p = self._params()
+        try:
+            threshold = p['completion_threshold']
+            if complete and request.threshold > 0:
+                threshold = float(request.threshold)
+                if not threshold <= 1.0:
+                    raise InputRejected(f'threshold must be in (0, 1], got {threshold}')
+            origin = up = None
+            if request.has_sensor_origin:
+                o = request.sensor_origin
+                origin = [o.x, o.y, o.z]
+            if request.has_up:
+                u = request.up
+                up = [u.x, u.y, u.z]
+            pts, origin, up = self._prepare(request.cloud, p, origin, up)
+            est, classes = self._estimate(pts, origin, up, p, threshold, priority=True)
+            header = request.cloud.header
+            response.estimate = estimate_to_msg(
+                est, header, name, time.monotonic() - t0, include_cloud=False,
+                status=self._status(est, threshold), class_names=classes)
+            if complete:
+                response.completed_cloud = completed_cloud(est, header)
+            response.success = True
+            response.message = 'ok'
+            self._record('service', time.monotonic() - t0)
+        except InputRejected as e:
+            self._reject(name, e)
+            self._count('service_failures')
+            response.success = False
+            response.message = str(e)
+        except Exception as e:  # report, never crash the executor
+            self._count('errors')
+            self._count('service_failures')
+            self.get_logger().error(f'{name} failed: {type(e).__name__}: {e}',
+                                    throttle_duration_sec=LOG_THROTTLE_SEC)
+            response.success = False
+            response.message = f'internal error: {type(e).__name__}: {e}'
+        return response
+
+    # ------------------------------------------------------------------ diagnostics
+    def counters(self) -> dict:
+        """Snapshot of the counters (received, processed, dropped_stale, rejected, ...)."""
+        with self._stats_lock:
+            return dict(self._counters)
+
+    def latency_p50(self) -> dict:
+        """Median seconds per stage over the last samples."""
+        with self._stats_lock:
+            return {k: float(np.median(v)) for k, v in self._latency.items() if v}
+
+    def _publish_diagnostics(self):
+        now = time.monotonic()
+        counters = self.counters()
+        t_prev, prev = self._last_diag
+        self._last_diag = (now, collections.Counter(counters))
+        dt = max(now - t_prev, 1e-6)
+        delta = {k: counters[k] - prev.get(k, 0) for k in counters}
+        level, message = DiagnosticStatus.OK, 'ok'
+        if delta['errors']:
+            level, message = DiagnosticStatus.ERROR, f"{delta['errors']} estimation errors"
+        elif delta['rejected']:
+            level, message = DiagnosticStatus.WARN, f"{delta['rejected']} inputs rejected"
+        elif delta['dropped_stale']:
+            level, message = (DiagnosticStatus.WARN,
+                              f"{delta['dropped_stale']} stale clouds dropped "
+                              '(input faster than processing)')
+        values = [KeyValue(key='received_hz', value=f"{delta['received'] / dt:.2f}"),
+                  KeyValue(key='processed_hz', value=f"{delta['processed'] / dt:.2f}")]
+        values += [KeyValue(key=f'latency_p50_{k}_ms', value=f'{v * 1e3:.1f}')
+                   for k, v in sorted(self.latency_p50().items())]
+        values += [KeyValue(key=k, value=str(v)) for k, v in sorted(counters.items())]
+        values.append(KeyValue(key='input_topics', value=','.join(self._topics)))
+        status = DiagnosticStatus(level=level, name=f'{self.get_name()}: estimator',
+                                  message=message, hardware_id='beo_ros', values=values)
+        self._pub_diag.publish(DiagnosticArray(header=self._diag_header(), status=[status]))
+
+    def _diag_header(self):
+        return Header(stamp=self.get_clock().now().to_msg())
+
+    # ------------------------------------------------------------------ teardown
+    def _shutdown_worker(self):
+        worker = getattr(self, '_worker', None)
+        cond = getattr(self, '_cond', None)
+        if cond is not None:
+            with cond:
+                self._stop = True
+                cond.notify_all()
+        if worker is not None and worker.is_alive() and worker is not threading.current_thread():
+            worker.join(timeout=30.0)
+
+    def destroy_node(self):
+        """Stop the worker thread, then destroy the node (idempotent)."""
+        if self._destroyed:
+            return
+        self._destroyed = True
+        self._shutdown_worker()
+        super().destroy_node()
+
+
+def main(args=None):
+    """Run the node until Ctrl-C / shutdown; exits with status 1 if it cannot start."""
+    rclpy.init(args=args)
+    node = None
+    failed = False
+    try:
+        node = BeoNode()
+        executor = MultiThreadedExecutor(num_threads=4)
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except StartupError as e:
+        rclpy.logging.get_logger('beo').fatal(f'cannot start: {e}')
+        print(f'beo_node: cannot start: {e}', file=sys.stderr)
+        failed = True
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    if failed:
+        sys.exit(1)
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,61 @@
+"""Shared pytest fixtures. Append-only; ROS fixtures are prefixed ``ros_``."""
+import itertools
+import os
+
+import pytest
+
+_ros_domain_counter = itertools.count()
+
+
+def ros_beo_interfaces_built() -> bool:
+    """True when the built beo_interfaces (not just its source folder) imports."""
+    try:
+        from beo_ros.ros.conversions import interfaces
+        interfaces()
+        import beo_interfaces.srv  # noqa: F401
+        return True
+    except ImportError:
+        return False
+
+
+@pytest.fixture
+def ros_interfaces():
+    """Skip the test when beo_interfaces is not built (run scripts/setup)."""
+    if not ros_beo_interfaces_built():
+        pytest.skip('beo_interfaces is not built; run scripts/setup')
+
+
+@pytest.fixture
+def ros_domain_id():
+    """A DDS domain id unique to this pytest process and test (for subprocess tests)."""
+    return 10 + (os.getpid() * 7 + next(_ros_domain_counter)) % 90
+
+
+@pytest.fixture
+def ros_context(monkeypatch):
+    """An initialised rclpy Context of its own, discovery OFF (no traffic outside the process).
+
+    Yields the context; shuts it down afterwards.
+    """
+    import rclpy
+    from rclpy.context import Context
+
+    monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'OFF')
+    ctx = Context()
+    rclpy.init(context=ctx)
+    try:
+        yield ctx
+    finally:
+        rclpy.try_shutdown(context=ctx)
+
+
+@pytest.fixture(scope='session')
+def ros_tiny_model_dir(tmp_path_factory):
+    """A tiny model bank trained on generated shapes (beo_ros.core.synthetic.make_tiny_bank)."""
+    try:
+        from beo_ros.core.synthetic import make_tiny_bank
+    except ImportError as e:
+        pytest.skip(f'beo_ros.core.synthetic.make_tiny_bank is not available: {e}')
+    path = tmp_path_factory.mktemp('ros_tiny_bank')
+    out = make_tiny_bank(path)
+    return str(out if out is not None and not hasattr(out, 'estimate_points') else path)

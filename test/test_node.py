@@ -1,0 +1,380 @@
+"""In-process tests of BeoNode: streaming, services, bad input, parameters (isolated contexts)."""
+import array
+import os
+import threading
+import time
+
+import numpy as np
+import pytest
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import PointCloud2, PointField
+from std_msgs.msg import Header
+
+from beo_ros.ros.conversions import cloud_to_xyz, pose_to_matrix, xyz_to_cloud
+
+pytestmark = pytest.mark.usefixtures('ros_interfaces')
+TIMEOUT = 30.0
+
+
+def box_view(centre=(2.0, 0.3, 0.4), size=(0.5, 0.35, 0.8), n=3000, seed=0):
+    """Points (n', 3) on the faces of a box visible from the origin (one partial view, z up)."""
+    rng = np.random.default_rng(seed)
+    c, h = np.asarray(centre, float), np.asarray(size, float) / 2
+    pts = []
+    for axis in range(3):
+        for sign in (-1, 1):
+            normal = np.zeros(3)
+            normal[axis] = sign
+            face_c = c + normal * h
+            if normal @ (-face_c) <= 0:  # faces turned away from the sensor are not seen
+                continue
+            p = rng.uniform(-1, 1, size=(n // 3, 3)) * h + c
+            p[:, axis] = face_c[axis]
+            pts.append(p)
+    return np.concatenate(pts)
+
+
+def cloud(points, frame='camera'):
+    return xyz_to_cloud(points, Header(frame_id=frame))
+
+
+@pytest.fixture
+def ros_bank_source(request):
+    """(model_dir, bank) for the node: the real core with a tiny generated model bank.
+
+    BEO_TEST_FAKE_BANK=1 swaps in a fake bank (node development without the core only).
+    """
+    if os.environ.get('BEO_TEST_FAKE_BANK') == '1':
+        from _fake_bank import FakeBank
+        return None, FakeBank()
+    return request.getfixturevalue('ros_tiny_model_dir'), None
+
+
+class Harness:
+    """A BeoNode plus a client node on one isolated context, spun by a background executor."""
+
+    def __init__(self, ctx, model_dir, bank, **params):
+        import rclpy
+        from beo_interfaces.msg import ObjectEstimate
+        from beo_interfaces.srv import Classify, Complete
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import PoseStamped
+        from visualization_msgs.msg import MarkerArray
+
+        from beo_ros.ros.node import BeoNode
+
+        overrides = {'input_topics': ['/beo/input', '/beo/input2'], 'diagnostics_period': 0.2}
+        if model_dir is not None:
+            overrides['model_dir'] = model_dir
+        overrides.update(params)
+        self.node = BeoNode(context=ctx, bank=bank, parameter_overrides=[
+            Parameter(k, value=v) for k, v in overrides.items()])
+        self.client = rclpy.create_node('beo_test_client', context=ctx)
+        self.received = {k: [] for k in ('estimates', 'completed', 'pose', 'markers', 'diag')}
+        self.cond = threading.Condition()
+        for key, typ, topic in (('estimates', ObjectEstimate, '/beo/estimates'),
+                                ('completed', PointCloud2, '/beo/completed'),
+                                ('pose', PoseStamped, '/beo/pose'),
+                                ('markers', MarkerArray, '/beo/markers'),
+                                ('diag', DiagnosticArray, '/diagnostics')):
+            self.client.create_subscription(typ, topic, lambda m, k=key: self._got(k, m), 10)
+        self.pub = self.client.create_publisher(PointCloud2, '/beo/input',
+                                                qos_profile_sensor_data)
+        self.pub2 = self.client.create_publisher(PointCloud2, '/beo/input2',
+                                                 qos_profile_sensor_data)
+        self.classify = self.client.create_client(Classify, '/beo/classify')
+        self.complete = self.client.create_client(Complete, '/beo/complete')
+        self.Classify, self.Complete = Classify, Complete
+        self.executor = MultiThreadedExecutor(num_threads=4, context=ctx)
+        self.executor.add_node(self.node)
+        self.executor.add_node(self.client)
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+        assert self.classify.wait_for_service(timeout_sec=TIMEOUT)
+        assert self.complete.wait_for_service(timeout_sec=TIMEOUT)
+
+    def _got(self, key, msg):
+        with self.cond:
+            self.received[key].append(msg)
+            self.cond.notify_all()
+
+    def wait(self, key, count=1, timeout=TIMEOUT, republish=None, pub=None, pred=None):
+        """Wait until ``count`` messages (matching ``pred``) arrived on ``key``.
+
+        Meanwhile ``republish`` is published every 0.5 s on ``pub`` (default /beo/input), as
+        best-effort sensor QoS may lose the first message before discovery completes.
+        """
+        pub = pub or self.pub
+        pred = pred or (lambda m: True)
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if republish is not None:
+                pub.publish(republish)
+            with self.cond:
+                if self.cond.wait_for(
+                        lambda: sum(map(pred, self.received[key])) >= count, timeout=0.5):
+                    return [m for m in self.received[key] if pred(m)]
+        raise AssertionError(f'no {key} within {timeout} s: counters {self.node.counters()}')
+
+    def wait_counter(self, pred, timeout=TIMEOUT):
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            c = self.node.counters()
+            if pred(c):
+                return c
+            time.sleep(0.01)
+        raise AssertionError(f'counters never matched: {self.node.counters()}')
+
+    def call(self, client, request):
+        resp = client.call(request, timeout_sec=TIMEOUT)
+        assert resp is not None, 'service call timed out'
+        return resp
+
+    def good_request(self, complete=False):
+        req = (self.Complete if complete else self.Classify).Request()
+        req.cloud = cloud(box_view())
+        return req
+
+    def close(self):
+        self.executor.shutdown(timeout_sec=5.0)
+        self.node.destroy_node()
+        self.client.destroy_node()
+        self.thread.join(timeout=5.0)
+
+
+@pytest.fixture
+def harness(ros_context, ros_bank_source):
+    h = Harness(ros_context, *ros_bank_source)
+    yield h
+    h.close()
+
+
+def test_stream_publishes_estimate_completed_pose_markers(harness):
+    pts = box_view()
+    msg = cloud(pts)
+    est = harness.wait('estimates', republish=msg)[0]
+    for key in ('completed', 'pose', 'markers'):
+        harness.wait(key, republish=msg)
+    classes = list(harness.node._bank.classes)
+    assert est.header.frame_id == 'camera' and est.source_topic == '/beo/input'
+    assert est.label in classes + ['unknown']
+    assert list(est.class_names) == classes
+    assert abs(sum(est.class_probabilities) - 1) < 1e-3
+    assert est.latency > 0 and est.status
+    assert est.dimensions.x > 0 and est.dimensions.z > 0
+    # the object centre lies near the observed points
+    centre = [est.pose.position.x, est.pose.position.y, est.pose.position.z]
+    assert np.linalg.norm(np.asarray(centre) - pts.mean(axis=0)) < 1.0
+    q = est.pose.orientation
+    assert abs(q.x) < 1e-9 and abs(q.y) < 1e-9  # yaw only, about +z
+    comp = harness.received['completed'][0]
+    assert comp.header.frame_id == 'camera'
+    assert [f.name for f in comp.fields] == ['x', 'y', 'z', 'probability']
+    xyz, _ = cloud_to_xyz(comp)
+    assert len(xyz) > 0
+    prob = np.frombuffer(bytes(comp.data), '<f4').reshape(-1, 4)[:, 3]
+    assert prob.min() >= 0.5 - 1e-6 and prob.max() <= 1 + 1e-6
+    pose = harness.received['pose'][0]
+    assert pose.header.frame_id == 'camera'
+    np.testing.assert_allclose(pose_to_matrix(pose.pose), pose_to_matrix(est.pose), atol=1e-9)
+    markers = harness.received['markers'][0].markers
+    assert {m.type for m in markers} == {markers[0].CUBE, markers[0].TEXT_VIEW_FACING}
+    assert any(est.label in m.text for m in markers)
+    # second input topic is served too
+    e2 = harness.wait('estimates', republish=cloud(pts, 'cam2'), pub=harness.pub2,
+                      pred=lambda m: m.source_topic == '/beo/input2')[0]
+    assert e2.header.frame_id == 'cam2'
+    diag = harness.wait('diag')[-1].status[0]
+    keys = {kv.key for kv in diag.values}
+    assert {'received_hz', 'processed_hz', 'received', 'processed', 'dropped_stale',
+            'rejected'} <= keys
+    assert any(k.startswith('latency_p50_') for k in keys)
+
+
+def test_services_classify_and_complete(harness):
+    r = harness.call(harness.classify, harness.good_request())
+    assert r.success, r.message
+    assert r.estimate.label in list(harness.node._bank.classes) + ['unknown']
+    assert r.estimate.source_topic == '/beo/classify'
+    assert r.estimate.header.frame_id == 'camera'
+    req = harness.good_request(complete=True)
+    req.has_up, req.up.z = True, 1.0
+    req.has_sensor_origin = True
+    req.threshold = 0.3
+    r = harness.call(harness.complete, req)
+    assert r.success, r.message
+    assert r.completed_cloud.header.frame_id == 'camera' and r.completed_cloud.width > 0
+    prob = np.frombuffer(bytes(r.completed_cloud.data), '<f4').reshape(-1, 4)[:, 3]
+    assert prob.min() >= 0.3 - 1e-6
+    req.threshold = 0.9
+    r2 = harness.call(harness.complete, req)
+    assert r2.success and r2.completed_cloud.width <= r.completed_cloud.width
+
+
+def test_services_answer_while_streaming(harness):
+    msg = cloud(box_view())
+    stop = threading.Event()
+
+    def stream():
+        while not stop.is_set():
+            harness.pub.publish(msg)
+            time.sleep(0.02)
+
+    t = threading.Thread(target=stream, daemon=True)
+    t.start()
+    try:
+        harness.wait('estimates')
+        times = []
+        for _ in range(5):
+            t0 = time.monotonic()
+            r = harness.call(harness.classify, harness.good_request())
+            times.append(time.monotonic() - t0)
+            assert r.success, r.message
+    finally:
+        stop.set()
+        t.join()
+    c = harness.wait_counter(lambda c: c['processed'] >= 1)
+    print(f'classify round trip while streaming: median {np.median(times) * 1e3:.1f} ms, '
+          f'max {max(times) * 1e3:.1f} ms; counters {c}')
+    assert c['received'] >= c['processed'] + c['dropped_stale'] - 1
+
+
+def _bad_clouds():
+    good = cloud(box_view())
+    no_z = cloud(box_view())
+    no_z.fields = no_z.fields[:2]
+    truncated = cloud(box_view())
+    truncated.data = truncated.data[:-7]
+    small_step = cloud(box_view())
+    small_step.point_step = 8
+    int_x = cloud(box_view())
+    int_x.fields[0].datatype = PointField.INT32
+    empty = cloud(np.zeros((0, 3)))
+    all_nan = cloud(np.full((500, 3), np.nan))
+    few = cloud(box_view()[:5])
+    no_data = PointCloud2(header=good.header, height=1, width=100, fields=good.fields,
+                          point_step=12, row_step=1200, data=array.array('B'))
+    return {'missing z': no_z, 'truncated': truncated, 'point_step too small': small_step,
+            'integer x': int_x, 'empty': empty, 'all NaN': all_nan, 'too few points': few,
+            'no data': no_data}
+
+
+def test_bad_inputs_are_rejected_and_node_keeps_answering(harness):
+    for name, bad in _bad_clouds().items():
+        before = harness.node.counters()['rejected']
+        harness.pub.publish(bad)
+        harness.wait_counter(lambda c: c['rejected'] > before)
+        req = harness.Classify.Request()
+        req.cloud = bad
+        r = harness.call(harness.classify, req)
+        assert not r.success and r.message, name
+        r = harness.call(harness.classify, harness.good_request())
+        assert r.success, f'after {name}: {r.message}'
+    # bad request geometry / threshold
+    req = harness.good_request()
+    req.has_up = True  # up = (0, 0, 0)
+    r = harness.call(harness.classify, req)
+    assert not r.success and 'up' in r.message
+    req = harness.good_request()
+    req.has_sensor_origin, req.sensor_origin.x = True, float('nan')
+    r = harness.call(harness.classify, req)
+    assert not r.success and 'sensor_origin' in r.message
+    req = harness.good_request(complete=True)
+    req.threshold = 2.0
+    r = harness.call(harness.complete, req)
+    assert not r.success and 'threshold' in r.message
+    assert harness.call(harness.complete, harness.good_request(complete=True)).success
+    c = harness.node.counters()
+    assert c['rejected_format'] >= 10 and c['rejected_too_few_points'] >= 6
+    # the stream still works after all that
+    harness.wait('estimates', republish=cloud(box_view()))
+
+
+def test_parameters_validated_and_runtime_changeable(harness, tmp_path):
+    node = harness.node
+
+    def set_(name, value):
+        return node.set_parameters([Parameter(name, value=value)])[0]
+
+    for name, value, why in (('yaw_step_deg', 100.0, ''), ('yaw_step_deg', 0.1, ''),
+                             ('completion_threshold', 1.5, ''),
+                             ('up_vector', [0.0, 0.0, 0.0], 'non-zero'),
+                             ('up_vector', [0.0, 1.0], '3 elements'),
+                             ('sensor_origin', [0.0, float('inf'), 0.0], 'finite'),
+                             ('min_points', 10 ** 9, ''),
+                             ('min_points', 60000, 'max_points'),
+                             ('model_dir', str(tmp_path / 'nope'), 'nope'),
+                             ('input_topics', ['/other'], '')):
+        r = set_(name, value)
+        assert not r.successful, (name, value)
+        assert why in r.reason
+    empty = tmp_path / 'empty_models'
+    empty.mkdir()
+    r = set_('model_dir', str(empty))
+    assert not r.successful and 'empty_models' in r.reason
+    assert node.get_parameter('yaw_step_deg').value == 1.0
+    for name, value in (('yaw_step_deg', 10.0), ('up_vector', [0.0, 0.0, 2.0]),
+                        ('completion_threshold', 0.4), ('publish_completed', False),
+                        ('min_points', 50), ('diagnostics_period', 0.5)):
+        assert set_(name, value).successful, name
+        assert node.get_parameter(name).value == value
+    r = harness.call(harness.classify, harness.good_request())
+    assert r.success, r.message
+
+
+def test_only_latest_cloud_per_topic_is_kept(harness):
+    """While the worker is busy, newer clouds replace unprocessed ones (counted as stale)."""
+    node = harness.node
+    gate, entered = threading.Event(), threading.Event()
+    real = node._bank
+
+    class Gated:
+        classes = real.classes
+
+        def estimate_points(self, *a, **k):
+            entered.set()
+            gate.wait(TIMEOUT)
+            return real.estimate_points(*a, **k)
+
+    node._bank = Gated()
+    try:
+        msg = cloud(box_view())
+        node._on_cloud(msg, '/beo/input')
+        assert entered.wait(TIMEOUT)
+        for _ in range(5):
+            node._on_cloud(msg, '/beo/input')
+        node._on_cloud(msg, '/beo/input2')
+        c = node.counters()
+        assert c['dropped_stale'] == 4 and c['received'] == 7
+        assert len(node._slots) == 2
+    finally:
+        gate.set()
+    harness.wait_counter(lambda c: c['processed'] == 3)
+    assert not node._slots
+
+
+def test_bad_model_dir_refuses_to_start(ros_context, tmp_path):
+    from beo_ros.ros.node import BeoNode, StartupError
+    missing = tmp_path / 'no_such_models'
+    with pytest.raises(StartupError, match='no_such_models'):
+        BeoNode(context=ros_context,
+                parameter_overrides=[Parameter('model_dir', value=str(missing))])
+    corrupt = tmp_path / 'corrupt_models'
+    corrupt.mkdir()
+    (corrupt / 'bank.json').write_text('{not json')
+    with pytest.raises(StartupError, match='corrupt_models'):
+        BeoNode(context=ros_context,
+                parameter_overrides=[Parameter('model_dir', value=str(corrupt))])
+
+
+def test_bad_parameter_override_refuses_to_start(ros_context, ros_bank_source):
+    from beo_ros.ros.node import BeoNode, StartupError
+    model_dir, bank = ros_bank_source
+    base = [Parameter('model_dir', value=model_dir)] if model_dir else []
+    for p in (Parameter('yaw_step_deg', value=90.0), Parameter('up_vector', value=[0.0, 0.0, 0.0]),
+              Parameter('min_points', value=100), ):
+        extra = [Parameter('max_points', value=50)] if p.name == 'min_points' else []
+        with pytest.raises(StartupError, match=p.name):
+            BeoNode(context=ros_context, bank=bank, parameter_overrides=base + [p] + extra)
