@@ -79,7 +79,10 @@ def voxelize_mesh(mesh, size: int = 32, fill: bool = True, density: float = 32.0
     count = int(min(max(scaled.area * density, 1000), 4_000_000))
     samples, _ = trimesh.sample.sample_surface(scaled, count, seed=seed)
     pts = np.concatenate([samples, v])
-    idx = np.clip(np.floor(pts + 0.5), 0, size - 1).astype(np.intp)
+    # points exactly on a voxel boundary go to the voxel nearer the grid centre, so an
+    # axis-aligned box of extent k voxels fills exactly k voxels
+    bias = 1e-6 * np.sign(pts - (size - 1) / 2.0)
+    idx = np.clip(np.floor(pts + 0.5 - bias), 0, size - 1).astype(np.intp)
     grid = np.zeros((size,) * 3, dtype=bool)
     grid[idx[:, 0], idx[:, 1], idx[:, 2]] = True
     if fill:
