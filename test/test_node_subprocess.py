@@ -1,0 +1,139 @@
+"""The node as a separate process: stream -> ~/estimates, clean SIGINT exit, bad model_dir exit."""
+import ast
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+from std_msgs.msg import Header
+
+from beo_ros.ros.conversions import xyz_to_cloud
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIG = ROOT / 'config' / 'beo.yaml'
+
+
+def node_env(domain_id):
+    env = dict(os.environ)
+    env['ROS_DOMAIN_ID'] = str(domain_id)
+    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    env['PYTHONUNBUFFERED'] = '1'
+    env['PYTHONPATH'] = os.pathsep.join([str(ROOT)] + [p for p in [env.get('PYTHONPATH')] if p])
+    return env
+
+
+def node_command():
+    """The console script when installed next to this python, else ``python -m beo_ros.node``."""
+    script = Path(sys.executable).parent / 'beo-node'
+    return [str(script)] if script.exists() else [sys.executable, '-m', 'beo_ros.node']
+
+
+@pytest.mark.usefixtures('ros_interfaces')
+def test_missing_model_dir_exits_nonzero(tmp_path, ros_domain_id):
+    missing = tmp_path / 'no_such_model_dir'
+    for cmd in (node_command(), [sys.executable, '-m', 'beo_ros.node']):
+        proc = subprocess.run(cmd + ['--ros-args', '-p', f'model_dir:={missing}'],
+                              env=node_env(ros_domain_id), cwd=ROOT, capture_output=True,
+                              text=True, timeout=60)
+        assert proc.returncode != 0, proc
+        assert str(missing) in proc.stderr
+        assert 'Traceback' not in proc.stderr, proc.stderr
+
+
+@pytest.mark.usefixtures('ros_interfaces')
+def test_node_process_streams_and_stops_on_sigint(ros_tiny_model_dir, ros_domain_id,
+                                                  monkeypatch):
+    import rclpy
+    from beo_interfaces.msg import ObjectEstimate
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import PointCloud2
+    from test_node import box_view
+
+    proc = subprocess.Popen(
+        node_command() + ['--ros-args', '--params-file', str(CONFIG),
+                          '-p', f'model_dir:={ros_tiny_model_dir}'],
+        env=node_env(ros_domain_id), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True)
+    monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=ros_domain_id)
+    node = rclpy.create_node('beo_subprocess_client', context=ctx)
+    got = threading.Event()
+    estimates = []
+
+    def on_estimate(msg):
+        estimates.append(msg)
+        got.set()
+
+    try:
+        node.create_subscription(ObjectEstimate, '/beo/estimates', on_estimate, 10)
+        pub = node.create_publisher(PointCloud2, '/beo/input', qos_profile_sensor_data)
+        cloud = xyz_to_cloud(box_view(), Header(frame_id='camera'))
+        executor = SingleThreadedExecutor(context=ctx)
+        executor.add_node(node)
+        t0 = time.monotonic()
+        last = 0.0
+        while not got.is_set() and time.monotonic() - t0 < 90:
+            assert proc.poll() is None, proc.communicate()
+            if time.monotonic() - last > 0.5:
+                pub.publish(cloud)
+                last = time.monotonic()
+            executor.spin_once(timeout_sec=0.05)
+        assert got.is_set(), 'no estimate from the node process'
+        print(f'first estimate {time.monotonic() - t0:.2f} s after start, '
+              f'label {estimates[0].label}, latency {estimates[0].latency * 1e3:.1f} ms')
+        assert estimates[0].header.frame_id == 'camera'
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+        try:
+            out, err = proc.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out, err = proc.communicate()
+            pytest.fail(f'node did not exit on SIGINT:\n{err}')
+    assert proc.returncode == 0, err
+    assert 'Traceback' not in err, err
+
+
+def test_config_lists_every_parameter_with_its_default():
+    cfg = yaml.safe_load(CONFIG.read_text())['beo']['ros__parameters']
+    src = (ROOT / 'beo_ros' / 'ros' / 'node.py').read_text()
+    declared = {}
+    for call in ast.walk(ast.parse(src)):
+        if (isinstance(call, ast.Call) and isinstance(call.func, ast.Name)
+                and call.func.id == 'd' and isinstance(call.args[0], ast.Constant)):
+            try:
+                declared[call.args[0].value] = ast.literal_eval(call.args[1])
+            except ValueError:  # computed default (model_dir)
+                declared[call.args[0].value] = None
+    assert set(cfg) == set(declared)
+    for k, v in declared.items():
+        if v is not None:
+            assert cfg[k] == v and type(cfg[k]) is type(v), k
+
+
+def test_launch_file_is_valid_python():
+    path = ROOT / 'launch' / 'beo.launch.py'
+    code = compile(path.read_text(), str(path), 'exec')
+    ns = {'__file__': str(path), '__name__': 'beo_launch'}
+    exec(code, ns)
+    assert callable(ns['generate_launch_description'])
+    assert Path(ns['default_params_file']()).resolve() == CONFIG.resolve() or \
+        Path(ns['default_params_file']()).name == 'beo.yaml'
+    try:
+        import launch_ros  # noqa: F401
+    except ImportError:
+        with pytest.raises(RuntimeError, match='launch'):
+            ns['generate_launch_description']()
+    else:
+        assert ns['generate_launch_description']() is not None
