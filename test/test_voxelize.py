@@ -1,0 +1,216 @@
+"""voxelize_view: occupied/free/unknown labelling, frame conventions, placement, validation."""
+import numpy as np
+import pytest
+
+from beo_ros.core.grid import FREE, OCCUPIED, UNKNOWN, GridSpec
+from beo_ros.core.voxelize import (
+    aligned_frame, grid_to_points, label_free_unknown, voxelize_view)
+
+N = 32
+C = (N - 1) / 2
+
+
+def box_front(m=3000, seed=0, x=0.9):
+    """Points of the face x = ``x`` (|y| <= 0.15, 0 <= z <= 0.4) of a box, seen from the origin."""
+    rng = np.random.default_rng(seed)
+    return np.c_[np.full(m, x), rng.uniform(-0.15, 0.15, m), rng.uniform(0.0, 0.4, m)]
+
+
+def rot_about(axis, angle):
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+
+
+def counts(g):
+    return {k: int((g == k).sum()) for k in (OCCUPIED, FREE, UNKNOWN)}
+
+
+def test_box_seen_from_one_side():
+    v = voxelize_view(box_front(), np.zeros(3), [0, 0, 1], GridSpec(N))
+    g = v.grid
+    assert g.shape == (N, N, N) and g.dtype == np.int8
+    occ = np.argwhere(g == OCCUPIED)
+    # the face is one voxel layer thick, perpendicular to the grid's x axis (the view direction)
+    assert np.ptp(occ[:, 0]) == 0
+    fx = occ[0, 0]
+    # largest extent 0.4 m (height) spans the grid; the 0.3 m width spans 24 voxels
+    assert np.ptp(occ[:, 2]) == N - 1 and np.ptp(occ[:, 1]) == 23
+    assert v.voxel_size_m == pytest.approx(0.4 / N, rel=1e-3)
+    # assumed depth = width 0.3 m: the face sits ~12 voxels in front of the grid centre
+    assert fx == pytest.approx(C - 12, abs=1)
+    ys, zs = slice(occ[:, 1].min() + 2, occ[:, 1].max() - 1), slice(2, N - 2)
+    assert np.all(g[fx + 1:, ys, zs] == UNKNOWN)  # inside and behind the box: occluded
+    assert np.all(g[:fx, ys, zs] == FREE)  # between the sensor and the face: seen free
+    assert np.all(g[:, 0, :][:fx] == FREE)  # outside the silhouette
+    assert v.n_points == 3000
+
+
+def test_invariant_to_rotation_about_up_and_translation():
+    rng = np.random.default_rng(3)
+    pts = np.r_[box_front(2000), np.c_[rng.uniform(0.9, 1.1, 800), np.full(800, -0.15),
+                                       rng.uniform(0, 0.4, 800)]]  # two faces visible
+    origin = np.array([0.0, 0.4, 0.6])
+    up = np.array([0.0, 0.0, 1.0])
+    for spec in (GridSpec(N), GridSpec(N, units='metric', voxel_size=0.02, anchor='bottom')):
+        ref = voxelize_view(pts, origin, up, spec)
+        for angle, t in ((0.7, [1, -2, 0.3]), (-2.5, [0, 0, 0]), (np.pi, [5, 5, 5])):
+            # rotate the whole scene about an arbitrary vertical axis, then also tilt the world
+            # so 'up' is no longer z: the grid must not change
+            r = rot_about(up, angle)
+            tilt = rot_about([1, 2, 0], 1.1)
+            p2 = (pts @ r.T + t) @ tilt.T
+            o2 = (origin @ r.T + t) @ tilt.T
+            v = voxelize_view(p2, o2, 3.0 * (tilt @ up), spec)
+            np.testing.assert_array_equal(v.grid == OCCUPIED, ref.grid == OCCUPIED)
+            assert np.mean(v.grid != ref.grid) < 2e-3  # grazing rays may differ
+            assert v.voxel_size_m == pytest.approx(ref.voxel_size_m)
+            # grid_to_input follows the scene
+            m = np.eye(4)
+            m[:3, :3], m[:3, 3] = tilt @ r, tilt @ np.asarray(t, float)
+            np.testing.assert_allclose(v.grid_to_input, m @ ref.grid_to_input, atol=1e-9)
+
+
+def test_x_axis_points_away_from_sensor():
+    pts = box_front(x=0.0)
+    for origin in ([-1.0, 0, 0.2], [1.0, 0, 0.2], [0, 1.0, 0.3]):
+        v = voxelize_view(pts, origin, [0, 0, 1], GridSpec(N))
+        ex = v.grid_to_input[:3, 0] / v.voxel_size_m
+        to_obj = pts.mean(axis=0) - origin
+        to_obj[2] = 0
+        np.testing.assert_allclose(ex, to_obj / np.linalg.norm(to_obj), atol=1e-12)
+        occ = np.argwhere(v.grid == OCCUPIED)
+        unk = np.argwhere(v.grid == UNKNOWN)
+        assert unk[:, 0].mean() > occ[:, 0].mean()  # occluded space lies behind, at larger x
+        np.testing.assert_allclose(v.grid_to_input[:3, 2] / v.voxel_size_m, [0, 0, 1])
+
+
+def test_aligned_frame_fallback_when_sensor_straight_above():
+    r = aligned_frame([0, 0, 2], [0, 0, 5], [0, 0, 0])
+    np.testing.assert_allclose(r.T @ r, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(r), 1.0)
+    np.testing.assert_allclose(r[:, 2], [0, 0, 1])
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-0.1, 0.1, (500, 3)) * [1, 1, 0] + [0, 0, 0.0]
+    v = voxelize_view(pts, [0, 0, 1], [0, 0, 1], GridSpec(N))
+    assert counts(v.grid)[OCCUPIED] > 0 and counts(v.grid)[UNKNOWN] > 0  # below the plate
+
+
+def test_grid_to_input_and_grid_to_points():
+    pts = box_front()
+    v = voxelize_view(pts, np.zeros(3), [0, 0, 1], GridSpec(N))
+    centres, values = grid_to_points(v.grid, v.grid_to_input, threshold=0.5)
+    assert centres.dtype == np.float32 and centres.shape == (counts(v.grid)[OCCUPIED], 3)
+    assert np.all(values == 1)
+    # every occupied voxel centre is within half a voxel diagonal of an input point
+    d = np.linalg.norm(centres[:, None, :] - pts[None, :, :], axis=2).min(axis=1)
+    assert d.max() <= v.voxel_size_m * np.sqrt(3) / 2 + 1e-6
+    # and every input point is inside an occupied voxel
+    g = (pts - v.grid_to_input[:3, 3]) @ np.linalg.inv(v.grid_to_input[:3, :3]).T
+    idx = np.clip(np.floor(g + 0.5), 0, N - 1).astype(int)
+    assert np.all(v.grid[tuple(idx.T)] == OCCUPIED)
+    np.testing.assert_allclose(v.input_to_grid @ v.grid_to_input, np.eye(4), atol=1e-9)
+    prob = np.zeros((N, N, N), np.float32)
+    prob[1, 2, 3], prob[4, 5, 6] = 0.9, 0.3
+    p, val = grid_to_points(prob, np.eye(4), threshold=0.5)
+    np.testing.assert_array_equal(p, [[1, 2, 3]])
+    np.testing.assert_allclose(val, [0.9])
+    with pytest.raises(ValueError):
+        grid_to_points(np.zeros((4, 4)), np.eye(4))
+    with pytest.raises(ValueError):
+        grid_to_points(prob, np.eye(3))
+
+
+def test_metric_bottom_anchor_floor_and_center_override():
+    pts = box_front()
+    spec = GridSpec(N, units='metric', voxel_size=0.02, anchor='bottom')
+    v = voxelize_view(pts, np.zeros(3), [0, 0, 1], spec)
+    occ = np.argwhere(v.grid == OCCUPIED)
+    assert v.voxel_size_m == 0.02
+    assert occ[:, 2].min() == 0 and occ[:, 2].max() == 19  # 0.4 m / 0.02 m = 20 layers
+    assert np.ptp(occ[:, 1]) == 14 or np.ptp(occ[:, 1]) == 15
+    # the floor plane lies 0.1 m below the lowest point: the object floats 5 voxels up
+    v = voxelize_view(pts, np.zeros(3), [0, 0, 1], spec, floor=-0.1)
+    assert np.argwhere(v.grid == OCCUPIED)[:, 2].min() == 5
+    np.testing.assert_allclose(v.grid_to_input @ [C, C, -0.5, 1], [1.05, 0, -0.1, 1], atol=3e-3)
+    # center: the given point goes to the anchor point
+    v = voxelize_view(pts, np.zeros(3), [0, 0, 1], GridSpec(N, units='metric', voxel_size=0.02),
+                      center=[1.0, 0.1, 0.2])
+    np.testing.assert_allclose(v.grid_to_input @ [C, C, C, 1], [1.0, 0.1, 0.2, 1], atol=1e-9)
+    # points outside a small metric grid are dropped and not counted
+    v = voxelize_view(pts, np.zeros(3), [0, 0, 1], GridSpec(8, units='metric', voxel_size=0.04))
+    assert 0 < v.n_points < len(pts)
+
+
+def test_sensor_inside_grid():
+    pts = box_front()
+    spec = GridSpec(N, units='metric', voxel_size=0.1)  # 3.2 m grid contains the sensor
+    v = voxelize_view(pts, np.zeros(3), [0, 0, 1], spec)
+    o = (np.zeros(3) - v.grid_to_input[:3, 3]) @ np.linalg.inv(v.grid_to_input[:3, :3]).T
+    assert np.all((o > 0) & (o < N - 1))
+    oi = tuple(np.floor(o + 0.5).astype(int))
+    assert v.grid[oi] == FREE
+    assert counts(v.grid)[UNKNOWN] > 0
+    occ = np.argwhere(v.grid == OCCUPIED)
+    fx = occ[:, 0].max()
+    assert v.grid[fx + 2, occ[:, 1].min() + 1, occ[:, 2].min() + 1] == UNKNOWN
+
+
+def test_occluders_hide_space_behind_them():
+    pts = box_front()
+    rng = np.random.default_rng(4)
+    wall = np.c_[np.full(3000, 0.5), rng.uniform(-0.6, 0.0, 3000), rng.uniform(-0.2, 0.6, 3000)]
+    spec = GridSpec(N, units='metric', voxel_size=0.02)
+    a = voxelize_view(pts, np.zeros(3), [0, 0, 1], spec)
+    b = voxelize_view(pts, np.zeros(3), [0, 0, 1], spec, occluders=wall)
+    np.testing.assert_array_equal(a.grid == OCCUPIED, b.grid == OCCUPIED)
+    assert counts(b.grid)[UNKNOWN] > counts(a.grid)[UNKNOWN] + 1000
+    assert np.all(b.grid[a.grid == UNKNOWN] == UNKNOWN)  # occluders only add unknowns
+    # far-away occluders behind the sensor change nothing
+    c = voxelize_view(pts, np.zeros(3), [0, 0, 1], spec, occluders=wall * [-1, 1, 1] - [5, 0, 0])
+    np.testing.assert_array_equal(c.grid, a.grid)
+
+
+def test_label_free_unknown_single_voxel_and_hole_closing():
+    occ = np.zeros((8, 8, 8), bool)
+    occ[3, 4, 4] = True
+    g = label_free_unknown(occ, [-20.0, 4.0, 4.0])
+    assert g[3, 4, 4] == OCCUPIED
+    assert np.all(g[4:, 4, 4] == UNKNOWN) and np.all(g[:3, 4, 4] == FREE)
+    assert g[5, 6, 4] == FREE
+    assert np.all(label_free_unknown(np.zeros((4, 4, 4), bool), [0, 0, 0]) == FREE)
+    # a wall x = 2 with a one-voxel hole: closing stops the leak
+    wall = np.zeros((8, 8, 8), bool)
+    wall[2, 1:7, 1:7] = True
+    wall[2, 4, 4] = False
+    leaky = label_free_unknown(wall, [-30.0, 4.0, 4.0], close_holes=False)
+    closed = label_free_unknown(wall, [-30.0, 4.0, 4.0])
+    assert leaky[6, 4, 4] == FREE and closed[6, 4, 4] == UNKNOWN
+    assert closed[2, 4, 4] == UNKNOWN and closed[1, 4, 4] == FREE
+
+
+@pytest.mark.parametrize('kwargs,match', [
+    (dict(points=np.zeros((5, 2))), r'\(n, 3\)'),
+    (dict(points=np.zeros(30)), r'\(n, 3\)'),
+    (dict(points=np.full((50, 3), np.nan)), 'at least 10 finite'),
+    (dict(up=[0, 0, 0]), 'non-zero'),
+    (dict(up=[0, np.nan, 1]), 'up'),
+    (dict(up=[0, 1]), 'up'),
+    (dict(sensor_origin=[np.inf, 0, 0]), 'sensor_origin'),
+    (dict(center=[0, 0]), 'center'),
+    (dict(floor=np.nan), 'floor'),
+])
+def test_validation(kwargs, match):
+    args = dict(points=box_front(100), sensor_origin=np.zeros(3), up=[0, 0, 1], spec=GridSpec(8))
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        voxelize_view(**args)
+
+
+def test_non_finite_points_are_dropped():
+    pts = box_front(100)
+    pts[::2] = np.nan
+    v = voxelize_view(pts, np.zeros(3), [0, 0, 1], GridSpec(16))
+    assert v.n_points == 50
+    with pytest.raises(ValueError, match='at least 60'):
+        voxelize_view(pts, np.zeros(3), [0, 0, 1], GridSpec(16), min_points=60)
