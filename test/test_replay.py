@@ -92,22 +92,15 @@ def write_box_bag(path, n, period_ns, storage='sqlite3', spacing=0.01, topic='/b
 # ------------------------------------------------------------------------------------------
 
 @pytest.fixture(scope='module')
-def bank(tmp_path_factory):
+def bank(ros_tiny_model_dir):
+    """The tiny model bank (conftest: beo_ros.core.synthetic.make_tiny_bank), loaded once."""
     try:
         from beo_ros.ros.conversions import interfaces
         interfaces()
     except ImportError as e:
         pytest.skip(f'beo_interfaces not built ({e}); run scripts/setup')
-    try:
-        from beo_ros.core.synthetic import make_tiny_bank
-    except ImportError as e:
-        pytest.skip(f'needs beo_ros.core.synthetic.make_tiny_bank (not available: {e})')
-    path = tmp_path_factory.mktemp('tiny_bank') / 'model'
-    made = make_tiny_bank(path)
-    if hasattr(made, 'estimate_points'):
-        return made
     import beo_ros
-    return beo_ros.load_models(made if made is not None else path)
+    return beo_ros.load_models(ros_tiny_model_dir)
 
 
 class NodeHarness:

@@ -1,0 +1,308 @@
+"""beo-demo: the whole pipeline end to end on data the package ships, no arguments needed.
+
+1. Renders one partial view per class of the shipped model (the class mean shape, thresholded,
+   at a random yaw, seen from a random azimuth and a slightly raised elevation) with
+   ``beo_ros.core.synthetic.render_view_points`` and writes the views as PointCloud2 messages
+   into a rosbag2 bag in a temporary directory.
+2. Starts the beo node in-process (its own rclpy context, discovery off) with that model.
+3. Replays the bag into the node (``beo_ros.ros.bag.replay``), one cloud at a time, and collects
+   ``~/estimates`` and ``~/completed``.
+4. Prints a table (input, true class, label, probability, yaw, latency), writes ``results.json``
+   and ``beo_demo.png`` (input points and completed object per input) to ``--out``.
+
+Exit status 0 only if every input got an estimate. Needs neither /work/shared nor a ROS install.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+FRAME = 'camera'
+TOPIC = '/beo/input'
+
+
+def _default_model_dir() -> str:
+    from beo_ros.ros.node import default_model_dir
+    return default_model_dir()
+
+
+def class_shapes(bank) -> dict:
+    """Class name -> bool (N, N, N) occupancy: the class mean shape thresholded at 0.5."""
+    out = {}
+    n = bank.spec.size
+    for cls in bank.classes:
+        mean = None
+        for getter in (lambda: bank.mean_shape(cls),
+                       lambda: bank.class_mean(cls),
+                       lambda: bank.models[cls].mean,
+                       lambda: bank.models[cls].mean_,
+                       lambda: bank.classes_models[cls].mean):
+            try:
+                mean = np.asarray(getter(), dtype=np.float32)
+                break
+            except (AttributeError, KeyError, TypeError):
+                continue
+        if mean is None:
+            raise RuntimeError(f'cannot get the mean shape of class {cls!r} from the bank')
+        out[cls] = mean.reshape(n, n, n) >= 0.5
+    return out
+
+
+def render_inputs(bank, seed: int = 0, views_per_class: int = 1) -> list:
+    """[{'name', 'true_class', 'true_yaw', 'azimuth', 'elevation', 'points' (n,3)}, ...]."""
+    from beo_ros.core.synthetic import render_view_points
+    rng = np.random.default_rng(seed)
+    inputs = []
+    for cls, occ in class_shapes(bank).items():
+        for v in range(views_per_class):
+            yaw = float(rng.uniform(0, 2 * math.pi))
+            az = float(rng.uniform(0, 2 * math.pi))
+            el = float(np.deg2rad(rng.uniform(15, 35)))
+            pts = np.asarray(render_view_points(occ, yaw, az, el), dtype=np.float64)
+            pts = pts[np.isfinite(pts).all(axis=1)]
+            inputs.append({'name': f'{cls}_{v}', 'true_class': cls, 'true_yaw': yaw,
+                           'azimuth': az, 'elevation': el, 'points': pts})
+    return inputs
+
+
+def write_bag(inputs, path, period: float = 0.5, storage: str = 'sqlite3') -> list:
+    """One cloud per input on /beo/input, ``period`` s apart; sets ``input['stamp_ns']``."""
+    from builtin_interfaces.msg import Time
+    from std_msgs.msg import Header
+
+    from beo_ros.ros.bag import T0_NS, BagWriter
+    from beo_ros.ros.conversions import xyz_to_cloud
+    with BagWriter(path, storage) as w:
+        for i, inp in enumerate(inputs):
+            ns = T0_NS + int(round(i * period * 1e9))
+            header = Header(stamp=Time(sec=ns // 10**9, nanosec=ns % 10**9), frame_id=FRAME)
+            w.write(TOPIC, xyz_to_cloud(inp['points'], header), ns)
+            inp['stamp_ns'] = ns
+    return inputs
+
+
+def run_node_on_bag(bag_path, model_dir, bank, up, origin, timeout: float = 120.0):
+    """Start BeoNode in-process, replay the bag one cloud at a time; (estimates, completed, stats).
+
+    ``estimates`` and ``completed`` map header stamps (ns) to messages.
+    """
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'OFF')
+    import rclpy
+    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.parameter import Parameter
+    from rclpy.qos import QoSProfile
+    from sensor_msgs.msg import PointCloud2
+
+    from beo_ros.ros import bag
+    from beo_ros.ros.conversions import interfaces
+    from beo_ros.ros.node import BeoNode
+    msgs = interfaces()
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    estimates, completed = {}, {}
+    lock = threading.Lock()
+    got = threading.Condition(lock)
+    ex = node = listener = player = None
+    try:
+        node = BeoNode(context=ctx, bank=bank, parameter_overrides=[
+            Parameter('model_dir', value=str(model_dir)),
+            Parameter('up_vector', value=[float(v) for v in up]),
+            Parameter('sensor_origin', value=[float(v) for v in origin])])
+        listener = rclpy.create_node('beo_demo_listener', context=ctx)
+        player = rclpy.create_node('beo_demo_player', context=ctx)
+
+        def keep(store, m):
+            with got:
+                store[m.header.stamp.sec * 10**9 + m.header.stamp.nanosec] = m
+                got.notify_all()
+        listener.create_subscription(msgs.ObjectEstimate, '/beo/estimates',
+                                     lambda m: keep(estimates, m), QoSProfile(depth=100))
+        listener.create_subscription(PointCloud2, '/beo/completed',
+                                     lambda m: keep(completed, m), QoSProfile(depth=100))
+        ex = MultiThreadedExecutor(num_threads=4, context=ctx)
+        ex.add_node(node)
+        ex.add_node(listener)
+        threading.Thread(target=ex.spin, daemon=True).start()
+
+        def failures():
+            c = node.counters()
+            return c['rejected'] + c['errors']
+        seen = {'failures': failures()}
+
+        def wait_for_estimate(topic, raw, stamp):
+            """on_publish: one cloud at a time, so the latest-only node drops none."""
+            deadline = time.monotonic() + timeout
+            with got:
+                while not (stamp in estimates and stamp in completed):
+                    if failures() > seen['failures']:   # rejected: no estimate will come
+                        seen['failures'] += 1
+                        return
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        return
+                    got.wait(min(left, 0.1))
+        stats = bag.replay(bag_path, player, rate=0, wait_subscribers=1, wait_timeout=10.0,
+                           on_publish=wait_for_estimate)
+        return estimates, completed, stats, node.counters()
+    finally:
+        if ex is not None:
+            ex.shutdown()
+        for n in (node, listener, player):
+            if n is not None:
+                n.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+
+def results_table(rows) -> str:
+    head = ('input', 'true class', 'label', 'prob', 'yaw deg', 'true yaw', 'latency ms', 'points')
+    lines = [head]
+    for r in rows:
+        lines.append((r['input'], r['true_class'], r['label'] or '-',
+                      '-' if r['probability'] is None else f"{r['probability']:.2f}",
+                      '-' if r['yaw'] is None else f"{math.degrees(r['yaw']):.0f}",
+                      f"{math.degrees(r['true_yaw']):.0f}",
+                      '-' if r['latency'] is None else f"{r['latency'] * 1e3:.0f}",
+                      str(r['points'])))
+    widths = [max(len(str(x[i])) for x in lines) for i in range(len(head))]
+    out = ['  '.join(str(c).ljust(w) for c, w in zip(x, widths)).rstrip() for x in lines]
+    out.insert(1, '  '.join('-' * w for w in widths))
+    return '\n'.join(out)
+
+
+def plot(inputs, rows, completed_pts, path):
+    """One 3D panel per input: input points (blue) and completed object (orange)."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    n = len(inputs)
+    cols = min(5, n)
+    nrows = math.ceil(n / cols)
+    fig = plt.figure(figsize=(3.2 * cols, 3.4 * nrows))
+    for k, (inp, r) in enumerate(zip(inputs, rows)):
+        ax = fig.add_subplot(nrows, cols, k + 1, projection='3d')
+        comp = completed_pts.get(inp['stamp_ns'])
+        if comp is not None and len(comp):
+            ax.scatter(comp[:, 0], comp[:, 1], comp[:, 2], s=2, c='tab:orange', alpha=0.25,
+                       linewidths=0, label='completed')
+        p = inp['points']
+        if len(p) > 3000:
+            p = p[np.random.default_rng(0).choice(len(p), 3000, replace=False)]
+        ax.scatter(p[:, 0], p[:, 1], p[:, 2], s=1.5, c='tab:blue', linewidths=0, label='input')
+        allp = np.concatenate([x for x in (inp['points'], comp) if x is not None and len(x)])
+        lo, hi = allp.min(axis=0), allp.max(axis=0)
+        c, half = (lo + hi) / 2, max((hi - lo).max() / 2, 1e-3)
+        ax.set_xlim(c[0] - half, c[0] + half)
+        ax.set_ylim(c[1] - half, c[1] + half)
+        ax.set_zlim(c[2] - half, c[2] + half)
+        ax.set_xticklabels([])
+        ax.set_yticklabels([])
+        ax.set_zticklabels([])
+        ok = r['label'] == r['true_class']
+        label = r['label'] or 'no estimate'
+        prob = '' if r['probability'] is None else f' {r["probability"]:.2f}'
+        ax.set_title(f'{inp["true_class"]}\n-> {label}{prob}', fontsize=9,
+                     color='black' if ok else 'tab:red')
+    fig.suptitle('beo-demo: input view (blue), completed object (orange)', fontsize=11)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(
+        prog='beo-demo', description='Render one partial view per class of the shipped model, '
+        'replay them as a rosbag2 bag into an in-process beo node, print the estimates and plot '
+        'them. Exit 0 only if every input got an estimate.')
+    p.add_argument('--out', default='./beo_demo_out', metavar='DIR',
+                   help='output directory for results.json and beo_demo.png '
+                        '(default ./beo_demo_out)')
+    p.add_argument('--model', metavar='DIR', help='model bank directory (default: the shipped '
+                   'model, as the node resolves it)')
+    p.add_argument('--seed', type=int, default=0, help='random yaws/viewpoints (default 0)')
+    p.add_argument('--views-per-class', type=int, default=1)
+    p.add_argument('--storage', choices=('sqlite3', 'mcap'), default='mcap',
+                   help='bag storage of the demo bag (default mcap)')
+    p.add_argument('--keep-bag', action='store_true', help='copy the demo bag into --out')
+    p.add_argument('--timeout', type=float, default=120.0,
+                   help='seconds to wait for each estimate (default 120)')
+    args = p.parse_args(argv)
+    t_start = time.monotonic()
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'OFF')
+    from beo_ros.ros.env import ensure_ament_prefix
+    ensure_ament_prefix()
+
+    import beo_ros
+    model_dir = args.model or _default_model_dir()
+    try:
+        bank = beo_ros.load_models(model_dir)
+    except Exception as e:  # noqa: BLE001 - report and exit
+        print(f'beo-demo: cannot load the model from {model_dir!r}: {e}', file=sys.stderr)
+        return 2
+    print(f'model: {model_dir} ({len(bank.classes)} classes: {", ".join(bank.classes)})')
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+
+    from beo_ros.core import synthetic
+    inputs = render_inputs(bank, seed=args.seed, views_per_class=args.views_per_class)
+    up = getattr(synthetic, 'RENDER_UP', (0.0, 0.0, 1.0))
+    origin = getattr(synthetic, 'RENDER_SENSOR_ORIGIN', (0.0, 0.0, 0.0))
+    with tempfile.TemporaryDirectory(prefix='beo_demo_') as tmp:
+        bag_path = Path(tmp) / 'demo_bag'
+        write_bag(inputs, bag_path, storage=args.storage)
+        print(f'demo bag: {len(inputs)} clouds on {TOPIC} ({args.storage})')
+        t_node = time.monotonic()
+        estimates, completed, stats, counters = run_node_on_bag(
+            bag_path, model_dir, bank, up, origin, timeout=args.timeout)
+        node_s = time.monotonic() - t_node
+        if args.keep_bag:
+            import shutil
+            shutil.copytree(bag_path, out / 'demo_bag', dirs_exist_ok=True)
+
+    from beo_ros.ros.conversions import cloud_to_xyz
+    rows, completed_pts = [], {}
+    for inp in inputs:
+        e = estimates.get(inp['stamp_ns'])
+        c = completed.get(inp['stamp_ns'])
+        if c is not None:
+            completed_pts[inp['stamp_ns']] = cloud_to_xyz(c)[0]
+        yaw = None
+        if e is not None and len(e.hypotheses):
+            yaw = float(e.hypotheses[0].yaw)
+        rows.append({'input': inp['name'], 'true_class': inp['true_class'],
+                     'true_yaw': inp['true_yaw'], 'points': int(len(inp['points'])),
+                     'label': e.label if e is not None else None,
+                     'probability': float(e.probability) if e is not None else None,
+                     'yaw': yaw, 'latency': float(e.latency) if e is not None else None,
+                     'status': e.status if e is not None else 'no estimate',
+                     'completed_points': int(len(completed_pts.get(inp['stamp_ns'], [])))})
+    print(results_table(rows))
+    n_est = sum(r['label'] is not None for r in rows)
+    n_ok = sum(r['label'] == r['true_class'] for r in rows)
+    png = out / 'beo_demo.png'
+    plot(inputs, rows, completed_pts, png)
+    total_s = time.monotonic() - t_start
+    summary = {'model': str(model_dir), 'inputs': len(rows), 'estimated': n_est,
+               'correct': n_ok, 'node_and_replay_s': round(node_s, 3),
+               'total_s': round(total_s, 3), 'replay': stats.to_dict(), 'node_counters': counters,
+               'results': rows}
+    (out / 'results.json').write_text(json.dumps(summary, indent=2))
+    print(f'{n_est}/{len(rows)} inputs estimated, {n_ok} correctly labelled; '
+          f'{total_s:.1f} s total ({node_s:.1f} s node + replay)')
+    print(f'wrote {png} and {out / "results.json"}')
+    if n_est < len(rows):
+        print(f'beo-demo: {len(rows) - n_est} input(s) got no estimate', file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
