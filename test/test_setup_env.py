@@ -60,7 +60,7 @@ def test_object_estimate_serialization_roundtrip():
     est.completed_cloud.point_step = 4
     est.completed_cloud.row_step = 8
     est.completed_cloud.data = bytes(range(8))
-    est.latency = 0.031
+    est.latency = 0.03125  # float32 field: use an exactly representable value
     est.status = 'ok'
 
     raw = serialize_message(est)
