@@ -1,0 +1,164 @@
+"""Tabletop scenes: loading, segmentation, table plane, object views (synthetic + real OSD)."""
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from beo_ros.core.grid import OCCUPIED, UNKNOWN, GridSpec
+from beo_ros.core.pcd import PCDError, write_pcd
+from beo_ros.core.scans import (
+    TABLETOP_SPEC, Scene, fit_table_plane, load_scene, object_view, scene_occluders,
+    segment_objects)
+
+DATA = Path(os.environ.get('BEO_DATA_DIR')
+            or Path(__file__).resolve().parents[1].parent / 'shared' / 'data')
+OSD = DATA / 'osd' / 'learn'
+
+
+def synthetic_scene(seed=0):
+    """Camera at the origin looking along +z, pitched down 40 deg; table 0.6 m below it.
+
+    Object 2: a 0.1 x 0.1 x 0.2 m box standing on the table (its camera-facing sides);
+    object 3: a 0.06 m cube resting on top of object 2. Returns (Scene, up, d).
+    """
+    rng = np.random.default_rng(seed)
+    pitch = np.radians(40)
+    up = np.array([0.0, -np.cos(pitch), -np.sin(pitch)])  # camera frame: y down, z forward
+    fwd = np.cross([1.0, 0, 0], up)  # horizontal, away from the camera
+    fwd /= np.linalg.norm(fwd)
+    side = np.cross(up, fwd)
+    table_c = 0.9 * fwd - 0.6 * up  # a point on the table plane
+
+    def to_cam(a, b, h):  # (side, forward, height above table) -> camera frame
+        return table_c + np.outer(a, side) + np.outer(b, fwd) + np.outer(h, up)
+
+    m = 4000
+    table = to_cam(rng.uniform(-0.5, 0.5, m), rng.uniform(-0.4, 0.4, m), rng.normal(0, 0.002, m))
+    k = 1500
+    box = np.r_[to_cam(rng.uniform(-0.05, 0.05, k), np.full(k, -0.05), rng.uniform(0, 0.2, k)),
+                to_cam(rng.uniform(-0.05, 0.05, k), rng.uniform(-0.05, 0.05, k), np.full(k, 0.2))]
+    j = 500
+    cube = np.r_[to_cam(rng.uniform(-0.03, 0.03, j), np.full(j, -0.03), rng.uniform(0.2, 0.26, j)),
+                 to_cam(rng.uniform(-0.03, 0.03, j), rng.uniform(-0.03, 0.03, j), np.full(j, 0.26))]
+    pts = np.r_[table, box, cube, np.full((100, 3), np.nan)]
+    labels = np.r_[np.ones(m), np.full(len(box), 20), np.full(len(cube) // 2, 30),
+                   np.full(len(cube) - len(cube) // 2, 31), np.zeros(100)].astype(np.uint32)
+    rgb = rng.integers(0, 256, (len(pts), 3)).astype(np.uint8)
+    scene = Scene(points=pts.astype(np.float32), labels=labels, rgb=rgb, width=len(pts), height=1)
+    return scene, up, -float(up @ table_c)
+
+
+def test_load_scene_from_pcd(tmp_path):
+    scene, _, _ = synthetic_scene()
+    n = len(scene.points) // 2 * 2
+    r, g, b = (scene.rgb[:n, i].astype(np.uint32) for i in range(3))
+    fields = {'label': scene.labels[:n], 'x': scene.points[:n, 0], 'y': scene.points[:n, 1],
+              'z': scene.points[:n, 2], 'rgba': (255 << 24) | (r << 16) | (g << 8) | b}
+    write_pcd(tmp_path / 's.pcd', fields, width=n // 2, height=2)
+    s = load_scene(tmp_path / 's.pcd')
+    assert (s.width, s.height) == (n // 2, 2)
+    np.testing.assert_array_equal(s.points, scene.points[:n])
+    np.testing.assert_array_equal(s.labels, scene.labels[:n])
+    np.testing.assert_array_equal(s.rgb, scene.rgb[:n])
+    # a cloud without label/colour still loads
+    write_pcd(tmp_path / 'xyz.pcd', {k: fields[k] for k in 'xyz'})
+    s = load_scene(tmp_path / 'xyz.pcd')
+    assert not s.labels.any() and not s.rgb.any()
+    write_pcd(tmp_path / 'bad.pcd', {'a': fields['x']})
+    with pytest.raises(PCDError, match='x/y/z'):
+        load_scene(tmp_path / 'bad.pcd')
+
+
+def test_segment_objects():
+    scene, _, _ = synthetic_scene()
+    objs = segment_objects(scene)
+    assert list(objs) == [2, 3]
+    assert len(objs[2]) == 3000 and len(objs[3]) == 1000  # labels 30 and 31 are one object
+    assert all(np.isfinite(p).all() and p.dtype == np.float64 for p in objs.values())
+    assert list(segment_objects(scene, min_points=2000)) == [2]
+
+
+def test_fit_table_plane_orientation():
+    scene, up, d = synthetic_scene()
+    n, dd = fit_table_plane(scene)
+    assert np.degrees(np.arccos(np.clip(n @ up, -1, 1))) < 1.0
+    assert dd == pytest.approx(d, abs=0.005) and dd > 0  # camera 0.6 m above the table
+    # raw points without labels: the dominant plane (the table) is found and oriented the same
+    n2, d2 = fit_table_plane(scene.points)
+    assert n2 @ up > 0.999 and d2 == pytest.approx(d, abs=0.005)
+    # a camera placed below the plane flips the orientation
+    n3, d3 = fit_table_plane(scene, sensor_origin=-2 * d * up)
+    assert n3 @ up < -0.999
+    with pytest.raises(ValueError):
+        fit_table_plane(np.zeros((2, 3)))
+
+
+def test_object_view_on_table_and_stacked():
+    scene, up, d = synthetic_scene()
+    objs = segment_objects(scene)
+    v = object_view(objs[2], up, d)
+    g = v.grid
+    assert g.shape == TABLETOP_SPEC.shape and v.voxel_size_m == TABLETOP_SPEC.voxel_size
+    occ = np.argwhere(g == OCCUPIED)
+    assert occ[:, 2].min() == 0  # stands on the grid floor = table
+    assert occ[:, 2].max() == pytest.approx(0.2 / v.voxel_size_m, abs=1)
+    assert (g == UNKNOWN).sum() > 200  # the inside of the box is occluded
+    # the table point below the box centre maps to the grid floor centre
+    c = (TABLETOP_SPEC.size - 1) / 2
+    floor_c = v.grid_to_input @ [c, c, -0.5, 1]
+    assert floor_c[:3] @ up + d == pytest.approx(0, abs=1e-9)
+    # the stacked cube: its own bottom is the floor (not the table 0.2 m below)
+    w = object_view(objs[3], up, d)
+    assert np.argwhere(w.grid == OCCUPIED)[:, 2].min() == 0
+    assert (w.grid_to_input @ [c, c, -0.5, 1])[:3] @ up + d == pytest.approx(0.2, abs=0.01)
+    # occluders (the box below the cube) can only turn free voxels into unknown ones
+    x = object_view(objs[3], up, d, occluders=scene_occluders(scene, 3))
+    assert np.all(x.grid[w.grid == UNKNOWN] == UNKNOWN)
+    assert len(scene_occluders(scene, 3)) == 3000
+    with pytest.raises(ValueError):
+        object_view(objs[2], [0, 0, 0], d)
+
+
+@pytest.fixture(scope='module')
+def osd_scenes():
+    files = sorted(OSD.glob('learn*.pcd')) if OSD.is_dir() else []
+    if not files:
+        pytest.skip(f'OSD scenes not found under {OSD}')
+    return {f.stem: load_scene(f) for f in files}
+
+
+def test_osd_scenes(osd_scenes):
+    assert len(osd_scenes) == 29
+    total = 0
+    for name, scene in osd_scenes.items():
+        assert (scene.width, scene.height) == (640, 480)
+        objs = segment_objects(scene)
+        assert len(objs) >= 1, name
+        total += len(objs)
+        up, d = fit_table_plane(scene)
+        # the camera looks down at the table from 0.4-0.8 m above it, pitched 25-50 deg: its
+        # 'up' is mostly -y (image up) with a component toward the camera (-z)
+        assert 0.4 < d < 0.8, name
+        tilt = np.degrees(np.arccos(-up[1]))
+        assert 25 < tilt < 50 and up[2] < 0 and abs(up[0]) < 0.1, (name, up)
+        table = scene.points[(scene.labels >= 1) & (scene.labels <= 9)].astype(np.float64)
+        assert np.median(np.abs(table @ up + d)) < 0.005, name
+        for oid, pts in objs.items():
+            assert np.median(pts @ up + d) > 0.01, (name, oid)  # objects stand above the table
+    assert total == 76
+
+
+def test_osd_object_views(osd_scenes):
+    scene = osd_scenes['learn33']
+    up, d = fit_table_plane(scene)
+    for oid, pts in segment_objects(scene).items():
+        v = object_view(pts, up, d, occluders=scene_occluders(scene, oid))
+        g = v.grid
+        assert v.n_points > 0.95 * len(pts)
+        assert (g == OCCUPIED).sum() > 50 and (g == UNKNOWN).sum() > 100
+        assert np.argwhere(g == OCCUPIED)[:, 2].min() == 0  # on the table
+        # a normalized centred view of the same object works as well
+        w = object_view(pts, up, d, spec=GridSpec(32))
+        occ = np.argwhere(w.grid == OCCUPIED)
+        assert np.ptp(occ, axis=0).max() == 31
