@@ -1,0 +1,102 @@
+"""Mesh loading and ModelNet-convention voxelization."""
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from beo_ros.core.meshes import MeshError, load_mesh, mesh_to_grid_transform, voxelize_mesh
+
+DATA = Path(os.environ.get('BEO_DATA_DIR')
+            or Path(__file__).resolve().parents[1].parent / 'shared' / 'data')
+MESHES = sorted((DATA / 'meshes').glob('*.off')) if (DATA / 'meshes').is_dir() else []
+
+
+def bbox(grid):
+    a = np.argwhere(grid)
+    return a.min(axis=0), a.max(axis=0)
+
+
+@pytest.mark.parametrize('extents', [(1, 2, 4), (4, 1, 1), (3, 3, 3), (2.0, 1.0, 0.5)])
+def test_box_fills_grid_with_aspect(extents):
+    mesh = trimesh.creation.box(extents)
+    mesh.apply_translation([10, -3, 7])  # placement in mesh coords does not matter
+    g = voxelize_mesh(mesh, size=32)
+    assert g.shape == (32, 32, 32) and g.dtype == bool
+    lo, hi = bbox(g)
+    size = hi - lo + 1
+    np.testing.assert_array_equal(size, np.round(32 * np.asarray(extents) / max(extents)))
+    np.testing.assert_allclose((lo + hi) / 2, 15.5, atol=0.5)  # centred
+    assert g.sum() == np.prod(size)  # solid: every voxel of the box is filled
+    assert voxelize_mesh(mesh, fill=False).sum() < g.sum()
+
+
+def test_z_up_and_odd_size():
+    # a tetrahedron that is wide at the bottom (z low) and pointed at the top
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 2.0]])
+    tet = trimesh.Trimesh(v, [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    g = voxelize_mesh(tet, size=17)
+    assert g.shape == (17, 17, 17)
+    per_layer = g.sum(axis=(0, 1))
+    assert per_layer[0] > per_layer[8] > per_layer[16] >= 1  # mesh +z is grid k
+    assert bbox(g)[0][2] == 0 and bbox(g)[1][2] == 16
+    t = mesh_to_grid_transform(tet, 17)
+    np.testing.assert_allclose(t[:3, :3] @ [0, 0, 2.0], [0, 0, 17])
+
+
+def test_load_mesh_formats_and_errors(tmp_path):
+    box = trimesh.creation.box((1, 2, 3))
+    for ext in ('off', 'obj', 'stl', 'ply'):
+        path = tmp_path / f'box.{ext}'
+        box.export(path)
+        m = load_mesh(path)
+        assert len(m.faces) == 12
+        np.testing.assert_allclose(np.ptp(m.vertices, axis=0), [1, 2, 3])
+        lo, hi = bbox(voxelize_mesh(path))
+        np.testing.assert_allclose(hi - lo + 1, 32 * np.array([1, 2, 3]) / 3, atol=1)
+    with pytest.raises(MeshError, match='no such'):
+        load_mesh(tmp_path / 'missing.off')
+    (tmp_path / 'junk.off').write_text('OFF\n3 1 0\n0 0 0\nthis is not a number\n')
+    with pytest.raises(MeshError):
+        load_mesh(tmp_path / 'junk.off')
+    (tmp_path / 'empty.stl').write_bytes(b'')
+    with pytest.raises(MeshError):
+        load_mesh(tmp_path / 'empty.stl')
+    (tmp_path / 'x.xyz').write_text('1 2 3\n')
+    with pytest.raises(MeshError, match='unsupported'):
+        load_mesh(tmp_path / 'x.xyz')
+    flat = trimesh.Trimesh([[0, 0, 0], [0, 0, 0], [0, 0, 0]], [[0, 1, 2]], process=False)
+    with pytest.raises(MeshError):
+        voxelize_mesh(flat)
+    assert issubclass(MeshError, ValueError)
+
+
+@pytest.mark.skipif(not MESHES, reason=f'shared meshes not found under {DATA}')
+@pytest.mark.parametrize('path', MESHES, ids=[p.stem for p in MESHES])
+def test_modelnet_meshes(path):
+    g = voxelize_mesh(load_mesh(path))
+    lo, hi = bbox(g)
+    assert (hi - lo).max() == 31  # the largest extent spans the grid
+    np.testing.assert_allclose((lo + hi) / 2, 15.5, atol=1.0)
+    assert 500 < g.sum() < 32 ** 3 // 2
+    np.testing.assert_array_equal(g, voxelize_mesh(load_mesh(path)))  # deterministic
+
+
+@pytest.mark.skipif(not MESHES, reason=f'shared meshes not found under {DATA}')
+def test_matches_training_grid_statistics():
+    npz = DATA / 'modelnet10' / 'modelnet10_vox32_train.npz'
+    if not npz.is_file():
+        pytest.skip('ModelNet10 grids not found')
+    z = np.load(npz)
+    vox = np.unpackbits(z['voxels'][:300], axis=1).reshape(-1, 32, 32, 32).astype(bool)
+    ext = np.array([np.ptp(np.argwhere(g), axis=0).max() for g in vox])
+    # the training grids follow the same convention: the largest extent spans all 32 voxels
+    assert np.mean(ext == 31) > 0.8
+    toilet = [p for p in MESHES if p.stem.startswith('toilet')]
+    if toilet:
+        g = voxelize_mesh(load_mesh(toilet[0]))
+        sel = z['labels'] == list(z['classes']).index('toilet')
+        train = np.unpackbits(z['voxels'][sel], axis=1).reshape(-1, 32, 32, 32) > 0
+        iou = (train & g).sum(axis=(1, 2, 3)) / (train | g).sum(axis=(1, 2, 3))
+        assert iou.max() > 0.5  # a similar toilet exists among the training grids
