@@ -136,12 +136,8 @@ def cube_soup(voxels: np.ndarray) -> tuple:
 
 
 def _relevant_occluders(occ_pts_grid: np.ndarray, origin_grid: np.ndarray, n: int) -> np.ndarray:
-    """Unique voxel indices of occluder points that may lie between the sensor and the grid."""
+    """Unique voxel indices (k, 3) of occluder points that may lie between sensor and grid."""
     idx = np.floor(occ_pts_grid + 0.5).astype(np.int64)
-    lo = idx.min(axis=0)
-    span = idx.max(axis=0) - lo + 1
-    key = np.unique(((idx[:, 0] - lo[0]) * span[1] + idx[:, 1] - lo[1]) * span[2] + idx[:, 2] - lo[2])
-    idx = np.stack(np.unravel_index(key, tuple(span)), axis=1) + lo
     c = np.full(3, (n - 1) / 2.0)
     radius = np.sqrt(3) * n / 2.0 + 1.0  # bounding sphere of the grid (+ one voxel)
     to_c = c - origin_grid
@@ -155,7 +151,13 @@ def _relevant_occluders(occ_pts_grid: np.ndarray, origin_grid: np.ndarray, n: in
         half = np.arcsin(radius / dc) + own
         cosang = (d @ to_c) / np.maximum(dist * dc, 1e-12)
         keep &= cosang >= np.cos(np.minimum(half, np.pi))
-    return idx[keep]
+    idx = idx[keep]
+    if len(idx) == 0:
+        return idx
+    lo = idx.min(axis=0)
+    span = tuple(idx.max(axis=0) - lo + 1)  # bounded by the sphere around sensor and grid
+    key = np.unique(np.ravel_multi_index(tuple((idx - lo).T), span))
+    return np.stack(np.unravel_index(key, span), axis=1) + lo
 
 
 def label_free_unknown(occupied: np.ndarray, origin_grid, close_holes: bool = True,
