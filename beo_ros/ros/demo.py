@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-FRAME = 'camera'
+FRAME = 'sensor'  # z up, sensor at the origin (see render_inputs)
 TOPIC = '/beo/input'
 
 
@@ -37,28 +37,18 @@ def _default_model_dir() -> str:
 
 def class_shapes(bank) -> dict:
     """Class name -> bool (N, N, N) occupancy: the class mean shape thresholded at 0.5."""
-    out = {}
     n = bank.spec.size
-    for cls in bank.classes:
-        mean = None
-        for getter in (lambda: bank.mean_shape(cls),
-                       lambda: bank.class_mean(cls),
-                       lambda: bank.models[cls].mean,
-                       lambda: bank.models[cls].mean_,
-                       lambda: bank.classes_models[cls].mean):
-            try:
-                mean = np.asarray(getter(), dtype=np.float32)
-                break
-            except (AttributeError, KeyError, TypeError):
-                continue
-        if mean is None:
-            raise RuntimeError(f'cannot get the mean shape of class {cls!r} from the bank')
-        out[cls] = mean.reshape(n, n, n) >= 0.5
-    return out
+    return {m.name: np.asarray(m.mean, dtype=np.float32).reshape(n, n, n) >= 0.5
+            for m in bank.models}
 
 
-def render_inputs(bank, seed: int = 0, views_per_class: int = 1) -> list:
-    """[{'name', 'true_class', 'true_yaw', 'azimuth', 'elevation', 'points' (n,3)}, ...]."""
+def render_inputs(bank, seed: int = 0, views_per_class: int = 1, size: float = 1.0) -> list:
+    """One rendered partial view per class (and view): list of dicts with 'name', 'true_class',
+    'true_yaw', 'azimuth', 'elevation' and 'points' (n, 3) in the sensor frame.
+
+    The sensor frame is the renderer's z-up world frame shifted so that the sensor sits at the
+    origin: up is +z and the sensor origin is (0, 0, 0) for every view.
+    """
     from beo_ros.core.synthetic import render_view_points
     rng = np.random.default_rng(seed)
     inputs = []
@@ -67,10 +57,13 @@ def render_inputs(bank, seed: int = 0, views_per_class: int = 1) -> list:
             yaw = float(rng.uniform(0, 2 * math.pi))
             az = float(rng.uniform(0, 2 * math.pi))
             el = float(np.deg2rad(rng.uniform(15, 35)))
-            pts = np.asarray(render_view_points(occ, yaw, az, el), dtype=np.float64)
+            pts, origin = render_view_points(occ, yaw, az, el, distance=2.0, size=size,
+                                             noise=0.002, rng=rng)
+            pts = np.asarray(pts, dtype=np.float64) - np.asarray(origin, dtype=np.float64)
             pts = pts[np.isfinite(pts).all(axis=1)]
             inputs.append({'name': f'{cls}_{v}', 'true_class': cls, 'true_yaw': yaw,
-                           'azimuth': az, 'elevation': el, 'points': pts})
+                           'azimuth': az, 'elevation': el, 'points': pts,
+                           'centre': -np.asarray(origin, dtype=np.float64)})
     return inputs
 
 
@@ -251,10 +244,8 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 
-    from beo_ros.core import synthetic
     inputs = render_inputs(bank, seed=args.seed, views_per_class=args.views_per_class)
-    up = getattr(synthetic, 'RENDER_UP', (0.0, 0.0, 1.0))
-    origin = getattr(synthetic, 'RENDER_SENSOR_ORIGIN', (0.0, 0.0, 0.0))
+    up, origin = (0.0, 0.0, 1.0), (0.0, 0.0, 0.0)   # render_inputs' sensor frame
     with tempfile.TemporaryDirectory(prefix='beo_demo_') as tmp:
         bag_path = Path(tmp) / 'demo_bag'
         write_bag(inputs, bag_path, storage=args.storage)
