@@ -466,7 +466,7 @@ class BeoNode(Node):
 
     def _serve(self, request, response, complete):
         t0 = time.monotonic()
-        name = (self._srv_complete if complete else self._srv_classify).srv_name
+        name = self.resolve_service_name('~/complete' if complete else '~/classify')
         self._count('service_calls')
         p = self._params()
         try:
@@ -581,7 +581,6 @@ def main(args=None):
         pass
     except StartupError as e:
         rclpy.logging.get_logger('beo').fatal(f'cannot start: {e}')
-        print(f'beo_node: cannot start: {e}', file=sys.stderr)
         failed = True
     finally:
         if node is not None:
