@@ -51,7 +51,12 @@ def ros_context(monkeypatch):
 
 @pytest.fixture(scope='session')
 def ros_tiny_model_dir(tmp_path_factory):
-    """A tiny model bank trained on generated shapes (beo_ros.core.synthetic.make_tiny_bank)."""
+    """A tiny model bank trained on generated shapes (beo_ros.core.synthetic.make_tiny_bank).
+
+    BEO_TEST_MODEL_DIR=<dir> uses that model directory instead (e.g. the shipped models).
+    """
+    if os.environ.get('BEO_TEST_MODEL_DIR'):
+        return os.environ['BEO_TEST_MODEL_DIR']
     try:
         from beo_ros.core.synthetic import make_tiny_bank
     except ImportError as e:

@@ -322,6 +322,19 @@ def test_parameters_validated_and_runtime_changeable(harness, tmp_path):
         assert node.get_parameter(name).value == value
     r = harness.call(harness.classify, harness.good_request())
     assert r.success, r.message
+    # large clouds are downsampled to max_points (counted), not rejected
+    assert set_('max_points', 200).successful
+    r = harness.call(harness.classify, harness.good_request())
+    assert r.success, r.message
+    assert node.counters()['downsampled'] == 1
+    # a valid model_dir is loaded at run time
+    model_dir = node.get_parameter('model_dir').value
+    if model_dir:
+        import shutil
+        copy = tmp_path / 'models_copy'
+        shutil.copytree(model_dir, copy)
+        assert set_('model_dir', str(copy)).successful
+        assert harness.call(harness.classify, harness.good_request()).success
 
 
 def test_only_latest_cloud_per_topic_is_kept(harness):
