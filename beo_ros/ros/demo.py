@@ -104,7 +104,8 @@ def run_node_on_bag(bag_path, model_dir, bank, up, origin, timeout: float = 120.
     estimates, completed = {}, {}
     lock = threading.Lock()
     got = threading.Condition(lock)
-    ex = node = listener = player = None
+    ex = node = listener = player = spinner = None
+    stop_spin = threading.Event()
     try:
         node = BeoNode(context=ctx, bank=bank, parameter_overrides=[
             Parameter('model_dir', value=str(model_dir)),
@@ -124,7 +125,12 @@ def run_node_on_bag(bag_path, model_dir, bank, up, origin, timeout: float = 120.
         ex = MultiThreadedExecutor(num_threads=4, context=ctx)
         ex.add_node(node)
         ex.add_node(listener)
-        threading.Thread(target=ex.spin, daemon=True).start()
+
+        def spin():
+            while not stop_spin.is_set():
+                ex.spin_once(timeout_sec=0.05)
+        spinner = threading.Thread(target=spin, daemon=True)
+        spinner.start()
 
         def failures():
             c = node.counters()
@@ -147,6 +153,9 @@ def run_node_on_bag(bag_path, model_dir, bank, up, origin, timeout: float = 120.
                            on_publish=wait_for_estimate)
         return estimates, completed, stats, node.counters()
     finally:
+        stop_spin.set()
+        if spinner is not None:
+            spinner.join(10)
         if ex is not None:
             ex.shutdown()
         for n in (node, listener, player):
@@ -184,12 +193,13 @@ def plot(inputs, rows, completed_pts, path):
         ax = fig.add_subplot(nrows, cols, k + 1, projection='3d')
         comp = completed_pts.get(inp['stamp_ns'])
         if comp is not None and len(comp):
-            ax.scatter(comp[:, 0], comp[:, 1], comp[:, 2], s=2, c='tab:orange', alpha=0.25,
-                       linewidths=0, label='completed')
+            ax.scatter(comp[:, 0], comp[:, 1], comp[:, 2], s=7, c='tab:orange', alpha=0.35,
+                       linewidths=0, label='completed', depthshade=False)
         p = inp['points']
         if len(p) > 3000:
             p = p[np.random.default_rng(0).choice(len(p), 3000, replace=False)]
-        ax.scatter(p[:, 0], p[:, 1], p[:, 2], s=1.5, c='tab:blue', linewidths=0, label='input')
+        ax.scatter(p[:, 0], p[:, 1], p[:, 2], s=2.5, c='tab:blue', linewidths=0, label='input',
+                   depthshade=False)
         allp = np.concatenate([x for x in (inp['points'], comp) if x is not None and len(x)])
         lo, hi = allp.min(axis=0), allp.max(axis=0)
         c, half = (lo + hi) / 2, max((hi - lo).max() / 2, 1e-3)
