@@ -493,3 +493,34 @@ def test_pcd2bag_osd(tmp_path, storage):
             # objects sit on (above) the table plane
             height = pts @ u + plane.data[3]
             assert np.median(height) > 0.0
+
+
+def test_cli_record_stops_on_sigint_and_duration(tmp_path):
+    import signal
+    env = _cli_env(100 + (os.getpid() + 7) % 100)
+    code = 'import sys; from beo_ros.ros.bag import record_main; sys.exit(record_main(sys.argv[1:]))'
+    out = tmp_path / 'sig'
+    rec = subprocess.Popen([sys.executable, '-c', code, '/nobody:std_msgs/msg/String', '-o',
+                            str(out), '--storage', 'mcap'], env=env, stdout=subprocess.PIPE,
+                           stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 30
+        while not out.exists() and time.monotonic() < deadline:   # bag opened = recording
+            time.sleep(0.05)
+        time.sleep(0.3)
+        rec.send_signal(signal.SIGINT)
+        o, e = rec.communicate(timeout=30)
+    finally:
+        if rec.poll() is None:
+            rec.kill()
+    assert rec.returncode == 0, e
+    assert 'stopped by interrupt' in o
+    assert bag.bag_info(out)['topics'] == {'/nobody': {'type': 'std_msgs/msg/String', 'count': 0}}
+
+    t = time.monotonic()
+    r = subprocess.run([sys.executable, '-c', code, '/nobody:std_msgs/String', '-o',
+                        str(tmp_path / 'dur'), '--duration', '0.5', '--json'],
+                       env=env, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)['stopped_by'] == 'duration'
+    assert time.monotonic() - t < 20

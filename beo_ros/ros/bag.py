@@ -642,7 +642,7 @@ def record(node, bag_path, topics, *, storage: str = 'sqlite3', wait: float = 10
                     stats.stopped_by = 'duration'
                     break
                 if stop.is_set():
-                    stats.stopped_by = 'stop'
+                    stats.stopped_by = 'interrupt'
                     break
         finally:
             stats.wall_s = time.monotonic() - t0
