@@ -560,15 +560,17 @@ def resolve_topic_types(node, topics: dict, wait: float = 10.0,
 
 
 def _subscription_qos(node, topic: str, depth: int = 100):
-    """Reliable/transient-local only if every current publisher offers it (as ros2 bag does)."""
+    """Reliable/transient-local only if every current publisher offers it (as ros2 bag does).
+
+    With no publisher yet (type given on the command line) it is best effort + volatile, which
+    matches any publisher that comes later (e.g. sensor-data QoS cameras).
+    """
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     infos = node.get_publishers_info_by_topic(topic)
     reliable = bool(infos) and all(i.qos_profile.reliability == ReliabilityPolicy.RELIABLE
                                    for i in infos)
     latched = bool(infos) and all(i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
                                   for i in infos)
-    if not infos:
-        reliable = True
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
                       reliability=ReliabilityPolicy.RELIABLE if reliable
                       else ReliabilityPolicy.BEST_EFFORT,
