@@ -90,7 +90,8 @@ class Harness:
         self.executor = MultiThreadedExecutor(num_threads=4, context=ctx)
         self.executor.add_node(self.node)
         self.executor.add_node(self.client)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._spin, daemon=True)
         self.thread.start()
         assert self.classify.wait_for_service(timeout_sec=TIMEOUT)
         assert self.complete.wait_for_service(timeout_sec=TIMEOUT)
@@ -137,11 +138,21 @@ class Harness:
         req.cloud = cloud(box_view())
         return req
 
+    def _spin(self):
+        while not self.stop.is_set():
+            self.executor.spin_once(timeout_sec=0.05)
+
     def close(self):
+        # rclpy 7.1 Executor.shutdown() destroys its guard condition without waiting for
+        # callbacks already in the thread pool: stop spinning and drain the pool first
+        self.stop.set()
+        self.thread.join(timeout=5.0)
+        pool = getattr(self.executor, '_executor', None)
+        if pool is not None:
+            pool.shutdown(wait=True)
         self.executor.shutdown(timeout_sec=5.0)
         self.node.destroy_node()
         self.client.destroy_node()
-        self.thread.join(timeout=5.0)
 
 
 @pytest.fixture

@@ -278,12 +278,9 @@ class BeoNode(Node):
             with self._bank_lock:
                 self._bank = bank
             self.get_logger().info(f"reloaded models from '{new['model_dir']}'")
-        if 'diagnostics_period' in new:
-            self._diag_timer.cancel()
-            self.destroy_timer(self._diag_timer)
-            self._diag_timer = self.create_timer(new['diagnostics_period'],
-                                                 self._publish_diagnostics,
-                                                 callback_group=self._timer_group)
+        if 'diagnostics_period' in new:  # re-timing (not re-creating) is safe while spinning
+            self._diag_timer.timer_period_ns = int(new['diagnostics_period'] * 1e9)
+            self._diag_timer.reset()
         return SetParametersResult(successful=True)
 
     # ------------------------------------------------------------------ inputs
@@ -567,10 +564,22 @@ class BeoNode(Node):
         super().destroy_node()
 
 
+def _drain(executor):
+    """Let callbacks already handed to the executor's thread pool finish, then shut it down.
+
+    (rclpy 7.1 ``Executor.shutdown`` destroys its guard condition without waiting for them.)
+    """
+    pool = getattr(executor, '_executor', None)
+    if pool is not None:
+        pool.shutdown(wait=True)
+    executor.shutdown(timeout_sec=5.0)
+
+
 def main(args=None):
     """Run the node until Ctrl-C / shutdown; exits with status 1 if it cannot start."""
     rclpy.init(args=args)
     node = None
+    executor = None
     failed = False
     try:
         node = BeoNode()
@@ -583,6 +592,8 @@ def main(args=None):
         rclpy.logging.get_logger('beo').fatal(f'cannot start: {e}')
         failed = True
     finally:
+        if executor is not None:
+            _drain(executor)
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
