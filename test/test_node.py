@@ -248,7 +248,7 @@ def test_services_answer_while_streaming(harness):
         t.join()
     c = harness.wait_counter(lambda c: c['processed'] >= 1)
     print(f'classify round trip while streaming: median {np.median(times) * 1e3:.1f} ms, '
-          f'max {max(times) * 1e3:.1f} ms; counters {c}')
+          f'max {max(times) * 1e3:.1f} ms; counters {c}; p50 {harness.node.latency_p50()}')
     assert c['received'] >= c['processed'] + c['dropped_stale'] - 1
 
 
