@@ -379,10 +379,9 @@ def _cli_env(domain):
     return env
 
 
-def test_cli_record_and_replay_subprocesses(tmp_path):
+def test_cli_record_and_replay_subprocesses(tmp_path, ros_domain_id):
     """beo-record and beo-replay as separate processes on a private domain."""
-    domain = 100 + os.getpid() % 100
-    env = _cli_env(domain)
+    env = _cli_env(ros_domain_id)
     src = tmp_path / 'src'
     write_test_bag(src, 'sqlite3', n=6, period_ns=20_000_000)
     out = tmp_path / 'out'
@@ -495,9 +494,9 @@ def test_pcd2bag_osd(tmp_path, storage):
             assert np.median(height) > 0.0
 
 
-def test_cli_record_stops_on_sigint_and_duration(tmp_path):
+def test_cli_record_stops_on_sigint_and_duration(tmp_path, ros_domain_id):
     import signal
-    env = _cli_env(100 + (os.getpid() + 7) % 100)
+    env = _cli_env(ros_domain_id)
     code = 'import sys; from beo_ros.ros.bag import record_main; sys.exit(record_main(sys.argv[1:]))'
     out = tmp_path / 'sig'
     rec = subprocess.Popen([sys.executable, '-c', code, '/nobody:std_msgs/msg/String', '-o',
