@@ -433,13 +433,14 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
             conns = list(reader.connections)
         else:
             conns = [c for c in reader.connections if c.msgtype == CLOUD_TYPE]
-        pubs = {}
+        pubs, pub_by_out = {}, {}
         for c in conns:
             out = remap.get(c.topic, c.topic)
             if c.topic not in pubs:
                 pubs[c.topic] = node.create_publisher(import_msg_class(c.msgtype), out,
                                                       make_qos(qos, depth))
-                stats.topics[out] = TopicStats(out, c.topic, c.msgtype)
+                pub_by_out.setdefault(out, pubs[c.topic])
+                stats.topics.setdefault(out, TopicStats(out, c.topic, c.msgtype))
         if not conns:
             return stats
 
@@ -494,8 +495,8 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
             stats.loops += 1
             if bag_t0 is None:  # nothing to play: don't spin forever with --loop
                 break
-        for s, p in zip(stats.topics.values(), pubs.values()):
-            s.subscribers = p.get_subscription_count()
+        for out, ts in stats.topics.items():
+            ts.subscribers = pub_by_out[out].get_subscription_count()
     stats.wall_s = (t_last - t_first) if t_first is not None else 0.0
     return stats
 
@@ -747,7 +748,6 @@ def _install_sigint(stop: threading.Event):
 
 
 def _ros_setup():
-    os.environ.setdefault('RCUTILS_LOGGING_BUFFERED_STREAM', '1')
     try:
         from beo_ros.ros.env import ensure_ament_prefix
         ensure_ament_prefix()
