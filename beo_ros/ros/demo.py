@@ -243,12 +243,12 @@ def main(argv=None) -> int:
     from beo_ros.ros.env import ensure_ament_prefix
     ensure_ament_prefix()
 
-    import beo_ros
+    from beo_ros.ros.node import StartupError, load_bank
     model_dir = args.model or _default_model_dir()
     try:
-        bank = beo_ros.load_models(model_dir)
-    except Exception as e:  # noqa: BLE001 - report and exit
-        print(f'beo-demo: cannot load the model from {model_dir!r}: {e}', file=sys.stderr)
+        bank = load_bank(model_dir)
+    except StartupError as e:
+        print(f'beo-demo: {e}', file=sys.stderr)
         return 2
     print(f'model: {model_dir} ({len(bank.classes)} classes: {", ".join(bank.classes)})')
     out = Path(args.out)
