@@ -1,0 +1,371 @@
+"""Class model bank: per-class VBPCA models plus the classifier, saved as a checked directory.
+
+Layout of a model directory::
+
+    manifest.json          format, version, classes, grid, training settings, file checksums
+    class_00_<name>.npz    W (d, k) float32, mean (d,), noise_variance, coarse_noise_variance,
+                           loading_covariance (k, k), mean_variance (d,), component_variance (k,)
+    classifier.npz         optional: standardisation + multinomial logistic regression per mode
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .estimate import UNKNOWN_LABEL, Estimate, Hypothesis
+from .grid import GridSpec, rotate_grid, yaw_matrix
+from .inference import FEATURE_NAMES, InferenceEngine, observed_edt, top_modes
+
+FORMAT = 'beo_ros.models'
+VERSION = 1
+CLASS_KEYS = ('W', 'mean', 'noise_variance', 'coarse_noise_variance', 'loading_covariance',
+              'mean_variance', 'component_variance')
+MODES = ('complete', 'partial')
+
+
+class ModelError(ValueError):
+    """A model directory or file is missing, corrupt or inconsistent."""
+
+
+@dataclass
+class ClassModel:
+    """One class's VBPCA model, float32. W: (d, k); mean, mean_variance: (d,)."""
+
+    name: str
+    W: np.ndarray
+    mean: np.ndarray
+    noise_variance: float
+    coarse_noise_variance: float
+    loading_covariance: np.ndarray
+    mean_variance: np.ndarray
+    component_variance: np.ndarray
+
+    @classmethod
+    def from_vbpca(cls, name, est, coarse_noise_variance):
+        return cls(name=name, W=est.components_.T.astype(np.float32),
+                   mean=est.mean_.astype(np.float32), noise_variance=float(est.noise_variance_),
+                   coarse_noise_variance=float(coarse_noise_variance),
+                   loading_covariance=est.loading_covariance_.astype(np.float32),
+                   mean_variance=np.broadcast_to(est.mean_variance_, est.mean_.shape).astype(
+                       np.float32),
+                   component_variance=est.component_variance_.astype(np.float32))
+
+
+def coarse_noise_variance(X, est, n):
+    """Residual variance of 2x-pooled training grids X (m, n^3) under the fitted model."""
+    from .inference import pool2
+    Z = est.transform(X)
+    R = (X - est.inverse_transform(Z)).T.reshape(n, n, n, -1)
+    return float(((pool2(R) / 8.0) ** 2).mean()) + 1e-6
+
+
+def _sha256(path):
+    h = hashlib.sha256()
+    with open(path, 'rb') as f:
+        for chunk in iter(lambda: f.read(1 << 20), b''):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _softmax(z):
+    z = z - z.max()
+    e = np.exp(z)
+    return e / e.sum()
+
+
+class ModelBank:
+    """A set of class models over one grid, with pose search, completion and classification.
+
+    Args:
+        models: list of ClassModel (same d = spec.size ** 3).
+        spec: GridSpec of the training grids.
+        classifier: dict mode -> dict(mean, scale, coef, intercept, unknown_threshold), or None
+            (then the class with the largest likelihood wins, as in the paper).
+        training: free-form dict recorded in the manifest.
+        pose_components: leading components used by the coarse pose search.
+    """
+
+    def __init__(self, models, spec: GridSpec, classifier=None, training=None,
+                 pose_components=10):
+        if not models:
+            raise ModelError('a model bank needs at least one class')
+        d = spec.size ** 3
+        for m in models:
+            if m.W.ndim != 2 or m.W.shape[0] != d or m.mean.shape != (d,):
+                raise ModelError(f'class {m.name!r}: W {m.W.shape} / mean {m.mean.shape} do not '
+                                 f'match the {spec.size}^3 grid')
+        self.models = list(models)
+        self.spec = spec
+        self.classifier = classifier
+        self.training = dict(training or {})
+        self.pose_components = int(pose_components)
+        k = max(m.W.shape[1] for m in models)
+        W = np.zeros((len(models), d, k), dtype=np.float32)
+        for i, m in enumerate(models):
+            W[i, :, :m.W.shape[1]] = m.W
+        self.engine = InferenceEngine(
+            W, np.stack([m.mean for m in models]), [m.noise_variance for m in models],
+            [m.coarse_noise_variance for m in models], spec.size, pose_components)
+
+    @property
+    def classes(self):
+        return [m.name for m in self.models]
+
+    # ------------------------------------------------------------------ persistence
+    def save(self, path):
+        """Write the bank to directory ``path`` (created if needed)."""
+        path = Path(path)
+        path.mkdir(parents=True, exist_ok=True)
+        files = {}
+        for i, m in enumerate(self.models):
+            fn = f'class_{i:02d}_{m.name}.npz'
+            np.savez(path / fn, **{k: np.asarray(getattr(m, k if k != 'W' else 'W'))
+                                   for k in CLASS_KEYS})
+            files[fn] = _sha256(path / fn)
+        if self.classifier:
+            arrays = {f'{mode}__{k}': np.asarray(v) for mode, clf in self.classifier.items()
+                      for k, v in clf.items()}
+            np.savez(path / 'classifier.npz', **arrays)
+            files['classifier.npz'] = _sha256(path / 'classifier.npz')
+        manifest = {
+            'format': FORMAT, 'version': VERSION, 'classes': self.classes,
+            'grid': dict(self.spec.to_dict(), axes='xyz', up='+z'),
+            'pose_components': self.pose_components,
+            'features': list(FEATURE_NAMES),
+            'training': self.training, 'files': files,
+        }
+        (path / 'manifest.json').write_text(json.dumps(manifest, indent=2) + '\n')
+        return path
+
+    @classmethod
+    def load(cls, path):
+        """Load and check a model directory; raises ModelError naming the bad file."""
+        path = Path(path)
+        mf = path / 'manifest.json'
+        if not path.is_dir():
+            raise ModelError(f'model directory {path} does not exist')
+        if not mf.is_file():
+            raise ModelError(f'{mf} is missing: not a beo_ros model directory')
+        try:
+            manifest = json.loads(mf.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+            raise ModelError(f'{mf} is not valid JSON: {e}') from None
+        if not isinstance(manifest, dict) or manifest.get('format') != FORMAT:
+            raise ModelError(f'{mf}: format is not {FORMAT!r}')
+        if manifest.get('version') != VERSION:
+            raise ModelError(f'{mf}: version {manifest.get("version")!r} is not supported '
+                             f'(this beo_ros reads version {VERSION})')
+        try:
+            spec = GridSpec.from_dict(manifest['grid'])
+            classes = list(manifest['classes'])
+            files = dict(manifest['files'])
+        except (KeyError, TypeError, ValueError) as e:
+            raise ModelError(f'{mf}: bad or missing entry: {e}') from None
+        if manifest['grid'].get('up', '+z') != '+z' or manifest['grid'].get('axes', 'xyz') != 'xyz':
+            raise ModelError(f'{mf}: only axes xyz with up +z are supported')
+        for fn, digest in files.items():
+            fp = path / fn
+            if not fp.is_file():
+                raise ModelError(f'{fp} is listed in the manifest but missing')
+            if _sha256(fp) != digest:
+                raise ModelError(f'{fp} is corrupt: checksum does not match the manifest')
+        models = []
+        d = spec.size ** 3
+        for i, name in enumerate(classes):
+            fp = path / f'class_{i:02d}_{name}.npz'
+            if fp.name not in files:
+                raise ModelError(f'{fp} for class {name!r} is not listed in the manifest')
+            try:
+                with np.load(fp, allow_pickle=False) as z:
+                    arr = {k: z[k] for k in CLASS_KEYS}
+            except KeyError as e:
+                raise ModelError(f'{fp}: missing array {e}') from None
+            except (OSError, ValueError) as e:
+                raise ModelError(f'{fp}: unreadable: {e}') from None
+            W = arr['W']
+            if W.ndim != 2 or W.shape[0] != d or arr['mean'].shape != (d,):
+                raise ModelError(f'{fp}: W {W.shape} / mean {arr["mean"].shape} do not fit the '
+                                 f'{spec.size}^3 grid of the manifest')
+            if not all(np.isfinite(a).all() for a in arr.values()):
+                raise ModelError(f'{fp}: contains NaN or Inf')
+            if not (arr['noise_variance'] > 0 and arr['coarse_noise_variance'] > 0):
+                raise ModelError(f'{fp}: noise variances must be positive')
+            models.append(ClassModel(
+                name=name, W=W.astype(np.float32), mean=arr['mean'].astype(np.float32),
+                noise_variance=float(arr['noise_variance']),
+                coarse_noise_variance=float(arr['coarse_noise_variance']),
+                loading_covariance=arr['loading_covariance'].astype(np.float32),
+                mean_variance=arr['mean_variance'].astype(np.float32),
+                component_variance=arr['component_variance'].astype(np.float32)))
+        classifier = None
+        if 'classifier.npz' in files:
+            fp = path / 'classifier.npz'
+            try:
+                with np.load(fp, allow_pickle=False) as z:
+                    classifier = {}
+                    for key in z.files:
+                        mode, name = key.split('__', 1)
+                        classifier.setdefault(mode, {})[name] = z[key]
+            except (OSError, ValueError) as e:
+                raise ModelError(f'{fp}: unreadable: {e}') from None
+            nf = len(FEATURE_NAMES) * len(classes)
+            for mode, clf in classifier.items():
+                if mode not in MODES or clf.get('coef', np.zeros(0)).shape != (len(classes), nf):
+                    raise ModelError(f'{fp}: classifier {mode!r} does not fit {len(classes)} '
+                                     f'classes x {len(FEATURE_NAMES)} features')
+        return cls(models, spec, classifier, manifest.get('training'),
+                   manifest.get('pose_components', 10))
+
+    # ------------------------------------------------------------------ queries
+    def check_grid(self, grid):
+        grid = np.asarray(grid)
+        if grid.shape != self.spec.shape:
+            raise ValueError(f'grid must have shape {self.spec.shape}, got {grid.shape}')
+        if not np.issubdtype(grid.dtype, np.integer) and grid.dtype != bool:
+            raise ValueError(f'grid must be an integer array (1 occupied, 0 free, -1 unknown), '
+                             f'got dtype {grid.dtype}')
+        grid = grid.astype(np.int8)
+        if grid.min() < -1 or grid.max() > 1:
+            raise ValueError('grid values must be 1 (occupied), 0 (free) or -1 (unknown)')
+        return grid
+
+    def features(self, grid, yaw=None, yaw_step_deg=1.0, n_modes=2):
+        """Per-class exact posteriors and features for a labelled grid.
+
+        Returns (features (C, F), list of per-class dicts with keys yaw, exact, candidates).
+        """
+        grid = self.check_grid(grid)
+        if not 0.05 <= yaw_step_deg <= 90:
+            raise ValueError(f'yaw_step_deg must be in [0.05, 90], got {yaw_step_deg}')
+        eng = self.engine
+        n_yaws = int(round(360.0 / yaw_step_deg))
+        if yaw is None:
+            yaws, ll, _ = eng.coarse_scores(grid, n_yaws)
+        else:
+            yaws, ll, _ = eng.coarse_scores(grid, 1, offset=float(yaw))
+        edt = observed_edt(grid).ravel()
+        edt_pad = np.append(edt, 0.0)
+        feats, per = [], []
+        min_sep = max(1, int(round(30.0 / yaw_step_deg)))
+        for c in range(eng.C):
+            cand = top_modes(ll[:, c], n_modes if yaw is None else 1, min_sep)
+            best = None
+            tried = []
+            for i in cand:
+                ex = eng.exact(grid, c, float(yaws[i]))
+                tried.append((float(yaws[i]), ex['loglik']))
+                if best is None or ex['loglik'] > best[1]['loglik']:
+                    best = (i, ex)
+            i, ex = best
+            f = eng.features(ex, c, ll[i, c] / max(grid.size / 8, 1), edt_pad[ex['idx']])
+            feats.append(f)
+            per.append(dict(yaw=float(yaws[i]), exact=ex, candidates=tried))
+        return np.array(feats), per
+
+    def classify_features(self, feats, mode):
+        """Class probabilities (C,) and the unknown flag from a (C, F) feature array."""
+        if self.classifier and mode in self.classifier:
+            clf = self.classifier[mode]
+            x = (feats.ravel() - clf['mean']) / clf['scale']
+            p = _softmax(clf['coef'] @ x + clf['intercept'])
+            best = int(np.argmax(p))
+            unknown = bool(feats[best, 0] < float(clf['unknown_threshold'][best]))
+            return p, unknown
+        # the paper's rule: the class whose model explains the observation best
+        return _softmax(feats[:, 0] * 50.0), False
+
+    def estimate(self, grid, yaw=None, yaw_step_deg=1.0, n_hypotheses=5, n_modes=2):
+        """Classify, orient and complete one labelled grid (see :class:`Estimate`).
+
+        Args:
+            grid: int8 (N, N, N), 1 occupied, 0 free, -1 unknown, axes x, y, z, z up.
+            yaw: if given (radians), no pose search is done.
+            yaw_step_deg: resolution of the yaw search (360 / step candidates).
+        """
+        t0 = time.perf_counter()
+        grid = self.check_grid(grid)
+        feats, per = self.features(grid, yaw, yaw_step_deg, n_modes)
+        t1 = time.perf_counter()
+        mode = 'complete' if (grid < 0).mean() < 0.01 else 'partial'
+        probs, unknown = self.classify_features(feats, mode)
+        best = int(np.argmax(probs))
+        t2 = time.perf_counter()
+        ex = per[best]['exact']
+        mc = self.models[best]
+        prob_c, var_c = self.engine.predictive(ex, best, mc.loading_covariance.astype(np.float64)
+                                               if mc.loading_covariance.shape[0] ==
+                                               self.engine.k else None, mc.mean_variance)
+        est_yaw = per[best]['yaw']
+        n = self.spec.size
+        completion = rotate_grid(prob_c.reshape(grid.shape), est_yaw, fill=np.float32(0))
+        variance = rotate_grid(var_c.reshape(grid.shape), est_yaw, fill=np.float32(0))
+        # what was observed is kept: seen surface occupied, seen space free
+        completion = np.where(grid == 1, np.float32(1), np.where(grid == 0, np.float32(0),
+                                                                 completion))
+        variance = np.where(grid >= 0, np.float32(0), variance).astype(np.float32)
+        t3 = time.perf_counter()
+        hyps = sorted(((self.classes[c], y, ll) for c in range(len(per))
+                       for y, ll in per[c]['candidates']), key=lambda h: -h[2])
+        label = UNKNOWN_LABEL if unknown else self.classes[best]
+        return Estimate(
+            label=label, scores={c: float(p) for c, p in zip(self.classes, probs)},
+            yaw=float(np.mod(est_yaw + np.pi, 2 * np.pi) - np.pi),
+            completion=completion.astype(np.float32), variance=variance,
+            hypotheses=[Hypothesis(lab, float(np.mod(y + np.pi, 2 * np.pi) - np.pi), float(s))
+                        for lab, y, s in hyps[:n_hypotheses]],
+            timings={'pose_and_features': t1 - t0, 'classify': t2 - t1, 'completion': t3 - t2,
+                     'total': t3 - t0},
+            features=feats, grid=grid)
+
+    def estimate_points(self, points, sensor_origin=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0),
+                        yaw_step_deg=1.0, threshold=0.5, center=None):
+        """Estimate from an (n, 3) cloud in metres (any frame; the sensor at ``sensor_origin``).
+
+        The pose and completed points come back in the input frame (see :class:`Estimate`).
+        """
+        from .voxelize import grid_to_points, voxelize_view
+        t0 = time.perf_counter()
+        view = voxelize_view(np.asarray(points, dtype=np.float64), np.asarray(sensor_origin,
+                             dtype=np.float64), np.asarray(up, dtype=np.float64), self.spec,
+                             center=center)
+        t1 = time.perf_counter()
+        est = self.estimate(view.grid, yaw_step_deg=yaw_step_deg)
+        T = np.asarray(view.grid_to_input, dtype=np.float64)
+        c = (self.spec.size - 1) / 2.0
+        centre = T @ np.array([c, c, c, 1.0])
+        R_grid = T[:3, :3] / np.linalg.norm(T[:3, :3], axis=0)
+        pose = np.eye(4)
+        pose[:3, :3] = R_grid @ yaw_matrix(est.yaw)
+        pose[:3, 3] = centre[:3]
+        pts, prob = grid_to_points(est.completion, T, threshold)
+        est.pose = pose
+        est.grid_to_input = T
+        est.completed_points = np.asarray(pts, dtype=np.float32)
+        est.completed_probability = np.asarray(prob, dtype=np.float32)
+        est.timings['voxelize'] = t1 - t0
+        est.timings['total'] = time.perf_counter() - t0
+        return est
+
+
+def load_models(path=None):
+    """Load a model directory (default: the shipped ``models/modelnet10_32``)."""
+    if path is None:
+        path = default_model_dir()
+    return ModelBank.load(path)
+
+
+def default_model_dir(name='modelnet10_32'):
+    """The shipped model directory: the installed share dir, else the source tree's models/."""
+    try:
+        from ament_index_python.packages import get_package_share_directory
+        p = Path(get_package_share_directory('beo_ros')) / 'models' / name
+        if p.is_dir():
+            return p
+    except Exception:  # not installed through ament, or ament_index missing
+        pass
+    return Path(__file__).resolve().parents[2] / 'models' / name

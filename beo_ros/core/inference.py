@@ -1,0 +1,217 @@
+"""Pose search, Bayesian completion and classification features for a labelled voxel grid.
+
+Everything is batched: the pose search scores every (yaw, class) pair with two matrix products
+over a 2x-pooled grid, then the best yaws of each class are re-scored exactly at full resolution.
+
+Notation (per class): W (d, k) loadings, mu (d,) mean, v noise variance. Given known voxels K
+with values y_K, the coefficient posterior is N(m, S) with
+    S^-1 = G = I + W_K^T W_K / v,     m = S W_K^T (y_K - mu_K) / v,
+and the log marginal likelihood of y_K is
+    -1/2 [ |K| log(2 pi v) + ||y_K - mu_K||^2 / v - b^T S b + log|G| ],  b = W_K^T (y_K - mu_K) / v.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+from scipy.special import ndtr
+
+from .grid import yaw_source_index
+
+LOG2PI = float(np.log(2 * np.pi))
+FEATURE_NAMES = ('loglik', 'coarse_loglik', 'rmse', 'recall', 'false_occupied', 'dt_error')
+
+
+def batched_cholesky_terms(G, b):
+    """For SPD G (B, k, k) and b (B, k): returns (b^T G^-1 b (B,), log|G| (B,), G^-1 b (B, k)).
+
+    A column loop over k with the batch vectorised: far faster than B LAPACK calls for k ~ 10.
+    """
+    B, k, _ = G.shape
+    L = np.zeros_like(G)
+    for j in range(k):
+        d = G[:, j, j] - np.einsum('bi,bi->b', L[:, j, :j], L[:, j, :j])
+        d = np.sqrt(np.maximum(d, 1e-12))
+        L[:, j, j] = d
+        if j + 1 < k:
+            L[:, j + 1:, j] = (G[:, j + 1:, j] - np.einsum('bri,bi->br', L[:, j + 1:, :j],
+                                                          L[:, j, :j])) / d[:, None]
+    z = np.zeros_like(b)
+    for j in range(k):
+        z[:, j] = (b[:, j] - np.einsum('bi,bi->b', L[:, j, :j], z[:, :j])) / L[:, j, j]
+    x = np.zeros_like(b)
+    for j in range(k - 1, -1, -1):
+        x[:, j] = (z[:, j] - np.einsum('bi,bi->b', L[:, j + 1:, j], x[:, j + 1:])) / L[:, j, j]
+    logdet = 2 * np.log(np.diagonal(L, axis1=1, axis2=2)).sum(axis=1)
+    return (z ** 2).sum(axis=1), logdet, x
+
+
+def pool2(a):
+    """Sum-pool the first three axes of a (n, n, n, ...) array by 2: (n/2, n/2, n/2, ...)."""
+    n = a.shape[0]
+    h = n // 2
+    return a.reshape(h, 2, h, 2, h, 2, *a.shape[3:]).sum(axis=(1, 3, 5))
+
+
+class InferenceEngine:
+    """Precomputed arrays for the batched pose search over a set of class models.
+
+    Args:
+        W: (C, d, k) loadings, zero-padded to a common k; mu: (C, d); v: (C,) noise variances;
+        v_coarse: (C,) noise variances of the 2x-pooled model; n: grid size (d = n**3);
+        pose_components: how many leading components the coarse search uses.
+    """
+
+    def __init__(self, W, mu, v, v_coarse, n, pose_components=10):
+        self.C, self.d, self.k = W.shape
+        self.n = n
+        self.W = np.ascontiguousarray(W, dtype=np.float32)
+        self.mu = np.ascontiguousarray(mu, dtype=np.float32)
+        self.v = np.asarray(v, dtype=np.float64)
+        self.v_coarse = np.asarray(v_coarse, dtype=np.float64)
+        self.gram = np.einsum('cda,cdb->cab', self.W, self.W, dtype=np.float64)   # (C, k, k)
+        self.wmu = np.einsum('cda,cd->ca', self.W, self.mu, dtype=np.float64)     # (C, k)
+        self.mu2 = (self.mu.astype(np.float64) ** 2).sum(axis=1)                   # (C,)
+        # coarse model: 2x pooled mean of the first kp components
+        self.nc = n // 2
+        kp = self.kp = int(min(pose_components, self.k))
+        Wg = self.W[:, :, :kp].reshape(self.C, n, n, n, kp).transpose(1, 2, 3, 0, 4)
+        Wc = (pool2(Wg) / 8.0).reshape(self.nc ** 3, self.C, kp)                  # (dc, C, kp)
+        muc = (pool2(self.mu.T.reshape(n, n, n, self.C)) / 8.0).reshape(-1, self.C)  # (dc, C)
+        iu = self._iu = np.triu_indices(kp)
+        pairs = (Wc[:, :, iu[0]] * Wc[:, :, iu[1]]).reshape(-1, self.C * len(iu[0]))
+        mw = (muc[:, :, None] * Wc).reshape(-1, self.C * kp)
+        # D @ [pairs | mu*W | mu^2] and T @ [W | mu]: two products score every (yaw, class)
+        self._PD = np.ascontiguousarray(np.hstack([pairs, mw, muc ** 2]), dtype=np.float32)
+        self._PT = np.ascontiguousarray(np.hstack([Wc.reshape(-1, self.C * kp), muc]),
+                                        dtype=np.float32)
+        self._yaw_cache = {}
+
+    # ------------------------------------------------------------------ pose search
+    def _coarse_maps(self, n_yaws, offset=0.0):
+        key = (n_yaws, offset)
+        if key in self._yaw_cache:
+            return self._yaw_cache[key]
+        yaws = offset + np.arange(n_yaws) * (2 * np.pi / n_yaws)
+        # canonical voxel p takes the observed voxel R(yaw) p: rotate the observation by -yaw
+        maps = (yaws, yaw_source_index(self.nc, -yaws))
+        if offset == 0.0:
+            self._yaw_cache[key] = maps
+        return maps
+
+    def coarse_scores(self, grid, n_yaws=360, offset=0.0):
+        """Log-likelihood (n_yaws, C) of the pooled observation under every class and yaws
+        ``offset + 2 pi i / n_yaws``; returns (yaws, loglik, n_effective)."""
+        known = (grid >= 0).astype(np.float32)
+        occ = (grid == 1).astype(np.float32)
+        D = (pool2(known) / 8.0).ravel()                 # weight: fraction of a block known
+        T = (pool2(occ) / 8.0).ravel()                   # weight * occupied fraction
+        TT = np.where(D > 0, T * T / np.maximum(D, 1e-6), 0.0)
+        yaws, idx = self._coarse_maps(n_yaws, offset)
+        # outside the observed grid is empty space: weight 1, value 0
+        Dr = np.append(D, 1.0)[idx]
+        Tr = np.append(T, 0.0)[idx]
+        tt = np.append(TT, 0.0)[idx].sum(axis=1, dtype=np.float64)
+        neff = Dr.sum(axis=1, dtype=np.float64)
+        AD = (Dr @ self._PD).astype(np.float64)
+        AT = (Tr @ self._PT).astype(np.float64)
+        C, kp, npair = self.C, self.kp, len(self._iu[0])
+        Y = len(yaws)
+        gram = np.zeros((Y, C, kp, kp))
+        gram[:, :, self._iu[0], self._iu[1]] = AD[:, :C * npair].reshape(Y, C, npair)
+        gram = gram + np.triu(gram, 1).swapaxes(2, 3)
+        mw = AD[:, C * npair:C * npair + C * kp].reshape(Y, C, kp)
+        mm = AD[:, C * npair + C * kp:]
+        tw = AT[:, :C * kp].reshape(Y, C, kp)
+        tm = AT[:, C * kp:]
+        vc = self.v_coarse[None, :]
+        G = np.eye(kp) + gram / vc[..., None, None]
+        b = (tw - mw) / vc[..., None]
+        quad, logdet, _ = batched_cholesky_terms(G.reshape(-1, kp, kp), b.reshape(-1, kp))
+        rr = tt[:, None] - 2 * tm + mm
+        ll = -0.5 * (neff[:, None] * np.log(2 * np.pi * vc) + rr / vc
+                     - quad.reshape(Y, C) + logdet.reshape(Y, C))
+        return yaws, ll, neff
+
+    # ------------------------------------------------------------------ exact posterior
+    def exact(self, grid, c, yaw, with_prediction=True):
+        """Exact full-resolution posterior of class ``c`` at ``yaw``.
+
+        Returns a dict: loglik, n_known, m (k,), G (k, k), rr, and (with_prediction) the rotated
+        canonical labels ``canon`` (d,) int8 and prediction ``pred`` (d,) in the canonical frame.
+        """
+        n, d = self.n, self.d
+        idx = yaw_source_index(n, [-yaw])[0]
+        canon = np.append(grid.ravel(), np.int8(0))[idx]          # outside the grid: free
+        U = np.flatnonzero(canon < 0)
+        O = np.flatnonzero(canon == 1)
+        W, mu, v = self.W[c], self.mu[c], self.v[c]
+        WU = W[U].astype(np.float64)
+        gram = self.gram[c] - WU.T @ WU
+        b = (W[O].sum(axis=0, dtype=np.float64) - (self.wmu[c] - WU.T @ mu[U])) / v
+        rr = len(O) - 2 * mu[O].sum(dtype=np.float64) + self.mu2[c] - (mu[U].astype(np.float64)
+                                                                        ** 2).sum()
+        nk = d - len(U)
+        G = np.eye(self.k) + gram / v
+        quad, logdet, m = batched_cholesky_terms(G[None], b[None])
+        ll = -0.5 * (nk * np.log(2 * np.pi * v) + rr / v - quad[0] + logdet[0])
+        out = dict(loglik=float(ll), n_known=int(nk), m=m[0], G=G, rr=float(rr), b=b,
+                   idx=idx)
+        if with_prediction:
+            out['canon'] = canon
+            out['pred'] = W @ m[0].astype(np.float32) + mu
+        return out
+
+    def features(self, ex, c, coarse_ll, edt_obs_canon):
+        """Classification features of one exact posterior (see FEATURE_NAMES)."""
+        canon, pred = ex['canon'], ex['pred']
+        nk = max(ex['n_known'], 1)
+        v = self.v[c]
+        m, G = ex['m'], ex['G']
+        sq = ex['rr'] - 2 * v * m @ ex['b'] + v * m @ (G - np.eye(self.k)) @ m
+        occ = canon == 1
+        free = canon == 0
+        p_occ = pred >= 0.5
+        n_occ = max(int(occ.sum()), 1)
+        recall = float((p_occ & occ).sum()) / n_occ
+        false_occ = float((p_occ & free).sum()) / max(int(free.sum()), 1)
+        # one-sided distance-transform error: predicted occupied known voxels to the observed
+        # surface (the paper's EDT L2 error restricted to what was seen)
+        sel = p_occ & (canon >= 0)
+        dt = float(np.sqrt((edt_obs_canon[sel] ** 2).mean())) if sel.any() else float(self.n)
+        return np.array([ex['loglik'] / nk, coarse_ll, np.sqrt(max(sq, 0) / nk), recall,
+                         false_occ, dt], dtype=np.float64)
+
+    def predictive(self, ex, c, Sw=None, mu_var=None):
+        """Occupancy probability and variance (d,) in the canonical frame."""
+        W = self.W[c].astype(np.float64)
+        S = np.linalg.inv(ex['G'])
+        mean = ex['pred'].astype(np.float64)
+        var = np.einsum('da,ab,db->d', W, S, W) + self.v[c]
+        if Sw is not None:
+            m = ex['m']
+            var += m @ Sw @ m + np.trace(Sw @ S)
+        if mu_var is not None:
+            var += mu_var
+        prob = ndtr((mean - 0.5) / np.sqrt(var))
+        return prob.astype(np.float32), var.astype(np.float32)
+
+
+def observed_edt(grid):
+    """Euclidean distance (voxels) from every voxel to the nearest observed occupied voxel."""
+    occ = grid == 1
+    if not occ.any():
+        return np.full(grid.shape, float(grid.shape[0]), dtype=np.float32)
+    return ndimage.distance_transform_edt(~occ).astype(np.float32)
+
+
+def top_modes(scores, n_modes, min_sep):
+    """Indices of the ``n_modes`` best circular local maxima of ``scores`` (Y,), best first."""
+    Y = len(scores)
+    order = np.argsort(-scores)
+    picked = []
+    for i in order:
+        if all(min(abs(i - j), Y - abs(i - j)) >= min_sep for j in picked):
+            picked.append(int(i))
+            if len(picked) == n_modes:
+                break
+    return picked

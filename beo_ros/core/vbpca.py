@@ -1,0 +1,331 @@
+"""Variational Bayesian PCA (Bishop 1999; Ilin and Raiko, JMLR 2010).
+
+Model, for a sample y (d,):  y = W x + mu + e,  x ~ N(0, I_k),  e ~ N(0, v I_d),
+with priors  W[:, c] ~ N(0, alpha_c I_d)  (ARD: one variance per column, so surplus columns shrink
+to zero) and  mu ~ N(0, v_mu I_d).  The posterior is factorised, q(X) q(W) q(mu), and the
+hyper-parameters (v, alpha, v_mu) are point estimates maximising the variational bound.
+
+Two paths:
+- fully observed data: every row of W shares one (k, k) covariance and every sample shares one,
+  so an iteration is a few (n, d) x (d, k) products: seconds for a thousand 32^3 grids;
+- missing data (``mask``): per-sample and per-row covariances, as in Ilin and Raiko section 3.
+"""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+from sklearn.base import BaseEstimator, TransformerMixin
+from sklearn.exceptions import ConvergenceWarning
+from sklearn.utils.validation import check_is_fitted
+
+_EPS = 1e-10
+
+
+class VBPCA(TransformerMixin, BaseEstimator):
+    """Variational Bayesian PCA with ARD on the loading columns and optional missing data.
+
+    Parameters:
+        n_components: upper bound k on the number of components (ARD prunes the surplus).
+        max_iter: maximum number of VB iterations.
+        tol: stop when the relative change of the bound (or, without the bound, the largest change
+            of the principal subspace angle cosine) falls below ``tol``.
+        prune_tol: a column whose ARD variance falls below ``prune_tol * max(alpha)`` is inactive.
+        init: 'pca' (SVD of the mean-imputed data) or 'random'.
+        random_state: seed for 'random' init.
+        verbose: print the bound every iteration.
+        dtype: float dtype for the heavy products (float32 halves memory and time).
+
+    Attributes (after ``fit``):
+        components_: (k_eff, d) posterior mean of W^T, columns ordered by decreasing variance.
+        mean_: (d,) posterior mean of mu.
+        noise_variance_: v.
+        component_variance_: (k_eff,) ARD variances alpha of the kept columns.
+        loading_covariance_: (k_eff, k_eff) shared posterior covariance of a row of W
+            (fully observed path; for the missing path the average over rows).
+        mean_variance_: (d,) posterior variance of mu.
+        n_components_: k_eff, the number of columns ARD kept.
+        n_iter_, converged_, lower_bound_ (last bound value; nan for the missing path).
+    """
+
+    def __init__(self, n_components=20, *, max_iter=200, tol=1e-5, prune_tol=1e-3, init='pca',
+                 random_state=None, verbose=False, dtype=np.float32):
+        self.n_components = n_components
+        self.max_iter = max_iter
+        self.tol = tol
+        self.prune_tol = prune_tol
+        self.init = init
+        self.random_state = random_state
+        self.verbose = verbose
+        self.dtype = dtype
+
+    # ------------------------------------------------------------------ validation
+    def _validate(self, X, mask):
+        if not isinstance(self.n_components, (int, np.integer)) or self.n_components < 1:
+            raise ValueError(f'n_components must be a positive integer, got {self.n_components!r}')
+        if not isinstance(self.max_iter, (int, np.integer)) or self.max_iter < 1:
+            raise ValueError(f'max_iter must be a positive integer, got {self.max_iter!r}')
+        if not (self.tol > 0):
+            raise ValueError(f'tol must be > 0, got {self.tol!r}')
+        if self.init not in ('pca', 'random'):
+            raise ValueError(f"init must be 'pca' or 'random', got {self.init!r}")
+        X = np.asarray(X)
+        if X.ndim != 2:
+            raise ValueError(f'X must be 2-D (n_samples, n_features), got shape {X.shape}')
+        n, d = X.shape
+        if n < 2:
+            raise ValueError(f'VBPCA needs at least 2 samples, got {n}')
+        X = X.astype(self.dtype, copy=False)
+        if mask is not None:
+            mask = np.asarray(mask, dtype=bool)
+            if mask.shape != X.shape:
+                raise ValueError(f'mask shape {mask.shape} differs from X shape {X.shape}')
+            if mask.all():
+                mask = None
+        finite = np.isfinite(X) if mask is None else np.isfinite(np.where(mask, X, 0))
+        if not finite.all():
+            raise ValueError('X has NaN or Inf in observed entries; mark them missing in mask')
+        if mask is not None and (~mask.any(axis=1)).any():
+            raise ValueError('every sample needs at least one observed entry')
+        return X, mask
+
+    # ------------------------------------------------------------------ fitting
+    def fit(self, X, y=None, mask=None):
+        """Fit on X (n, d). ``mask`` (n, d) bool: True where X is observed (None: all)."""
+        X, mask = self._validate(X, mask)
+        n, d = X.shape
+        k = int(min(self.n_components, n - 1, d))
+        if mask is None:
+            self._fit_full(X, k)
+        else:
+            self._fit_missing(X, mask, k)
+        return self
+
+    def _init_params(self, X, mask, k):
+        n, d = X.shape
+        if mask is None:
+            mu = X.mean(axis=0)
+            Xc = X - mu
+        else:
+            cnt = np.maximum(mask.sum(axis=0), 1)
+            mu = np.where(mask, X, 0).sum(axis=0) / cnt
+            Xc = np.where(mask, X - mu, 0)
+        if self.init == 'pca':
+            # eigen-decomposition in the smaller dimension: the dual (n, n) Gram for n << d
+            Xc64 = Xc.astype(np.float64) if n >= d else None
+            if n < d:
+                e, U = np.linalg.eigh((Xc @ Xc.T).astype(np.float64))
+                e, U = e[::-1], U[:, ::-1]
+                W = (Xc.T @ U[:, :k].astype(self.dtype)) / np.sqrt(n)
+            else:
+                e, V = np.linalg.eigh(Xc64.T @ Xc64)
+                e, V = e[::-1], V[:, ::-1]
+                W = V[:, :k] * np.sqrt(np.maximum(e[:k], 0) / n)
+            W = W.astype(self.dtype)
+            resid = max(np.maximum(e[k:], 0).sum() / (n * d), 1e-4)
+        else:
+            rng = np.random.default_rng(self.random_state)
+            W = (rng.standard_normal((d, k)) * Xc.std() / np.sqrt(k)).astype(self.dtype)
+            resid = float(Xc.var()) + 1e-4
+        return mu.astype(self.dtype), W, float(resid)
+
+    def _fit_full(self, X, k):
+        # Only two (n, d) x (d, k) products per iteration: every other term is expanded into
+        # sufficient statistics, so no (n, d) temporary is ever formed.
+        n, d = X.shape
+        mu, W, v = self._init_params(X, None, k)
+        mu = mu.astype(np.float64)
+        col_sum = X.sum(axis=0, dtype=np.float64)                # (d,)
+        sq_total = float(np.einsum('ij,ij->', X, X, dtype=np.float64))
+        alpha = np.maximum((W.astype(np.float64) ** 2).sum(axis=0) / d, _EPS)
+        v_mu = float(mu @ mu / d) + _EPS
+        Sw = np.zeros((k, k))
+        mu_var = 0.0
+        prev = -np.inf
+        converged = False
+        bound = np.nan
+        for it in range(1, self.max_iter + 1):
+            W64 = W.astype(np.float64)
+            # q(X): shared covariance
+            Sx = np.linalg.inv(np.eye(k) + (W64.T @ W64 + d * Sw) / v)
+            B = (X @ W).astype(np.float64) - mu @ W64              # (n, k) = (Y - mu) W
+            Xm = B @ Sx / v                                         # (n, k) posterior means
+            # q(W): shared row covariance
+            XX = Xm.T @ Xm
+            Sw = np.linalg.inv(np.diag(1.0 / alpha) + (XX + n * Sx) / v)
+            xs = Xm.sum(axis=0)
+            XtXm = (X.T @ Xm.astype(self.dtype)).astype(np.float64)        # (d, k)
+            W64 = (XtXm - np.outer(mu, xs)) @ Sw / v                        # (d, k)
+            # q(mu)
+            mu_var = 1.0 / (n / v + 1.0 / v_mu)
+            mu = mu_var / v * (col_sum - W64 @ xs)
+            # expected squared error, expanded: ||Y - mu - X W^T||^2 + uncertainty terms
+            WtW = W64.T @ W64
+            cross = float(np.einsum('ik,ik->', XtXm, W64)) - (mu @ W64) @ xs
+            sq = (sq_total - 2 * mu @ col_sum + n * mu @ mu - 2 * cross + np.trace(XX @ WtW))
+            sq += n * np.trace(WtW @ Sx) + d * np.trace(Sw @ XX)
+            sq += n * d * np.trace(Sw @ Sx) + n * d * mu_var
+            v = max(sq / (n * d), 1e-8)
+            alpha = np.maximum((np.diag(WtW) + d * np.diag(Sw)) / d, _EPS)
+            v_mu = float(mu @ mu / d + mu_var) + _EPS
+            W = W64.astype(self.dtype)
+            bound = self._bound_full(n, d, k, v, sq, Sx, Xm, Sw, W64, alpha, mu, mu_var, v_mu)
+            if self.verbose:
+                print(f'VBPCA iter {it}: bound {bound:.8g} v {v:.5g}')
+            if np.isfinite(prev) and abs(bound - prev) <= self.tol * abs(bound):
+                converged = True
+                break
+            prev = bound
+        self._finish(W, mu, v, alpha, Sw, np.full(d, mu_var, dtype=np.float32), it, converged,
+                     bound)
+
+    @staticmethod
+    def _bound_full(n, d, k, v, sq, Sx, Xm, Sw, W, alpha, mu, mu_var, v_mu):
+        """Variational lower bound of log p(Y) for the fully observed path."""
+        ll = -0.5 * n * d * np.log(2 * np.pi * v) - 0.5 * sq / v
+        _, ldx = np.linalg.slogdet(Sx)
+        kl_x = 0.5 * ((Xm ** 2).sum() + n * np.trace(Sx) - n * k - n * ldx)
+        _, ldw = np.linalg.slogdet(Sw)
+        kl_w = 0.5 * (((W ** 2).sum(axis=0) / alpha).sum() + d * (np.diag(Sw) / alpha).sum()
+                      - d * k - d * ldw + d * np.log(alpha).sum())
+        kl_mu = 0.5 * (float((mu.astype(np.float64) ** 2).sum()) / v_mu + d * mu_var / v_mu - d
+                       - d * np.log(mu_var / v_mu))
+        return float(ll - kl_x - kl_w - kl_mu)
+
+    def _fit_missing(self, X, mask, k):
+        n, d = X.shape
+        mu, W, v = self._init_params(X, mask, k)
+        W = W.astype(np.float64)
+        mu = mu.astype(np.float64)
+        M = mask.astype(np.float64)
+        Xo = np.where(mask, X, 0).astype(np.float64)
+        alpha = np.maximum((W ** 2).sum(axis=0) / d, _EPS)
+        v_mu = float(mu @ mu / d) + _EPS
+        Sw = np.zeros((d, k, k))
+        mu_var = np.zeros(d)
+        iu = np.triu_indices(k)
+        n_obs = M.sum()
+        converged = False
+        prev_W = None
+        for it in range(1, self.max_iter + 1):
+            # q(x_j): Sx_j = (I + sum_{i in O_j} <w_i w_i^T> / v)^-1
+            ww = (W[:, :, None] * W[:, None, :] + Sw)[:, iu[0], iu[1]]     # (d, k(k+1)/2)
+            G = np.zeros((n, k, k))
+            G[:, iu[0], iu[1]] = M @ ww
+            G = G + np.triu(G, 1).transpose(0, 2, 1)
+            Sx = np.linalg.inv(np.eye(k) + G / v)                           # (n, k, k)
+            R0 = (Xo - M * mu)                                              # observed residual
+            Xm = np.einsum('nab,nb->na', Sx, R0 @ W) / v                    # (n, k)
+            # q(w_i): Sw_i = (diag(1/alpha) + sum_{j in O_i} <x_j x_j^T> / v)^-1
+            xx = (Xm[:, :, None] * Xm[:, None, :] + Sx)[:, iu[0], iu[1]]   # (n, k(k+1)/2)
+            H = np.zeros((d, k, k))
+            H[:, iu[0], iu[1]] = M.T @ xx
+            H = H + np.triu(H, 1).transpose(0, 2, 1)
+            Sw = np.linalg.inv(np.diag(1.0 / alpha) + H / v)                # (d, k, k)
+            W = np.einsum('iab,ib->ia', Sw, R0.T @ Xm) / v
+            # q(mu_i)
+            mu_var = 1.0 / (M.sum(axis=0) / v + 1.0 / v_mu)
+            mu = mu_var / v * (M * (Xo - Xm @ W.T)).sum(axis=0)
+            # noise variance over observed entries
+            R = M * (Xo - Xm @ W.T - mu)
+            sq = (R ** 2).sum()
+            ww = (W[:, :, None] * W[:, None, :] + Sw)[:, iu[0], iu[1]]
+            sx_flat = Sx[:, iu[0], iu[1]]
+            sym = np.where(iu[0] == iu[1], 1.0, 2.0)
+            sq += ((M @ ww) * sx_flat * sym).sum()                          # tr(<ww> Sx_j)
+            xs = Xm[:, :, None] * Xm[:, None, :]
+            sq += ((M.T @ xs[:, iu[0], iu[1]]) * Sw[:, iu[0], iu[1]] * sym).sum()
+            sq += (M * mu_var).sum()
+            v = max(sq / n_obs, 1e-8)
+            alpha = np.maximum(((W ** 2).sum(axis=0) + Sw[:, range(k), range(k)].sum(axis=0)) / d,
+                               _EPS)
+            v_mu = float((mu ** 2).sum() / d + mu_var.mean()) + _EPS
+            if self.verbose:
+                print(f'VBPCA(missing) iter {it}: v {v:.5g}')
+            if prev_W is not None and _subspace_change(prev_W, W) < self.tol:
+                converged = True
+                break
+            prev_W = W.copy()
+        self._finish(W.astype(self.dtype), mu.astype(self.dtype), v, alpha, Sw.mean(axis=0),
+                     mu_var.astype(np.float32), it, converged, np.nan)
+
+    def _finish(self, W, mu, v, alpha, Sw, mu_var, n_iter, converged, bound):
+        if not converged:
+            warnings.warn(f'VBPCA did not converge in {n_iter} iterations; raise max_iter or tol',
+                          ConvergenceWarning)
+        W64 = np.asarray(W, dtype=np.float64)
+        keep = alpha > self.prune_tol * alpha.max()
+        # order kept columns by the variance they explain
+        order = np.argsort(-(W64 ** 2).sum(axis=0))
+        order = order[keep[order]]
+        # rotate the kept subspace to orthogonal columns (principal axes), as PCA reports them
+        Wk = W64[:, order]
+        U, s, Vt = np.linalg.svd(Wk, full_matrices=False)
+        Wrot = U * s
+        self.components_ = Wrot.T.astype(np.float32)
+        self.mean_ = np.asarray(mu, dtype=np.float32)
+        self.noise_variance_ = float(v)
+        self.component_variance_ = (s ** 2 / W64.shape[0]).astype(np.float32)
+        Swk = Sw[np.ix_(order, order)]
+        self.loading_covariance_ = (Vt @ Swk @ Vt.T).astype(np.float32)
+        self.mean_variance_ = np.asarray(mu_var, dtype=np.float32)
+        self.n_components_ = int(len(order))
+        self.n_iter_ = int(n_iter)
+        self.converged_ = bool(converged)
+        self.lower_bound_ = float(bound)
+        self.n_features_in_ = W64.shape[0]
+
+    # ------------------------------------------------------------------ queries
+    def transform(self, X, mask=None):
+        """Posterior mean of the scores (n, k_eff), using only observed entries when masked."""
+        return self.posterior(X, mask)[0]
+
+    def posterior(self, X, mask=None):
+        """Posterior of the scores: means (n, k_eff) and covariances (n, k_eff, k_eff)."""
+        check_is_fitted(self, 'components_')
+        X = np.atleast_2d(np.asarray(X, dtype=np.float64))
+        if X.shape[1] != self.n_features_in_:
+            raise ValueError(f'X has {X.shape[1]} features, model has {self.n_features_in_}')
+        W = self.components_.T.astype(np.float64)
+        v = self.noise_variance_
+        k = W.shape[1]
+        Sw = self.loading_covariance_.astype(np.float64)
+        if mask is None:
+            # fully observed: one shared covariance
+            S1 = np.linalg.inv(np.eye(k) + (W.T @ W + X.shape[1] * Sw) / v)
+            m = (X - self.mean_) @ W @ S1 / v
+            return m, np.broadcast_to(S1, (len(X), k, k))
+        M = np.asarray(mask, dtype=np.float64).reshape(X.shape)
+        R = M * (np.nan_to_num(X) - self.mean_)
+        G = np.einsum('nd,da,db->nab', M, W, W) + M.sum(axis=1)[:, None, None] * Sw
+        S = np.linalg.inv(np.eye(k) + G / v)
+        m = np.einsum('nab,nb->na', S, R @ W) / v
+        return m, S
+
+    def inverse_transform(self, Z):
+        """Reconstruction W z + mu, (n, d), from scores (n, k_eff)."""
+        check_is_fitted(self, 'components_')
+        return np.asarray(Z) @ self.components_ + self.mean_
+
+    def score_samples(self, X, mask=None):
+        """Log-likelihood of each sample's observed entries under the marginal p(y_O) (n,)."""
+        check_is_fitted(self, 'components_')
+        X = np.atleast_2d(np.asarray(X, dtype=np.float64))
+        W = self.components_.T.astype(np.float64)
+        v = self.noise_variance_
+        M = np.ones_like(X) if mask is None else np.asarray(mask, dtype=np.float64)
+        R = M * (np.nan_to_num(X) - self.mean_)
+        m, S = self.posterior(X, mask)
+        nobs = M.sum(axis=1)
+        # Woodbury: r^T C^-1 r = r^T r / v - b^T S b / v^2, log|C| = nobs log v - log|S|
+        quad = (R ** 2).sum(axis=1) / v - np.einsum('na,na->n', m, R @ W) / v
+        _, lds = np.linalg.slogdet(S)
+        return -0.5 * (nobs * np.log(2 * np.pi * v) - lds + quad)
+
+
+def _subspace_change(W0, W1):
+    """1 - smallest cosine of the principal angles between the column spaces of W0 and W1."""
+    q0, _ = np.linalg.qr(W0)
+    q1, _ = np.linalg.qr(W1)
+    s = np.linalg.svd(q0.T @ q1, compute_uv=False)
+    return float(1.0 - s.min()) if len(s) else 0.0
