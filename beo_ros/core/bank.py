@@ -91,7 +91,7 @@ class ModelBank:
     """
 
     def __init__(self, models, spec: GridSpec, classifier=None, training=None,
-                 pose_components=10):
+                 pose_components=8):
         if not models:
             raise ModelError('a model bank needs at least one class')
         d = spec.size ** 3
@@ -219,7 +219,7 @@ class ModelBank:
                     raise ModelError(f'{fp}: classifier {mode!r} does not fit {len(classes)} '
                                      f'classes x {len(FEATURE_NAMES)} features')
         return cls(models, spec, classifier, manifest.get('training'),
-                   manifest.get('pose_components', 10))
+                   manifest.get('pose_components', 8))
 
     # ------------------------------------------------------------------ queries
     def check_grid(self, grid):
@@ -234,37 +234,31 @@ class ModelBank:
             raise ValueError('grid values must be 1 (occupied), 0 (free) or -1 (unknown)')
         return grid
 
-    def features(self, grid, yaw=None, yaw_step_deg=1.0, n_modes=2):
-        """Per-class exact posteriors and features for a labelled grid.
+    def features(self, grid, yaw=None, yaw_step_deg=1.0, exhaustive=True):
+        """Per-class best yaw, exact posterior and features for a labelled grid.
 
-        Returns (features (C, F), list of per-class dicts with keys yaw, exact, candidates).
+        Returns (features (C, F), list of per-class dicts: yaw, exact, hypotheses).
         """
         grid = self.check_grid(grid)
         if not 0.05 <= yaw_step_deg <= 90:
             raise ValueError(f'yaw_step_deg must be in [0.05, 90], got {yaw_step_deg}')
         eng = self.engine
-        n_yaws = int(round(360.0 / yaw_step_deg))
         if yaw is None:
-            yaws, ll, _ = eng.coarse_scores(grid, n_yaws)
+            best_yaw, best_ll, searched = eng.search(grid, yaw_step_deg, exhaustive=exhaustive)
         else:
-            yaws, ll, _ = eng.coarse_scores(grid, 1, offset=float(yaw))
-        edt = observed_edt(grid).ravel()
-        edt_pad = np.append(edt, 0.0)
+            best_ll = eng.scores(eng.pooled(grid), [float(yaw)])[0]
+            best_yaw = np.full(eng.C, float(yaw))
+            searched = [(np.array([float(yaw)]), best_ll[c:c + 1]) for c in range(eng.C)]
+        edt_pad = np.append(observed_edt(grid).ravel(), 0.0)
+        n_pooled = grid.size / 8.0
         feats, per = [], []
-        min_sep = max(1, int(round(30.0 / yaw_step_deg)))
         for c in range(eng.C):
-            cand = top_modes(ll[:, c], n_modes if yaw is None else 1, min_sep)
-            best = None
-            tried = []
-            for i in cand:
-                ex = eng.exact(grid, c, float(yaws[i]))
-                tried.append((float(yaws[i]), ex['loglik']))
-                if best is None or ex['loglik'] > best[1]['loglik']:
-                    best = (i, ex)
-            i, ex = best
-            f = eng.features(ex, c, ll[i, c] / max(grid.size / 8, 1), edt_pad[ex['idx']])
-            feats.append(f)
-            per.append(dict(yaw=float(yaws[i]), exact=ex, candidates=tried))
+            ex = eng.exact(grid, c, float(best_yaw[c]))
+            feats.append(eng.features(ex, c, best_ll[c] / n_pooled, edt_pad[ex['idx']]))
+            yaws_c, ll_c = searched[c]
+            modes = top_modes(ll_c, 3, max(1, int(round(20.0 / yaw_step_deg))))
+            per.append(dict(yaw=float(best_yaw[c]), exact=ex,
+                            hypotheses=[(float(yaws_c[i]), float(ll_c[i])) for i in modes]))
         return np.array(feats), per
 
     def classify_features(self, feats, mode):
@@ -279,17 +273,19 @@ class ModelBank:
         # the paper's rule: the class whose model explains the observation best
         return _softmax(feats[:, 0] * 50.0), False
 
-    def estimate(self, grid, yaw=None, yaw_step_deg=1.0, n_hypotheses=5, n_modes=2):
+    def estimate(self, grid, yaw=None, yaw_step_deg=1.0, n_hypotheses=5, exhaustive=True):
         """Classify, orient and complete one labelled grid (see :class:`Estimate`).
 
         Args:
             grid: int8 (N, N, N), 1 occupied, 0 free, -1 unknown, axes x, y, z, z up.
             yaw: if given (radians), no pose search is done.
+            exhaustive: score all 360 / yaw_step_deg yaws at once (default); False searches
+                coarse-to-fine (5 degree steps, then the best modes at yaw_step_deg).
             yaw_step_deg: resolution of the yaw search (360 / step candidates).
         """
         t0 = time.perf_counter()
         grid = self.check_grid(grid)
-        feats, per = self.features(grid, yaw, yaw_step_deg, n_modes)
+        feats, per = self.features(grid, yaw, yaw_step_deg, exhaustive)
         t1 = time.perf_counter()
         mode = 'complete' if (grid < 0).mean() < 0.01 else 'partial'
         probs, unknown = self.classify_features(feats, mode)
@@ -301,7 +297,6 @@ class ModelBank:
                                                if mc.loading_covariance.shape[0] ==
                                                self.engine.k else None, mc.mean_variance)
         est_yaw = per[best]['yaw']
-        n = self.spec.size
         completion = rotate_grid(prob_c.reshape(grid.shape), est_yaw, fill=np.float32(0))
         variance = rotate_grid(var_c.reshape(grid.shape), est_yaw, fill=np.float32(0))
         # what was observed is kept: seen surface occupied, seen space free
@@ -309,8 +304,10 @@ class ModelBank:
                                                                  completion))
         variance = np.where(grid >= 0, np.float32(0), variance).astype(np.float32)
         t3 = time.perf_counter()
-        hyps = sorted(((self.classes[c], y, ll) for c in range(len(per))
-                       for y, ll in per[c]['candidates']), key=lambda h: -h[2])
+        # the chosen class's yaw modes first (symmetric objects have several), then the others
+        hyps = [(self.classes[best], y, ll) for y, ll in per[best]['hypotheses']]
+        hyps += sorted(((self.classes[c], y, ll) for c in range(len(per)) if c != best
+                        for y, ll in per[c]['hypotheses'][:1]), key=lambda h: -h[2])
         label = UNKNOWN_LABEL if unknown else self.classes[best]
         return Estimate(
             label=label, scores={c: float(p) for c, p in zip(self.classes, probs)},

@@ -61,7 +61,7 @@ class InferenceEngine:
         pose_components: how many leading components the coarse search uses.
     """
 
-    def __init__(self, W, mu, v, v_coarse, n, pose_components=10):
+    def __init__(self, W, mu, v, v_coarse, n, pose_components=8):
         self.C, self.d, self.k = W.shape
         self.n = n
         self.W = np.ascontiguousarray(W, dtype=np.float32)
@@ -78,59 +78,99 @@ class InferenceEngine:
         Wc = (pool2(Wg) / 8.0).reshape(self.nc ** 3, self.C, kp)                  # (dc, C, kp)
         muc = (pool2(self.mu.T.reshape(n, n, n, self.C)) / 8.0).reshape(-1, self.C)  # (dc, C)
         iu = self._iu = np.triu_indices(kp)
-        pairs = (Wc[:, :, iu[0]] * Wc[:, :, iu[1]]).reshape(-1, self.C * len(iu[0]))
-        mw = (muc[:, :, None] * Wc).reshape(-1, self.C * kp)
-        # D @ [pairs | mu*W | mu^2] and T @ [W | mu]: two products score every (yaw, class)
-        self._PD = np.ascontiguousarray(np.hstack([pairs, mw, muc ** 2]), dtype=np.float32)
-        self._PT = np.ascontiguousarray(np.hstack([Wc.reshape(-1, self.C * kp), muc]),
-                                        dtype=np.float32)
-        self._yaw_cache = {}
+        pairs = Wc[:, :, iu[0]] * Wc[:, :, iu[1]]                                # (dc, C, np)
+        mw = muc[:, :, None] * Wc                                                   # (dc, C, kp)
+        # per voxel and class: [pairs | mu*W | mu^2] weighted by D, and [W | mu] weighted by T,
+        # so two products score every (yaw, class)
+        self._PD = np.ascontiguousarray(np.concatenate([pairs, mw, muc[:, :, None] ** 2], axis=2),
+                                        dtype=np.float32)                           # (dc, C, m)
+        self._PT = np.ascontiguousarray(np.concatenate([Wc, muc[:, :, None]], axis=2),
+                                        dtype=np.float32)                           # (dc, C, kp+1)
+        self._PD_c = [np.ascontiguousarray(self._PD[:, c]) for c in range(self.C)]
+        self._PT_c = [np.ascontiguousarray(self._PT[:, c]) for c in range(self.C)]
+        self._maps = {}
 
     # ------------------------------------------------------------------ pose search
-    def _coarse_maps(self, n_yaws, offset=0.0):
-        key = (n_yaws, offset)
-        if key in self._yaw_cache:
-            return self._yaw_cache[key]
-        yaws = offset + np.arange(n_yaws) * (2 * np.pi / n_yaws)
+    def _rotation_maps(self, yaws):
+        key = (len(yaws), float(yaws[0]), float(yaws[-1]))
+        if key in self._maps:
+            return self._maps[key]
         # canonical voxel p takes the observed voxel R(yaw) p: rotate the observation by -yaw
-        maps = (yaws, yaw_source_index(self.nc, -yaws))
-        if offset == 0.0:
-            self._yaw_cache[key] = maps
-        return maps
+        idx = yaw_source_index(self.nc, -np.asarray(yaws))
+        if len(self._maps) < 16 and len(yaws) >= 36:   # keep the regular search grids only
+            self._maps[key] = idx
+        return idx
 
-    def coarse_scores(self, grid, n_yaws=360, offset=0.0):
-        """Log-likelihood (n_yaws, C) of the pooled observation under every class and yaws
-        ``offset + 2 pi i / n_yaws``; returns (yaws, loglik, n_effective)."""
+    def pooled(self, grid):
+        """2x-pooled observation: weights D (known fraction), T (D * occupied fraction), and
+        T^2 / D, each (dc + 1,) with a last entry for 'outside the grid' (empty space)."""
         known = (grid >= 0).astype(np.float32)
         occ = (grid == 1).astype(np.float32)
-        D = (pool2(known) / 8.0).ravel()                 # weight: fraction of a block known
-        T = (pool2(occ) / 8.0).ravel()                   # weight * occupied fraction
+        D = (pool2(known) / 8.0).ravel()
+        T = (pool2(occ) / 8.0).ravel()
         TT = np.where(D > 0, T * T / np.maximum(D, 1e-6), 0.0)
-        yaws, idx = self._coarse_maps(n_yaws, offset)
-        # outside the observed grid is empty space: weight 1, value 0
-        Dr = np.append(D, 1.0)[idx]
-        Tr = np.append(T, 0.0)[idx]
-        tt = np.append(TT, 0.0)[idx].sum(axis=1, dtype=np.float64)
+        return np.append(D, 1.0), np.append(T, 0.0), np.append(TT, 0.0).astype(np.float32)
+
+    def scores(self, pooled, yaws, c=None):
+        """Pooled log-likelihood (Y, C) of every yaw for all classes, or (Y, 1) for class c."""
+        D, T, TT = pooled
+        yaws = np.atleast_1d(np.asarray(yaws, dtype=np.float64))
+        idx = self._rotation_maps(yaws)
+        Dr, Tr = D[idx], T[idx]
+        tt = TT[idx].sum(axis=1, dtype=np.float64)
         neff = Dr.sum(axis=1, dtype=np.float64)
-        AD = (Dr @ self._PD).astype(np.float64)
-        AT = (Tr @ self._PT).astype(np.float64)
-        C, kp, npair = self.C, self.kp, len(self._iu[0])
-        Y = len(yaws)
+        if c is None:
+            C, AD = self.C, Dr @ self._PD.reshape(len(D) - 1, -1)
+            AT = Tr @ self._PT.reshape(len(D) - 1, -1)
+            vc = self.v_coarse[None, :]
+        else:
+            C, AD, AT = 1, Dr @ self._PD_c[c], Tr @ self._PT_c[c]
+            vc = self.v_coarse[None, c:c + 1]
+        kp, npair, Y = self.kp, len(self._iu[0]), len(yaws)
+        AD = AD.reshape(Y, C, -1).astype(np.float64)
+        AT = AT.reshape(Y, C, -1).astype(np.float64)
         gram = np.zeros((Y, C, kp, kp))
-        gram[:, :, self._iu[0], self._iu[1]] = AD[:, :C * npair].reshape(Y, C, npair)
+        gram[:, :, self._iu[0], self._iu[1]] = AD[:, :, :npair]
         gram = gram + np.triu(gram, 1).swapaxes(2, 3)
-        mw = AD[:, C * npair:C * npair + C * kp].reshape(Y, C, kp)
-        mm = AD[:, C * npair + C * kp:]
-        tw = AT[:, :C * kp].reshape(Y, C, kp)
-        tm = AT[:, C * kp:]
-        vc = self.v_coarse[None, :]
+        mw, mm = AD[:, :, npair:npair + kp], AD[:, :, -1]
+        tw, tm = AT[:, :, :kp], AT[:, :, -1]
         G = np.eye(kp) + gram / vc[..., None, None]
         b = (tw - mw) / vc[..., None]
         quad, logdet, _ = batched_cholesky_terms(G.reshape(-1, kp, kp), b.reshape(-1, kp))
         rr = tt[:, None] - 2 * tm + mm
-        ll = -0.5 * (neff[:, None] * np.log(2 * np.pi * vc) + rr / vc
-                     - quad.reshape(Y, C) + logdet.reshape(Y, C))
-        return yaws, ll, neff
+        return -0.5 * (neff[:, None] * np.log(2 * np.pi * vc) + rr / vc
+                       - quad.reshape(Y, C) + logdet.reshape(Y, C))
+
+    def search(self, grid, step_deg=1.0, coarse_step_deg=5.0, n_modes=2, window_deg=None,
+               exhaustive=False):
+        """Best yaw of every class on the pooled grid.
+
+        Scores every class at ``coarse_step_deg`` in one batched product, then each class's
+        ``n_modes`` best modes at ``step_deg`` within +-``window_deg`` (default: the coarse
+        step); ``exhaustive`` scores all 360 / step_deg yaws instead.
+        Returns (best yaw (C,), best log-likelihood (C,), list of per-class (yaws, ll)).
+        """
+        P = self.pooled(grid)
+        step = np.deg2rad(step_deg)
+        if exhaustive or coarse_step_deg <= step_deg:
+            yaws = np.arange(int(round(2 * np.pi / step))) * step
+            ll = self.scores(P, yaws)
+            per = [(yaws, ll[:, c]) for c in range(self.C)]
+        else:
+            cstep = np.deg2rad(coarse_step_deg)
+            yaws0 = np.arange(int(round(2 * np.pi / cstep))) * cstep
+            ll0 = self.scores(P, yaws0)
+            half = np.deg2rad(coarse_step_deg if window_deg is None else window_deg)
+            offs = np.arange(-half, half + 1e-9, step)
+            per = []
+            min_sep = max(1, int(round(30.0 / coarse_step_deg)))
+            for c in range(self.C):
+                modes = top_modes(ll0[:, c], n_modes, min_sep)
+                cand = np.concatenate([yaws0[m] + offs for m in modes])
+                per.append((cand, self.scores(P, cand, c)[:, 0]))
+        best = [int(np.argmax(llc)) for _, llc in per]
+        return (np.array([y[i] for (y, _), i in zip(per, best)]),
+                np.array([llc[i] for (_, llc), i in zip(per, best)]), per)
 
     # ------------------------------------------------------------------ exact posterior
     def exact(self, grid, c, yaw, with_prediction=True):
@@ -186,7 +226,7 @@ class InferenceEngine:
         W = self.W[c].astype(np.float64)
         S = np.linalg.inv(ex['G'])
         mean = ex['pred'].astype(np.float64)
-        var = np.einsum('da,ab,db->d', W, S, W) + self.v[c]
+        var = ((W @ S) * W).sum(axis=1) + self.v[c]
         if Sw is not None:
             m = ex['m']
             var += m @ Sw @ m + np.trace(Sw @ S)

@@ -110,7 +110,7 @@ def primitive_shapes(n=16, count=20, rng=None):
 
 def make_tiny_bank(path=None, n=16, k=4, seed=0):
     """A small real bank (boxes and cylinders at n^3) for tests and demos; saved if ``path``."""
-    from .train import fit_bank
+    from .training import fit_bank
     from .grid import GridSpec
     X, y, names = primitive_shapes(n, 15, np.random.default_rng(seed))
     bank = fit_bank(X, y, names, GridSpec(size=n), k=k, pose_components=min(k, 4),

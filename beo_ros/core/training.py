@@ -1,0 +1,163 @@
+"""Training: per-class VBPCA models, out-of-fold classifier features, data loading."""
+from __future__ import annotations
+
+import sys
+import time
+import warnings
+
+import numpy as np
+
+from .bank import ClassModel, ModelBank, coarse_noise_variance
+from .inference import FEATURE_NAMES
+from .synthetic import random_partial_view
+from .vbpca import VBPCA
+
+
+def _progress(it, desc, total=None, disable=False):
+    try:
+        from tqdm import tqdm
+        return tqdm(it, desc=desc, total=total, disable=disable, file=sys.stderr, leave=False)
+    except ImportError:  # pragma: no cover - tqdm is a dependency
+        return it
+
+
+def fit_class_models(X, y, names, spec, k=20, masks=None, max_iter=200, tol=1e-5):
+    """One VBPCA ClassModel per class. X: (m, N^3) float32 in [0, 1]; masks: (m, N^3) observed."""
+    models = []
+    for c, name in enumerate(names):
+        sel = y == c
+        if sel.sum() < 2:
+            raise ValueError(f'class {name!r} has {int(sel.sum())} training objects; need >= 2')
+        Xc = X[sel]
+        with warnings.catch_warnings():
+            warnings.simplefilter('ignore')
+            est = VBPCA(n_components=int(min(k, sel.sum() - 1)), max_iter=max_iter,
+                        tol=tol).fit(Xc, mask=None if masks is None else masks[sel])
+        Xf = Xc if masks is None else np.where(masks[sel], Xc, est.inverse_transform(
+            est.transform(Xc, masks[sel])))
+        models.append(ClassModel.from_vbpca(name, est, coarse_noise_variance(
+            Xf.astype(np.float32), est, spec.size)))
+    return models
+
+
+def view_features(bank, X, rng, n_views=1, complete=True):
+    """Features of objects X (m, N^3) under ``bank``: complete grids at yaw 0 and random partial
+    views at unknown yaw. Returns dict mode -> (feature rows (r, C*F), object index (r,))."""
+    n = bank.spec.size
+    out = {'complete': ([], []), 'partial': ([], [])}
+    for i in range(len(X)):
+        occ = X[i].reshape(n, n, n) > 0.5
+        if complete:
+            f, _ = bank.features(occ.astype(np.int8), yaw=0.0)
+            out['complete'][0].append(f.ravel())
+            out['complete'][1].append(i)
+        for _ in range(n_views):
+            grid, *_ = random_partial_view(occ, rng)
+            f, _ = bank.features(grid)
+            out['partial'][0].append(f.ravel())
+            out['partial'][1].append(i)
+    return {m: (np.array(a), np.array(b, dtype=int)) for m, (a, b) in out.items() if a}
+
+
+def train_classifier(F, y, n_classes, C=1.0):
+    """Standardised multinomial logistic regression on features F (r, C*F) -> arrays dict."""
+    from sklearn.linear_model import LogisticRegression
+    mean = F.mean(axis=0)
+    scale = F.std(axis=0) + 1e-9
+    lr = LogisticRegression(C=C, max_iter=2000).fit((F - mean) / scale, y)
+    coef = np.zeros((n_classes, F.shape[1]))
+    intercept = np.full(n_classes, -30.0)
+    coef[lr.classes_] = lr.coef_ if len(lr.classes_) > 2 else np.vstack([-lr.coef_, lr.coef_])
+    intercept[lr.classes_] = lr.intercept_ if len(lr.classes_) > 2 else np.hstack(
+        [-lr.intercept_, lr.intercept_])
+    # 'unknown': the winning class explains the object worse than 99.5 % of its own OOF objects
+    nf = len(FEATURE_NAMES)
+    ll = F[:, 0::nf]
+    thr = np.full(n_classes, -np.inf)
+    for c in range(n_classes):
+        if (y == c).any():
+            thr[c] = np.quantile(ll[y == c, c], 0.005) - 0.05 * abs(np.median(ll[y == c, c]))
+    return dict(mean=mean, scale=scale, coef=coef, intercept=intercept, unknown_threshold=thr)
+
+
+def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_views=1,
+             folds=5, seed=0, C=1.0, verbose=False, training=None):
+    """Fit class models on all of X and a classifier on out-of-fold features.
+
+    ``classifier_views``: random partial views per training object for the partial-view
+    classifier (0: no classifier, the paper's max-likelihood rule).
+    """
+    X = np.asarray(X, dtype=np.float32)
+    y = np.asarray(y)
+    t0 = time.time()
+    models = fit_class_models(X, y, names, spec, k, masks)
+    info = dict(training or {}, k=k, n_objects=int(len(X)), folds=folds, seed=seed,
+                classifier_views=classifier_views, fit_seconds=round(time.time() - t0, 1))
+    classifier = None
+    if classifier_views > 0:
+        rng = np.random.default_rng(seed)
+        fold = np.empty(len(X), dtype=int)
+        for c in range(len(names)):
+            idx = np.flatnonzero(y == c)
+            fold[idx] = rng.permutation(len(idx)) % folds
+        feats = {'complete': [], 'partial': []}
+        labels = {'complete': [], 'partial': []}
+        for f in _progress(range(folds), 'out-of-fold features', disable=not verbose):
+            tr, te = fold != f, np.flatnonzero(fold == f)
+            sub = ModelBank(fit_class_models(X[tr], y[tr], names, spec, k,
+                                             None if masks is None else masks[tr]),
+                            spec, pose_components=pose_components)
+            for i in _progress(te, f'fold {f}', disable=not verbose):
+                out = view_features(sub, X[i:i + 1], rng, classifier_views, complete=masks is None)
+                for mode, (F, _) in out.items():
+                    feats[mode].append(F)
+                    labels[mode] += [y[i]] * len(F)
+        classifier = {mode: train_classifier(np.vstack(feats[mode]), np.array(labels[mode]),
+                                             len(names), C)
+                      for mode in feats if feats[mode]}
+        info['classifier_seconds'] = round(time.time() - t0 - info['fit_seconds'], 1)
+    return ModelBank(models, spec, classifier, info, pose_components)
+
+
+# ---------------------------------------------------------------------- data loading
+def load_voxel_npz(path, classes=None):
+    """(X (m, N^3) float32, labels (m,), class names, N) from a voxel npz in the shared format."""
+    with np.load(path, allow_pickle=False) as z:
+        for key in ('voxels', 'labels', 'classes'):
+            if key not in z.files:
+                raise ValueError(f'{path}: missing key {key!r} (has {z.files})')
+        vox, labels, names = z['voxels'], z['labels'].astype(int), [str(c) for c in z['classes']]
+        shape = tuple(int(s) for s in z['shape']) if 'shape' in z.files else None
+    if vox.ndim == 2 and vox.dtype == np.uint8 and shape is not None and \
+            vox.shape[1] * 8 == int(np.prod(shape)):
+        X = np.unpackbits(vox, axis=1)
+    else:
+        X = vox.reshape(len(vox), -1)
+    n = int(round(X.shape[1] ** (1 / 3)))
+    if n ** 3 != X.shape[1]:
+        raise ValueError(f'{path}: voxel rows of {X.shape[1]} values are not a cube')
+    X = X.astype(np.float32)
+    if classes:
+        keep = [names.index(c) if c in names else None for c in classes]
+        missing = [c for c, k in zip(classes, keep) if k is None]
+        if missing:
+            raise ValueError(f'{path}: classes {missing} not in {names}')
+        remap = {old: new for new, old in enumerate(keep)}
+        sel = np.isin(labels, keep)
+        X, labels = X[sel], np.array([remap[v] for v in labels[sel]])
+        names = list(classes)
+    return X, labels, names, n
+
+
+def load_meshes(paths, size):
+    """Voxelize mesh files; class = parent folder name, or the file name before the last '_'."""
+    from pathlib import Path
+    from .meshes import load_mesh, voxelize_mesh
+    X, names_of = [], []
+    for p in paths:
+        p = Path(p)
+        X.append(voxelize_mesh(load_mesh(p), size).ravel())
+        stem = p.stem.rsplit('_', 1)[0] if '_' in p.stem else p.parent.name
+        names_of.append(stem)
+    names = sorted(set(names_of))
+    return np.array(X, dtype=np.float32), np.array([names.index(s) for s in names_of]), names
