@@ -197,11 +197,14 @@ def test_stream_publishes_estimate_completed_pose_markers(harness):
     e2 = harness.wait('estimates', republish=cloud(pts, 'cam2'), pub=harness.pub2,
                       pred=lambda m: m.source_topic == '/beo/input2')[0]
     assert e2.header.frame_id == 'cam2'
-    diag = harness.wait('diag')[-1].status[0]
+    def has_latency(m):
+        return any(kv.key == 'latency_p50_end_to_end_ms' for kv in m.status[0].values)
+
+    diag = harness.wait('diag', pred=has_latency)[-1].status[0]
     keys = {kv.key for kv in diag.values}
     assert {'received_hz', 'processed_hz', 'received', 'processed', 'dropped_stale',
-            'rejected'} <= keys
-    assert any(k.startswith('latency_p50_') for k in keys)
+            'rejected', 'latency_p50_estimate_ms', 'latency_p50_core_total_ms'} <= keys, keys
+    assert diag.name == 'beo: estimator'
 
 
 def test_services_classify_and_complete(harness):
