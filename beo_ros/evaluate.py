@@ -1,0 +1,243 @@
+"""beo-eval: accuracy, yaw error, completion IoU and latency on labelled voxel objects.
+
+Held-out mode:  beo-eval --model DIR --data test.npz --out DIR
+Cross-validation on a training set (a bank is trained per fold, the held-out fold evaluated):
+                beo-eval --cv 3 --data train.npz --out DIR
+Tabletop scans (leave-one-scene-out):  beo-eval --scans learn*.pcd --out DIR
+
+Per object: the complete grid at yaw 0 (classification only) and one partial view made by the
+evaluation protocol (random yaw; orthographic view from azimuth U[0, 360), elevation U[10, 50]).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .core.bank import load_models
+from .core.grid import GridSpec
+from .core.synthetic import random_partial_view
+from .core.training import fit_bank, load_voxel_npz
+
+
+def yaw_error(a, b):
+    """Absolute angular difference in radians, in [0, pi]."""
+    return np.abs((np.asarray(a) - np.asarray(b) + np.pi) % (2 * np.pi) - np.pi)
+
+
+def evaluate_bank(bank, X, y, names, rng, views=1, examples=6, progress=True):
+    """Evaluate ``bank`` on objects X (m, N^3) with labels y indexing ``names``.
+
+    Returns (summary dict, per-view records list, example list for the figure).
+    """
+    from .core.training import _progress
+    n = bank.spec.size
+    cls_index = {c: i for i, c in enumerate(bank.classes)}
+    recs, ex = [], []
+    for i in _progress(range(len(X)), 'evaluating', disable=not progress):
+        occ = X[i].reshape(n, n, n) > 0.5
+        truth = names[y[i]]
+        t0 = time.perf_counter()
+        e = bank.estimate(occ.astype(np.int8), yaw=0.0)
+        rec_c = dict(i=int(i), mode='complete', truth=truth, label=e.label,
+                     latency=time.perf_counter() - t0)
+        recs.append(rec_c)
+        for _ in range(views):
+            grid, yaw, az, el, rotated = random_partial_view(occ, rng)
+            t0 = time.perf_counter()
+            e = bank.estimate(grid)
+            dt = time.perf_counter() - t0
+            pred = e.completion >= 0.5
+            inter = (pred & rotated).sum()
+            union = (pred | rotated).sum()
+            err = float(yaw_error(e.yaw, yaw))
+            recs.append(dict(i=int(i), mode='partial', truth=truth, label=e.label, latency=dt,
+                             yaw_err_deg=float(np.rad2deg(err)),
+                             iou=float(inter / union) if union else 1.0,
+                             prob=float(e.probability)))
+            if len(ex) < examples and (not ex or truth not in [x[0] for x in ex]):
+                ex.append((truth, e.label, grid, e.completion, rotated, np.rad2deg(err)))
+    return summarize(recs, bank.classes, cls_index), recs, ex
+
+
+def summarize(recs, classes, cls_index=None):
+    out = {}
+    for mode in ('complete', 'partial'):
+        r = [x for x in recs if x['mode'] == mode]
+        if not r:
+            continue
+        lat = np.array([x['latency'] for x in r]) * 1000
+        s = dict(n=len(r), accuracy=float(np.mean([x['label'] == x['truth'] for x in r])),
+                 latency_p50_ms=float(np.median(lat)), latency_p95_ms=float(np.percentile(lat, 95)))
+        if mode == 'partial':
+            e = np.array([x['yaw_err_deg'] for x in r])
+            ok_cls = np.array([x['label'] == x['truth'] for x in r])
+            s.update(yaw_within_10=float(np.mean(e <= 10)),
+                     yaw_within_10_or_flip=float(np.mean((e <= 10) | (e >= 170))),
+                     yaw_median_deg=float(np.median(e)),
+                     yaw_within_10_correct_class=float(np.mean(e[ok_cls] <= 10)) if ok_cls.any()
+                     else float('nan'),
+                     iou=float(np.mean([x['iou'] for x in r])))
+            per = {}
+            for c in classes:
+                rc = [x for x in r if x['truth'] == c]
+                if rc:
+                    per[c] = dict(n=len(rc), accuracy=float(np.mean([x['label'] == c for x in rc])),
+                                  yaw_within_10=float(np.mean([x['yaw_err_deg'] <= 10 for x in rc])))
+            s['per_class'] = per
+        out[mode] = s
+    # confusion matrices (rows truth, columns prediction; last column 'unknown')
+    labels = list(classes) + ['unknown']
+    for mode in out:
+        cm = np.zeros((len(classes), len(labels)), dtype=int)
+        for x in recs:
+            if x['mode'] == mode and x['truth'] in classes:
+                j = labels.index(x['label']) if x['label'] in labels else len(labels) - 1
+                cm[classes.index(x['truth']), j] += 1
+        out[mode]['confusion'] = cm.tolist()
+    out['classes'] = list(classes)
+    return out
+
+
+def print_table(summary, file=sys.stdout):
+    print(f"{'mode':10s} {'n':>5s} {'acc':>6s} {'yaw<=10':>8s} {'+flip':>6s} {'IoU':>6s} "
+          f"{'p50 ms':>7s} {'p95 ms':>7s}", file=file)
+    for mode in ('complete', 'partial'):
+        if mode not in summary:
+            continue
+        s = summary[mode]
+        f = (lambda k: f"{s[k]:.3f}" if k in s else '-')
+        print(f"{mode:10s} {s['n']:5d} {s['accuracy']:6.3f} {f('yaw_within_10'):>8s} "
+              f"{f('yaw_within_10_or_flip'):>6s} {f('iou'):>6s} {s['latency_p50_ms']:7.1f} "
+              f"{s['latency_p95_ms']:7.1f}", file=file)
+
+
+def write_figure(summary, examples, path):
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    rows = max(len(examples), 1)
+    fig = plt.figure(figsize=(13, 2.6 * rows + 4))
+    for r, (truth, label, grid, comp, rotated, err) in enumerate(examples):
+        for j, (title, vol, kind) in enumerate((('input view', grid, 'grid'),
+                                                 ('completion p>=0.5', comp, 'prob'),
+                                                 ('truth', rotated, 'bool'))):
+            ax = fig.add_subplot(rows + 1, 4, r * 4 + j + 1, projection='3d')
+            if kind == 'grid':
+                pts = np.argwhere(vol == 1)
+                unk = np.argwhere(vol == -1)
+                if len(unk):
+                    sub = unk[:: max(1, len(unk) // 400)]
+                    ax.scatter(*sub.T, s=1, c='0.85')
+                ax.scatter(*pts.T, s=2, c='tab:blue')
+            elif kind == 'prob':
+                pts = np.argwhere(vol >= 0.5)
+                ax.scatter(*pts.T, s=2, c=vol[vol >= 0.5], cmap='viridis', vmin=0.5, vmax=1)
+            else:
+                pts = np.argwhere(vol)
+                ax.scatter(*pts.T, s=2, c='tab:green')
+            n = vol.shape[0]
+            ax.set_xlim(0, n), ax.set_ylim(0, n), ax.set_zlim(0, n)
+            ax.set_axis_off()
+            ax.set_title(f'{title}' + (f'\n{truth} -> {label}, yaw err {err:.0f} deg'
+                                       if j == 0 else ''), fontsize=8)
+    if 'partial' in summary:
+        ax = fig.add_subplot(rows + 1, 2, 2 * rows + 1)
+        cm = np.array(summary['partial']['confusion'])
+        ax.imshow(cm / np.maximum(cm.sum(axis=1, keepdims=True), 1), cmap='Blues', vmin=0, vmax=1)
+        cl = summary['classes'] + ['unknown']
+        ax.set_xticks(range(len(cl)), cl, rotation=90, fontsize=7)
+        ax.set_yticks(range(len(summary['classes'])), summary['classes'], fontsize=7)
+        ax.set_title('partial views: confusion (rows truth)', fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def stratified_folds(y, k, rng):
+    fold = np.empty(len(y), dtype=int)
+    for c in np.unique(y):
+        idx = np.flatnonzero(y == c)
+        fold[idx] = rng.permutation(len(idx)) % k
+    return fold
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog='beo-eval', description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument('--data', help='labelled voxel npz (shared format)')
+    ap.add_argument('--model', help='model directory (held-out mode; default: shipped model)')
+    ap.add_argument('--cv', type=int, default=0, help='K-fold cross-validation on --data')
+    ap.add_argument('--folds', type=int, default=0,
+                    help='with --cv: evaluate only this many of the K folds (0: all)')
+    ap.add_argument('--k', type=int, default=20, help='components per class (--cv)')
+    ap.add_argument('--train-views', type=int, default=1,
+                    help='partial views per object for the OOF classifier (--cv)')
+    ap.add_argument('--max-objects', type=int, default=0,
+                    help='evaluate at most this many objects (per fold), stratified')
+    ap.add_argument('--views', type=int, default=1, help='partial views per evaluated object')
+    ap.add_argument('--seed', type=int, default=0)
+    ap.add_argument('--out', default='beo_eval_out', help='directory for JSON and PNG')
+    ap.add_argument('--scans', nargs='+', help='tabletop PCD scans: leave-one-scene-out CV')
+    args, rest = ap.parse_known_args(argv)
+    if args.scans:
+        from . import scan_eval
+        return scan_eval.main(['--scans', *args.scans, '--out', args.out, *rest])
+    if rest:
+        ap.error(f'unrecognized arguments: {" ".join(rest)}')
+    if not args.data:
+        ap.error('--data is required (or --scans)')
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(args.seed)
+    try:
+        X, y, names, n = load_voxel_npz(args.data)
+        if args.cv:
+            fold = stratified_folds(y, args.cv, rng)
+            recs, examples, info = [], [], []
+            for f in range(args.folds or args.cv):
+                tr, te = np.flatnonzero(fold != f), np.flatnonzero(fold == f)
+                if args.max_objects:
+                    te = np.sort(rng.choice(te, min(args.max_objects, len(te)), replace=False))
+                t0 = time.time()
+                bank = fit_bank(X[tr], y[tr], names, GridSpec(size=n), k=args.k,
+                                classifier_views=args.train_views, seed=args.seed + f,
+                                verbose=True)
+                info.append(dict(fold=f, train=int(len(tr)), test=int(len(te)),
+                                 train_seconds=round(time.time() - t0, 1)))
+                s, r, ex = evaluate_bank(bank, X[te], y[te], names, rng, args.views)
+                print(f'fold {f}:', file=sys.stderr)
+                print_table(s, file=sys.stderr)
+                recs += r
+                examples = examples or ex
+            summary = summarize(recs, names)
+            summary['folds'] = info
+            summary['protocol'] = f'{args.cv}-fold stratified CV on {args.data}'
+        else:
+            bank = load_models(args.model)
+            if bank.classes != names:
+                missing = set(names) - set(bank.classes)
+                if missing:
+                    raise ValueError(f'data classes {sorted(missing)} are not in the model')
+            te = np.arange(len(X))
+            if args.max_objects:
+                te = np.sort(rng.choice(te, min(args.max_objects, len(te)), replace=False))
+            summary, recs, examples = evaluate_bank(bank, X[te], y[te], names, rng, args.views)
+            summary['protocol'] = f'held-out: model {args.model or "shipped"} on {args.data}'
+    except (ValueError, OSError) as e:
+        print(f'beo-eval: error: {e}', file=sys.stderr)
+        return 2
+    summary['command'] = 'beo-eval ' + ' '.join(sys.argv[1:] if argv is None else argv)
+    print_table(summary)
+    (out / 'eval.json').write_text(json.dumps(summary, indent=2) + '\n')
+    write_figure(summary, examples, out / 'eval.png')
+    print(f'wrote {out / "eval.json"} and {out / "eval.png"}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
