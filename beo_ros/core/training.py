@@ -8,6 +8,7 @@ import warnings
 import numpy as np
 
 from .bank import ClassModel, ModelBank, coarse_noise_variance
+from .grid import rotate_grid
 from .inference import FEATURE_NAMES
 from .synthetic import random_partial_view
 from .vbpca import VBPCA
@@ -42,21 +43,65 @@ def fit_class_models(X, y, names, spec, k=20, masks=None, max_iter=200, tol=1e-5
 
 def view_features(bank, X, rng, n_views=1, complete=True):
     """Features of objects X (m, N^3) under ``bank``: complete grids at yaw 0 and random partial
-    views at unknown yaw. Returns dict mode -> (feature rows (r, C*F), object index (r,))."""
+    views at unknown yaw (the evaluation protocol).
+
+    Returns dict mode -> (feature rows (r, C*F), object index (r,), records); a partial-view
+    record holds, per class hypothesis, the yaw error (rad) and the completion IoU (C,) each.
+    """
     n = bank.spec.size
-    out = {'complete': ([], []), 'partial': ([], [])}
+    out = {'complete': ([], [], []), 'partial': ([], [], [])}
     for i in range(len(X)):
         occ = X[i].reshape(n, n, n) > 0.5
         if complete:
             f, _ = bank.features(occ.astype(np.int8), yaw=0.0)
             out['complete'][0].append(f.ravel())
             out['complete'][1].append(i)
+            out['complete'][2].append({})
         for _ in range(n_views):
-            grid, *_ = random_partial_view(occ, rng)
-            f, _ = bank.features(grid)
+            grid, yaw, _, _, rotated = random_partial_view(occ, rng)
+            f, per = bank.features(grid)
             out['partial'][0].append(f.ravel())
             out['partial'][1].append(i)
-    return {m: (np.array(a), np.array(b, dtype=int)) for m, (a, b) in out.items() if a}
+            out['partial'][2].append(_hypothesis_quality(grid, per, yaw, rotated))
+    return {m: (np.array(a), np.array(b, dtype=int), r) for m, (a, b, r) in out.items() if a}
+
+
+def _hypothesis_quality(grid, per, yaw, rotated):
+    """Yaw error and completion IoU of every class's best hypothesis for one partial view."""
+    errs, ious = [], []
+    for p in per:
+        errs.append(abs((p['yaw'] - yaw + np.pi) % (2 * np.pi) - np.pi))
+        comp = rotate_grid((p['exact']['pred'] >= 0.5).reshape(grid.shape), p['yaw'], fill=False)
+        comp = np.where(grid >= 0, grid == 1, comp)
+        union = (comp | rotated).sum()
+        ious.append((comp & rotated).sum() / union if union else 1.0)
+    return dict(yaw_err=np.array(errs), iou=np.array(ious))
+
+
+def cross_validated_report(F, y, records, C=1.0, folds=5, seed=0):
+    """Accuracy (and, for partial views, yaw and IoU) of the classifier on out-of-fold features,
+    itself cross-validated: every object's class comes from a classifier that never saw it."""
+    from sklearn.linear_model import LogisticRegression
+    from sklearn.model_selection import StratifiedKFold, cross_val_predict
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import StandardScaler
+    clf = make_pipeline(StandardScaler(), LogisticRegression(C=C, max_iter=2000))
+    cv = StratifiedKFold(n_splits=min(folds, int(np.bincount(y).min())), shuffle=True,
+                         random_state=seed)
+    pred = cross_val_predict(clf, F, y, cv=cv)
+    nf = len(FEATURE_NAMES)
+    ml = np.argmax(F[:, 0::nf], axis=1)
+    rep = dict(n=int(len(y)), accuracy=float(np.mean(pred == y)),
+               accuracy_max_likelihood=float(np.mean(ml == y)))
+    if records and 'yaw_err' in records[0]:
+        err = np.rad2deg([r['yaw_err'][p] for r, p in zip(records, pred)])
+        err_true = np.rad2deg([r['yaw_err'][t] for r, t in zip(records, y)])
+        rep.update(yaw_within_10=float(np.mean(err <= 10)),
+                   yaw_within_10_or_flip=float(np.mean((err <= 10) | (err >= 170))),
+                   yaw_median_deg=float(np.median(err)),
+                   yaw_within_10_true_class=float(np.mean(err_true <= 10)),
+                   iou=float(np.mean([r['iou'][p] for r, p in zip(records, pred)])))
+    return {k: round(v, 4) if isinstance(v, float) else v for k, v in rep.items()}
 
 
 def train_classifier(F, y, n_classes, C=1.0):
@@ -102,6 +147,7 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
             fold[idx] = rng.permutation(len(idx)) % folds
         feats = {'complete': [], 'partial': []}
         labels = {'complete': [], 'partial': []}
+        records = {'complete': [], 'partial': []}
         for f in _progress(range(folds), 'out-of-fold features', disable=not verbose):
             tr, te = fold != f, np.flatnonzero(fold == f)
             sub = ModelBank(fit_class_models(X[tr], y[tr], names, spec, k,
@@ -109,12 +155,20 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
                             spec, pose_components=pose_components)
             for i in _progress(te, f'fold {f}', disable=not verbose):
                 out = view_features(sub, X[i:i + 1], rng, classifier_views, complete=masks is None)
-                for mode, (F, _) in out.items():
+                for mode, (F, _, recs) in out.items():
                     feats[mode].append(F)
                     labels[mode] += [y[i]] * len(F)
-        classifier = {mode: train_classifier(np.vstack(feats[mode]), np.array(labels[mode]),
-                                             len(names), C)
-                      for mode in feats if feats[mode]}
+                    records[mode] += recs
+        classifier, cv_report = {}, {}
+        for mode in feats:
+            if feats[mode]:
+                F, lab = np.vstack(feats[mode]), np.array(labels[mode])
+                classifier[mode] = train_classifier(F, lab, len(names), C)
+                cv_report[mode] = cross_validated_report(F, lab, records[mode], C, seed=seed)
+        info['cross_validation'] = cv_report
+        if verbose:
+            print(f'cross-validated (out-of-fold features, {folds} folds): {cv_report}',
+                  file=sys.stderr)
         info['classifier_seconds'] = round(time.time() - t0 - info['fit_seconds'], 1)
     return ModelBank(models, spec, classifier, info, pose_components)
 
