@@ -1,0 +1,602 @@
+"""beo-bench: compare this project's estimator with the paper's plain method and an ICP database.
+
+All peers answer the same query set: one random partial view (the evaluation protocol of
+:func:`beo_ros.core.synthetic.random_partial_view`) of each held-out object, seeded. The peers
+are trained on a seeded stratified split of the shared ModelNet10 voxel grids (or on generated
+boxes/cylinders when the data is missing or ``--data none``).
+
+Reported per peer: accuracy, yaw error (median; within 10 deg; within 10 deg counting 180 deg
+flips), latency p50/p95 per object (median over ``--repeats`` runs of each query,
+``time.perf_counter``), peak memory of the query phase (tracemalloc peak; allocations made
+inside open3d's C++ are not seen by tracemalloc, see ``index_mb`` for the database size).
+Then scaling curves, node-level throughput / latency through real rclpy, JSON + PNG output.
+
+Example::
+
+    beo-bench --quick --out /tmp/bench
+    beo-bench --out /tmp/bench --queries-per-class 10 --train-per-class 40 \\
+        --beo-classifier-views 0 --icp-db-per-class 10
+"""
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import math
+import os
+import sys
+import threading
+import time
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_DATA = 'modelnet10/modelnet10_vox32_train.npz'
+
+
+def log(*a):
+    print(*a, file=sys.stderr, flush=True)
+
+
+# ---------------------------------------------------------------------- data
+def data_path(arg):
+    if arg == 'none':
+        return None
+    if arg:
+        return Path(arg)
+    root = Path(os.environ.get('BEO_DATA_DIR', REPO.parent / 'shared' / 'data'))
+    p = root / DEFAULT_DATA
+    return p if p.is_file() else None
+
+
+def load_data(args, rng):
+    """(X, y, names, n, source) with optional class selection / subsampling."""
+    from beo_ros.core.synthetic import primitive_shapes
+    from beo_ros.core.training import load_voxel_npz
+    path = data_path(args.data)
+    if path is None or not path.is_file():
+        n = 16
+        X, y, names = primitive_shapes(n, max(args.train_per_class or 15, 15) + 8, rng)
+        return X, y, names, n, 'generated boxes/cylinders (16^3)'
+    X, y, names, n = load_voxel_npz(path, args.classes or None)
+    return X, y, names, n, str(path)
+
+
+def split(y, test_frac, rng, train_per_class=None, queries_per_class=None):
+    """Seeded stratified split -> (train idx, query idx)."""
+    tr, te = [], []
+    for c in np.unique(y):
+        idx = rng.permutation(np.flatnonzero(y == c))
+        n_te = max(1, int(round(test_frac * len(idx))))
+        t, q = idx[n_te:], idx[:n_te]
+        if train_per_class:
+            t = t[:train_per_class]
+        if queries_per_class:
+            q = q[:queries_per_class]
+        tr.append(t)
+        te.append(q)
+    return np.sort(np.concatenate(tr)), np.sort(np.concatenate(te))
+
+
+def make_queries(X, y, idx, n, rng):
+    from beo_ros.core.synthetic import random_partial_view
+    out = []
+    for i in idx:
+        grid, yaw, az, el, _ = random_partial_view(X[i].reshape((n,) * 3) > 0.5, rng)
+        out.append(dict(grid=grid, yaw=float(yaw), label=int(y[i]), az=float(az), el=float(el),
+                        index=int(i)))
+    return out
+
+
+# ---------------------------------------------------------------------- metrics
+def yaw_error_deg(a, b):
+    d = abs(math.degrees(a - b)) % 360.0
+    return min(d, 360.0 - d)
+
+
+def run_peer(name, predict, queries, repeats, mem_queries=3):
+    """Run ``predict(grid) -> (label index, yaw)`` on all queries; metrics dict."""
+    lat, correct, yerr = [], [], []
+    for qi, q in enumerate(queries):
+        times = []
+        for _ in range(max(1, repeats)):
+            t0 = time.perf_counter()
+            c, yaw = predict(q['grid'])[:2]
+            times.append(time.perf_counter() - t0)
+        lat.append(float(np.median(times)))
+        correct.append(int(c) == q['label'])
+        yerr.append(yaw_error_deg(yaw, q['yaw']))
+    # memory: a separate pass so tracemalloc's overhead stays out of the timings
+    gc.collect()
+    peaks = []
+    for q in queries[:mem_queries]:
+        tracemalloc.start()
+        tracemalloc.reset_peak()
+        predict(q['grid'])
+        peaks.append(tracemalloc.get_traced_memory()[1])
+        tracemalloc.stop()
+    return summarize(name, lat, correct, yerr, peaks)
+
+
+def summarize(name, lat, correct, yerr, peaks):
+    lat = np.asarray(lat) * 1e3
+    yerr = np.asarray(yerr)
+    correct = np.asarray(correct, dtype=bool)
+    flip = np.minimum(yerr, 180.0 - yerr)
+    yc = yerr[correct] if correct.any() else yerr
+    return {
+        'queries': int(len(lat)),
+        'accuracy': float(correct.mean()),
+        'yaw_median_deg': float(np.median(yerr)),
+        'yaw_median_deg_correct_class': float(np.median(yc)),
+        'yaw_within_10deg': float((yerr <= 10).mean()),
+        'yaw_within_10deg_flip': float((flip <= 10).mean()),
+        'p50_ms': float(np.percentile(lat, 50)),
+        'p95_ms': float(np.percentile(lat, 95)),
+        'mean_ms': float(lat.mean()),
+        'peak_mem_mb': float(max(peaks) / 2**20) if peaks else 0.0,
+    }
+
+
+def latency_point(predict, queries, repeats):
+    """Median per-query latency (ms; median over repeats, then over queries) and peak MB."""
+    lat = []
+    for q in queries:
+        ts = []
+        for _ in range(max(1, repeats)):
+            t0 = time.perf_counter()
+            predict(q['grid'])
+            ts.append(time.perf_counter() - t0)
+        lat.append(np.median(ts))
+    gc.collect()
+    tracemalloc.start()
+    tracemalloc.reset_peak()
+    predict(queries[0]['grid'])
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    return float(np.median(lat) * 1e3), float(peak / 2**20)
+
+
+def bank_nbytes(bank):
+    return int(sum(m.W.nbytes + m.mean.nbytes + m.mean_variance.nbytes for m in bank.models))
+
+
+# ---------------------------------------------------------------------- peers
+def beo_predict(bank, yaw_step_deg=1.0):
+    names = list(bank.classes)
+
+    def predict(grid):
+        est = bank.estimate(grid, yaw_step_deg=yaw_step_deg)
+        return (names.index(est.label) if est.label in names else -1), est.yaw
+    return predict
+
+
+def fit_beo(X, y, names, n, k, classifier_views, seed, folds=5):
+    from beo_ros.core.grid import GridSpec
+    from beo_ros.core.training import fit_bank
+    return fit_bank(X, y, names, GridSpec(size=n), k=k, classifier_views=classifier_views,
+                    folds=folds, seed=seed, pose_components=min(8, k))
+
+
+def fit_class_bank(X, y, names, n, k):
+    from beo_ros.core.bank import ModelBank
+    from beo_ros.core.grid import GridSpec
+    from beo_ros.core.training import fit_class_models
+    spec = GridSpec(size=n)
+    return ModelBank(fit_class_models(X, y, names, spec, k=k), spec, pose_components=min(8, k))
+
+
+# ---------------------------------------------------------------------- scaling
+def scaling(args, X, y, names, n, tr, queries, bank, icp_db, rng):
+    from beo_ros.core.baselines import ICPDatabase
+    from beo_ros.core.synthetic import random_partial_view
+    from scipy.ndimage import zoom
+    out = {}
+    sq = queries[:args.scaling_queries]
+    reps = args.repeats
+    k = args.k
+    Xtr, ytr = X[tr], y[tr]
+
+    # latency / memory vs training objects (beo refit on subsets; icp database = all of them)
+    sizes = sorted({s for s in args.scaling_train if s < len(tr)} | {len(tr)})
+    pts = []
+    for s in sizes:
+        sel = np.sort(np.concatenate([
+            rng.permutation(np.flatnonzero(ytr == c))[:max(2, int(round(s * (ytr == c).mean())))]
+            for c in range(len(names))]))
+        log(f'[scaling] training objects {len(sel)}')
+        b = bank if len(sel) >= len(tr) and args.model is None else fit_class_bank(
+            Xtr[sel], ytr[sel], names, n, k)
+        bl, bm = latency_point(beo_predict(b), sq, reps)
+        db = ICPDatabase(per_class=None, n_init_yaws=args.icp_init_yaws, seed=args.seed).fit(
+            Xtr[sel], ytr[sel], names, n)
+        il, im = latency_point(lambda g: db.predict(g), sq[:max(1, len(sq) // 2)], 1)
+        pts.append(dict(n_train=int(len(sel)), beo_ms=bl, beo_mb=bm, icp_ms=il, icp_mb=im,
+                        icp_db_size=db.size))
+    out['train_objects'] = pts
+
+    # vs grid resolution: resampled data, class models only, a small training set
+    sub = np.sort(np.concatenate([np.flatnonzero(ytr == c)[:args.scaling_per_class]
+                                  for c in range(len(names))]))
+    qidx = [q['index'] for q in sq]
+    pts = []
+    for g in args.scaling_grids:
+        log(f'[scaling] grid {g}^3')
+        f = g / n
+
+        def rs(v):
+            return zoom(v.reshape((n,) * 3), f, order=0).ravel() if g != n else v
+        Xg = np.array([rs(X[tr][i]) for i in sub], dtype=np.float32)
+        b = fit_class_bank(Xg, ytr[sub], names, g, k)
+        qrng = np.random.default_rng(args.seed + 7)
+        qs = [dict(grid=random_partial_view(rs(X[i]).reshape((g,) * 3) > 0.5, qrng)[0])
+              for i in qidx]
+        bl, bm = latency_point(beo_predict(b), qs, reps)
+        pts.append(dict(grid=int(g), beo_ms=bl, beo_mb=bm, model_mb=bank_nbytes(b) / 2**20))
+        del b, Xg
+        gc.collect()
+    out['grid'] = pts
+
+    # vs yaw resolution (main bank, exhaustive search)
+    out['yaw_step'] = []
+    for step in args.scaling_yaw_steps:
+        bl, bm = latency_point(beo_predict(bank, step), sq, reps)
+        out['yaw_step'].append(dict(yaw_step_deg=float(step), beo_ms=bl, beo_mb=bm))
+
+    # vs number of classes: class models on the small training set, first c classes
+    models = fit_class_bank(Xtr[sub], ytr[sub], names, n, k).models
+    from beo_ros.core.bank import ModelBank
+    pts = []
+    for c in sorted({min(c, len(names)) for c in args.scaling_classes}):
+        log(f'[scaling] classes {c}')
+        b = ModelBank(models[:c], bank.spec, pose_components=min(8, k))
+        bl, bm = latency_point(beo_predict(b), sq, reps)
+        pts.append(dict(classes=int(c), beo_ms=bl, beo_mb=bm))
+    out['classes'] = pts
+    out['note'] = (f'{len(sq)} queries per point; grid and class curves use class models fitted '
+                   f'on {args.scaling_per_class} objects per class (latency does not depend on '
+                   'the training set size for beo)')
+    return out
+
+
+# ---------------------------------------------------------------------- node
+def node_bench(bank, X, y, n, idx, args, rng):
+    """Closed loop through a real BeoNode: publish a cloud, wait for its estimate, repeat."""
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'OFF'
+    try:
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.executors import MultiThreadedExecutor
+        from rclpy.parameter import Parameter
+        from rclpy.qos import qos_profile_sensor_data
+        from sensor_msgs.msg import PointCloud2
+        from std_msgs.msg import Header
+        from builtin_interfaces.msg import Time as TimeMsg
+
+        from beo_ros.core.synthetic import random_partial_view, render_view_points
+        from beo_ros.ros.conversions import interfaces, xyz_to_cloud
+        from beo_ros.ros.node import BeoNode
+        msgs = interfaces()
+    except Exception as e:  # noqa: BLE001 - ROS or interfaces missing
+        return {'skipped': f'{type(e).__name__}: {e}'}
+
+    clouds = []
+    for i in idx[:args.node_objects]:
+        occ = X[i].reshape((n,) * 3) > 0.5
+        _, yaw, az, el, _ = random_partial_view(occ, rng)
+        pts, origin = render_view_points(occ, yaw, az, el, rng=rng)
+        clouds.append((pts, origin))
+    if not clouds:
+        return {'skipped': 'no objects'}
+    ctx = Context()
+    rclpy.init(context=ctx)
+    node = client = executor = None
+    try:
+        node = BeoNode('beo', context=ctx, bank=bank, parameter_overrides=[
+            Parameter('input_topics', value=['/beo/input']),
+            Parameter('sensor_origin', value=[float(v) for v in clouds[0][1]])])
+        client = rclpy.create_node('beo_bench_client', context=ctx)
+        got = {}
+        cond = threading.Condition()
+
+        def on_est(m):
+            with cond:
+                got[m.header.stamp.sec * 10**9 + m.header.stamp.nanosec] = time.perf_counter()
+                cond.notify_all()
+        client.create_subscription(msgs.ObjectEstimate, '/beo/estimates', on_est, 100)
+        pub = client.create_publisher(PointCloud2, '/beo/input', qos_profile_sensor_data)
+        executor = MultiThreadedExecutor(num_threads=4, context=ctx)
+        executor.add_node(node)
+        executor.add_node(client)
+        th = threading.Thread(target=executor.spin, daemon=True)
+        th.start()
+        # all clouds are rendered from different origins; the node uses one sensor_origin
+        # parameter, so re-express each cloud relative to its own sensor (translate to origin 0)
+
+        def send(j, stamp_ns):
+            pts, origin = clouds[j % len(clouds)]
+            node.set_parameters([Parameter('sensor_origin', value=[float(v) for v in origin])])
+            hdr = Header(frame_id='world', stamp=TimeMsg(sec=stamp_ns // 10**9,
+                                                         nanosec=stamp_ns % 10**9))
+            msg = xyz_to_cloud(pts, hdr)
+            t = time.perf_counter()
+            pub.publish(msg)
+            return t
+
+        # warm-up / discovery: republish until the first estimate arrives
+        end = time.monotonic() + 60
+        stamp = 1
+        while time.monotonic() < end and not got:
+            send(0, stamp)
+            with cond:
+                cond.wait_for(lambda: bool(got), timeout=0.5)
+        if not got:
+            return {'skipped': 'no estimate from the node within 60 s'}
+        lat, lost = [], 0
+        t_start = time.perf_counter()
+        for j in range(len(clouds) * args.node_rounds):
+            stamp = 1000 + j
+            sent = send(j, stamp)
+            with cond:
+                ok = cond.wait_for(lambda: stamp in got, timeout=30)
+            if ok:
+                lat.append(got[stamp] - sent)
+            else:
+                lost += 1
+        total = time.perf_counter() - t_start
+        lat = np.asarray(lat) * 1e3
+        core = node.latency_p50()
+        return {
+            'objects': int(len(lat)), 'lost': int(lost),
+            'objects_per_s': float(len(lat) / total),
+            'e2e_p50_ms': float(np.percentile(lat, 50)) if len(lat) else float('nan'),
+            'e2e_p95_ms': float(np.percentile(lat, 95)) if len(lat) else float('nan'),
+            'node_stage_p50_ms': {k: v * 1e3 for k, v in core.items()},
+            'mode': 'closed loop (next cloud published when the previous estimate arrived), '
+                    'rendered clouds, in-process BeoNode, MultiThreadedExecutor',
+        }
+    finally:
+        if executor is not None:
+            executor.shutdown(timeout_sec=5.0)
+        if client is not None:
+            client.destroy_node()
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+
+# ---------------------------------------------------------------------- output
+def plots(res, out):
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    peers = [p for p in ('beo', 'paper', 'icp') if p in res]
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    x = np.arange(len(peers))
+    ax.bar(x - 0.2, [res[p]['p50_ms'] for p in peers], 0.4, label='p50')
+    ax.bar(x + 0.2, [res[p]['p95_ms'] for p in peers], 0.4, label='p95')
+    ax.set_xticks(x, peers)
+    ax.set_yscale('log')
+    ax.set_ylabel('latency per object (ms)')
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(out / 'latency.png', dpi=100)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    keys = [('accuracy', 'accuracy'), ('yaw_within_10deg', 'yaw<=10'),
+            ('yaw_within_10deg_flip', 'yaw<=10 (flip)')]
+    for j, (k, lab) in enumerate(keys):
+        ax.bar(x + (j - 1) * 0.27, [res[p][k] for p in peers], 0.27, label=lab)
+    ax.set_xticks(x, peers)
+    ax.set_ylim(0, 1)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / 'accuracy.png', dpi=100)
+    plt.close(fig)
+
+    sc = res.get('scaling') or {}
+    fig, axes = plt.subplots(2, 4, figsize=(14, 6))
+    panels = [('train_objects', 'n_train', 'training objects', [('beo', 'beo'), ('icp', 'icp')]),
+              ('grid', 'grid', 'grid size N', [('beo', 'beo')]),
+              ('yaw_step', 'yaw_step_deg', 'yaw step (deg)', [('beo', 'beo')]),
+              ('classes', 'classes', 'classes', [('beo', 'beo')])]
+    for col, (key, xk, xl, series) in enumerate(panels):
+        pts = sc.get(key) or []
+        for row, (suffix, yl) in enumerate((('ms', 'latency (ms)'), ('mb', 'peak memory (MB)'))):
+            a = axes[row, col]
+            for s, lab in series:
+                if pts:
+                    a.plot([p[xk] for p in pts], [p[f'{s}_{suffix}'] for p in pts], 'o-',
+                           label=lab)
+            a.set_xlabel(xl)
+            a.set_ylabel(yl)
+            if key == 'train_objects' and pts:
+                a.set_yscale('log')
+                a.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / 'scaling.png', dpi=100)
+    plt.close(fig)
+
+
+def table(res):
+    rows = ['| peer | accuracy | yaw median (deg) | yaw <=10 | yaw <=10 (flip) | p50 ms | p95 ms '
+            '| peak MB |', '|---|---|---|---|---|---|---|---|']
+    for p in ('beo', 'paper', 'icp'):
+        r = res[p]
+        rows.append(f"| {p} | {r['accuracy']:.3f} | {r['yaw_median_deg']:.1f} | "
+                    f"{r['yaw_within_10deg']:.3f} | {r['yaw_within_10deg_flip']:.3f} | "
+                    f"{r['p50_ms']:.1f} | {r['p95_ms']:.1f} | {r['peak_mem_mb']:.1f} |")
+    return '\n'.join(rows)
+
+
+def _finite(o):
+    if isinstance(o, float) and not math.isfinite(o):
+        return None
+    if isinstance(o, dict):
+        return {k: _finite(v) for k, v in o.items()}
+    if isinstance(o, list):
+        return [_finite(v) for v in o]
+    if isinstance(o, (np.floating, np.integer)):
+        return _finite(o.item())
+    return o
+
+
+# ---------------------------------------------------------------------- main
+def parse_args(argv):
+    ap = argparse.ArgumentParser(prog='beo-bench', description=__doc__.split('\n')[0])
+    ap.add_argument('--out', default='bench_out', help='output directory (bench.json, PNGs)')
+    ap.add_argument('--data', default='', help="voxel npz (default: $BEO_DATA_DIR/"
+                    f"{DEFAULT_DATA}); 'none' = generated boxes/cylinders")
+    ap.add_argument('--classes', nargs='*', default=None, help='class subset')
+    ap.add_argument('--quick', action='store_true', help='tiny run (< ~60 s)')
+    ap.add_argument('--seed', type=int, default=0)
+    ap.add_argument('--test-frac', type=float, default=0.2, help='held-out fraction per class')
+    ap.add_argument('--train-per-class', type=int, default=None,
+                    help='cap training objects per class (default: all of the split)')
+    ap.add_argument('--queries-per-class', type=int, default=10)
+    ap.add_argument('--repeats', type=int, default=3, help='timing repeats per query (beo)')
+    ap.add_argument('--slow-repeats', type=int, default=1,
+                    help='timing repeats per query for paper and icp')
+    ap.add_argument('--k', type=int, default=20)
+    ap.add_argument('--model', default=None,
+                    help='use this bank for beo (must not have been trained on the queries)')
+    ap.add_argument('--beo-classifier-views', type=int, default=1)
+    ap.add_argument('--icp-db-per-class', type=int, default=10)
+    ap.add_argument('--icp-init-yaws', type=int, default=4)
+    ap.add_argument('--paper-yaws', type=int, default=36)
+    ap.add_argument('--no-paper', action='store_true')
+    ap.add_argument('--no-icp', action='store_true')
+    ap.add_argument('--no-scaling', action='store_true')
+    ap.add_argument('--no-node', action='store_true')
+    ap.add_argument('--no-plots', action='store_true')
+    ap.add_argument('--scaling-train', type=int, nargs='*', default=[100, 200])
+    ap.add_argument('--scaling-grids', type=int, nargs='*', default=[24, 32, 48, 64])
+    ap.add_argument('--scaling-yaw-steps', type=float, nargs='*', default=[10.0, 5.0, 1.0])
+    ap.add_argument('--scaling-classes', type=int, nargs='*', default=[2, 5, 10])
+    ap.add_argument('--scaling-per-class', type=int, default=8)
+    ap.add_argument('--scaling-queries', type=int, default=6)
+    ap.add_argument('--node-objects', type=int, default=20)
+    ap.add_argument('--node-rounds', type=int, default=1)
+    args = ap.parse_args(argv)
+    if args.quick:
+        p = data_path(args.data)
+        if p is not None and not args.classes:
+            args.classes = ['chair', 'monitor']
+        args.train_per_class = args.train_per_class or 12
+        args.queries_per_class = min(args.queries_per_class, 3)
+        args.repeats = min(args.repeats, 2)
+        args.beo_classifier_views = 0
+        args.icp_db_per_class = min(args.icp_db_per_class, 3)
+        args.icp_init_yaws = min(args.icp_init_yaws, 4)
+        args.k = min(args.k, 4 if p is None else 8)
+        args.scaling_train = [8]
+        args.scaling_grids = [12, 16] if p is None else [24, 32]
+        args.scaling_yaw_steps = [10.0, 5.0]
+        args.scaling_classes = [2]
+        args.scaling_per_class = 4
+        args.scaling_queries = 2
+        args.node_objects = min(args.node_objects, 4)
+    return args
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(args.seed)
+    t_all = time.perf_counter()
+    X, y, names, n, source = load_data(args, rng)
+    tr, te = split(y, args.test_frac, np.random.default_rng(args.seed), args.train_per_class,
+                   args.queries_per_class)
+    queries = make_queries(X, y, te, n, np.random.default_rng(args.seed + 1))
+    log(f'data: {source}; {len(names)} classes, {len(tr)} training objects, '
+        f'{len(queries)} queries')
+    res = {'setup': {
+        'data': source, 'classes': names, 'grid': n, 'train_objects': int(len(tr)),
+        'queries': len(queries), 'seed': args.seed, 'k': args.k, 'repeats': args.repeats,
+        'slow_repeats': args.slow_repeats, 'quick': bool(args.quick),
+        'protocol': 'one random partial view per held-out object: yaw U[0,360), azimuth '
+                    'U[0,360), elevation U[10,50] deg (beo_ros.core.synthetic)',
+        'cpu_count': os.cpu_count()}}
+
+    # ---- beo
+    t0 = time.perf_counter()
+    if args.model:
+        from beo_ros.core.bank import load_models
+        bank = load_models(args.model)
+        if list(bank.classes) != list(names):
+            raise SystemExit(f'--model classes {bank.classes} differ from the data {names}')
+        res['setup']['beo_model'] = (f'{args.model} (given: valid only if it was not trained '
+                                     'on the query objects)')
+    else:
+        log('[beo] fitting the bank on the training split')
+        bank = fit_beo(X[tr], y[tr], names, n, args.k, args.beo_classifier_views, args.seed)
+        res['setup']['beo_model'] = (f'trained here on the split, classifier_views='
+                                     f'{args.beo_classifier_views}')
+    fit_s = time.perf_counter() - t0
+    log('[beo] queries')
+    bank.estimate(queries[0]['grid'])  # warm-up
+    res['beo'] = run_peer('beo', beo_predict(bank), queries, args.repeats)
+    res['beo'].update(fit_s=fit_s, index_mb=bank_nbytes(bank) / 2**20)
+
+    # ---- paper
+    if not args.no_paper:
+        from beo_ros.core.baselines import PaperPCA
+        log('[paper] fitting PCA and querying')
+        t0 = time.perf_counter()
+        paper = PaperPCA(k=args.k, n_yaws=args.paper_yaws).fit(X[tr], y[tr], names, n)
+        fit_s = time.perf_counter() - t0
+        res['paper'] = run_peer('paper', paper.predict, queries, args.slow_repeats)
+        res['paper'].update(fit_s=fit_s, index_mb=paper.nbytes / 2**20,
+                            yaw_candidates=args.paper_yaws)
+    # ---- icp
+    if not args.no_icp:
+        from beo_ros.core.baselines import ICPDatabase
+        log('[icp] building the database and querying')
+        t0 = time.perf_counter()
+        icp = ICPDatabase(per_class=args.icp_db_per_class, n_init_yaws=args.icp_init_yaws,
+                          seed=args.seed).fit(X[tr], y[tr], names, n)
+        fit_s = time.perf_counter() - t0
+        res['icp'] = run_peer('icp', icp.predict, queries, args.slow_repeats)
+        res['icp'].update(fit_s=fit_s, index_mb=icp.nbytes / 2**20, db_size=icp.size,
+                          db_per_class=args.icp_db_per_class, init_yaws=args.icp_init_yaws)
+    else:
+        icp = None
+    if 'icp' in res:
+        res['speedup_vs_icp'] = res['icp']['p50_ms'] / res['beo']['p50_ms']
+    if 'paper' in res:
+        res['speedup_vs_paper'] = res['paper']['p50_ms'] / res['beo']['p50_ms']
+
+    res['scaling'] = ({'skipped': '--no-scaling'} if args.no_scaling else
+                      scaling(args, X, y, names, n, tr, queries, bank, icp,
+                              np.random.default_rng(args.seed + 2)))
+    if args.no_node:
+        res['node'] = {'skipped': '--no-node'}
+    else:
+        log('[node] closed-loop run through BeoNode')
+        res['node'] = node_bench(bank, X, y, n, te, args, np.random.default_rng(args.seed + 3))
+    res['setup']['wall_s'] = time.perf_counter() - t_all
+
+    res = _finite(res)
+    (out / 'bench.json').write_text(json.dumps(res, indent=2) + '\n')
+    if not args.no_plots and all(p in res for p in ('beo', 'paper', 'icp')):
+        plots(res, out)
+    if all(p in res for p in ('beo', 'paper', 'icp')):
+        print(table(res))
+        print(f"speedup vs icp (p50): {res['speedup_vs_icp']:.1f}x, "
+              f"vs paper: {res['speedup_vs_paper']:.1f}x")
+    node = res['node']
+    if 'objects_per_s' in node:
+        print(f"node: {node['objects_per_s']:.2f} objects/s, end-to-end p50 "
+              f"{node['e2e_p50_ms']:.1f} ms, p95 {node['e2e_p95_ms']:.1f} ms")
+    else:
+        print(f"node: skipped ({node.get('skipped')})")
+    print(f'wrote {out / "bench.json"}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
