@@ -561,11 +561,7 @@ def resolve_topic_types(node, topics: dict, wait: float = 10.0,
 
 
 def _subscription_qos(node, topic: str, depth: int = 100):
-    """Reliable/transient-local only if every current publisher offers it (as ros2 bag does).
-
-    With no publisher yet (type given on the command line) it is best effort + volatile, which
-    matches any publisher that comes later (e.g. sensor-data QoS cameras).
-    """
+    """Reliable/transient-local only if every current publisher offers it (as ros2 bag does)."""
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     infos = node.get_publishers_info_by_topic(topic)
     reliable = bool(infos) and all(i.qos_profile.reliability == ReliabilityPolicy.RELIABLE
@@ -592,7 +588,9 @@ def record(node, bag_path, topics, *, storage: str = 'sqlite3', wait: float = 10
         duration: stop after this many seconds of recording; ``count``: after this many messages
             in total; ``stop``: an Event to end the recording (e.g. set by SIGINT).
         ready: set once all subscriptions exist (useful to start publishers in tests).
-    Messages are stored as received (raw CDR), stamped with the node clock at receipt.
+    Messages are stored as received (raw CDR), stamped with the node clock at receipt. A topic is
+    subscribed once it has a publisher (typed topics may have none yet), with reliability and
+    durability adapted to what its publishers offer.
     """
     from rclpy.executors import SingleThreadedExecutor
     if isinstance(topics, (list, tuple)):
@@ -613,23 +611,37 @@ def record(node, bag_path, topics, *, storage: str = 'sqlite3', wait: float = 10
                 pending.append((topic, node.get_clock().now().nanoseconds, bytes(raw)))
         return cb
 
+    unsubscribed = dict(topics)
+
+    def subscribe_new():
+        """Subscribe to topics that now have publishers, with QoS adapted to their offers."""
+        for topic, typ in list(unsubscribed.items()):
+            if not node.get_publishers_info_by_topic(topic):
+                continue
+            qos = _subscription_qos(node, topic)
+            subs.append(node.create_subscription(import_msg_class(typ), topic,
+                                                 callback_for(topic), qos, raw=True))
+            del unsubscribed[topic]
+
     with writer:
         for topic, typ in topics.items():
             qos = _subscription_qos(node, topic)
             writer.add_topic(topic, typ,
                              reliable=qos.reliability.name == 'RELIABLE',
                              transient_local=qos.durability.name == 'TRANSIENT_LOCAL')
-            subs.append(node.create_subscription(import_msg_class(typ), topic, callback_for(topic),
-                                                 qos, raw=True))
             stats.topics[topic] = {'type': typ, 'count': 0}
+        subscribe_new()
         if own_exec:
             executor.add_node(node)
         if ready is not None:
             ready.set()
-        t0 = time.monotonic()
+        t0 = t_poll = time.monotonic()
         try:
             while True:
                 executor.spin_once(timeout_sec=0.05)
+                if unsubscribed and time.monotonic() - t_poll > 0.05:
+                    t_poll = time.monotonic()
+                    subscribe_new()
                 with lock:
                     batch, pending[:] = list(pending), []
                 for topic, t, raw in batch:
