@@ -63,14 +63,21 @@ def main(argv=None):
                 ys.append(y1)
             X, y = np.vstack(Xs), np.concatenate(ys)
             spec = GridSpec(size=n)
+        grids = None
+        if masks is not None:  # real partial scans: OOF classifier features from these grids
+            grids = np.where(masks, X > 0.5, -1).astype(np.int8).reshape((-1,) + spec.shape)
         if args.congeal:
             from .core.congeal import congeal_classes
-            X = congeal_classes(X, y, spec.size, verbose=True)
+            if masks is not None:
+                X, masks = congeal_classes(X, y, spec.size, masks=masks, verbose=True)
+            else:
+                X = congeal_classes(X, y, spec.size, verbose=True)
         t0 = time.time()
         bank = fit_bank(X, y, names, spec, k=args.k, masks=masks,
                         pose_components=args.pose_components, classifier_views=args.views,
                         folds=args.folds, seed=args.seed, verbose=True,
-                        training=dict(inputs=[str(p) for p in args.inputs], congeal=args.congeal))
+                        training=dict(inputs=[str(p) for p in args.inputs], congeal=args.congeal),
+                        grids=grids)
         bank.save(args.out)
     except (ValueError, OSError) as e:
         print(f'beo-train: error: {e}', file=sys.stderr)

@@ -126,11 +126,14 @@ def train_classifier(F, y, n_classes, C=1.0):
 
 
 def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_views=1,
-             folds=5, seed=0, C=1.0, verbose=False, training=None):
+             folds=5, seed=0, C=1.0, verbose=False, training=None, grids=None):
     """Fit class models on all of X and a classifier on out-of-fold features.
 
     ``classifier_views``: random partial views per training object for the partial-view
     classifier (0: no classifier, the paper's max-likelihood rule).
+    ``grids``: optional int8 (m, N, N, N) labelled training grids (real partial scans, in their
+    original, un-congealed pose); then the out-of-fold 'partial' features come from these grids
+    with pose search (``bank.features(grid)``) instead of synthetic random views.
     """
     X = np.asarray(X, dtype=np.float32)
     y = np.asarray(y)
@@ -154,6 +157,12 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
                                              None if masks is None else masks[tr]),
                             spec, pose_components=pose_components)
             for i in _progress(te, f'fold {f}', disable=not verbose):
+                if grids is not None:
+                    F, _ = sub.features(np.asarray(grids[i], dtype=np.int8))
+                    feats['partial'].append(F.ravel()[None])
+                    labels['partial'].append(y[i])
+                    records['partial'].append({})  # no ground-truth yaw for real scans
+                    continue
                 out = view_features(sub, X[i:i + 1], rng, classifier_views, complete=masks is None)
                 for mode, (F, _, recs) in out.items():
                     feats[mode].append(F)
