@@ -1,0 +1,177 @@
+"""Training sets from real labelled tabletop scans (OSD-style organized PCD scenes).
+
+Every object of a scene becomes one partial training grid: the object's points are voxelized into
+the gravity-aligned metric grid standing on the table (:func:`beo_ros.core.scans.object_view`),
+free and unknown space come from ray casting from the camera, and the other objects of the scene
+are occluders. The class of an object is the class of its scene, by the number N in
+``learnN.pcd`` (``--scan-classes 'box:0-16,cylinder:33-44'``).
+
+For VBPCA the unknown voxels are *missing data*: ``X`` holds the occupancy (unknown set to 0) and
+``masks`` says which entries were observed (``grid >= 0``).
+"""
+from __future__ import annotations
+
+import re
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .grid import GridSpec
+from .scans import fit_table_plane, load_scene, object_view, scene_occluders, segment_objects
+
+DEFAULT_SCAN_CLASSES = 'box:0-16,cylinder:33-44'
+
+
+def parse_scan_classes(text) -> tuple:
+    """``'box:0-16,cylinder:33-44'`` -> (class names in order, {scene number: class index}).
+
+    Ranges are inclusive; single numbers and several ranges per class (``box:0-3+7``) work too.
+    """
+    if isinstance(text, dict):
+        text = ','.join(f'{k}:{v}' for k, v in text.items())
+    names, table = [], {}
+    for part in str(text).split(','):
+        part = part.strip()
+        if not part:
+            continue
+        if ':' not in part:
+            raise ValueError(f'scan class {part!r} is not name:first-last')
+        name, ranges = (s.strip() for s in part.split(':', 1))
+        if not name:
+            raise ValueError(f'scan class {part!r} has no name')
+        if name not in names:
+            names.append(name)
+        for r in ranges.split('+'):
+            m = re.fullmatch(r'\s*(\d+)\s*(?:-\s*(\d+))?\s*', r)
+            if not m:
+                raise ValueError(f'scan class {part!r}: bad range {r!r}')
+            a, b = int(m.group(1)), int(m.group(2) or m.group(1))
+            if b < a:
+                raise ValueError(f'scan class {part!r}: empty range {r!r}')
+            for s in range(a, b + 1):
+                if s in table and table[s] != names.index(name):
+                    raise ValueError(f'scene {s} is in two classes')
+                table[s] = names.index(name)
+    if not names:
+        raise ValueError(f'no scan classes in {text!r}')
+    return names, table
+
+
+def scene_number(path) -> int | None:
+    """The number N of ``...N.pcd`` (e.g. learn33.pcd -> 33), or None."""
+    m = re.search(r'(\d+)$', Path(path).stem)
+    return int(m.group(1)) if m else None
+
+
+@dataclass
+class ScanObjects:
+    """Training objects from labelled scans.
+
+    Attributes:
+        X: float32 (m, N^3) occupancy, unknown entries 0.
+        y: int (m,) class index.
+        names: class names.
+        masks: bool (m, N^3) observed (grid >= 0).
+        spec: the metric GridSpec of the grids.
+        scenes: str (m,) scene name (file stem) of each object, for leave-one-scene-out.
+        object_ids: int (m,) OSD object id (label // 10) within its scene.
+        points: list of float64 (n_i, 3) camera-frame points of each object.
+        ups: float64 (m, 3) table normal (camera frame) of each object's scene.
+        plane_d: float64 (m,) table offsets (up . p + d = 0).
+        grid_to_input: float64 (m, 4, 4) grid index coords -> camera frame.
+    """
+
+    X: np.ndarray
+    y: np.ndarray
+    names: list
+    masks: np.ndarray
+    spec: GridSpec
+    scenes: np.ndarray
+    object_ids: np.ndarray
+    points: list = field(default_factory=list)
+    ups: np.ndarray = None
+    plane_d: np.ndarray = None
+    grid_to_input: np.ndarray = None
+
+    @property
+    def grids(self) -> np.ndarray:
+        """int8 (m, N, N, N) labelled grids: 1 occupied, 0 free, -1 unknown."""
+        n = self.spec.size
+        g = np.where(self.masks, (self.X > 0.5).astype(np.int8), np.int8(-1)).astype(np.int8)
+        return g.reshape(len(g), n, n, n)
+
+    def subset(self, sel) -> 'ScanObjects':
+        sel = np.asarray(sel)
+        idx = np.flatnonzero(sel) if sel.dtype == bool else sel
+        return ScanObjects(self.X[idx], self.y[idx], list(self.names), self.masks[idx], self.spec,
+                           self.scenes[idx], self.object_ids[idx],
+                           [self.points[i] for i in idx], self.ups[idx], self.plane_d[idx],
+                           self.grid_to_input[idx])
+
+    def __len__(self):
+        return len(self.X)
+
+
+def grid_spec(grid=32, voxel_size=0.5 / 32) -> GridSpec:
+    return GridSpec(size=int(grid), units='metric', voxel_size=float(voxel_size), anchor='bottom')
+
+
+def load_scan_objects(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32, voxel_size=0.5 / 32,
+                      verbose=False) -> ScanObjects:
+    """Every segmented object of the scans whose scene number has a class, as partial grids.
+
+    Scenes whose number is in no class are skipped (with a note when verbose). Raises ValueError
+    when a class ends up with fewer than 2 objects or no scan has a class.
+    """
+    names, table = parse_scan_classes(scan_classes)
+    spec = grid_spec(grid, voxel_size)
+    X, M, y, scenes, oids, pts_all, ups, ds, T = [], [], [], [], [], [], [], [], []
+    for p in sorted(paths, key=lambda q: (scene_number(q) is None, scene_number(q) or 0, str(q))):
+        num = scene_number(p)
+        if num not in table:
+            if verbose:
+                print(f'{p}: scene {num} is in no class, skipped', file=sys.stderr)
+            continue
+        scene = load_scene(p)
+        up, d = fit_table_plane(scene)
+        objs = segment_objects(scene)
+        for oid, pts in objs.items():
+            view = object_view(pts, up, d, spec, occluders=scene_occluders(scene, oid))
+            g = view.grid
+            X.append((g == 1).ravel())
+            M.append((g >= 0).ravel())
+            y.append(table[num])
+            scenes.append(Path(p).stem)
+            oids.append(oid)
+            pts_all.append(pts)
+            ups.append(up)
+            ds.append(d)
+            T.append(view.grid_to_input)
+        if verbose:
+            print(f'{p}: {names[table[num]]}, {len(objs)} objects', file=sys.stderr)
+    if not X:
+        raise ValueError(f'no scan matched the scan classes {scan_classes!r}')
+    y = np.array(y, dtype=int)
+    for c, name in enumerate(names):
+        if (y == c).sum() < 2:
+            raise ValueError(f'scan class {name!r} has {(y == c).sum()} objects; need >= 2')
+    return ScanObjects(np.array(X, dtype=np.float32), y, names, np.array(M, dtype=bool), spec,
+                       np.array(scenes), np.array(oids, dtype=int), pts_all,
+                       np.array(ups, dtype=np.float64), np.array(ds, dtype=np.float64),
+                       np.array(T, dtype=np.float64))
+
+
+def load_scan_training_set(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32,
+                           voxel_size=0.5 / 32, verbose=False) -> tuple:
+    """(X float32 (m, N^3), y (m,), names, masks bool (m, N^3), spec) for ``beo-train --scans``.
+
+    See :func:`load_scan_objects` (which also returns scene ids, points and planes).
+    """
+    s = load_scan_objects(paths, scan_classes, grid, voxel_size, verbose)
+    if verbose:
+        counts = ', '.join(f'{n} {int((s.y == c).sum())}' for c, n in enumerate(s.names))
+        print(f'{len(s)} scan objects ({counts}); {100 * (1 - s.masks.mean()):.0f} % of the '
+              f'voxels unknown', file=sys.stderr)
+    return s.X, s.y, s.names, s.masks, s.spec
