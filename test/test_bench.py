@@ -1,0 +1,112 @@
+"""beo-bench: a quick in-process smoke run and unit tests of the peers on generated shapes."""
+import json
+import math
+
+import numpy as np
+import pytest
+
+from beo_ros.core.synthetic import primitive_shapes, random_partial_view
+
+N = 16
+
+
+@pytest.fixture(scope='module')
+def shapes():
+    X, y, names = primitive_shapes(N, 12, np.random.default_rng(0))
+    Xq, yq, _ = primitive_shapes(N, 6, np.random.default_rng(1))
+    rng = np.random.default_rng(2)
+    queries = [random_partial_view(Xq[i].reshape((N,) * 3) > 0.5, rng)[:2] + (int(yq[i]),)
+               for i in range(len(Xq))]
+    return X, y, names, queries
+
+
+def _finite_numbers(o):
+    if isinstance(o, dict):
+        return all(_finite_numbers(v) for v in o.values())
+    if isinstance(o, list):
+        return all(_finite_numbers(v) for v in o)
+    if isinstance(o, float):
+        return math.isfinite(o)
+    return True
+
+
+def test_paper_baseline_classifies_boxes_and_cylinders(shapes):
+    from beo_ros.core.baselines import PaperPCA
+    X, y, names, queries = shapes
+    paper = PaperPCA(k=4).fit(X, y, names, N)
+    assert paper.nbytes > 0
+    hits = 0
+    for grid, yaw, label in queries:
+        c, est_yaw, completion = paper.predict(grid)
+        assert 0 <= c < 2 and 0 <= est_yaw < 2 * np.pi
+        assert completion.shape == (N,) * 3 and np.isfinite(completion).all()
+        hits += c == label
+    assert hits >= 0.75 * len(queries)
+
+
+def test_paper_baseline_recovers_yaw_of_a_complete_asymmetric_object():
+    """A complete L-shaped object rotated by a candidate yaw: the paper's search finds it."""
+    from beo_ros.core.baselines import PaperPCA
+    from beo_ros.core.grid import rotate_grid
+    rng = np.random.default_rng(0)
+    X = []
+    for _ in range(6):
+        occ = np.zeros((N,) * 3, dtype=bool)
+        a = rng.integers(3, 5)
+        occ[3:13, 3:3 + a, 4:12] = True
+        occ[3:3 + a, 3:11, 4:12] = True
+        X.append(occ.ravel())
+    X = np.array(X, dtype=np.float32)
+    paper = PaperPCA(k=3).fit(X, np.zeros(len(X), int), ['L'], N)
+    yaw = 2 * np.pi * 9 / 36
+    grid = rotate_grid(X[0].reshape((N,) * 3).astype(np.int8), yaw)
+    c, est_yaw, _ = paper.predict(grid)
+    assert c == 0
+    assert abs(np.rad2deg(est_yaw - yaw)) < 1e-6
+
+
+def test_icp_baseline_classifies_and_reports_db_size(shapes):
+    pytest.importorskip('open3d')
+    from beo_ros.core.baselines import ICPDatabase
+    X, y, names, queries = shapes
+    db = ICPDatabase(per_class=4, n_init_yaws=4).fit(X, y, names, N)
+    assert db.size == 8 and db.nbytes > 0
+    hits = 0
+    for grid, yaw, label in queries:
+        c, est_yaw, fitness = db.predict(grid)
+        assert 0 <= c < 2 and np.isfinite(est_yaw) and 0 <= fitness <= 1
+        hits += c == label
+    assert hits >= 0.75 * len(queries)
+
+
+def test_yaw_error_wraps():
+    from beo_ros.bench import yaw_error_deg
+    assert yaw_error_deg(np.deg2rad(359), np.deg2rad(1)) == pytest.approx(2)
+    assert yaw_error_deg(np.deg2rad(-170), np.deg2rad(170)) == pytest.approx(20)
+    assert yaw_error_deg(0.0, np.pi) == pytest.approx(180)
+
+
+def test_quick_bench_smoke(tmp_path, capsys):
+    pytest.importorskip('open3d')
+    from beo_ros.bench import main
+    out = tmp_path / 'bench'
+    assert main(['--quick', '--data', 'none', '--out', str(out)]) == 0
+    res = json.loads((out / 'bench.json').read_text())
+    for peer in ('beo', 'paper', 'icp'):
+        for key in ('p50_ms', 'p95_ms', 'accuracy', 'yaw_median_deg', 'yaw_within_10deg',
+                    'yaw_within_10deg_flip', 'peak_mem_mb'):
+            assert isinstance(res[peer][key], float) and math.isfinite(res[peer][key]), (peer, key)
+        assert res[peer]['p50_ms'] > 0 and 0 <= res[peer]['accuracy'] <= 1
+    assert res['icp']['db_size'] > 0
+    assert math.isfinite(res['speedup_vs_icp']) and res['speedup_vs_icp'] > 0
+    sc = res['scaling']
+    for key in ('train_objects', 'grid', 'yaw_step', 'classes'):
+        assert sc[key], key
+    assert {'n_train', 'beo_ms', 'icp_ms', 'beo_mb', 'icp_mb'} <= set(sc['train_objects'][0])
+    assert 'node' in res
+    if 'skipped' not in res['node']:
+        assert res['node']['objects'] > 0 and res['node']['objects_per_s'] > 0
+    assert _finite_numbers({k: v for k, v in res.items() if k != 'node'})
+    for png in ('latency.png', 'accuracy.png', 'scaling.png'):
+        assert (out / png).stat().st_size > 1000
+    assert 'speedup vs icp' in capsys.readouterr().out
