@@ -47,6 +47,7 @@ import signal
 import sys
 import threading
 import time
+import weakref
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -392,6 +393,19 @@ def _sleep_until(deadline: float, stop: threading.Event | None) -> bool:
         time.sleep(min(left, 0.05))
 
 
+_PUBLISHERS = weakref.WeakKeyDictionary()   # node -> {(topic, type, qos, depth): publisher}
+
+
+def _publisher(node, msgtype: str, topic: str, qos: str, depth: int):
+    """A publisher of ``node``, reused across replays (destroying one right after the last
+    publish could drop reliable messages still in flight, creating one per replay piles up)."""
+    cache = _PUBLISHERS.setdefault(node, {})
+    key = (topic, msgtype, qos, depth)
+    if key not in cache:
+        cache[key] = node.create_publisher(import_msg_class(msgtype), topic, make_qos(qos, depth))
+    return cache[key]
+
+
 def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
            rate: float = 1.0, loop: bool = False, loops: int | None = None,
            qos: str = 'reliable', depth: int = 10, wait_subscribers: int = 0,
@@ -401,7 +415,8 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
 
     Args:
         bag_path: rosbag2 directory (sqlite3 or mcap) or a single ``.db3``/``.mcap`` file.
-        node: an rclpy Node; it need not be spun (publishing does not need an executor).
+        node: an rclpy Node; it need not be spun (publishing does not need an executor). Its
+            publishers are created on first use and reused by later replays with that node.
         topics: bag topics to play (any type); default: every PointCloud2 topic, or every topic
             with ``all_topics``.
         remap: ``{bag_topic: published_topic}`` or a list of ``'OLD:=NEW'`` strings.
@@ -437,8 +452,7 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
         for c in conns:
             out = remap.get(c.topic, c.topic)
             if c.topic not in pubs:
-                pubs[c.topic] = node.create_publisher(import_msg_class(c.msgtype), out,
-                                                      make_qos(qos, depth))
+                pubs[c.topic] = _publisher(node, c.msgtype, out, qos, depth)
                 pub_by_out.setdefault(out, pubs[c.topic])
                 stats.topics.setdefault(out, TopicStats(out, c.topic, c.msgtype))
         if not conns:
