@@ -1,0 +1,104 @@
+"""Synthetic partial views (the evaluation protocol), rendered clouds and generated shapes."""
+import numpy as np
+import pytest
+
+from beo_ros.core.grid import rotate_grid
+from beo_ros.core.synthetic import (partial_view, primitive_shapes, random_partial_view,
+                                    render_view_points, view_direction)
+
+N = 16
+
+
+def cube(lo=5, hi=11):
+    occ = np.zeros((N,) * 3, dtype=bool)
+    occ[lo:hi, lo:hi, lo:hi] = True
+    return occ
+
+
+def test_cube_seen_from_plus_x():
+    occ = cube()
+    lab = partial_view(occ, azimuth=0.0, elevation=0.0)
+    assert lab.dtype == np.int8 and lab.shape == occ.shape
+    s = slice(5, 11)
+    assert (lab[10, s, s] == 1).all()          # the face toward +x is the first hit
+    assert (lab[11:, s, s] == 0).all()         # in front of it: seen free
+    assert (lab[:10, s, s] == -1).all()        # interior and behind: unknown
+    sil = np.zeros((N, N), dtype=bool)
+    sil[s, s] = True
+    assert (lab[:, ~sil] == 0).all()           # rays that miss: free
+    assert (lab == 1).sum() == 36
+
+
+def test_cube_seen_from_plus_y():
+    occ = cube()
+    lab = partial_view(occ, azimuth=np.pi / 2, elevation=0.0)
+    s = slice(5, 11)
+    assert (lab[s, 10, s] == 1).all()
+    assert (lab[s, 11:, s] == 0).all()
+    assert (lab[s, :10, s] == -1).all()
+
+
+def test_view_direction_is_unit_toward_viewer():
+    np.testing.assert_allclose(view_direction(0.0, 0.0), [1, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(view_direction(np.pi / 2, 0.0), [0, 1, 0], atol=1e-12)
+    d = view_direction(0.3, 0.4)
+    assert abs(np.linalg.norm(d) - 1) < 1e-12 and d[2] > 0
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_labels_are_consistent_with_the_truth(seed):
+    X, y, names = primitive_shapes(N, 2, np.random.default_rng(seed))
+    rng = np.random.default_rng(seed)
+    for row in X:
+        occ = row.reshape((N,) * 3) > 0.5
+        lab = partial_view(occ, rng.uniform(0, 2 * np.pi), np.deg2rad(rng.uniform(10, 50)))
+        assert set(np.unique(lab)) <= {-1, 0, 1}
+        assert (lab == 1).any() and (lab == -1).any() and (lab == 0).any()
+        assert occ[lab == 1].all()             # first hits are occupied
+        assert not occ[lab == 0].any()         # nothing seen free is occupied
+        # every occupied voxel is either seen or hidden behind a hit
+        assert np.isin(lab[occ], [1, -1]).all()
+
+
+def test_random_partial_view_returns_rotated_truth():
+    X, _, _ = primitive_shapes(N, 2, np.random.default_rng(3))
+    occ = X[0].reshape((N,) * 3) > 0.5         # a box: not yaw-symmetric
+    rng = np.random.default_rng(7)
+    grid, yaw, az, el, rotated = random_partial_view(occ, rng)
+    assert 0 <= yaw < 2 * np.pi and 0 <= az < 2 * np.pi
+    assert np.deg2rad(10) <= el <= np.deg2rad(50)
+    np.testing.assert_array_equal(rotated, rotate_grid(occ.astype(np.uint8), yaw).astype(bool))
+    np.testing.assert_array_equal(grid, partial_view(rotated, az, el))
+    assert rotated[grid == 1].all()
+    assert not rotated[grid == 0].any()
+    # the yaw is actually applied (a box rotated by a non-multiple of 180 deg differs)
+    d = np.rad2deg(yaw) % 180
+    if 10 < d < 170:
+        assert not np.array_equal(rotated, occ)
+    # the same rng state gives the same view
+    g2 = random_partial_view(occ, np.random.default_rng(7))
+    np.testing.assert_array_equal(g2[0], grid)
+    assert g2[1] == yaw
+
+
+def test_render_view_points_lie_on_the_visible_surface():
+    occ = cube()
+    pts, origin = render_view_points(occ, 0.0, 0.0, 0.0, distance=2.0, size=1.0)
+    assert pts.dtype == np.float32 and pts.shape[1] == 3 and len(pts) == 4 * 36
+    np.testing.assert_allclose(origin, [2.0, 0, 0], atol=1e-12)
+    scale = 1.0 / N
+    # the +x face of the cube: voxel x = 10, centre at (10 - 7.5) / 16 m, jitter +-half a voxel
+    xc = (10 - (N - 1) / 2) * scale
+    assert np.all(np.abs(pts[:, 0] - xc) <= 0.5 * scale + 1e-6)
+    lo, hi = (5 - 7.5 - 0.5) * scale, (10 - 7.5 + 0.5) * scale
+    assert pts[:, 1:].min() >= lo - 1e-6 and pts[:, 1:].max() <= hi + 1e-6
+
+
+def test_primitive_shapes():
+    X, y, names = primitive_shapes(N, 3)
+    assert X.shape == (6, N ** 3) and X.dtype == np.float32
+    assert names == ['box', 'cylinder'] and list(y) == [0, 1] * 3
+    assert set(np.unique(X)) == {0.0, 1.0}
+    assert (X.sum(axis=1) > 50).all()
+    X2, _, _ = primitive_shapes(N, 3)
+    np.testing.assert_array_equal(X, X2)       # deterministic by default
