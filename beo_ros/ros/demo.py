@@ -268,7 +268,7 @@ def main(argv=None) -> int:
             import shutil
             shutil.copytree(bag_path, out / 'demo_bag', dirs_exist_ok=True)
 
-    from beo_ros.ros.conversions import cloud_to_xyz
+    from beo_ros.ros.conversions import cloud_to_xyz, quaternion_to_rotation
     rows, completed_pts = [], {}
     for inp in inputs:
         e = estimates.get(inp['stamp_ns'])
@@ -276,8 +276,10 @@ def main(argv=None) -> int:
         if c is not None:
             completed_pts[inp['stamp_ns']] = cloud_to_xyz(c)[0]
         yaw = None
-        if e is not None and len(e.hypotheses):
-            yaw = float(e.hypotheses[0].yaw)
+        if e is not None:   # object yaw about +z (the sensor frame's up) from the pose
+            o = e.pose.orientation
+            r = quaternion_to_rotation([o.x, o.y, o.z, o.w])
+            yaw = float(math.atan2(r[1, 0], r[0, 0])) % (2 * math.pi)
         rows.append({'input': inp['name'], 'true_class': inp['true_class'],
                      'true_yaw': inp['true_yaw'], 'points': int(len(inp['points'])),
                      'label': e.label if e is not None else None,
