@@ -403,3 +403,24 @@ def test_demo_runs_end_to_end(tmp_path, ros_tiny_model_dir):
     png = out / 'beo_demo.png'
     assert png.is_file() and png.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
     print(f'demo on the tiny bank: {time.monotonic() - t:.1f} s')
+
+
+def test_demo_default_model(tmp_path):
+    """beo-demo as shipped: no --model, the shipped model (skipped until it is in models/)."""
+    try:
+        from beo_ros.ros.conversions import interfaces
+        interfaces()
+    except ImportError as e:
+        pytest.skip(f'beo_interfaces not built ({e}); run scripts/setup')
+    from beo_ros.ros import demo
+    if not (Path(demo._default_model_dir()) / 'manifest.json').is_file():
+        pytest.skip(f'no shipped model at {demo._default_model_dir()}')
+    out = tmp_path / 'demo_out'
+    t = time.monotonic()
+    assert demo.main(['--out', str(out)]) == 0
+    import json
+    res = json.loads((out / 'results.json').read_text())
+    assert res['inputs'] == res['estimated'] == len(res['results']) >= 2
+    assert (out / 'beo_demo.png').is_file()
+    print(f'demo on the shipped model: {time.monotonic() - t:.1f} s, '
+          f'{res["correct"]}/{res["inputs"]} labels right')
