@@ -273,6 +273,32 @@ class ModelBank:
         # the paper's rule: the class whose model explains the observation best
         return _softmax(feats[:, 0] * 50.0), False
 
+    def _completion(self, grid, per, probs, best, min_prob=0.1, max_classes=3):
+        """Occupancy probability and variance (N, N, N) in the observed frame, averaged over the
+        likely classes (Bayesian model averaging: weights = class probabilities >= min_prob)."""
+        order = [int(c) for c in np.argsort(-probs)[:max_classes] if probs[c] >= min_prob]
+        order = order or [best]
+        w = probs[order] / probs[order].sum()
+        prob = np.zeros(grid.shape, np.float64)
+        m1 = np.zeros(grid.shape, np.float64)
+        m2 = np.zeros(grid.shape, np.float64)
+        for wc, c in zip(w, order):
+            mc = self.models[c]
+            p_c, mean_c, var_c = self.engine.predictive(
+                per[c]['exact'], c, mc.loading_covariance.astype(np.float64), mc.mean_variance)
+            yaw_c = per[c]['yaw']
+            # back to the observed frame; outside the rotated model is empty space
+            prob += wc * rotate_grid(p_c.reshape(grid.shape), yaw_c, fill=np.float32(0))
+            mean_c = rotate_grid(mean_c.reshape(grid.shape), yaw_c, fill=np.float32(0))
+            var_c = rotate_grid(var_c.reshape(grid.shape), yaw_c, fill=np.float32(0))
+            m1 += wc * mean_c
+            m2 += wc * (var_c + mean_c.astype(np.float64) ** 2)
+        variance = np.maximum(m2 - m1 ** 2, 0)
+        # what was observed is kept: seen surface occupied, seen space free
+        prob = np.where(grid == 1, 1.0, np.where(grid == 0, 0.0, prob))
+        variance = np.where(grid >= 0, 0.0, variance)
+        return prob.astype(np.float32), variance.astype(np.float32)
+
     def estimate(self, grid, yaw=None, yaw_step_deg=1.0, n_hypotheses=5, exhaustive=True):
         """Classify, orient and complete one labelled grid (see :class:`Estimate`).
 
@@ -291,18 +317,8 @@ class ModelBank:
         probs, unknown = self.classify_features(feats, mode)
         best = int(np.argmax(probs))
         t2 = time.perf_counter()
-        ex = per[best]['exact']
-        mc = self.models[best]
-        prob_c, var_c = self.engine.predictive(ex, best, mc.loading_covariance.astype(np.float64)
-                                               if mc.loading_covariance.shape[0] ==
-                                               self.engine.k else None, mc.mean_variance)
+        completion, variance = self._completion(grid, per, probs, best)
         est_yaw = per[best]['yaw']
-        completion = rotate_grid(prob_c.reshape(grid.shape), est_yaw, fill=np.float32(0))
-        variance = rotate_grid(var_c.reshape(grid.shape), est_yaw, fill=np.float32(0))
-        # what was observed is kept: seen surface occupied, seen space free
-        completion = np.where(grid == 1, np.float32(1), np.where(grid == 0, np.float32(0),
-                                                                 completion))
-        variance = np.where(grid >= 0, np.float32(0), variance).astype(np.float32)
         t3 = time.perf_counter()
         # the chosen class's yaw modes first (symmetric objects have several), then the others
         hyps = [(self.classes[best], y, ll) for y, ll in per[best]['hypotheses']]
@@ -312,7 +328,7 @@ class ModelBank:
         return Estimate(
             label=label, scores={c: float(p) for c, p in zip(self.classes, probs)},
             yaw=float(np.mod(est_yaw + np.pi, 2 * np.pi) - np.pi),
-            completion=completion.astype(np.float32), variance=variance,
+            completion=completion, variance=variance,
             hypotheses=[Hypothesis(lab, float(np.mod(y + np.pi, 2 * np.pi) - np.pi), float(s))
                         for lab, y, s in hyps[:n_hypotheses]],
             timings={'pose_and_features': t1 - t0, 'classify': t2 - t1, 'completion': t3 - t2,

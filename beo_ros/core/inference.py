@@ -222,18 +222,23 @@ class InferenceEngine:
                          false_occ, dt], dtype=np.float64)
 
     def predictive(self, ex, c, Sw=None, mu_var=None):
-        """Occupancy probability and variance (d,) in the canonical frame."""
+        """Occupancy probability, predictive mean and variance (d,) in the canonical frame.
+
+        ``Sw`` (k_c, k_c): posterior covariance of a row of W (loading uncertainty);
+        ``mu_var`` (d,): posterior variance of mu.
+        """
         W = self.W[c].astype(np.float64)
         S = np.linalg.inv(ex['G'])
         mean = ex['pred'].astype(np.float64)
         var = ((W @ S) * W).sum(axis=1) + self.v[c]
         if Sw is not None:
-            m = ex['m']
-            var += m @ Sw @ m + np.trace(Sw @ S)
+            ks = Sw.shape[0]
+            m = ex['m'][:ks]
+            var += m @ Sw @ m + np.trace(Sw @ S[:ks, :ks])
         if mu_var is not None:
             var += mu_var
         prob = ndtr((mean - 0.5) / np.sqrt(var))
-        return prob.astype(np.float32), var.astype(np.float32)
+        return prob.astype(np.float32), mean.astype(np.float32), var.astype(np.float32)
 
 
 def observed_edt(grid):
