@@ -142,6 +142,7 @@ def summarize(name, lat, correct, yerr, peaks):
 
 def latency_point(predict, queries, repeats):
     """Median per-query latency (ms; median over repeats, then over queries) and peak MB."""
+    predict(queries[0]['grid'])  # warm-up (rotation maps, caches)
     lat = []
     for q in queries:
         ts = []
@@ -432,6 +433,52 @@ def table(res):
     return '\n'.join(rows)
 
 
+def markdown(res):
+    """Markdown tables of a bench.json dict (peers, scaling, node)."""
+    st = res.get('setup', {})
+    lines = [f"Data: {st.get('data')}; {len(st.get('classes', []))} classes, "
+             f"{st.get('train_objects')} training objects, {st.get('queries')} queries "
+             f"(seed {st.get('seed')}, k={st.get('k')}); beo: {st.get('beo_model')}; "
+             f"{st.get('cpu_count')} CPUs shared with other jobs.", '']
+    if all(p in res for p in ('beo', 'paper', 'icp')):
+        lines += [table(res), '']
+        extra = [f"speedup vs icp (p50) {res['speedup_vs_icp']:.1f}x",
+                 f"vs paper {res.get('speedup_vs_paper', float('nan')):.1f}x",
+                 f"icp database {res['icp'].get('db_size')} objects "
+                 f"({res['icp'].get('db_per_class')} per class, "
+                 f"{res['icp'].get('init_yaws')} initial yaws)"]
+        extra += [f"{p} index {res[p]['index_mb']:.1f} MB, fit {res[p]['fit_s']:.0f} s"
+                  for p in ('beo', 'paper', 'icp')]
+        extra += [f"{p} yaw median on correctly classified {res[p]['yaw_median_deg_correct_class']:.1f} deg"
+                  for p in ('beo', 'paper', 'icp')]
+        lines += ['- ' + e for e in extra] + ['']
+    sc = res.get('scaling') or {}
+    if 'train_objects' in sc:
+        lines += ['Latency / peak memory vs training objects:', '',
+                  '| training objects | beo ms | beo MB | icp ms | icp MB |', '|---|---|---|---|---|']
+        lines += [f"| {p['n_train']} | {p['beo_ms']:.1f} | {p['beo_mb']:.1f} | {p['icp_ms']:.0f} "
+                  f"| {p['icp_mb']:.1f} |" for p in sc['train_objects']]
+        lines += ['', 'vs grid size:', '', '| N | beo ms | beo MB | model MB |', '|---|---|---|---|']
+        lines += [f"| {p['grid']} | {p['beo_ms']:.1f} | {p['beo_mb']:.1f} | {p['model_mb']:.1f} |"
+                  for p in sc['grid']]
+        lines += ['', 'vs yaw step:', '', '| yaw step (deg) | beo ms | beo MB |', '|---|---|---|']
+        lines += [f"| {p['yaw_step_deg']:g} | {p['beo_ms']:.1f} | {p['beo_mb']:.1f} |"
+                  for p in sc['yaw_step']]
+        lines += ['', 'vs classes:', '', '| classes | beo ms | beo MB |', '|---|---|---|']
+        lines += [f"| {p['classes']} | {p['beo_ms']:.1f} | {p['beo_mb']:.1f} |"
+                  for p in sc['classes']]
+        lines += ['', f"({sc.get('note')})", '']
+    node = res.get('node') or {}
+    if 'objects_per_s' in node:
+        lines += [f"Node (real rclpy, {node['objects']} objects, {node['lost']} lost): "
+                  f"{node['objects_per_s']:.2f} objects/s sustained, end-to-end publish -> "
+                  f"estimate p50 {node['e2e_p50_ms']:.1f} ms, p95 {node['e2e_p95_ms']:.1f} ms; "
+                  f"{node['mode']}."]
+    else:
+        lines += [f"Node: skipped ({node.get('skipped')})."]
+    return '\n'.join(lines) + '\n'
+
+
 def _finite(o):
     if isinstance(o, float) and not math.isfinite(o):
         return None
@@ -582,6 +629,7 @@ def main(argv=None):
 
     res = _finite(res)
     (out / 'bench.json').write_text(json.dumps(res, indent=2) + '\n')
+    (out / 'bench.md').write_text(markdown(res))
     if not args.no_plots and all(p in res for p in ('beo', 'paper', 'icp')):
         plots(res, out)
     if all(p in res for p in ('beo', 'paper', 'icp')):
