@@ -322,3 +322,100 @@ def test_estimate_points_pose_and_points(tiny):
     assert len(e.completed_probability) == len(e.completed_points)
     assert e.completed_probability.min() >= 0.5
     assert 'voxelize' in e.timings and e.label in tiny.classes + ['unknown']
+
+
+# ---------------------------------------------------------------------- pose on asymmetric shapes
+def asymmetric_shapes(count, rng):
+    """Two classes whose shapes have no yaw symmetry: 'ell' (a bar with an arm at one end) and
+    'step' (a low slab with a tall block in one quadrant)."""
+    c = (N - 1) / 2
+    ii, jj, kk = np.meshgrid(*(np.arange(N) - c,) * 3, indexing='ij')
+    X, y = [], []
+    for _ in range(count):
+        L, w, h, a = rng.uniform(5, 6.5), rng.uniform(1.5, 2.2), rng.uniform(3, 5), rng.uniform(3, 5)
+        o = (np.abs(ii) <= L) & (np.abs(jj + 2) <= w) & (np.abs(kk) <= h)
+        o |= (ii >= L - 2 * w) & (ii <= L) & (jj >= -2) & (jj <= -2 + a + w) & (np.abs(kk) <= h)
+        X.append(o.ravel())
+        y.append(0)
+        L, b, h = rng.uniform(5, 6.5), rng.uniform(3, 4.5), rng.uniform(2, 3)
+        o = (np.abs(ii) <= L) & (np.abs(jj) <= b) & (kk <= -h) & (kk >= -6)
+        o |= (ii >= 1) & (ii <= L) & (jj >= -b) & (jj <= 0) & (kk >= -6) & (kk <= 6)
+        X.append(o.ravel())
+        y.append(1)
+    return np.array(X, dtype=np.float32), np.array(y)
+
+
+@pytest.fixture(scope='module')
+def pose_case():
+    from beo_ros.core.grid import GridSpec
+    from beo_ros.core.training import fit_bank
+    X, y = asymmetric_shapes(12, np.random.default_rng(0))
+    bank = fit_bank(X, y, ['ell', 'step'], GridSpec(size=N), k=4, pose_components=4,
+                    classifier_views=0, seed=0)
+    Xt, yt = asymmetric_shapes(4, np.random.default_rng(5))
+    rng = np.random.default_rng(1)
+    cases = []     # (grid, true yaw, true class, 'complete' | 'partial')
+    for i in range(len(Xt)):
+        occ = Xt[i].reshape((N,) * 3) > 0.5
+        for _ in range(2):
+            yaw = rng.uniform(-np.pi, np.pi)
+            rot = rotate_grid(occ.astype(np.uint8), yaw).astype(bool)
+            pv = partial_view(rot, rng.uniform(0, 2 * np.pi), np.deg2rad(rng.uniform(10, 50)))
+            cases += [(rot.astype(np.int8), yaw, yt[i], 'complete'), (pv, yaw, yt[i], 'partial')]
+    return bank, cases
+
+
+def test_asymmetric_means_are_not_yaw_symmetric(pose_case):
+    bank, _ = pose_case
+    for m in bank.models:
+        mean = m.mean.reshape((N,) * 3)
+        for deg in (90, 180, 270):
+            assert np.abs(rotate_grid(mean, np.deg2rad(deg)) - mean).mean() > 0.05
+
+
+def test_pose_of_rotated_objects(pose_case):
+    # The pose search scores yaws on the 2x-pooled grid with nearest-neighbour rotation: at 16^3
+    # (pooled 8^3) all yaws within about +-7 deg of a multiple of 90 give the same pooled grid,
+    # so the yaw resolution is several degrees, not yaw_step_deg. Measured (true class, 1 deg
+    # step): complete views median 4.2 deg, max 19.9; partial views median 3.8 deg, max 13.3
+    # (16 views each).
+    bank, cases = pose_case
+    for mode in ('complete', 'partial'):
+        err = []
+        for g, yaw, c, m in cases:
+            if m == mode:
+                ye, _, _ = bank.engine.search(g, 1.0, exhaustive=True)
+                err.append(np.rad2deg(abs(wrap(ye[c] - yaw))))
+        err = np.array(err)
+        assert np.median(err) <= 6.0, (mode, err.round(1))
+        assert np.mean(err <= 15) >= 0.8, (mode, err.round(1))
+        assert err.max() <= 25, (mode, err.round(1))
+
+
+@pytest.mark.xfail(strict=True, reason='yaw resolution of the pooled 8^3 search at 16^3 is '
+                   '~+-7 deg (see test_pose_of_rotated_objects): errors up to ~20 deg')
+def test_pose_within_a_few_degrees(pose_case):
+    bank, cases = pose_case
+    err = [np.rad2deg(abs(wrap(bank.engine.search(g, 1.0, exhaustive=True)[0][c] - yaw)))
+           for g, yaw, c, _ in cases]
+    assert max(err) <= 5, np.round(err, 1)
+
+
+def test_coarse_to_fine_agrees_with_exhaustive(pose_case):
+    # Measured on these 32 views (true class): the best yaw agrees within 1 deg in 21 of 32,
+    # and in 5 coarse-to-fine misses the exhaustive optimum (yaw 5-15 deg away, a much lower
+    # log-likelihood: the peak is narrower than the 5 deg coarse step). Ties on the pooled
+    # plateaus account for the remaining disagreements of equal log-likelihood.
+    bank, cases = pose_case
+    eng = bank.engine
+    same, gaps = [], []
+    for g, yaw, c, _ in cases:
+        ye, lle, _ = eng.search(g, 1.0, exhaustive=True)
+        yc, llc, _ = eng.search(g, 1.0, exhaustive=False)
+        # the coarse-to-fine candidates are a subset of the exhaustive yaws: never better
+        assert np.all(llc <= lle + 1e-6 * np.abs(lle))
+        same.append(np.rad2deg(abs(wrap(ye[c] - yc[c]))) <= 1.0 + 1e-9)
+        gaps.append(lle[c] - llc[c])
+    assert np.mean(same) > 0.5, (np.mean(same), np.round(gaps, 1))
+    # the same optimum: equal log-likelihood (a tie or the same yaw) for the majority
+    assert np.mean(np.array(gaps) <= 1e-6 * np.abs(lle).max()) >= 0.6, np.round(gaps, 1)
