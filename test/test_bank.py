@@ -419,3 +419,47 @@ def test_coarse_to_fine_agrees_with_exhaustive(pose_case):
     assert np.mean(same) > 0.5, (np.mean(same), np.round(gaps, 1))
     # the same optimum: equal log-likelihood (a tie or the same yaw) for the majority
     assert np.mean(np.array(gaps) <= 1e-6 * np.abs(lle).max()) >= 0.6, np.round(gaps, 1)
+
+
+# ---------------------------------------------------------------------- classifier path
+@pytest.fixture(scope='module')
+def clf_bank():
+    from beo_ros.core.grid import GridSpec
+    from beo_ros.core.training import fit_bank
+    X, y, names = primitive_shapes(N, 8, np.random.default_rng(0))
+    return fit_bank(X, y, names, GridSpec(size=N), k=3, pose_components=3,
+                    classifier_views=1, folds=2, seed=0), X, y
+
+
+def test_classifier_modes_and_cross_validation(clf_bank, tmp_path):
+    bank, X, y = clf_bank
+    assert set(bank.classifier) == {'complete', 'partial'}
+    for clf in bank.classifier.values():
+        assert clf['coef'].shape == (2, 12) and clf['unknown_threshold'].shape == (2,)
+    cv = bank.training['cross_validation']
+    assert set(cv) == {'complete', 'partial'}
+    for mode, rep in cv.items():
+        assert rep['n'] == 16
+        assert 0 <= rep['accuracy'] <= 1 and 0 <= rep['accuracy_max_likelihood'] <= 1
+    assert 0 <= cv['partial']['iou'] <= 1 and 0 <= cv['partial']['yaw_within_10'] <= 1
+    # the classifier survives save/load and gives the same answer
+    again = ModelBank.load(bank.save(tmp_path / 'clf'))
+    g = X[0].reshape((N,) * 3).astype(np.int8)
+    e1, e2 = bank.estimate(g), again.estimate(g)
+    assert e1.label == e2.label and e1.scores == pytest.approx(e2.scores)
+    # training objects (complete, yaw 0) are mostly classified right
+    labels = [bank.estimate(X[i].reshape((N,) * 3).astype(np.int8), yaw=0.0).label
+              for i in range(len(X))]
+    assert np.mean(np.array(labels) == np.array(bank.classes)[y]) >= 0.75
+
+
+@pytest.mark.xfail(strict=True, reason="'unknown' is never returned here: the box class's "
+                   'unknown_threshold is about -4.9e6 (per-voxel loglik) because the 0.5 % '
+                   'quantile of few out-of-fold objects is an extreme outlier; random scatter '
+                   'scores about -4 to -10 and is called box with p ~ 0.8-0.99')
+def test_unknown_for_random_scatter(clf_bank):
+    bank, _, _ = clf_bank
+    rng = np.random.default_rng(0)
+    for dens in (0.05, 0.15, 0.3):
+        g = (rng.random((N,) * 3) < dens).astype(np.int8)
+        assert bank.estimate(g).label == 'unknown'
