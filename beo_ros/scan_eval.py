@@ -37,6 +37,9 @@ def add_arguments(ap):
     ap.add_argument('--yaw-step', type=float, default=2.0, help='yaw search step (degrees)')
     ap.add_argument('--scenes', type=int, default=0,
                     help='hold out only this many scenes (spread over the list; 0: all)')
+    ap.add_argument('--scene-folds', type=int, default=0,
+                    help='hold out groups of scenes: this many folds, every scene held out once '
+                         '(0: one fold per scene, leave-one-scene-out)')
     ap.add_argument('--figures', type=int, default=4, help='objects drawn in the PNG')
     return ap
 
@@ -111,13 +114,18 @@ def run(args) -> dict:
     scenes = list(dict.fromkeys(objs.scenes))
     if args.scenes and args.scenes < len(scenes):
         scenes = [scenes[i] for i in np.linspace(0, len(scenes) - 1, args.scenes).astype(int)]
+    groups = [[s] for s in scenes]
+    if args.scene_folds and args.scene_folds < len(scenes):
+        groups = [scenes[f::args.scene_folds] for f in range(args.scene_folds)]
     grids = objs.grids
     recs, figs = [], []
     box = names.index('box') if 'box' in names else None
-    for si, scene in enumerate(scenes):
-        te = np.flatnonzero(objs.scenes == scene)
+    for si, group in enumerate(groups):
+        held = np.isin(objs.scenes, group)
+        te = np.flatnonzero(held)
+        scene = '+'.join(group)
         t0 = time.time()
-        bank = fit_models(objs.subset(objs.scenes != scene), args.k, args.max_iter, args.congeal)
+        bank = fit_models(objs.subset(~held), args.k, args.max_iter, args.congeal)
         t_fit = time.time() - t0
         for i in te:
             est = bank.estimate(grids[i], yaw_step_deg=args.yaw_step)
@@ -125,7 +133,7 @@ def run(args) -> dict:
             T = objs.grid_to_input[i]
             pts = objs.points[i]
             pg = (np.linalg.inv(T) @ np.c_[pts, np.ones(len(pts))].T).T[:, :3]
-            rec = dict(scene=str(scene), object=int(objs.object_ids[i]), true=names[objs.y[i]],
+            rec = dict(scene=str(objs.scenes[i]), object=int(objs.object_ids[i]), true=names[objs.y[i]],
                        pred=est.label, correct=bool(pred == objs.y[i]),
                        scores={k: round(v, 4) for k, v in est.scores.items()},
                        yaw_deg=round(float(np.rad2deg(est.yaw)), 1),
@@ -139,17 +147,19 @@ def run(args) -> dict:
                 figs.append((f'{names[objs.y[i]]} {scene}/{objs.object_ids[i]} -> {est.label}',
                              pg, est.completion))
         acc = np.mean([r['correct'] for r in recs])
-        print(f'[{si + 1}/{len(scenes)}] {scene}: {len(te)} objects, refit {t_fit:.0f} s, '
+        print(f'[{si + 1}/{len(groups)}] {scene}: {len(te)} objects, refit {t_fit:.0f} s, '
               f'running accuracy {acc:.3f}', file=sys.stderr)
     y_true = np.array([names.index(r['true']) for r in recs])
     y_pred = np.array([names.index(r['pred']) for r in recs])
     conf = np.zeros((len(names), len(names)), dtype=int)
     np.add.at(conf, (y_true, y_pred), 1)
     summary = dict(
-        protocol='leave-one-scene-out; class models refit without the held-out scene '
+        protocol=('leave-one-scene-out' if len(groups) == len(scenes) else
+                  f'{len(groups)}-fold leave-scenes-out (every scene held out once)') +
+                 '; class models refit without the held-out scenes '
                  f'(k={args.k}, max_iter={args.max_iter}, congeal={args.congeal}); '
                  'max-likelihood class, full yaw search',
-        n_objects=len(recs), n_scenes=len(scenes), classes=names,
+        n_objects=len(recs), n_scenes=len(scenes), n_folds=len(groups), classes=names,
         accuracy=round(float(np.mean(y_true == y_pred)), 4),
         per_class_accuracy={n: round(float(np.mean(y_pred[y_true == c] == c)), 4)
                             for c, n in enumerate(names) if (y_true == c).any()},

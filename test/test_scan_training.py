@@ -1,0 +1,72 @@
+"""Class models from real partial Kinect scans (OSD learn scenes): training set and shipped model."""
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from beo_ros.core.scan_training import (
+    load_scan_objects, load_scan_training_set, parse_scan_classes, scene_number)
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = Path(os.environ.get('BEO_DATA_DIR') or ROOT.parent / 'shared' / 'data')
+OSD = DATA / 'osd' / 'learn'
+MODEL = ROOT / 'models' / 'tabletop_32'
+
+
+def test_parse_scan_classes():
+    names, table = parse_scan_classes('box:0-2,cylinder:33-34+40')
+    assert names == ['box', 'cylinder']
+    assert table == {0: 0, 1: 0, 2: 0, 33: 1, 34: 1, 40: 1}
+    assert scene_number('/x/learn33.pcd') == 33
+    for bad in ('box', 'box:3-1', 'box:a', 'box:1,cyl:1'):
+        with pytest.raises(ValueError):
+            parse_scan_classes(bad)
+
+
+@pytest.fixture(scope='module')
+def small_set():
+    files = [OSD / f'learn{i}.pcd' for i in (0, 1, 33, 34)]
+    if not all(f.is_file() for f in files):
+        pytest.skip(f'OSD scenes not found under {OSD}')
+    return load_scan_objects(files)
+
+
+def test_scan_training_set(small_set):
+    s = small_set
+    assert s.names == ['box', 'cylinder'] and set(s.y) == {0, 1}
+    assert s.X.shape == s.masks.shape == (len(s), 32 ** 3) and s.X.dtype == np.float32
+    assert (s.X[~s.masks] == 0).all()            # unknown entries are 0 in X
+    assert (~s.masks).sum(axis=1).min() > 100      # every object has unknown voxels
+    assert set(s.scenes) == {'learn0', 'learn1', 'learn33', 'learn34'}
+    g = s.grids
+    assert g.dtype == np.int8 and set(np.unique(g)) == {-1, 0, 1}
+    # the 5-tuple of beo-train --scans
+    X, y, names, masks, spec = load_scan_training_set(
+        [OSD / 'learn0.pcd', OSD / 'learn33.pcd'])
+    assert spec.units == 'metric' and spec.anchor == 'bottom' and len(X) == len(y) == len(masks)
+
+
+def test_vbpca_with_masks_trains(small_set):
+    from beo_ros.core.vbpca import VBPCA
+    s = small_set.subset(small_set.y == 0)
+    est = VBPCA(n_components=2, max_iter=3).fit(s.X, mask=s.masks)
+    assert np.isfinite(est.components_).all() and est.mean_.shape == (32 ** 3,)
+
+
+def test_shipped_tabletop_model_classifies_a_real_object():
+    from beo_ros import load_models
+    from beo_ros.core.scans import fit_table_plane, load_scene, segment_objects
+    if not (MODEL / 'manifest.json').is_file():
+        pytest.skip('models/tabletop_32 is not trained')
+    bank = load_models(MODEL)
+    assert bank.classes == ['box', 'cylinder'] and bank.spec.units == 'metric'
+    path = OSD / 'learn33.pcd'
+    if not path.is_file():
+        pytest.skip(f'{path} not found')
+    scene = load_scene(path)
+    up, _ = fit_table_plane(scene)
+    pts = max(segment_objects(scene).values(), key=len)  # the biggest mug/can, camera frame
+    est = bank.estimate_points(pts, sensor_origin=(0, 0, 0), up=up, yaw_step_deg=3.0)
+    assert est.label == 'cylinder', est.scores
+    assert est.completed_points.shape[1] == 3 and len(est.completed_points) > 50
