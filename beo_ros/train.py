@@ -38,6 +38,7 @@ def main(argv=None):
     ap.add_argument('--folds', type=int, default=5, help='folds for out-of-fold features')
     ap.add_argument('--pose-components', type=int, default=8)
     ap.add_argument('--seed', type=int, default=0)
+    ap.add_argument('--oof-out', help='also save the out-of-fold features and records (npz)')
     args = ap.parse_args(argv)
     try:
         if args.scans:
@@ -77,7 +78,7 @@ def main(argv=None):
                         pose_components=args.pose_components, classifier_views=args.views,
                         folds=args.folds, seed=args.seed, verbose=True,
                         training=dict(inputs=[str(p) for p in args.inputs], congeal=args.congeal),
-                        grids=grids)
+                        grids=grids, oof_path=args.oof_out)
         bank.save(args.out)
     except (ValueError, OSError) as e:
         print(f'beo-train: error: {e}', file=sys.stderr)

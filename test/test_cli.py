@@ -87,17 +87,12 @@ def _truncated_npz(tmp_path):
     return tmp_path / 'trunc.npz'
 
 
-@pytest.mark.xfail(strict=True, raises=Exception, reason='a truncated npz raises '
-                   'zipfile.BadZipFile, which load_voxel_npz does not turn into ValueError and '
-                   'the CLIs do not catch: a traceback instead of exit code 2')
 def test_truncated_npz_exit_code_2(tmp_path, capsys):
     bad = _truncated_npz(tmp_path)
     assert train.main([str(bad), '-o', str(tmp_path / 'm')]) == 2
     assert 'trunc.npz' in capsys.readouterr().err
 
 
-@pytest.mark.xfail(strict=True, reason='the error for a file that is not an npz is numpy\'s '
-                   '"contains pickled (object) data" message without the file name')
 def test_not_an_npz_error_names_the_file(tmp_path, capsys):
     bad = tmp_path / 'bad.npz'
     bad.write_bytes(b'this is not a zip file' * 10)

@@ -299,7 +299,19 @@ class ModelBank:
         variance = np.where(grid >= 0, 0.0, variance)
         return prob.astype(np.float32), variance.astype(np.float32)
 
-    def estimate(self, grid, yaw=None, yaw_step_deg=1.0, n_hypotheses=5, exhaustive=True):
+    def _refine(self, grid, c, per_c, step_deg, window_deg):
+        """Re-solve class ``c`` exactly at full resolution for yaws within +-window_deg of its
+        pooled optimum (the pooled grid cannot tell apart yaws a few degrees apart)."""
+        offs = np.deg2rad(np.arange(-window_deg, window_deg + 1e-9, step_deg))
+        best = per_c
+        for y in per_c['yaw'] + offs[offs != 0]:
+            ex = self.engine.exact(grid, c, float(y))
+            if ex['loglik'] > best['exact']['loglik']:
+                best = dict(per_c, yaw=float(y), exact=ex)
+        return best
+
+    def estimate(self, grid, yaw=None, yaw_step_deg=1.0, n_hypotheses=5, exhaustive=True,
+                 refine_deg=3.0):
         """Classify, orient and complete one labelled grid (see :class:`Estimate`).
 
         Args:
@@ -307,6 +319,8 @@ class ModelBank:
             yaw: if given (radians), no pose search is done.
             exhaustive: score all 360 / yaw_step_deg yaws at once (default); False searches
                 coarse-to-fine (5 degree steps, then the best modes at yaw_step_deg).
+            refine_deg: the chosen class's yaw is re-solved exactly at full resolution within
+                +-refine_deg of the pooled optimum (0: off).
             yaw_step_deg: resolution of the yaw search (360 / step candidates).
         """
         t0 = time.perf_counter()
@@ -316,12 +330,16 @@ class ModelBank:
         mode = 'complete' if (grid < 0).mean() < 0.01 else 'partial'
         probs, unknown = self.classify_features(feats, mode)
         best = int(np.argmax(probs))
+        if yaw is None and refine_deg > 0:
+            per[best] = self._refine(grid, best, per[best], yaw_step_deg, refine_deg)
         t2 = time.perf_counter()
         completion, variance = self._completion(grid, per, probs, best)
         est_yaw = per[best]['yaw']
         t3 = time.perf_counter()
         # the chosen class's yaw modes first (symmetric objects have several), then the others
         hyps = [(self.classes[best], y, ll) for y, ll in per[best]['hypotheses']]
+        if hyps:  # the best mode, as refined at full resolution
+            hyps[0] = (hyps[0][0], est_yaw, hyps[0][2])
         hyps += sorted(((self.classes[c], y, ll) for c in range(len(per)) if c != best
                         for y, ll in per[c]['hypotheses'][:1]), key=lambda h: -h[2])
         label = UNKNOWN_LABEL if unknown else self.classes[best]

@@ -92,7 +92,7 @@ class InferenceEngine:
 
     # ------------------------------------------------------------------ pose search
     def _rotation_maps(self, yaws):
-        key = (len(yaws), float(yaws[0]), float(yaws[-1]))
+        key = np.asarray(yaws, dtype=np.float64).tobytes()
         if key in self._maps:
             return self._maps[key]
         # canonical voxel p takes the observed voxel R(yaw) p: rotate the observation by -yaw

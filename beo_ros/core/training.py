@@ -4,6 +4,7 @@ from __future__ import annotations
 import sys
 import time
 import warnings
+import zipfile
 
 import numpy as np
 
@@ -115,18 +116,23 @@ def train_classifier(F, y, n_classes, C=1.0):
     coef[lr.classes_] = lr.coef_ if len(lr.classes_) > 2 else np.vstack([-lr.coef_, lr.coef_])
     intercept[lr.classes_] = lr.intercept_ if len(lr.classes_) > 2 else np.hstack(
         [-lr.intercept_, lr.intercept_])
-    # 'unknown': the winning class explains the object worse than 99.5 % of its own OOF objects
+    # 'unknown': the winning class explains the object far worse than its own out-of-fold
+    # objects: a robust bound (median - 6 scaled MADs) on the per-voxel log-likelihood, so a
+    # single outlier among the training objects cannot drag it down
     nf = len(FEATURE_NAMES)
     ll = F[:, 0::nf]
     thr = np.full(n_classes, -np.inf)
     for c in range(n_classes):
-        if (y == c).any():
-            thr[c] = np.quantile(ll[y == c, c], 0.005) - 0.05 * abs(np.median(ll[y == c, c]))
+        own = ll[y == c, c]
+        if len(own) >= 5:
+            med = np.median(own)
+            mad = 1.4826 * np.median(np.abs(own - med))
+            thr[c] = med - 6.0 * max(mad, 1e-3)
     return dict(mean=mean, scale=scale, coef=coef, intercept=intercept, unknown_threshold=thr)
 
 
 def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_views=1,
-             folds=5, seed=0, C=1.0, verbose=False, training=None, grids=None):
+             folds=5, seed=0, C=1.0, verbose=False, training=None, grids=None, oof_path=None):
     """Fit class models on all of X and a classifier on out-of-fold features.
 
     ``classifier_views``: random partial views per training object for the partial-view
@@ -134,6 +140,8 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
     ``grids``: optional int8 (m, N, N, N) labelled training grids (real partial scans, in their
     original, un-congealed pose); then the out-of-fold 'partial' features come from these grids
     with pose search (``bank.features(grid)``) instead of synthetic random views.
+    ``oof_path``: also save the out-of-fold features, labels and per-hypothesis yaw errors and
+    IoUs there (npz) for analysis.
     """
     X = np.asarray(X, dtype=np.float32)
     y = np.asarray(y)
@@ -175,6 +183,16 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
                 classifier[mode] = train_classifier(F, lab, len(names), C)
                 cv_report[mode] = cross_validated_report(F, lab, records[mode], C, seed=seed)
         info['cross_validation'] = cv_report
+        if oof_path:
+            arrays = {}
+            for mode in feats:
+                if feats[mode]:
+                    arrays[f'{mode}_features'] = np.vstack(feats[mode])
+                    arrays[f'{mode}_labels'] = np.array(labels[mode])
+                    if records[mode] and records[mode][0]:
+                        for key in records[mode][0]:
+                            arrays[f'{mode}_{key}'] = np.array([r[key] for r in records[mode]])
+            np.savez(oof_path, **arrays)
         if verbose:
             print(f'cross-validated (out-of-fold features, {folds} folds): {cv_report}',
                   file=sys.stderr)
@@ -185,12 +203,18 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
 # ---------------------------------------------------------------------- data loading
 def load_voxel_npz(path, classes=None):
     """(X (m, N^3) float32, labels (m,), class names, N) from a voxel npz in the shared format."""
-    with np.load(path, allow_pickle=False) as z:
-        for key in ('voxels', 'labels', 'classes'):
-            if key not in z.files:
-                raise ValueError(f'{path}: missing key {key!r} (has {z.files})')
-        vox, labels, names = z['voxels'], z['labels'].astype(int), [str(c) for c in z['classes']]
-        shape = tuple(int(s) for s in z['shape']) if 'shape' in z.files else None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            for key in ('voxels', 'labels', 'classes'):
+                if key not in z.files:
+                    raise ValueError(f'{path}: missing key {key!r} (has {z.files})')
+            vox, labels = z['voxels'], z['labels'].astype(int)
+            names = [str(c) for c in z['classes']]
+            shape = tuple(int(s) for s in z['shape']) if 'shape' in z.files else None
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
+        if str(path) in str(e):
+            raise
+        raise ValueError(f'{path}: not a readable voxel npz ({type(e).__name__}: {e})') from None
     if vox.ndim == 2 and vox.dtype == np.uint8 and shape is not None and \
             vox.shape[1] * 8 == int(np.prod(shape)):
         X = np.unpackbits(vox, axis=1)
