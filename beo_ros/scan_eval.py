@@ -144,8 +144,8 @@ def run(args) -> dict:
                 sum(r[0].startswith(names[objs.y[i]]) for r in figs) < max(
                     1, args.figures // len(names)))
             if wanted:
-                figs.append((f'{names[objs.y[i]]} {scene}/{objs.object_ids[i]} -> {est.label}',
-                             pg, est.completion))
+                title = f'{names[objs.y[i]]} {objs.scenes[i]}/{objs.object_ids[i]} -> {est.label}'
+                figs.append((title, pg, est.completion))
         acc = np.mean([r['correct'] for r in recs])
         print(f'[{si + 1}/{len(groups)}] {scene}: {len(te)} objects, refit {t_fit:.0f} s, '
               f'running accuracy {acc:.3f}', file=sys.stderr)
