@@ -31,8 +31,16 @@ TOPIC = '/beo/input'
 
 
 def _default_model_dir() -> str:
+    """The node's default model; if it is not there, another shipped model next to it."""
     from beo_ros.ros.node import default_model_dir
-    return default_model_dir()
+    d = Path(default_model_dir())
+    if (d / 'manifest.json').is_file():
+        return str(d)
+    others = sorted(p.parent for p in d.parent.glob('*/manifest.json'))
+    if others:
+        print(f'beo-demo: default model {d} is missing; using {others[0]}', file=sys.stderr)
+        return str(others[0])
+    return str(d)
 
 
 def class_shapes(bank) -> dict:
@@ -57,8 +65,8 @@ def render_inputs(bank, seed: int = 0, views_per_class: int = 1, size: float = 1
             yaw = float(rng.uniform(0, 2 * math.pi))
             az = float(rng.uniform(0, 2 * math.pi))
             el = float(np.deg2rad(rng.uniform(15, 35)))
-            pts, origin = render_view_points(occ, yaw, az, el, distance=2.0, size=size,
-                                             noise=0.002, rng=rng)
+            pts, origin = render_view_points(occ, yaw, az, el, distance=max(2.0, 2.0 * size),
+                                             size=size, noise=0.002 * size, rng=rng)
             pts = np.asarray(pts, dtype=np.float64) - np.asarray(origin, dtype=np.float64)
             pts = pts[np.isfinite(pts).all(axis=1)]
             inputs.append({'name': f'{cls}_{v}', 'true_class': cls, 'true_yaw': yaw,
@@ -254,7 +262,9 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 
-    inputs = render_inputs(bank, seed=args.seed, views_per_class=args.views_per_class)
+    spec = bank.spec   # render at the model's scale: a metric grid spans size * voxel_size
+    size = spec.size * spec.voxel_size if spec.units == 'metric' else 1.0
+    inputs = render_inputs(bank, seed=args.seed, views_per_class=args.views_per_class, size=size)
     up, origin = (0.0, 0.0, 1.0), (0.0, 0.0, 0.0)   # render_inputs' sensor frame
     with tempfile.TemporaryDirectory(prefix='beo_demo_') as tmp:
         bag_path = Path(tmp) / 'demo_bag'
