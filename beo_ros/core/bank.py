@@ -124,13 +124,13 @@ class ModelBank:
         files = {}
         for i, m in enumerate(self.models):
             fn = f'class_{i:02d}_{m.name}.npz'
-            np.savez(path / fn, **{k: np.asarray(getattr(m, k if k != 'W' else 'W'))
+            np.savez_compressed(path / fn, **{k: np.asarray(getattr(m, k))
                                    for k in CLASS_KEYS})
             files[fn] = _sha256(path / fn)
         if self.classifier:
             arrays = {f'{mode}__{k}': np.asarray(v) for mode, clf in self.classifier.items()
                       for k, v in clf.items()}
-            np.savez(path / 'classifier.npz', **arrays)
+            np.savez_compressed(path / 'classifier.npz', **arrays)
             files['classifier.npz'] = _sha256(path / 'classifier.npz')
         manifest = {
             'format': FORMAT, 'version': VERSION, 'classes': self.classes,
