@@ -124,8 +124,7 @@ class ModelBank:
         files = {}
         for i, m in enumerate(self.models):
             fn = f'class_{i:02d}_{m.name}.npz'
-            np.savez_compressed(path / fn, **{k: np.asarray(getattr(m, k))
-                                   for k in CLASS_KEYS})
+            np.savez_compressed(path / fn, **{k: np.asarray(getattr(m, k)) for k in CLASS_KEYS})
             files[fn] = _sha256(path / fn)
         if self.classifier:
             arrays = {f'{mode}__{k}': np.asarray(v) for mode, clf in self.classifier.items()
