@@ -541,7 +541,7 @@ def parse_args(argv):
         args.icp_init_yaws = min(args.icp_init_yaws, 4)
         args.k = min(args.k, 4 if p is None else 8)
         args.scaling_train = [8]
-        args.scaling_grids = [12, 16] if p is None else [24, 32]
+        args.scaling_grids = [12, 16] if p is None else [16, 24]
         args.scaling_yaw_steps = [10.0, 5.0]
         args.scaling_classes = [2]
         args.scaling_per_class = 4
