@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from .estimate import UNKNOWN_LABEL, Estimate, Hypothesis
-from .grid import GridSpec, rotate_grid, yaw_matrix
+from .grid import GridSpec, yaw_matrix
 from .inference import FEATURE_NAMES, InferenceEngine, observed_edt, top_modes
 
 FORMAT = 'beo_ros.models'
@@ -287,9 +287,10 @@ class ModelBank:
                 per[c]['exact'], c, mc.loading_covariance.astype(np.float64), mc.mean_variance)
             yaw_c = per[c]['yaw']
             # back to the observed frame; outside the rotated model is empty space
-            prob += wc * rotate_grid(p_c.reshape(grid.shape), yaw_c, fill=np.float32(0))
-            mean_c = rotate_grid(mean_c.reshape(grid.shape), yaw_c, fill=np.float32(0))
-            var_c = rotate_grid(var_c.reshape(grid.shape), yaw_c, fill=np.float32(0))
+            to_obs = self.engine.to_observed
+            prob += wc * to_obs(p_c, yaw_c).reshape(grid.shape)
+            mean_c = to_obs(mean_c, yaw_c).reshape(grid.shape)
+            var_c = to_obs(var_c, yaw_c).reshape(grid.shape)
             m1 += wc * mean_c
             m2 += wc * (var_c + mean_c.astype(np.float64) ** 2)
         variance = np.maximum(m2 - m1 ** 2, 0)
