@@ -2,8 +2,10 @@
 
 Model, for a sample y (d,):  y = W x + mu + e,  x ~ N(0, I_k),  e ~ N(0, v I_d),
 with priors  W[:, c] ~ N(0, alpha_c I_d)  (ARD: one variance per column, so surplus columns shrink
-to zero) and  mu ~ N(0, v_mu I_d).  The posterior is factorised, q(X) q(W) q(mu), and the
-hyper-parameters (v, alpha, v_mu) are point estimates maximising the variational bound.
+to zero) and  mu ~ N(0, v_mu I_d).  The posterior is factorised, q(X) q(W) q(mu); v and
+alpha are point estimates maximising the variational bound. v_mu is a fixed, broad prior
+(``mean_prior_variance``): re-estimating it lets mu collapse to zero while W absorbs the mean
+through a shared offset of the scores, which biases completions towards empty space.
 
 Two paths:
 - fully observed data: every row of W shares one (k, k) covariance and every sample shares one,
@@ -32,6 +34,7 @@ class VBPCA(TransformerMixin, BaseEstimator):
             of the principal subspace angle cosine) falls below ``tol``.
         prune_tol: a column whose ARD variance falls below ``prune_tol * max(alpha)`` is inactive.
         init: 'pca' (SVD of the mean-imputed data) or 'random'.
+        mean_prior_variance: variance v_mu of the Gaussian prior on mu (fixed).
         random_state: seed for 'random' init.
         verbose: print the bound every iteration.
         dtype: float dtype for the heavy products (float32 halves memory and time).
@@ -49,8 +52,9 @@ class VBPCA(TransformerMixin, BaseEstimator):
     """
 
     def __init__(self, n_components=20, *, max_iter=200, tol=1e-5, prune_tol=1e-3, init='pca',
-                 random_state=None, verbose=False, dtype=np.float32):
+                 mean_prior_variance=1.0, random_state=None, verbose=False, dtype=np.float32):
         self.n_components = n_components
+        self.mean_prior_variance = mean_prior_variance
         self.max_iter = max_iter
         self.tol = tol
         self.prune_tol = prune_tol
@@ -67,6 +71,8 @@ class VBPCA(TransformerMixin, BaseEstimator):
             raise ValueError(f'max_iter must be a positive integer, got {self.max_iter!r}')
         if not (self.tol > 0):
             raise ValueError(f'tol must be > 0, got {self.tol!r}')
+        if not (np.isfinite(self.mean_prior_variance) and self.mean_prior_variance > 0):
+            raise ValueError(f'mean_prior_variance must be > 0, got {self.mean_prior_variance!r}')
         if self.init not in ('pca', 'random'):
             raise ValueError(f"init must be 'pca' or 'random', got {self.init!r}")
         X = np.asarray(X)
@@ -138,7 +144,7 @@ class VBPCA(TransformerMixin, BaseEstimator):
         col_sum = X.sum(axis=0, dtype=np.float64)                # (d,)
         sq_total = float(np.einsum('ij,ij->', X, X, dtype=np.float64))
         alpha = np.maximum((W.astype(np.float64) ** 2).sum(axis=0) / d, _EPS)
-        v_mu = float(mu @ mu / d) + _EPS
+        v_mu = float(self.mean_prior_variance)
         Sw = np.zeros((k, k))
         mu_var = 0.0
         prev = -np.inf
@@ -167,7 +173,6 @@ class VBPCA(TransformerMixin, BaseEstimator):
             sq += n * d * np.trace(Sw @ Sx) + n * d * mu_var
             v = max(sq / (n * d), 1e-8)
             alpha = np.maximum((np.diag(WtW) + d * np.diag(Sw)) / d, _EPS)
-            v_mu = float(mu @ mu / d + mu_var) + _EPS
             W = W64.astype(self.dtype)
             bound = self._bound_full(n, d, k, v, sq, Sx, Xm, Sw, W64, alpha, mu, mu_var, v_mu)
             if self.verbose:
@@ -200,7 +205,7 @@ class VBPCA(TransformerMixin, BaseEstimator):
         M = mask.astype(np.float64)
         Xo = np.where(mask, X, 0).astype(np.float64)
         alpha = np.maximum((W ** 2).sum(axis=0) / d, _EPS)
-        v_mu = float(mu @ mu / d) + _EPS
+        v_mu = float(self.mean_prior_variance)
         Sw = np.zeros((d, k, k))
         mu_var = np.zeros(d)
         iu = np.triu_indices(k)
@@ -239,7 +244,6 @@ class VBPCA(TransformerMixin, BaseEstimator):
             v = max(sq / n_obs, 1e-8)
             alpha = np.maximum(((W ** 2).sum(axis=0) + Sw[:, range(k), range(k)].sum(axis=0)) / d,
                                _EPS)
-            v_mu = float((mu ** 2).sum() / d + mu_var.mean()) + _EPS
             if self.verbose:
                 print(f'VBPCA(missing) iter {it}: v {v:.5g}')
             if prev_W is not None and _subspace_change(prev_W, W) < self.tol:

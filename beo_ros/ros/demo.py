@@ -44,10 +44,17 @@ def _default_model_dir() -> str:
 
 
 def class_shapes(bank) -> dict:
-    """Class name -> bool (N, N, N) occupancy: the class mean shape thresholded at 0.5."""
+    """Class name -> bool (N, N, N) occupancy: each class's mean shape cut at the level that
+    keeps its expected number of occupied voxels (sum of the mean), so thin classes (chairs,
+    tables) keep their legs instead of vanishing under a 0.5 threshold."""
     n = bank.spec.size
-    return {m.name: np.asarray(m.mean, dtype=np.float32).reshape(n, n, n) >= 0.5
-            for m in bank.models}
+    shapes = {}
+    for m in bank.models:
+        mean = np.asarray(m.mean, dtype=np.float32)
+        keep = int(np.clip(round(float(mean.clip(0, 1).sum())), 1, mean.size))
+        level = np.partition(mean, mean.size - keep)[mean.size - keep]
+        shapes[m.name] = (mean >= level).reshape(n, n, n)
+    return shapes
 
 
 def render_inputs(bank, seed: int = 0, views_per_class: int = 1, size: float = 1.0) -> list:
