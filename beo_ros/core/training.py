@@ -192,6 +192,8 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
                     if records[mode] and records[mode][0]:
                         for key in records[mode][0]:
                             arrays[f'{mode}_{key}'] = np.array([r[key] for r in records[mode]])
+            from pathlib import Path
+            Path(oof_path).parent.mkdir(parents=True, exist_ok=True)
             np.savez(oof_path, **arrays)
         if verbose:
             print(f'cross-validated (out-of-fold features, {folds} folds): {cv_report}',
