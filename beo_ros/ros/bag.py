@@ -39,6 +39,7 @@ Console entry points:
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import json
 import os
@@ -781,6 +782,23 @@ def _ros_setup():
         pass
 
 
+@contextlib.contextmanager
+def _cli_node(name):
+    """rclpy context and node for a command-line tool; yields (node, stop event set on
+    SIGINT), and destroys the node and shuts rclpy down on the way out."""
+    _ros_setup()
+    import rclpy
+    stop = threading.Event()
+    rclpy.init(args=None, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+    node = rclpy.create_node(name)
+    _install_sigint(stop)
+    try:
+        yield node, stop
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
 def replay_main(argv=None) -> int:
     p = argparse.ArgumentParser(
         prog='beo-replay', description='Play the PointCloud2 topics of a rosbag2 bag (sqlite3 or '
@@ -812,32 +830,24 @@ def replay_main(argv=None) -> int:
         p.error(str(e))
     if not Path(args.bag).exists():
         p.error(f'no such bag: {args.bag}')
-    _ros_setup()
-    import rclpy
-    stop = threading.Event()
-    rclpy.init(args=None, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
-    node = rclpy.create_node(args.node_name)
-    _install_sigint(stop)
     code = 0
-    try:
-        stats = replay(args.bag, node, topics=args.topics, all_topics=args.all_topics,
-                       remap=remap, rate=args.rate, loop=args.loop, qos=args.qos,
-                       depth=args.depth, wait_subscribers=args.wait_subscribers,
-                       wait_timeout=args.wait_timeout, stop=stop)
-        time.sleep(0.2)  # let reliable transports drain before the publishers go away
-        print(json.dumps(stats.to_dict(), indent=2) if args.json else stats.table())
-        if stats.messages == 0 and not stats.interrupted:
-            print('beo-replay: nothing to play (no matching topics)', file=sys.stderr)
-            code = 1
-    except TimeoutError as e:
-        print(f'beo-replay: {e}', file=sys.stderr)
-        code = 3
-    except KeyError as e:
-        print(f'beo-replay: {e.args[0]}', file=sys.stderr)
-        code = 2
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    with _cli_node(args.node_name) as (node, stop):
+        try:
+            stats = replay(args.bag, node, topics=args.topics, all_topics=args.all_topics,
+                           remap=remap, rate=args.rate, loop=args.loop, qos=args.qos,
+                           depth=args.depth, wait_subscribers=args.wait_subscribers,
+                           wait_timeout=args.wait_timeout, stop=stop)
+            time.sleep(0.2)  # let reliable transports drain before the publishers go away
+            print(json.dumps(stats.to_dict(), indent=2) if args.json else stats.table())
+            if stats.messages == 0 and not stats.interrupted:
+                print('beo-replay: nothing to play (no matching topics)', file=sys.stderr)
+                code = 1
+        except TimeoutError as e:
+            print(f'beo-replay: {e}', file=sys.stderr)
+            code = 3
+        except KeyError as e:
+            print(f'beo-replay: {e.args[0]}', file=sys.stderr)
+            code = 2
     return code
 
 
@@ -863,23 +873,15 @@ def record_main(argv=None) -> int:
         p.error(str(e))
     if Path(args.output).exists():
         p.error(f'{args.output} exists already')
-    _ros_setup()
-    import rclpy
-    stop = threading.Event()
-    rclpy.init(args=None, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
-    node = rclpy.create_node(args.node_name)
-    _install_sigint(stop)
     code = 0
-    try:
-        stats = record(node, args.output, specs, storage=args.storage, wait=args.wait,
-                       duration=args.duration, count=args.count, stop=stop)
-        print(json.dumps(stats.to_dict(), indent=2) if args.json else stats.table())
-    except KeyError as e:
-        print(f'beo-record: {e.args[0]}', file=sys.stderr)
-        code = 2
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    with _cli_node(args.node_name) as (node, stop):
+        try:
+            stats = record(node, args.output, specs, storage=args.storage, wait=args.wait,
+                           duration=args.duration, count=args.count, stop=stop)
+            print(json.dumps(stats.to_dict(), indent=2) if args.json else stats.table())
+        except KeyError as e:
+            print(f'beo-record: {e.args[0]}', file=sys.stderr)
+            code = 2
     return code
 
 
