@@ -32,6 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .core.grid import yaw_error
+
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = 'modelnet10/modelnet10_vox32_train.npz'
 
@@ -92,8 +94,7 @@ def make_queries(X, y, idx, n, rng):
 
 # ---------------------------------------------------------------------- metrics
 def yaw_error_deg(a, b):
-    d = abs(math.degrees(a - b)) % 360.0
-    return min(d, 360.0 - d)
+    return math.degrees(float(yaw_error(a, b)))
 
 
 def run_peer(name, predict, queries, repeats, mem_queries=3):

@@ -19,14 +19,9 @@ from pathlib import Path
 import numpy as np
 
 from .core.bank import load_models
-from .core.grid import GridSpec
+from .core.grid import GridSpec, yaw_error
 from .core.synthetic import random_partial_view
-from .core.training import fit_bank, load_voxel_npz
-
-
-def yaw_error(a, b):
-    """Absolute angular difference in radians, in [0, pi]."""
-    return np.abs((np.asarray(a) - np.asarray(b) + np.pi) % (2 * np.pi) - np.pi)
+from .core.training import fit_bank, load_voxel_npz, progress_bar
 
 
 def evaluate_bank(bank, X, y, names, rng, views=1, examples=6, progress=True):
@@ -34,11 +29,9 @@ def evaluate_bank(bank, X, y, names, rng, views=1, examples=6, progress=True):
 
     Returns (summary dict, per-view records list, example list for the figure).
     """
-    from .core.training import _progress
     n = bank.spec.size
-    cls_index = {c: i for i, c in enumerate(bank.classes)}
     recs, ex = [], []
-    for i in _progress(range(len(X)), 'evaluating', disable=not progress):
+    for i in progress_bar(range(len(X)), 'evaluating', disable=not progress):
         occ = X[i].reshape(n, n, n) > 0.5
         truth = names[y[i]]
         t0 = time.perf_counter()
@@ -61,10 +54,10 @@ def evaluate_bank(bank, X, y, names, rng, views=1, examples=6, progress=True):
                              prob=float(e.probability)))
             if len(ex) < examples and (not ex or truth not in [x[0] for x in ex]):
                 ex.append((truth, e.label, grid, e.completion, rotated, np.rad2deg(err)))
-    return summarize(recs, bank.classes, cls_index), recs, ex
+    return summarize(recs, bank.classes), recs, ex
 
 
-def summarize(recs, classes, cls_index=None):
+def summarize(recs, classes):
     out = {}
     for mode in ('complete', 'partial'):
         r = [x for x in recs if x['mode'] == mode]

@@ -68,6 +68,11 @@ def yaw_matrix(yaw: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def yaw_error(a, b):
+    """Absolute angular difference of yaws ``a`` and ``b`` (radians, broadcast), in [0, pi]."""
+    return np.abs((np.asarray(a) - np.asarray(b) + np.pi) % (2 * np.pi) - np.pi)
+
+
 def yaw_source_index(n: int, yaws: np.ndarray) -> np.ndarray:
     """Nearest-neighbour gather maps for rotating an (n, n, n) grid by each yaw about +z.
 

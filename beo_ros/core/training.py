@@ -9,13 +9,13 @@ import zipfile
 import numpy as np
 
 from .bank import ClassModel, ModelBank, coarse_noise_variance
-from .grid import rotate_grid
+from .grid import yaw_error
 from .inference import FEATURE_NAMES
 from .synthetic import random_partial_view
 from .vbpca import VBPCA
 
 
-def _progress(it, desc, total=None, disable=False):
+def progress_bar(it, desc, total=None, disable=False):
     try:
         from tqdm import tqdm
         return tqdm(it, desc=desc, total=total, disable=disable, file=sys.stderr, leave=False)
@@ -63,17 +63,17 @@ def view_features(bank, X, rng, n_views=1, complete=True):
             f, per = bank.features(grid)
             out['partial'][0].append(f.ravel())
             out['partial'][1].append(i)
-            out['partial'][2].append(_hypothesis_quality(grid, per, yaw, rotated))
+            out['partial'][2].append(_hypothesis_quality(bank.engine, grid, per, yaw, rotated))
     return {m: (np.array(a), np.array(b, dtype=int), r) for m, (a, b, r) in out.items() if a}
 
 
-def _hypothesis_quality(grid, per, yaw, rotated):
+def _hypothesis_quality(engine, grid, per, yaw, rotated):
     """Yaw error and completion IoU of every class's best hypothesis for one partial view."""
     errs, ious = [], []
     for p in per:
-        errs.append(abs((p['yaw'] - yaw + np.pi) % (2 * np.pi) - np.pi))
-        comp = rotate_grid((p['exact']['pred'] >= 0.5).reshape(grid.shape), p['yaw'], fill=False)
-        comp = np.where(grid >= 0, grid == 1, comp)
+        errs.append(float(yaw_error(p['yaw'], yaw)))
+        comp = engine.to_observed(p['exact']['pred'] >= 0.5, p['yaw'], fill=False)
+        comp = np.where(grid >= 0, grid == 1, comp.reshape(grid.shape))
         union = (comp | rotated).sum()
         ious.append((comp & rotated).sum() / union if union else 1.0)
     return dict(yaw_err=np.array(errs), iou=np.array(ious))
@@ -159,12 +159,12 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
         feats = {'complete': [], 'partial': []}
         labels = {'complete': [], 'partial': []}
         records = {'complete': [], 'partial': []}
-        for f in _progress(range(folds), 'out-of-fold features', disable=not verbose):
+        for f in progress_bar(range(folds), 'out-of-fold features', disable=not verbose):
             tr, te = fold != f, np.flatnonzero(fold == f)
             sub = ModelBank(fit_class_models(X[tr], y[tr], names, spec, k,
                                              None if masks is None else masks[tr]),
                             spec, pose_components=pose_components)
-            for i in _progress(te, f'fold {f}', disable=not verbose):
+            for i in progress_bar(te, f'fold {f}', disable=not verbose):
                 if grids is not None:
                     F, _ = sub.features(np.asarray(grids[i], dtype=np.int8))
                     feats['partial'].append(F.ravel()[None])

@@ -118,12 +118,12 @@ class VBPCA(TransformerMixin, BaseEstimator):
             Xc = np.where(mask, X - mu, 0)
         if self.init == 'pca':
             # eigen-decomposition in the smaller dimension: the dual (n, n) Gram for n << d
-            Xc64 = Xc.astype(np.float64) if n >= d else None
             if n < d:
                 e, U = np.linalg.eigh((Xc @ Xc.T).astype(np.float64))
                 e, U = e[::-1], U[:, ::-1]
                 W = (Xc.T @ U[:, :k].astype(self.dtype)) / np.sqrt(n)
             else:
+                Xc64 = Xc.astype(np.float64)
                 e, V = np.linalg.eigh(Xc64.T @ Xc64)
                 e, V = e[::-1], V[:, ::-1]
                 W = V[:, :k] * np.sqrt(np.maximum(e[:k], 0) / n)
