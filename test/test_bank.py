@@ -148,6 +148,46 @@ def test_batched_scores_equal_per_yaw_and_per_class_loop(tiny):
         np.testing.assert_allclose(all_, per_yaw, rtol=1e-4, atol=1e-6)
 
 
+def test_full_component_scores_equal_the_leading_components_when_all_are_used():
+    # stage 2 (full=True) scores class c with all k components; with pose_components = k the
+    # stage-1 arrays hold the same components, so both paths must agree
+    from beo_ros.core.bank import ModelBank
+    tiny = make_tiny_bank()
+    eng = ModelBank(tiny.models, tiny.spec, pose_components=tiny.engine.k).engine
+    yaws = np.deg2rad(np.arange(0, 360, 7.0))
+    for g in views():
+        P = eng.pooled(g)
+        for c in range(eng.C):
+            np.testing.assert_allclose(eng.scores(P, yaws, c, full=True),
+                                       eng.scores(P, yaws, c), rtol=1e-4, atol=1e-6)
+
+
+def test_scoring_a_subset_of_rows_equals_the_same_rows_of_all(tiny):
+    eng = tiny.engine
+    yaws = np.deg2rad(np.arange(360.0))
+    rows = np.array([3, 4, 5, 90, 91, 200, 359])
+    for g in views():
+        P = eng.pooled(g)
+        for full in (False, True):
+            all_ = eng.scores(P, yaws, 1, full=full)
+            np.testing.assert_allclose(eng.scores(P, yaws, 1, full=full, rows=rows), all_[rows],
+                                       rtol=1e-4, atol=1e-6)
+
+
+def test_stage2_windows_find_the_exhaustive_full_component_optimum(pose_case):
+    # estimate() re-scores the chosen class with all components only within +-15 deg of its 6
+    # best stage-1 modes; the exhaustive stage-2 search (stage2_modes=None) is the reference
+    bank, cases = pose_case
+    same = []
+    for g, yaw, c, _ in cases:
+        _, per = bank.features(g)
+        win = bank._refine(g, c, per[c], 1.0, 0.0, 1.0, stage2_modes=6, stage2_window_deg=15.0)
+        ex = bank._refine(g, c, per[c], 1.0, 0.0, 1.0, stage2_modes=None)
+        same.append(abs(win['hypotheses'][0][1] - ex['hypotheses'][0][1])
+                    <= 1e-6 * abs(ex['hypotheses'][0][1]))
+    assert np.mean(same) >= 0.9, same
+
+
 def test_rotation_map_cache_does_not_confuse_yaw_sets():
     fresh = make_tiny_bank().engine
     eng = make_tiny_bank().engine
@@ -473,7 +513,7 @@ def test_full_resolution_refinement_sharpens_the_yaw(pose_case):
     for g, yaw, c, _ in cases:
         _, per = bank.features(g)
         pooled.append(np.rad2deg(abs(wrap(per[c]['yaw'] - yaw))))
-        ref = bank._refine(g, c, per[c], 1.0, 3.0)
+        ref = bank._refine(g, c, per[c], 1.0, 3.0, stage2_step_deg=None)
         assert ref['exact']['loglik'] >= per[c]['exact']['loglik']
         refined.append(np.rad2deg(abs(wrap(ref['yaw'] - yaw))))
     assert np.median(refined) < np.median(pooled), (np.round(pooled, 1), np.round(refined, 1))

@@ -256,7 +256,7 @@ class ModelBank:
             feats.append(eng.features(ex, c, best_ll[c] / n_pooled, edt_pad[ex['idx']]))
             yaws_c, ll_c = searched[c]
             modes = top_modes(ll_c, 3, max(1, int(round(20.0 / yaw_step_deg))))
-            per.append(dict(yaw=float(best_yaw[c]), exact=ex,
+            per.append(dict(yaw=float(best_yaw[c]), exact=ex, searched=searched[c],
                             hypotheses=[(float(yaws_c[i]), float(ll_c[i])) for i in modes]))
         return np.array(feats), per
 
@@ -299,19 +299,42 @@ class ModelBank:
         variance = np.where(grid >= 0, 0.0, variance)
         return prob.astype(np.float32), variance.astype(np.float32)
 
-    def _refine(self, grid, c, per_c, step_deg, window_deg):
-        """Re-solve class ``c`` exactly at full resolution for yaws within +-window_deg of its
-        pooled optimum (the pooled grid cannot tell apart yaws a few degrees apart)."""
-        offs = np.deg2rad(np.arange(-window_deg, window_deg + 1e-9, step_deg))
+    def _refine(self, grid, c, per_c, step_deg=1.0, window_deg=3.0, stage2_step_deg=1.0,
+                stage2_modes=6, stage2_window_deg=15.0):
+        """Refine the yaw of class ``c``: re-score it on the pooled grid with all its components
+        (every ``stage2_step_deg``; None skips this), then re-solve it exactly at full resolution
+        within +-window_deg (the pooled grid cannot tell apart yaws a few degrees apart)."""
         best = per_c
-        for y in per_c['yaw'] + offs[offs != 0]:
+        if stage2_step_deg:
+            step = np.deg2rad(stage2_step_deg)
+            yaws = np.arange(int(round(2 * np.pi / step))) * step
+            rows = None
+            if stage2_modes:
+                sy, sl = per_c['searched']
+                m0 = top_modes(sl, stage2_modes, max(1, int(round(20.0 / step_deg))))
+                r = np.rint(sy[m0] / step).astype(int)
+                w = int(round(stage2_window_deg / stage2_step_deg))
+                rows = np.unique((r[:, None] + np.arange(-w, w + 1)).ravel() % len(yaws))
+            ll = self.engine.scores(self.engine.pooled(grid), yaws, c, full=True, rows=rows)[:, 0]
+            if rows is not None:
+                full_ll = np.full(len(yaws), -np.inf)
+                full_ll[rows] = ll
+                ll = full_ll
+            modes = top_modes(ll, 3, max(1, int(round(20.0 / stage2_step_deg))))
+            modes = [i for i in modes if np.isfinite(ll[i])]
+            y0 = float(yaws[modes[0]])
+            best = dict(per_c, yaw=y0, exact=self.engine.exact(grid, c, y0),
+                        hypotheses=[(float(yaws[i]), float(ll[i])) for i in modes])
+        offs = np.deg2rad(np.arange(-window_deg, window_deg + 1e-9, step_deg))
+        y0 = best['yaw']
+        for y in y0 + offs[offs != 0]:
             ex = self.engine.exact(grid, c, float(y))
             if ex['loglik'] > best['exact']['loglik']:
-                best = dict(per_c, yaw=float(y), exact=ex)
+                best = dict(best, yaw=float(y), exact=ex)
         return best
 
     def estimate(self, grid, yaw=None, yaw_step_deg=1.0, n_hypotheses=5, exhaustive=True,
-                 refine_deg=3.0):
+                 refine_deg=3.0, stage2_step_deg=1.0, stage2_modes=6, stage2_window_deg=15.0):
         """Classify, orient and complete one labelled grid (see :class:`Estimate`).
 
         Args:
@@ -321,6 +344,10 @@ class ModelBank:
                 coarse-to-fine (5 degree steps, then the best modes at yaw_step_deg).
             refine_deg: the chosen class's yaw is re-solved exactly at full resolution within
                 +-refine_deg of the pooled optimum (0: off).
+            stage2_step_deg: the chosen class is re-scored on the pooled grid with all its
+                components (not only the leading ``pose_components``) at this step, within
+                +-stage2_window_deg of its ``stage2_modes`` best search modes (None: all yaws);
+                stage2_step_deg=None skips this.
             yaw_step_deg: resolution of the yaw search (360 / step candidates).
         """
         t0 = time.perf_counter()
@@ -331,7 +358,8 @@ class ModelBank:
         probs, unknown = self.classify_features(feats, mode)
         best = int(np.argmax(probs))
         if yaw is None and refine_deg > 0:
-            per[best] = self._refine(grid, best, per[best], yaw_step_deg, refine_deg)
+            per[best] = self._refine(grid, best, per[best], yaw_step_deg, refine_deg,
+                                     stage2_step_deg, stage2_modes, stage2_window_deg)
         t2 = time.perf_counter()
         completion, variance = self._completion(grid, per, probs, best)
         est_yaw = per[best]['yaw']

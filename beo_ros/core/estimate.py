@@ -10,7 +10,9 @@ UNKNOWN_LABEL = 'unknown'
 
 @dataclass
 class Hypothesis:
-    """One (class, yaw) pose hypothesis; ``score`` is a log-likelihood (higher is better)."""
+    """One (class, yaw) pose hypothesis; ``score`` is a pooled-grid log-likelihood (higher is
+    better; the chosen class's hypotheses are scored with all its components, so compare scores
+    within one class only)."""
 
     label: str
     yaw: float

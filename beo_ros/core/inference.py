@@ -83,26 +83,32 @@ class InferenceEngine:
         self.gram = np.einsum('cda,cdb->cab', self.W, self.W, dtype=np.float64)   # (C, k, k)
         self.wmu = np.einsum('cda,cd->ca', self.W, self.mu, dtype=np.float64)     # (C, k)
         self.mu2 = (self.mu.astype(np.float64) ** 2).sum(axis=1)                   # (C,)
-        # coarse model: 2x pooled mean of the first kp components
+        # coarse model: 2x pooled mean of the first kp components (stage 1: all classes) and
+        # of all k components (stage 2: one class at a time, built on first use)
         self.nc = n // 2
-        kp = self.kp = int(min(pose_components, self.k))
-        Wg = self.W[:, :, :kp].reshape(self.C, n, n, n, kp).transpose(1, 2, 3, 0, 4)
-        Wc = (pool2(Wg) / 8.0).reshape(self.nc ** 3, self.C, kp)                  # (dc, C, kp)
-        muc = (pool2(self.mu.T.reshape(n, n, n, self.C)) / 8.0).reshape(-1, self.C)  # (dc, C)
-        iu = self._iu = np.triu_indices(kp)
-        pairs = Wc[:, :, iu[0]] * Wc[:, :, iu[1]]                                # (dc, C, np)
-        mw = muc[:, :, None] * Wc                                                   # (dc, C, kp)
-        # per voxel and class: [pairs | mu*W | mu^2] weighted by D, and [W | mu] weighted by T,
-        # so two products score every (yaw, class)
-        self._PD = np.ascontiguousarray(np.concatenate([pairs, mw, muc[:, :, None] ** 2], axis=2),
-                                        dtype=np.float32)                           # (dc, C, m)
-        self._PT = np.ascontiguousarray(np.concatenate([Wc, muc[:, :, None]], axis=2),
-                                        dtype=np.float32)                           # (dc, C, kp+1)
+        self.kp = int(min(pose_components, self.k))
+        self._PD, self._PT, self._iu = self._pooled_terms(range(self.C), self.kp)
         self._PD_c = [np.ascontiguousarray(self._PD[:, c]) for c in range(self.C)]
         self._PT_c = [np.ascontiguousarray(self._PT[:, c]) for c in range(self.C)]
+        self._full_terms = {}
         self._maps = {}
         self._full_maps = {}
         self._local = threading.local()
+
+    def _pooled_terms(self, classes, kp):
+        """Per pooled voxel and class: [pairs | mu*W | mu^2] (dc, C', m) to be weighted by D and
+        [W | mu] (dc, C', kp+1) to be weighted by T, so two products score every (yaw, class)."""
+        n, classes = self.n, list(classes)
+        Wg = self.W[classes, :, :kp].reshape(len(classes), n, n, n, kp).transpose(1, 2, 3, 0, 4)
+        Wc = (pool2(Wg) / 8.0).reshape(self.nc ** 3, len(classes), kp)
+        muc = (pool2(self.mu[classes].T.reshape(n, n, n, len(classes))) / 8.0).reshape(
+            -1, len(classes))
+        iu = np.triu_indices(kp)
+        pairs = Wc[:, :, iu[0]] * Wc[:, :, iu[1]]
+        PD = np.concatenate([pairs, muc[:, :, None] * Wc, muc[:, :, None] ** 2], axis=2)
+        PT = np.concatenate([Wc, muc[:, :, None]], axis=2)
+        return (np.ascontiguousarray(PD, dtype=np.float32),
+                np.ascontiguousarray(PT, dtype=np.float32), iu)
 
     # ------------------------------------------------------------------ pose search
     def _rotation_maps(self, yaws):
@@ -145,11 +151,18 @@ class InferenceEngine:
         TT = np.where(D > 0, T * T / np.maximum(D, 1e-6), 0.0)
         return np.append(D, 1.0), np.append(T, 0.0), np.append(TT, 0.0).astype(np.float32)
 
-    def scores(self, pooled, yaws, c=None):
-        """Pooled log-likelihood (Y, C) of every yaw for all classes, or (Y, 1) for class c."""
+    def scores(self, pooled, yaws, c=None, full=False, rows=None):
+        """Pooled log-likelihood (Y, C) of every yaw for all classes, or (Y, 1) for class c.
+
+        ``full`` (with ``c``): use all k components of class c instead of the leading
+        ``pose_components`` (slower, sharper: the pose refinement of the chosen class).
+        ``rows``: score only these indices into ``yaws`` (whose maps stay cached).
+        """
         D, T, TT = pooled
         yaws = np.atleast_1d(np.asarray(yaws, dtype=np.float64))
         idx, cnt = self._rotation_maps(yaws)
+        if rows is not None:
+            yaws, idx, cnt = yaws[rows], idx[rows], cnt[rows]
         # np.take into reused buffers: several times faster than fancy indexing here
         buf = getattr(self._local, 'buf', None)
         if buf is None or buf.shape[1] < idx.size:
@@ -158,18 +171,27 @@ class InferenceEngine:
         Tr = np.take(T, idx, out=buf[1, :idx.size].reshape(idx.shape))
         tt = cnt @ TT.astype(np.float64)
         neff = cnt @ D.astype(np.float64)
+        kp, iu = self.kp, self._iu
         if c is None:
             C, AD = self.C, Dr @ self._PD.reshape(len(D) - 1, -1)
             AT = Tr @ self._PT.reshape(len(D) - 1, -1)
             vc = self.v_coarse[None, :]
+        elif full:
+            terms = self._full_terms.get(c)
+            if terms is None:
+                PD, PT, iu = self._pooled_terms([c], self.k)
+                terms = self._full_terms[c] = (PD[:, 0].copy(), PT[:, 0].copy(), iu)
+            PD, PT, iu = terms
+            C, AD, AT, kp = 1, Dr @ PD, Tr @ PT, self.k
+            vc = self.v_coarse[None, c:c + 1]
         else:
             C, AD, AT = 1, Dr @ self._PD_c[c], Tr @ self._PT_c[c]
             vc = self.v_coarse[None, c:c + 1]
-        kp, npair, Y = self.kp, len(self._iu[0]), len(yaws)
+        npair, Y = len(iu[0]), len(yaws)
         AD = AD.reshape(Y, C, -1).astype(np.float64)
         AT = AT.reshape(Y, C, -1).astype(np.float64)
         gram = np.zeros((Y, C, kp, kp))
-        gram[:, :, self._iu[0], self._iu[1]] = AD[:, :, :npair]
+        gram[:, :, iu[0], iu[1]] = AD[:, :, :npair]
         gram = gram + np.triu(gram, 1).swapaxes(2, 3)
         mw, mm = AD[:, :, npair:npair + kp], AD[:, :, -1]
         tw, tm = AT[:, :, :kp], AT[:, :, -1]
@@ -223,11 +245,13 @@ class InferenceEngine:
         U = np.flatnonzero(canon < 0)
         O = np.flatnonzero(canon == 1)
         W, mu, v = self.W[c], self.mu[c], self.v[c]
-        WU = W[U].astype(np.float64)
-        gram = self.gram[c] - WU.T @ WU
-        b = (W[O].sum(axis=0, dtype=np.float64) - (self.wmu[c] - WU.T @ mu[U])) / v
-        rr = len(O) - 2 * mu[O].sum(dtype=np.float64) + self.mu2[c] - (mu[U].astype(np.float64)
-                                                                        ** 2).sum()
+        # float32 products over the unknown rows (the float64 totals are precomputed)
+        WU, muU = np.take(W, U, axis=0), np.take(mu, U)
+        gram = self.gram[c] - (WU.T @ WU).astype(np.float64)
+        b = (np.take(W, O, axis=0).sum(axis=0, dtype=np.float64)
+             - (self.wmu[c] - (muU @ WU).astype(np.float64))) / v
+        rr = (len(O) - 2 * np.take(mu, O).sum(dtype=np.float64) + self.mu2[c]
+              - (muU.astype(np.float64) ** 2).sum())
         nk = self.d - len(U)
         G = np.eye(self.k) + gram / v
         quad, logdet, m = batched_cholesky_terms(G[None], b[None], lapack_below=2)

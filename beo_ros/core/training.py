@@ -61,6 +61,10 @@ def view_features(bank, X, rng, n_views=1, complete=True):
         for _ in range(n_views):
             grid, yaw, _, _, rotated = random_partial_view(occ, rng)
             f, per = bank.features(grid)
+            # the pose refinement estimate() applies to the chosen class, here for the three
+            # classes that explain the view best (the classifier is trained later)
+            for c in np.argsort(-f[:, 0])[:3]:
+                per[c] = bank._refine(grid, int(c), per[c])
             out['partial'][0].append(f.ravel())
             out['partial'][1].append(i)
             out['partial'][2].append(_hypothesis_quality(bank.engine, grid, per, yaw, rotated))
