@@ -50,6 +50,7 @@ def test_save_load_round_trip_gives_identical_estimates(tiny_dir, tiny, tmp_path
         np.testing.assert_array_equal(a.W, b.W)
         np.testing.assert_array_equal(a.mean, b.mean)
         assert a.noise_variance == b.noise_variance
+        np.testing.assert_array_equal(a.coarse_noise_map, b.coarse_noise_map)
     for g in views():
         e1, e2 = tiny.estimate(g), fresh.estimate(g)
         assert e1.label == e2.label and e1.yaw == e2.yaw
@@ -150,16 +151,50 @@ def test_batched_scores_equal_per_yaw_and_per_class_loop(tiny):
 
 def test_full_component_scores_equal_the_leading_components_when_all_are_used():
     # stage 2 (full=True) scores class c with all k components; with pose_components = k the
-    # stage-1 arrays hold the same components, so both paths must agree
+    # stage-1 arrays hold the same components, so both paths must agree: without a noise map,
+    # and with a constant noise map equal to the scalar (the per-voxel-noise formula)
+    import dataclasses
     from beo_ros.core.bank import ModelBank
     tiny = make_tiny_bank()
-    eng = ModelBank(tiny.models, tiny.spec, pose_components=tiny.engine.k).engine
+    assert all(m.coarse_noise_map is not None for m in tiny.models)
     yaws = np.deg2rad(np.arange(0, 360, 7.0))
-    for g in views():
-        P = eng.pooled(g)
-        for c in range(eng.C):
-            np.testing.assert_allclose(eng.scores(P, yaws, c, full=True),
-                                       eng.scores(P, yaws, c), rtol=1e-4, atol=1e-6)
+    for noise in ('none', 'constant'):
+        models = [dataclasses.replace(m, coarse_noise_map=None if noise == 'none' else np.full_like(
+            m.coarse_noise_map, m.coarse_noise_variance)) for m in tiny.models]
+        eng = ModelBank(models, tiny.spec, pose_components=tiny.engine.k).engine
+        for g in views():
+            P = eng.pooled(g)
+            for c in range(eng.C):
+                np.testing.assert_allclose(eng.scores(P, yaws, c, full=True),
+                                           eng.scores(P, yaws, c), rtol=1e-4, atol=1e-6)
+
+
+def test_per_voxel_noise_scores_equal_a_dense_weighted_gaussian():
+    # the per-voxel-noise path against the Gaussian marginal of the pooled observation written
+    # out densely: y_K ~ N(mu_K, W_K W_K^T + diag(noise_K)), each cell weighted by its known
+    # fraction D (a cell with D known of 8 voxels counts D times, with mean T / D)
+    from beo_ros.core.grid import yaw_source_index
+    tiny = make_tiny_bank()
+    eng = tiny.engine
+    c, yaw = 1, 0.7
+    g = views()[0]
+    D, T, TT = eng.pooled(g)
+    got = eng.scores((D, T, TT), [yaw], c, full=True)[0, 0]
+    idx = yaw_source_index(eng.nc, [-yaw])[0]
+    Dr, Tr, TTr = D[idx].astype(float), T[idx].astype(float), TT[idx].astype(float)
+    n, nc = eng.n, eng.nc
+    from beo_ros.core.inference import pool2
+    W = (pool2(eng.W[c].reshape(n, n, n, -1).astype(float)) / 8).reshape(nc ** 3, -1)
+    mu = (pool2(eng.mu[c].reshape(n, n, n).astype(float)) / 8).ravel()
+    psi = tiny.models[c].coarse_noise_map.astype(float)
+    # weighted least squares form of the marginal: precision D / psi per cell
+    w = Dr / psi
+    G = np.eye(W.shape[1]) + (W * w[:, None]).T @ W
+    b = W.T @ (Tr / psi - w * mu)
+    rr = (TTr / psi - 2 * Tr * mu / psi + w * mu ** 2).sum()
+    want = -0.5 * ((Dr * np.log(2 * np.pi * psi)).sum() + rr - b @ np.linalg.solve(G, b)
+                   + np.linalg.slogdet(G)[1])
+    np.testing.assert_allclose(got, want, rtol=1e-5)
 
 
 def test_scoring_a_subset_of_rows_equals_the_same_rows_of_all(tiny):
@@ -336,6 +371,34 @@ def test_load_wrong_shapes(tmp_path, tiny_dir):
     _write_manifest(p, m)
     with pytest.raises(ModelError, match='class_00'):
         ModelBank.load(p)
+
+
+@pytest.mark.parametrize('noise_map,ok', [(None, True), ('short', False), ('zero', False)])
+def test_optional_noise_map_is_checked(tmp_path, tiny_dir, noise_map, ok):
+    # model directories without the per-voxel pose noise (older ones) still load; a bad map is
+    # a ModelError naming the file
+    from beo_ros.core.bank import _sha256
+    p = _copy(tiny_dir, tmp_path)
+    fn = sorted(p.glob('class_00_*.npz'))[0]
+    with np.load(fn) as z:
+        arr = {k: z[k] for k in z.files}
+    if noise_map is None:
+        del arr['coarse_noise_map']
+    else:
+        arr['coarse_noise_map'] = (arr['coarse_noise_map'][:10] if noise_map == 'short'
+                                   else np.zeros_like(arr['coarse_noise_map']))
+    np.savez(fn, **arr)
+    m = _manifest(p)
+    m['files'][fn.name] = _sha256(fn)
+    _write_manifest(p, m)
+    if ok:
+        bank = ModelBank.load(p)
+        assert bank.models[0].coarse_noise_map is None
+        assert bank.models[1].coarse_noise_map is not None
+        assert bank.estimate(views()[0]).label in bank.classes
+    else:
+        with pytest.raises(ModelError, match=fn.name + '.*coarse_noise_map'):
+            ModelBank.load(p)
 
 
 def test_load_models_and_public_api(tiny_dir):

@@ -25,6 +25,7 @@ FORMAT = 'beo_ros.models'
 VERSION = 1
 CLASS_KEYS = ('W', 'mean', 'noise_variance', 'coarse_noise_variance', 'loading_covariance',
               'mean_variance', 'component_variance')
+OPTIONAL_CLASS_KEYS = ('coarse_noise_map',)
 MODES = ('complete', 'partial')
 
 
@@ -34,7 +35,9 @@ class ModelError(ValueError):
 
 @dataclass
 class ClassModel:
-    """One class's VBPCA model, float32. W: (d, k); mean, mean_variance: (d,)."""
+    """One class's VBPCA model, float32. W: (d, k); mean, mean_variance: (d,);
+    coarse_noise_map: optional (d / 8,) noise variance per voxel of the 2x-pooled grid (used by
+    the pose refinement; without it the scalar coarse_noise_variance is used everywhere)."""
 
     name: str
     W: np.ndarray
@@ -44,12 +47,15 @@ class ClassModel:
     loading_covariance: np.ndarray
     mean_variance: np.ndarray
     component_variance: np.ndarray
+    coarse_noise_map: np.ndarray | None = None
 
     @classmethod
-    def from_vbpca(cls, name, est, coarse_noise_variance):
+    def from_vbpca(cls, name, est, coarse_noise_variance, coarse_noise_map=None):
         return cls(name=name, W=est.components_.T.astype(np.float32),
                    mean=est.mean_.astype(np.float32), noise_variance=float(est.noise_variance_),
                    coarse_noise_variance=float(coarse_noise_variance),
+                   coarse_noise_map=None if coarse_noise_map is None else np.asarray(
+                       coarse_noise_map, dtype=np.float32),
                    loading_covariance=est.loading_covariance_.astype(np.float32),
                    mean_variance=np.broadcast_to(est.mean_variance_, est.mean_.shape).astype(
                        np.float32),
@@ -58,10 +64,21 @@ class ClassModel:
 
 def coarse_noise_variance(X, est, n):
     """Residual variance of 2x-pooled training grids X (m, n^3) under the fitted model."""
+    return coarse_noise(X, est, n)[0]
+
+
+def coarse_noise(X, est, n, shrink=100.0, floor=1e-4):
+    """Residual variance of 2x-pooled training grids X (m, n^3) under the fitted model: the
+    scalar over all voxels, and per pooled voxel (n^3 / 8,), shrunk toward the scalar as if
+    ``shrink`` extra objects had the scalar variance (few objects: noisy voxel estimates)."""
     from .inference import pool2
     Z = est.transform(X)
     R = (X - est.inverse_transform(Z)).T.reshape(n, n, n, -1)
-    return float(((pool2(R) / 8.0) ** 2).mean()) + 1e-6
+    r2 = ((pool2(R) / 8.0) ** 2).reshape(-1, len(X))
+    v = float(r2.mean()) + 1e-6
+    m = r2.shape[1]
+    per = (m * r2.mean(axis=1) + shrink * v) / (m + shrink)
+    return v, np.maximum(per, floor).astype(np.float32)
 
 
 def _sha256(path):
@@ -110,7 +127,8 @@ class ModelBank:
             W[i, :, :m.W.shape[1]] = m.W
         self.engine = InferenceEngine(
             W, np.stack([m.mean for m in models]), [m.noise_variance for m in models],
-            [m.coarse_noise_variance for m in models], spec.size, pose_components)
+            [m.coarse_noise_variance for m in models], spec.size, pose_components,
+            coarse_noise_maps=[m.coarse_noise_map for m in models])
 
     @property
     def classes(self):
@@ -124,7 +142,9 @@ class ModelBank:
         files = {}
         for i, m in enumerate(self.models):
             fn = f'class_{i:02d}_{m.name}.npz'
-            np.savez_compressed(path / fn, **{k: np.asarray(getattr(m, k)) for k in CLASS_KEYS})
+            np.savez_compressed(path / fn, **{k: np.asarray(getattr(m, k)) for k in
+                                              CLASS_KEYS + OPTIONAL_CLASS_KEYS
+                                              if getattr(m, k) is not None})
             files[fn] = _sha256(path / fn)
         if self.classifier:
             arrays = {f'{mode}__{k}': np.asarray(v) for mode, clf in self.classifier.items()
@@ -182,6 +202,7 @@ class ModelBank:
             try:
                 with np.load(fp, allow_pickle=False) as z:
                     arr = {k: z[k] for k in CLASS_KEYS}
+                    arr.update({k: z[k] for k in OPTIONAL_CLASS_KEYS if k in z.files})
             except KeyError as e:
                 raise ModelError(f'{fp}: missing array {e}') from None
             except (OSError, ValueError) as e:
@@ -194,13 +215,18 @@ class ModelBank:
                 raise ModelError(f'{fp}: contains NaN or Inf')
             if not (arr['noise_variance'] > 0 and arr['coarse_noise_variance'] > 0):
                 raise ModelError(f'{fp}: noise variances must be positive')
+            noise_map = arr.get('coarse_noise_map')
+            if noise_map is not None and (noise_map.shape != (d // 8,) or noise_map.min() <= 0):
+                raise ModelError(f'{fp}: coarse_noise_map must be {d // 8} positive values, got '
+                                 f'shape {noise_map.shape}')
             models.append(ClassModel(
                 name=name, W=W.astype(np.float32), mean=arr['mean'].astype(np.float32),
                 noise_variance=float(arr['noise_variance']),
                 coarse_noise_variance=float(arr['coarse_noise_variance']),
                 loading_covariance=arr['loading_covariance'].astype(np.float32),
                 mean_variance=arr['mean_variance'].astype(np.float32),
-                component_variance=arr['component_variance'].astype(np.float32)))
+                component_variance=arr['component_variance'].astype(np.float32),
+                coarse_noise_map=None if noise_map is None else noise_map.astype(np.float32)))
         classifier = None
         if 'classifier.npz' in files:
             fp = path / 'classifier.npz'

@@ -70,10 +70,12 @@ class InferenceEngine:
     Args:
         W: (C, d, k) loadings, zero-padded to a common k; mu: (C, d); v: (C,) noise variances;
         v_coarse: (C,) noise variances of the 2x-pooled model; n: grid size (d = n**3);
-        pose_components: how many leading components the coarse search uses.
+        pose_components: how many leading components the coarse search uses;
+        coarse_noise_maps: optional per class None or (d / 8,) noise variance per pooled voxel,
+            used when one class is scored with all its components (``scores(..., full=True)``).
     """
 
-    def __init__(self, W, mu, v, v_coarse, n, pose_components=8):
+    def __init__(self, W, mu, v, v_coarse, n, pose_components=8, coarse_noise_maps=None):
         self.C, self.d, self.k = W.shape
         self.n = n
         self.W = np.ascontiguousarray(W, dtype=np.float32)
@@ -91,13 +93,17 @@ class InferenceEngine:
         self._PD_c = [np.ascontiguousarray(self._PD[:, c]) for c in range(self.C)]
         self._PT_c = [np.ascontiguousarray(self._PT[:, c]) for c in range(self.C)]
         self._full_terms = {}
+        self._noise_maps = list(coarse_noise_maps or [None] * self.C)
         self._maps = {}
         self._full_maps = {}
         self._local = threading.local()
 
-    def _pooled_terms(self, classes, kp):
+    def _pooled_terms(self, classes, kp, noise=None):
         """Per pooled voxel and class: [pairs | mu*W | mu^2] (dc, C', m) to be weighted by D and
-        [W | mu] (dc, C', kp+1) to be weighted by T, so two products score every (yaw, class)."""
+        [W | mu] (dc, C', kp+1) to be weighted by T, so two products score every (yaw, class).
+
+        ``noise`` (dc,) (one class): every term is divided by the voxel's noise variance and D
+        also weighs a last column log(2 pi noise)."""
         n, classes = self.n, list(classes)
         Wg = self.W[classes, :, :kp].reshape(len(classes), n, n, n, kp).transpose(1, 2, 3, 0, 4)
         Wc = (pool2(Wg) / 8.0).reshape(self.nc ** 3, len(classes), kp)
@@ -107,6 +113,10 @@ class InferenceEngine:
         pairs = Wc[:, :, iu[0]] * Wc[:, :, iu[1]]
         PD = np.concatenate([pairs, muc[:, :, None] * Wc, muc[:, :, None] ** 2], axis=2)
         PT = np.concatenate([Wc, muc[:, :, None]], axis=2)
+        if noise is not None:
+            noise = np.asarray(noise, dtype=np.float64)[:, None, None]
+            PD = np.concatenate([PD / noise, np.log(2 * np.pi * noise)], axis=2)
+            PT = PT / noise
         return (np.ascontiguousarray(PD, dtype=np.float32),
                 np.ascontiguousarray(PT, dtype=np.float32), iu)
 
@@ -177,11 +187,15 @@ class InferenceEngine:
             AT = Tr @ self._PT.reshape(len(D) - 1, -1)
             vc = self.v_coarse[None, :]
         elif full:
+            noise = self._noise_maps[c]
             terms = self._full_terms.get(c)
             if terms is None:
-                PD, PT, iu = self._pooled_terms([c], self.k)
-                terms = self._full_terms[c] = (PD[:, 0].copy(), PT[:, 0].copy(), iu)
-            PD, PT, iu = terms
+                PD, PT, iu = self._pooled_terms([c], self.k, noise)
+                inv = None if noise is None else np.append(1.0 / np.asarray(noise, np.float64), 0)
+                terms = self._full_terms[c] = (PD[:, 0].copy(), PT[:, 0].copy(), iu, inv)
+            PD, PT, iu, inv = terms
+            if inv is not None:
+                return self._weighted_scores(Dr @ PD, Tr @ PT, np.take(TT, idx) @ inv[:-1], iu)
             C, AD, AT, kp = 1, Dr @ PD, Tr @ PT, self.k
             vc = self.v_coarse[None, c:c + 1]
         else:
@@ -201,6 +215,20 @@ class InferenceEngine:
         rr = tt[:, None] - 2 * tm + mm
         return -0.5 * (neff[:, None] * np.log(2 * np.pi * vc) + rr / vc
                        - quad.reshape(Y, C) + logdet.reshape(Y, C))
+
+    def _weighted_scores(self, AD, AT, tt, iu):
+        """(Y, 1) log-likelihood from per-voxel-noise terms (see ``_pooled_terms``): AD (Y, m),
+        AT (Y, k+1), tt (Y,) = sum of TT / noise over the rotated cells."""
+        k, npair = self.k, len(iu[0])
+        AD, AT = AD.astype(np.float64), AT.astype(np.float64)
+        gram = np.zeros((len(AD), k, k))
+        gram[:, iu[0], iu[1]] = AD[:, :npair]
+        gram = gram + np.triu(gram, 1).swapaxes(1, 2)
+        G = np.eye(k) + gram
+        b = AT[:, :k] - AD[:, npair:npair + k]
+        quad, logdet, _ = batched_cholesky_terms(G, b)
+        rr = tt - 2 * AT[:, k] + AD[:, npair + k]
+        return (-0.5 * (AD[:, -1] + rr - quad + logdet))[:, None]
 
     def search(self, grid, step_deg=1.0, coarse_step_deg=5.0, n_modes=2, window_deg=None,
                exhaustive=False):

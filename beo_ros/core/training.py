@@ -8,7 +8,7 @@ import zipfile
 
 import numpy as np
 
-from .bank import ClassModel, ModelBank, coarse_noise_variance
+from .bank import ClassModel, ModelBank, coarse_noise
 from .grid import yaw_error
 from .inference import FEATURE_NAMES
 from .synthetic import random_partial_view
@@ -37,7 +37,7 @@ def fit_class_models(X, y, names, spec, k=20, masks=None, max_iter=200, tol=1e-5
                         tol=tol).fit(Xc, mask=None if masks is None else masks[sel])
         Xf = Xc if masks is None else np.where(masks[sel], Xc, est.inverse_transform(
             est.transform(Xc, masks[sel])))
-        models.append(ClassModel.from_vbpca(name, est, coarse_noise_variance(
+        models.append(ClassModel.from_vbpca(name, est, *coarse_noise(
             Xf.astype(np.float32), est, spec.size)))
     return models
 
