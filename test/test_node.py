@@ -320,7 +320,8 @@ def test_parameters_validated_and_runtime_changeable(harness, tmp_path):
                              ('min_points', 10 ** 9, ''),
                              ('min_points', 60000, 'max_points'),
                              ('model_dir', str(tmp_path / 'nope'), 'nope'),
-                             ('input_topics', ['/other'], '')):
+                             ('input_topics', ['/other'], ''),
+                             ('workers', 3, ''), ('workers', 0, '')):
         r = set_(name, value)
         assert not r.successful, (name, value)
         assert why in r.reason
@@ -351,25 +352,52 @@ def test_parameters_validated_and_runtime_changeable(harness, tmp_path):
         assert harness.call(harness.classify, harness.good_request()).success
 
 
-def test_only_latest_cloud_per_topic_is_kept(harness):
-    """While the worker is busy, newer clouds replace unprocessed ones (counted as stale)."""
+class GatedBank:
+    """Wraps a bank: estimates of clouds with ``len(points) in hold`` wait for ``gate``."""
+
+    def __init__(self, real, hold=None):
+        self.real, self.classes = real, real.classes
+        self.hold = hold
+        self.gate = threading.Event()
+        self.cond = threading.Condition()
+        self.entered, self.done = [], []
+
+    def estimate_points(self, pts, *a, **k):
+        with self.cond:
+            self.entered.append(len(pts))
+            self.cond.notify_all()
+        if self.hold is None or len(pts) in self.hold:
+            self.gate.wait(TIMEOUT)
+        est = self.real.estimate_points(pts, *a, **k)
+        with self.cond:
+            self.done.append(len(pts))
+            self.cond.notify_all()
+        return est
+
+    def wait(self, pred):
+        with self.cond:
+            assert self.cond.wait_for(lambda: pred(self), timeout=TIMEOUT), (
+                self.entered, self.done)
+
+
+@pytest.fixture
+def harness1(ros_context, ros_bank_source):
+    h = Harness(ros_context, *ros_bank_source, workers=1)
+    yield h
+    h.close()
+
+
+def test_only_latest_cloud_per_topic_is_kept(harness1):
+    """One worker busy: newer clouds replace unprocessed ones (counted as stale)."""
+    harness = harness1
     node = harness.node
-    gate, entered = threading.Event(), threading.Event()
-    real = node._bank
-
-    class Gated:
-        classes = real.classes
-
-        def estimate_points(self, *a, **k):
-            entered.set()
-            gate.wait(TIMEOUT)
-            return real.estimate_points(*a, **k)
-
-    node._bank = Gated()
+    assert node.get_parameter('workers').value == 1
+    assert node._warm.wait(TIMEOUT)  # the warm-up estimate is done
+    gated = node._bank = GatedBank(node._bank)
     try:
         msg = cloud(box_view())
         node._on_cloud(msg, '/beo/input')
-        assert entered.wait(TIMEOUT)
+        gated.wait(lambda g: len(g.entered) == 1)
         for _ in range(5):
             node._on_cloud(msg, '/beo/input')
         node._on_cloud(msg, '/beo/input2')
@@ -377,9 +405,63 @@ def test_only_latest_cloud_per_topic_is_kept(harness):
         assert c['dropped_stale'] == 4 and c['received'] == 7
         assert len(node._slots) == 2
     finally:
-        gate.set()
+        gated.gate.set()
     harness.wait_counter(lambda c: c['processed'] == 3)
     assert not node._slots
+
+
+def test_two_workers_keep_latest_cloud_and_in_flight_limit(harness):
+    """Two workers busy with two clouds of one topic: a third waits, newer ones replace it."""
+    node = harness.node
+    assert node.get_parameter('workers').value == 2
+    assert node._warm.wait(TIMEOUT)  # the warm-up estimate is done
+    gated = node._bank = GatedBank(node._bank)
+    try:
+        msg = cloud(box_view())
+        node._on_cloud(msg, '/beo/input')
+        gated.wait(lambda g: len(g.entered) == 1)
+        node._on_cloud(msg, '/beo/input')
+        gated.wait(lambda g: len(g.entered) == 2)   # both workers on the same topic
+        for _ in range(5):
+            node._on_cloud(msg, '/beo/input')
+        c = node.counters()
+        assert c['dropped_stale'] == 4 and c['received'] == 7
+        assert len(node._slots) == 1
+    finally:
+        gated.gate.set()
+    c = harness.wait_counter(lambda c: c['processed'] == 3)
+    assert c['dropped_stale'] == 4 and c['errors'] == 0 and not node._slots
+    assert c['received'] == c['processed'] + c['dropped_stale']
+
+
+def test_two_workers_overlap_and_publish_each_topic_in_order(harness):
+    """A slow cloud and a fast later cloud of one topic are estimated at the same time, but
+    the later one is published only after the earlier one."""
+    node = harness.node
+    slow_pts, fast_pts = box_view(n=3000), box_view(n=1500)
+    assert node._warm.wait(TIMEOUT)
+    gated = node._bank = GatedBank(node._bank, hold={len(slow_pts)})
+    try:
+        node._on_cloud(cloud(slow_pts, 'slow'), '/beo/input')
+        gated.wait(lambda g: g.entered == [len(slow_pts)])
+        node._on_cloud(cloud(fast_pts, 'fast'), '/beo/input')
+        # the second worker finished the later cloud while the first is still held
+        gated.wait(lambda g: g.done == [len(fast_pts)])
+        with harness.cond:
+            assert not harness.received['estimates']
+        assert node.counters()['processed'] == 0
+    finally:
+        gated.gate.set()
+    ests = harness.wait('estimates', count=2)
+    assert [e.header.frame_id for e in ests] == ['slow', 'fast']
+    c = harness.wait_counter(lambda c: c['processed'] == 2)
+    assert c['dropped_stale'] == 0 and c['errors'] == 0
+    # a rejected cloud gives up its turn: the next one of its topic is still published
+    node._bank = gated.real
+    node._on_cloud(cloud(box_view()[:5], 'few'), '/beo/input')
+    harness.wait_counter(lambda c: c['rejected'] == 1)
+    node._on_cloud(cloud(box_view(), 'after'), '/beo/input')
+    harness.wait('estimates', pred=lambda m: m.header.frame_id == 'after')
 
 
 def test_bad_model_dir_refuses_to_start(ros_context, tmp_path):
@@ -401,7 +483,8 @@ def test_bad_parameter_override_refuses_to_start(ros_context, ros_bank_source):
     model_dir, bank = ros_bank_source
     base = [Parameter('model_dir', value=model_dir)] if model_dir else []
     for p in (Parameter('yaw_step_deg', value=90.0), Parameter('up_vector', value=[0.0, 0.0, 0.0]),
-              Parameter('min_points', value=100), ):
+              Parameter('min_points', value=100), Parameter('workers', value=0),
+              Parameter('workers', value=65)):
         extra = [Parameter('max_points', value=50)] if p.name == 'min_points' else []
         with pytest.raises(StartupError, match=p.name):
             BeoNode(context=ros_context, bank=bank, parameter_overrides=base + [p] + extra)

@@ -10,7 +10,10 @@ publishes, in the input cloud's frame:
 - ``/diagnostics`` diagnostic_msgs/DiagnosticArray (rates, stage latencies, counters).
 
 Services ``~/classify`` and ``~/complete`` take one cloud each. Each input topic keeps only its
-latest unprocessed cloud; a worker thread does the estimation so services stay responsive.
+latest unprocessed cloud; ``workers`` worker threads do the estimation (numpy/BLAS and open3d
+release the GIL, so they overlap on several cores) and services stay responsive. Results of one
+topic are published in the order its clouds were received, even when several of its clouds are
+in flight on different workers.
 """
 from __future__ import annotations
 
@@ -151,12 +154,15 @@ class BeoNode(Node):
             self._declare_parameters()
         except Exception as e:  # out-of-range / wrong-type overrides
             raise StartupError(f'invalid parameter: {type(e).__name__}: {e}') from e
-        for name in ('sensor_origin', 'up_vector', 'min_points', 'max_points'):
+        for name in ('sensor_origin', 'up_vector', 'min_points', 'max_points', 'workers'):
             reason = self._check(name, self.get_parameter(name).value, self._params())
             if reason:
                 raise StartupError(f'invalid parameter: {reason}')
 
-        self._bank_lock = threading.Lock()
+        self._bank_lock = threading.Lock()  # serialises model reloads (the swap itself is atomic)
+        self._n_workers = int(self.get_parameter('workers').value)
+        # at most `workers` estimates run at once (worker threads and service calls together)
+        self._est_slots = threading.Semaphore(self._n_workers)
         self._svc_waiting = 0
         self._svc_lock = threading.Lock()
         if bank is None:
@@ -167,7 +173,8 @@ class BeoNode(Node):
 
         self._stats_lock = threading.Lock()
         self._counters = collections.Counter({k: 0 for k in (
-            'received', 'processed', 'dropped_stale', 'rejected', 'rejected_format',
+            'received', 'processed', 'dropped_stale', 'order_waits', 'rejected',
+            'rejected_format',
             'rejected_too_few_points', 'errors', 'downsampled', 'nonfinite_points',
             'service_calls', 'service_failures')})
         self._latency = collections.defaultdict(lambda: collections.deque(maxlen=LATENCY_WINDOW))
@@ -175,6 +182,7 @@ class BeoNode(Node):
 
         self._tf_buffer = None
         self._tf_listener = None
+        self._tf_lock = threading.Lock()
         if self.get_parameter('base_frame').value and tf2_ros is None:
             self.get_logger().warning('base_frame is set but tf2_ros is not installed; using the '
                                       'sensor_origin and up_vector parameters')
@@ -191,6 +199,13 @@ class BeoNode(Node):
         self._cond = threading.Condition()
         self._slots = {}  # resolved topic -> (PointCloud2, receipt monotonic time)
         self._stop = False
+        # per-topic publish order: a worker takes ticket n of its topic when it dequeues a
+        # cloud and publishes (or gives up its turn) only once ticket n - 1 is done
+        self._tickets = collections.Counter()   # topic -> next ticket to hand out
+        self._turn = collections.Counter()      # topic -> ticket allowed to publish now
+        self._turn_cond = threading.Condition()
+        self._in_flight = 0
+        self._warm = threading.Event()
         self._topics = []
         for topic in self.get_parameter('input_topics').value:
             topic = self.resolve_topic_name(topic)
@@ -198,7 +213,7 @@ class BeoNode(Node):
                 PointCloud2, topic, lambda msg, t=topic: self._on_cloud(msg, t),
                 qos_profile_sensor_data, callback_group=sub_group)
             self._topics.append(topic)
-        self._topic_index = {}
+        self._topic_index = {t: i for i, t in enumerate(self._topics)}
 
         self._srv_classify = self.create_service(srvs.Classify, '~/classify', self._on_classify,
                                                  callback_group=self._svc_group)
@@ -209,9 +224,13 @@ class BeoNode(Node):
                                              callback_group=self._timer_group)
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
-        self._worker = threading.Thread(target=self._worker_loop, name='beo_worker', daemon=True)
-        self._worker.start()
-        self.get_logger().info(f'listening on {self._topics}')
+        self._workers = [threading.Thread(target=self._worker_loop, args=(i,),
+                                          name=f'beo_worker_{i}', daemon=True)
+                         for i in range(self._n_workers)]
+        for w in self._workers:
+            w.start()
+        self._worker = self._workers[0]
+        self.get_logger().info(f'listening on {self._topics} with {self._n_workers} worker(s)')
 
     def _declare_parameters(self):
         d = self.declare_parameter
@@ -243,12 +262,15 @@ class BeoNode(Node):
             description='Publish ~/completed (x y z probability)',
             type=ParameterType.PARAMETER_BOOL))
         d('diagnostics_period', 1.0, _fdesc('Seconds between /diagnostics messages', 0.1, 60.0))
+        d('workers', 2, _idesc('Estimation worker threads (concurrent estimates, services '
+                               'included); about one per CPU core. Read-only', 1, 64,
+                               read_only=True))
 
     def _params(self) -> dict:
         return {p: self.get_parameter(p).value for p in (
             'model_dir', 'base_frame', 'sensor_origin', 'up_vector', 'yaw_step_deg',
             'min_points', 'max_points', 'completion_threshold', 'publish_completed',
-            'diagnostics_period')}
+            'diagnostics_period', 'workers')}
 
     @staticmethod
     def _check(name, value, merged) -> str | None:
@@ -260,6 +282,8 @@ class BeoNode(Node):
         if name in ('min_points', 'max_points') and merged['min_points'] > merged['max_points']:
             return (f"min_points ({merged['min_points']}) must not exceed max_points "
                     f"({merged['max_points']})")
+        if name == 'workers' and not (isinstance(value, int) and 1 <= value <= 64):
+            return f'workers must be an integer in 1 .. 64, got {value!r}'
         return None
 
     def _on_set_parameters(self, params) -> SetParametersResult:
@@ -309,8 +333,16 @@ class BeoNode(Node):
             self.get_logger().debug(f'warm-up estimate failed: {type(e).__name__}: {e}')
         self._record('warm_up', time.monotonic() - t0)
 
-    def _worker_loop(self):
-        self._warm_up()
+    def _worker_loop(self, index=0):
+        if index == 0:
+            try:
+                self._warm_up()
+            finally:
+                self._warm.set()
+        else:  # let worker 0 fill the caches first, so no real cloud pays for them
+            while not self._warm.wait(0.1):
+                if self._stop:
+                    return
         while True:
             with self._cond:
                 while not self._slots and not self._stop:
@@ -319,13 +351,43 @@ class BeoNode(Node):
                     return
                 topic = min(self._slots, key=lambda t: self._slots[t][1])  # oldest first
                 msg, t_recv = self._slots.pop(topic)
+                ticket = self._tickets[topic]
+                self._tickets[topic] += 1
+                self._in_flight += 1
             try:
-                self._process(topic, msg, t_recv)
+                self._process(topic, msg, t_recv, ticket)
             except Exception as e:  # never let one cloud kill the worker
                 self._count('errors')
                 self.get_logger().error(f'estimation failed for a cloud on {topic}: '
                                         f'{type(e).__name__}: {e}',
                                         throttle_duration_sec=LOG_THROTTLE_SEC)
+            finally:
+                with self._cond:
+                    self._in_flight -= 1
+
+    def _wait_turn(self, topic, ticket) -> float:
+        """Block until every earlier cloud of ``topic`` is published or given up; returns the
+        seconds waited (counted in ``order_waits`` and the ``order_wait`` latency)."""
+        if ticket is None:
+            return 0.0
+        with self._turn_cond:
+            if self._turn[topic] == ticket:
+                return 0.0
+            t0 = time.monotonic()
+            self._turn_cond.wait_for(lambda: self._turn[topic] == ticket)
+            waited = time.monotonic() - t0
+        self._count('order_waits')
+        self._record('order_wait', waited)
+        return waited
+
+    def _end_turn(self, topic, ticket):
+        """Hand the publishing turn of ``topic`` to the next ticket (after our own turn came)."""
+        if ticket is None:
+            return
+        with self._turn_cond:
+            self._turn_cond.wait_for(lambda: self._turn[topic] == ticket)
+            self._turn[topic] = ticket + 1
+            self._turn_cond.notify_all()
 
     def _reject(self, where, err: InputRejected):
         self._count('rejected')
@@ -366,9 +428,10 @@ class BeoNode(Node):
         """Up (+z of base_frame) in ``frame_id`` from TF, or None when TF is not used."""
         if not p['base_frame'] or tf2_ros is None or not frame_id:
             return None
-        if self._tf_buffer is None:
-            self._tf_buffer = tf2_ros.Buffer()
-            self._tf_listener = tf2_ros.TransformListener(self._tf_buffer, self)
+        with self._tf_lock:  # several workers may get here first at once
+            if self._tf_buffer is None:
+                self._tf_buffer = tf2_ros.Buffer()
+                self._tf_listener = tf2_ros.TransformListener(self._tf_buffer, self)
         try:
             tf = self._tf_buffer.lookup_transform(frame_id, p['base_frame'], Time())
         except Exception as e:
@@ -378,21 +441,24 @@ class BeoNode(Node):
         return [2 * (x * z + y * w), 2 * (y * z - x * w), 1 - 2 * (x * x + y * y)]
 
     def _estimate(self, pts, origin, up, p, threshold, priority=False):
-        """Run the bank under its lock (service calls go first); core ValueError -> InputRejected."""
+        """Run the bank in one of the ``workers`` estimation slots (service calls go first);
+        core ValueError -> InputRejected. ``ModelBank.estimate_points`` is safe to call from
+        several threads (its caches only gain immutable entries; scratch buffers are
+        thread-local)."""
         if priority:
             with self._svc_lock:
                 self._svc_waiting += 1
             try:
-                self._bank_lock.acquire()
+                self._est_slots.acquire()
             finally:
                 with self._svc_lock:
                     self._svc_waiting -= 1
         else:
             while self._svc_waiting > 0:  # let pending service calls go first
                 time.sleep(0.001)
-            self._bank_lock.acquire()
+            self._est_slots.acquire()
         try:
-            bank = self._bank
+            bank = self._bank  # one bank per estimate, even if model_dir is reloaded meanwhile
             try:
                 est = bank.estimate_points(pts, sensor_origin=origin, up=up,
                                            yaw_step_deg=p['yaw_step_deg'], threshold=threshold)
@@ -400,7 +466,7 @@ class BeoNode(Node):
                 raise InputRejected(f'estimator rejected the cloud: {e}') from e
             return est, list(bank.classes)
         finally:
-            self._bank_lock.release()
+            self._est_slots.release()
 
     def _record(self, stage, seconds):
         with self._stats_lock:
@@ -412,39 +478,47 @@ class BeoNode(Node):
             return f'no voxel reaches completion probability {threshold:g}'
         return 'ok'
 
-    def _process(self, topic, msg, t_recv):
-        t0 = time.monotonic()
-        self._record('queue_wait', t0 - t_recv)
-        p = self._params()
+    def _process(self, topic, msg, t_recv, ticket=None):
+        """Estimate one cloud and publish the results; with a ``ticket`` the publishing waits
+        until the earlier clouds of ``topic`` are published (or rejected)."""
         try:
-            pts, origin, up = self._prepare(msg, p)
-            t1 = time.monotonic()
-            self._record('convert', t1 - t0)
-            est, classes = self._estimate(pts, origin, up, p, p['completion_threshold'])
-        except InputRejected as e:
-            self._reject(topic, e)
-            return
-        t2 = time.monotonic()
-        self._record('estimate', t2 - t1)
-        for stage, sec in (est.timings or {}).items():
-            self._record(f'core_{stage}', sec)
-        header = msg.header
-        status = self._status(est, p['completion_threshold'])
-        out = estimate_to_msg(est, header, topic, time.monotonic() - t_recv, include_cloud=False,
-                              status=status, class_names=classes)
-        self._pub_estimate.publish(out)
-        self._pub_pose.publish(PoseStamped(header=header, pose=out.pose))
-        if p['publish_completed']:
-            self._pub_completed.publish(completed_cloud(est, header))
-        self._pub_markers.publish(self._markers(est, out, header, topic, up))
-        t3 = time.monotonic()
-        self._record('publish', t3 - t2)
-        self._record('end_to_end', t3 - t_recv)
-        self._count('processed')
+            t0 = time.monotonic()
+            self._record('queue_wait', t0 - t_recv)
+            p = self._params()
+            try:
+                pts, origin, up = self._prepare(msg, p)
+                t1 = time.monotonic()
+                self._record('convert', t1 - t0)
+                est, classes = self._estimate(pts, origin, up, p, p['completion_threshold'])
+            except InputRejected as e:
+                self._reject(topic, e)
+                return
+            t2 = time.monotonic()
+            self._record('estimate', t2 - t1)
+            for stage, sec in (est.timings or {}).items():
+                self._record(f'core_{stage}', sec)
+            header = msg.header
+            status = self._status(est, p['completion_threshold'])
+            completed = completed_cloud(est, header) if p['publish_completed'] else None
+            waited = self._wait_turn(topic, ticket)
+            t3 = time.monotonic()
+            out = estimate_to_msg(est, header, topic, t3 - t_recv, include_cloud=False,
+                                  status=status, class_names=classes)
+            self._pub_estimate.publish(out)
+            self._pub_pose.publish(PoseStamped(header=header, pose=out.pose))
+            if completed is not None:
+                self._pub_completed.publish(completed)
+            self._pub_markers.publish(self._markers(est, out, header, topic, up))
+            t4 = time.monotonic()
+            self._record('publish', t4 - t2 - waited)
+            self._record('end_to_end', t4 - t_recv)
+            self._count('processed')
+        finally:
+            self._end_turn(topic, ticket)
 
     def _markers(self, est, out, header, topic, up) -> MarkerArray:
         """Label text above the object and its box, ids unique per input topic."""
-        idx = self._topic_index.setdefault(topic, len(self._topic_index))
+        idx = self._topic_index.get(topic, len(self._topic_index))
         up = np.asarray(up, dtype=np.float64)
         up = up / np.linalg.norm(up)
         centre = np.array([out.pose.position.x, out.pose.position.y, out.pose.position.z])
@@ -550,6 +624,9 @@ class BeoNode(Node):
                    for k, v in sorted(self.latency_p50().items())]
         values += [KeyValue(key=k, value=str(v)) for k, v in sorted(counters.items())]
         values.append(KeyValue(key='input_topics', value=','.join(self._topics)))
+        values.append(KeyValue(key='workers', value=str(self._n_workers)))
+        with self._cond:
+            values.append(KeyValue(key='in_flight', value=str(self._in_flight)))
         status = DiagnosticStatus(level=level, name=f'{self.get_name()}: estimator',
                                   message=message, hardware_id='beo_ros', values=values)
         self._pub_diag.publish(DiagnosticArray(header=self._diag_header(), status=[status]))
@@ -559,17 +636,21 @@ class BeoNode(Node):
 
     # ------------------------------------------------------------------ teardown
     def _shutdown_worker(self):
-        worker = getattr(self, '_worker', None)
+        """Stop the worker threads; each finishes (and publishes) the cloud it is working on."""
+        workers = getattr(self, '_workers', None) or [getattr(self, '_worker', None)]
         cond = getattr(self, '_cond', None)
         if cond is not None:
             with cond:
                 self._stop = True
                 cond.notify_all()
-        if worker is not None and worker.is_alive() and worker is not threading.current_thread():
-            worker.join(timeout=30.0)
+        deadline = time.monotonic() + 30.0
+        for worker in workers:
+            if (worker is not None and worker.is_alive()
+                    and worker is not threading.current_thread()):
+                worker.join(timeout=max(deadline - time.monotonic(), 0.1))
 
     def destroy_node(self):
-        """Stop the worker thread, then destroy the node (idempotent)."""
+        """Stop the worker threads, then destroy the node (idempotent)."""
         if self._destroyed:
             return
         self._destroyed = True
