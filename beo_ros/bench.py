@@ -264,102 +264,201 @@ def scaling(args, X, y, names, n, tr, queries, bank, icp_db, rng):
 
 
 # ---------------------------------------------------------------------- node
+BAG_HZ = 10.0       # message spacing in the bench bag; replay rate factor = rate / BAG_HZ
+BAG_T0_NS = 1_700_000_000_000_000_000
+
+
+def _node_clouds(X, n, idx, count, rng):
+    """Rendered partial views (points (m, 3) float32, sensor at the origin) of ``count`` objects.
+
+    Each cloud is rendered from its own viewpoint; it is translated so its sensor is at the
+    origin, which is the node's (fixed) ``sensor_origin``."""
+    from beo_ros.core.synthetic import random_partial_view, render_view_points
+    clouds = []
+    for i in idx[:count]:
+        occ = X[i].reshape((n,) * 3) > 0.5
+        _, yaw, az, el, _ = random_partial_view(occ, rng)
+        pts, origin = render_view_points(occ, yaw, az, el, rng=rng)
+        if len(pts) >= 100:  # the node rejects clouds below min_points; keep real objects
+            clouds.append(np.asarray(pts - origin, dtype=np.float32))
+    return clouds
+
+
+def _write_node_bag(path, clouds, n_msgs, xyz_to_cloud, Header, TimeMsg):
+    """A rosbag2 (sqlite3) of ``n_msgs`` clouds on /beo/input, cycling ``clouds``, BAG_HZ apart;
+    each header stamp equals its bag stamp (unique, so estimates can be matched to sends)."""
+    from beo_ros.ros.bag import BagWriter
+    with BagWriter(path) as w:
+        for j in range(n_msgs):
+            t = BAG_T0_NS + int(round(j * 1e9 / BAG_HZ))
+            hdr = Header(frame_id='camera', stamp=TimeMsg(sec=t // 10**9, nanosec=t % 10**9))
+            w.write('/beo/input', xyz_to_cloud(clouds[j % len(clouds)], hdr), t)
+
+
+def _pct(a, q):
+    return float(np.percentile(a, q)) if len(a) else float('nan')
+
+
 def node_bench(bank, X, y, n, idx, args, rng):
-    """Closed loop through a real BeoNode: publish a cloud, wait for its estimate, repeat."""
+    """A real BeoNode fed by a rosbag2 replay (open loop) at fixed rates, plus a closed loop.
+
+    Open loop (the sustained rate): for every rate in ``--node-rates`` the bench bag is replayed
+    with :func:`beo_ros.ros.bag.replay` (real rclpy publisher, one cloud every 1/rate s, for
+    ``--node-duration`` s) whatever the node does; estimates out per second, stale drops (the
+    node keeps only the newest unprocessed cloud per topic), clouds lost in transport and
+    publish -> ``~/estimates`` latency are measured per rate. A rate is sustained when nothing
+    was dropped or lost. Closed loop (latency without queueing): the next cloud is published
+    when the previous estimate arrived.
+    """
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'OFF'
     try:
+        import tempfile
+
         import rclpy
+        from builtin_interfaces.msg import Time as TimeMsg
         from rclpy.context import Context
         from rclpy.executors import MultiThreadedExecutor
         from rclpy.parameter import Parameter
         from rclpy.qos import qos_profile_sensor_data
         from sensor_msgs.msg import PointCloud2
         from std_msgs.msg import Header
-        from builtin_interfaces.msg import Time as TimeMsg
 
-        from beo_ros.core.synthetic import random_partial_view, render_view_points
+        from beo_ros.ros.bag import replay
         from beo_ros.ros.conversions import interfaces, xyz_to_cloud
         from beo_ros.ros.node import BeoNode
         msgs = interfaces()
-    except Exception as e:  # noqa: BLE001 - ROS or interfaces missing
+    except Exception as e:  # noqa: BLE001 - ROS, rosbags or interfaces missing
         return {'skipped': f'{type(e).__name__}: {e}'}
 
-    clouds = []
-    for i in idx[:args.node_objects]:
-        occ = X[i].reshape((n,) * 3) > 0.5
-        _, yaw, az, el, _ = random_partial_view(occ, rng)
-        pts, origin = render_view_points(occ, yaw, az, el, rng=rng)
-        if len(pts) >= 100:  # the node rejects clouds below min_points; keep real objects
-            clouds.append((pts, origin))
+    clouds = _node_clouds(X, n, idx, args.node_objects, rng)
     if not clouds:
         return {'skipped': 'no objects'}
+    rates = sorted(float(r) for r in args.node_rates)
+    n_msgs = int(math.ceil(max(rates) * args.node_duration)) + 1
+    tmp = tempfile.TemporaryDirectory(prefix='beo_bench_bag_')
+    bag_path = Path(tmp.name) / 'clouds'
+    _write_node_bag(bag_path, clouds, n_msgs, xyz_to_cloud, Header, TimeMsg)
+
     ctx = Context()
     rclpy.init(context=ctx)
     node = client = executor = None
     try:
-        node = BeoNode('beo', context=ctx, bank=bank, parameter_overrides=[
-            Parameter('input_topics', value=['/beo/input']),
-            Parameter('sensor_origin', value=[float(v) for v in clouds[0][1]])])
+        overrides = [Parameter('input_topics', value=['/beo/input'])]
+        if args.node_workers:
+            overrides.append(Parameter('workers', value=int(args.node_workers)))
+        node = BeoNode('beo', context=ctx, bank=bank, parameter_overrides=overrides)
+        workers = int(node.get_parameter('workers').value)
         client = rclpy.create_node('beo_bench_client', context=ctx)
-        got = {}
+        got = {}   # header stamp (ns) -> perf_counter when the estimate arrived
         cond = threading.Condition()
 
         def on_est(m):
             with cond:
                 got[m.header.stamp.sec * 10**9 + m.header.stamp.nanosec] = time.perf_counter()
                 cond.notify_all()
-        client.create_subscription(msgs.ObjectEstimate, '/beo/estimates', on_est, 100)
+        client.create_subscription(msgs.ObjectEstimate, '/beo/estimates', on_est, 1000)
         pub = client.create_publisher(PointCloud2, '/beo/input', qos_profile_sensor_data)
         executor = MultiThreadedExecutor(num_threads=4, context=ctx)
         executor.add_node(node)
         executor.add_node(client)
         th = threading.Thread(target=executor.spin, daemon=True)
         th.start()
-        # all clouds are rendered from different origins; the node uses one sensor_origin
-        # parameter, so re-express each cloud relative to its own sensor (translate to origin 0)
 
         def send(j, stamp_ns):
-            pts, origin = clouds[j % len(clouds)]
-            node.set_parameters([Parameter('sensor_origin', value=[float(v) for v in origin])])
-            hdr = Header(frame_id='world', stamp=TimeMsg(sec=stamp_ns // 10**9,
-                                                         nanosec=stamp_ns % 10**9))
-            msg = xyz_to_cloud(pts, hdr)
+            hdr = Header(frame_id='camera', stamp=TimeMsg(sec=stamp_ns // 10**9,
+                                                          nanosec=stamp_ns % 10**9))
+            msg = xyz_to_cloud(clouds[j % len(clouds)], hdr)
             t = time.perf_counter()
             pub.publish(msg)
             return t
 
         # warm-up / discovery: republish until the first estimate arrives
         end = time.monotonic() + 60
-        stamp = 1
         while time.monotonic() < end and not got:
-            send(0, stamp)
+            send(0, 1)
             with cond:
                 cond.wait_for(lambda: bool(got), timeout=0.5)
         if not got:
             return {'skipped': 'no estimate from the node within 60 s'}
+
+        def settle(timeout=30.0):
+            """Wait until the node has accounted for every cloud it received and is idle."""
+            end = time.monotonic() + timeout
+            while time.monotonic() < end:
+                c = node.counters()
+                done = c['processed'] + c['dropped_stale'] + c['rejected'] + c['errors']
+                if done == c['received'] and not node._slots and node._in_flight == 0:
+                    time.sleep(0.3)  # clouds still in transit?
+                    if node.counters()['received'] == c['received']:
+                        return
+                time.sleep(0.02)
+
+        # ---- open loop: bag replay at fixed rates
+        per_rate = []
+        for rate in rates:
+            settle()
+            with cond:
+                got.clear()
+            c0 = node.counters()
+            n_send = max(int(round(rate * args.node_duration)), 1)
+            sent = {}
+            stop = threading.Event()
+
+            def on_publish(topic, data, stamp_ns, sent=sent, stop=stop, n_send=n_send):
+                sent[stamp_ns] = time.perf_counter()
+                if len(sent) >= n_send:
+                    stop.set()
+            stats = replay(bag_path, client, topics=['/beo/input'], rate=rate / BAG_HZ,
+                           stop=stop, on_publish=on_publish, wait_subscribers=1)
+            settle()
+            c1 = node.counters()
+            d = {k: c1[k] - c0.get(k, 0) for k in c1}
+            with cond:  # estimates of the published clouds reach the client
+                cond.wait_for(lambda: sum(k in sent for k in got) >= d['processed'], timeout=5)
+                arrived = {k: v for k, v in got.items() if k in sent}
+            lat = np.array([arrived[k] - sent[k] for k in arrived]) * 1e3
+            # output rate: estimates per second from the first to the last estimate
+            span = (max(arrived.values()) - min(arrived.values())) if arrived else 0.0
+            row = {
+                'rate_hz': rate, 'sent': len(sent),
+                'sent_per_s': (len(sent) - 1) / stats.wall_s if stats.wall_s > 0 else rate,
+                'received': d['received'], 'estimates': len(arrived),
+                'dropped_stale': d['dropped_stale'], 'rejected': d['rejected'],
+                'errors': d['errors'], 'lost': len(sent) - d['received'],
+                'missing_estimates': d['processed'] - len(arrived),
+                'order_waits': d.get('order_waits', 0),
+                'objects_per_s': (len(arrived) - 1) / span if span > 0 else 0.0,
+                'e2e_p50_ms': _pct(lat, 50), 'e2e_p95_ms': _pct(lat, 95),
+                'e2e_max_ms': float(lat.max()) if len(lat) else float('nan'),
+            }
+            row['sustained'] = bool(row['dropped_stale'] == 0 and row['lost'] == 0
+                                    and row['rejected'] == 0 and row['errors'] == 0
+                                    and row['estimates'] == row['sent'])
+            per_rate.append(row)
+            log(f"[node] {rate:g} Hz: {row['estimates']}/{row['sent']} estimates, "
+                f"{row['objects_per_s']:.2f} out/s, dropped {row['dropped_stale']}, "
+                f"lost {row['lost']}, e2e p50 {row['e2e_p50_ms']:.0f} ms "
+                f"p95 {row['e2e_p95_ms']:.0f} ms")
+
+        # ---- closed loop: latency without queueing
+        settle()
         lat, lost, busy = [], 0, 0.0
         for j in range(len(clouds) * args.node_rounds):
             stamp = 1000 + j
-            sent = send(j, stamp)
+            t_sent = send(j, stamp)
             with cond:
                 ok = cond.wait_for(lambda: stamp in got, timeout=30)
-            if ok:  # time waiting for lost clouds is not counted in the sustained rate
-                lat.append(got[stamp] - sent)
-                busy += time.perf_counter() - sent
+            if ok:  # time waiting for lost clouds is not counted in the rate
+                lat.append(got[stamp] - t_sent)
+                busy += time.perf_counter() - t_sent
             else:
                 lost += 1
-        total = max(busy, 1e-9)
         lat = np.asarray(lat) * 1e3
+        closed = {'objects': int(len(lat)), 'lost': int(lost),
+                  'objects_per_s': float(len(lat) / max(busy, 1e-9)),
+                  'e2e_p50_ms': _pct(lat, 50), 'e2e_p95_ms': _pct(lat, 95)}
         core = node.latency_p50()
-        return {
-            'objects': int(len(lat)), 'lost': int(lost),
-            'objects_per_s': float(len(lat) / total),
-            'e2e_p50_ms': float(np.percentile(lat, 50)) if len(lat) else float('nan'),
-            'e2e_p95_ms': float(np.percentile(lat, 95)) if len(lat) else float('nan'),
-            'node_stage_p50_ms': {k: v * 1e3 for k, v in core.items()},
-            'mode': 'closed loop (next cloud published when the previous estimate arrived), '
-                    'rendered clouds, in-process BeoNode, MultiThreadedExecutor',
-        }
+        counters = node.counters()
     finally:
         if executor is not None:
             executor.shutdown(timeout_sec=5.0)
@@ -368,6 +467,28 @@ def node_bench(bank, X, y, n, idx, args, rng):
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown(context=ctx)
+        tmp.cleanup()
+
+    sustained = [r for r in per_rate if r['sustained']]
+    best = max(sustained, key=lambda r: r['rate_hz']) if sustained else per_rate[0]
+    return {
+        # headline: the highest replay rate the node kept up with (no drops, nothing lost)
+        'objects_per_s': best['objects_per_s'], 'sustained_rate_hz': (
+            best['rate_hz'] if sustained else None),
+        'e2e_p50_ms': best['e2e_p50_ms'], 'e2e_p95_ms': best['e2e_p95_ms'],
+        'objects': int(best['estimates']), 'lost': int(best['lost']),
+        'dropped_stale': int(best['dropped_stale']),
+        'max_objects_per_s': max(r['objects_per_s'] for r in per_rate),
+        'rates': per_rate, 'closed_loop': closed, 'workers': workers,
+        'duration_s': float(args.node_duration), 'clouds': len(clouds),
+        'cloud_points_median': float(np.median([len(c) for c in clouds])),
+        'node_stage_p50_ms': {k: v * 1e3 for k, v in core.items()},
+        'node_counters': counters,
+        'mode': (f'open loop: rosbag2 of {len(clouds)} rendered clouds replayed with beo-replay\'s '
+                 f'replay() at {", ".join(f"{r:g}" for r in rates)} Hz for '
+                 f'{args.node_duration:g} s each into an in-process BeoNode (workers={workers}, '
+                 'MultiThreadedExecutor); sustained = no stale drops, nothing lost'),
+    }
 
 
 # ---------------------------------------------------------------------- output
@@ -472,10 +593,26 @@ def markdown(res):
         lines += ['', f"({sc.get('note')})", '']
     node = res.get('node') or {}
     if 'objects_per_s' in node:
-        lines += [f"Node (real rclpy, {node['objects']} objects, {node['lost']} lost): "
-                  f"{node['objects_per_s']:.2f} objects/s sustained, end-to-end publish -> "
+        sus = node.get('sustained_rate_hz')
+        lines += [f"Node (real rclpy, bag replay, workers={node.get('workers')}): "
+                  + (f"sustains {sus:g} Hz: {node['objects_per_s']:.2f} objects/s out, "
+                     if sus else 'sustains none of the rates; at the lowest: '
+                     f"{node['objects_per_s']:.2f} objects/s out, ")
+                  + f"{node['dropped_stale']} dropped, {node['lost']} lost, end-to-end publish -> "
                   f"estimate p50 {node['e2e_p50_ms']:.1f} ms, p95 {node['e2e_p95_ms']:.1f} ms; "
-                  f"{node['mode']}."]
+                  f"highest output rate {node.get('max_objects_per_s', float('nan')):.2f}/s; "
+                  f"{node['mode']}.", '']
+        if node.get('rates'):
+            lines += ['| replay Hz | sent | estimates | out/s | dropped stale | lost | '
+                      'e2e p50 ms | e2e p95 ms |', '|---|---|---|---|---|---|---|---|']
+            lines += [f"| {r['rate_hz']:g} | {r['sent']} | {r['estimates']} | "
+                      f"{r['objects_per_s']:.2f} | {r['dropped_stale']} | {r['lost']} | "
+                      f"{r['e2e_p50_ms']:.1f} | {r['e2e_p95_ms']:.1f} |" for r in node['rates']]
+        cl = node.get('closed_loop') or {}
+        if cl:
+            lines += ['', f"Closed loop ({cl['objects']} objects, {cl['lost']} lost): "
+                      f"{cl['objects_per_s']:.2f} objects/s, e2e p50 {cl['e2e_p50_ms']:.1f} ms, "
+                      f"p95 {cl['e2e_p95_ms']:.1f} ms."]
     else:
         lines += [f"Node: skipped ({node.get('skipped')})."]
     return '\n'.join(lines) + '\n'
@@ -527,8 +664,16 @@ def parse_args(argv):
     ap.add_argument('--scaling-classes', type=int, nargs='*', default=[2, 5, 10])
     ap.add_argument('--scaling-per-class', type=int, default=8)
     ap.add_argument('--scaling-queries', type=int, default=6)
-    ap.add_argument('--node-objects', type=int, default=20)
-    ap.add_argument('--node-rounds', type=int, default=1)
+    ap.add_argument('--node-objects', type=int, default=20,
+                    help='rendered clouds in the node bench bag (cycled)')
+    ap.add_argument('--node-rounds', type=int, default=1,
+                    help='closed-loop passes over the clouds (latency without queueing)')
+    ap.add_argument('--node-rates', type=float, nargs='+', default=[10, 15, 20, 25, 30],
+                    help='open-loop bag replay rates (Hz)')
+    ap.add_argument('--node-duration', type=float, default=8.0,
+                    help='seconds of replay per rate')
+    ap.add_argument('--node-workers', type=int, default=0,
+                    help="the node's workers parameter (0: its default)")
     args = ap.parse_args(argv)
     if args.quick:
         p = data_path(args.data)
@@ -548,6 +693,8 @@ def parse_args(argv):
         args.scaling_per_class = 4
         args.scaling_queries = 2
         args.node_objects = min(args.node_objects, 4)
+        args.node_rates = [2.0, 4.0]
+        args.node_duration = min(args.node_duration, 1.5)
     return args
 
 
@@ -625,7 +772,7 @@ def main(argv=None):
     if args.no_node:
         res['node'] = {'skipped': '--no-node'}
     else:
-        log('[node] closed-loop run through BeoNode')
+        log('[node] bag replay (open loop) and closed loop through BeoNode')
         res['node'] = node_bench(bank, X, y, n, te, args, np.random.default_rng(args.seed + 3))
     res['setup']['wall_s'] = time.perf_counter() - t_all
 
@@ -640,8 +787,11 @@ def main(argv=None):
               f"vs paper: {res['speedup_vs_paper']:.1f}x")
     node = res['node']
     if 'objects_per_s' in node:
-        print(f"node: {node['objects_per_s']:.2f} objects/s, end-to-end p50 "
-              f"{node['e2e_p50_ms']:.1f} ms, p95 {node['e2e_p95_ms']:.1f} ms")
+        print(f"node (workers={node['workers']}): sustains "
+              f"{node['sustained_rate_hz'] or 0:g} Hz replay, {node['objects_per_s']:.2f} "
+              f"objects/s out ({node['dropped_stale']} dropped, {node['lost']} lost), "
+              f"end-to-end p50 {node['e2e_p50_ms']:.1f} ms, p95 {node['e2e_p95_ms']:.1f} ms; "
+              f"highest output {node['max_objects_per_s']:.2f}/s")
     else:
         print(f"node: skipped ({node.get('skipped')})")
     print(f'wrote {out / "bench.json"}')

@@ -104,8 +104,21 @@ def test_quick_bench_smoke(tmp_path, capsys):
         assert sc[key], key
     assert {'n_train', 'beo_ms', 'icp_ms', 'beo_mb', 'icp_mb'} <= set(sc['train_objects'][0])
     assert 'node' in res
-    if 'skipped' not in res['node']:
-        assert res['node']['objects'] > 0 and res['node']['objects_per_s'] > 0
+    node = res['node']
+    if 'skipped' not in node:
+        assert node['objects'] > 0 and node['objects_per_s'] > 0
+        for key in ('e2e_p50_ms', 'e2e_p95_ms', 'max_objects_per_s'):
+            assert math.isfinite(node[key]) and node[key] > 0, key
+        assert node['workers'] >= 1 and node['rates']
+        for row in node['rates']:  # open loop: every cloud accounted for
+            assert row['sent'] > 0
+            assert row['received'] + row['lost'] == row['sent']
+            assert (row['estimates'] + row['dropped_stale'] + row['rejected'] + row['errors']
+                    + row['missing_estimates'] == row['received'])
+            assert row['sustained'] == (row['dropped_stale'] == 0 and row['lost'] == 0
+                                        and row['estimates'] == row['sent'])
+        assert node['closed_loop']['objects'] > 0
+        assert 'Node (real rclpy, bag replay' in (out / 'bench.md').read_text()
     assert _finite_numbers({k: v for k, v in res.items() if k != 'node'})
     for png in ('latency.png', 'accuracy.png', 'scaling.png'):
         assert (out / png).stat().st_size > 1000
