@@ -464,6 +464,37 @@ def test_two_workers_overlap_and_publish_each_topic_in_order(harness):
     harness.wait('estimates', pred=lambda m: m.header.frame_id == 'after')
 
 
+def test_bank_estimates_concurrently_like_serially(ros_tiny_model_dir):
+    """The node runs bank.estimate_points from several workers at once: same results."""
+    from beo_ros.core.bank import load_models
+    bank = load_models(ros_tiny_model_dir)
+    views = [box_view(centre=(2.0 + 0.1 * i, 0.2 * i - 0.3, 0.4), size=(0.3 + 0.1 * i, 0.35, 0.6),
+                      seed=i) for i in range(4)]
+    serial = [bank.estimate_points(v) for v in views]
+    results, errors = {}, []
+
+    def run(t):
+        try:
+            for r in range(3):
+                for i in (range(len(views)) if t % 2 == 0 else reversed(range(len(views)))):
+                    results[t, r, i] = bank.estimate_points(views[i])
+        except Exception as e:  # noqa: BLE001 - reported below
+            errors.append(e)
+
+    threads = [threading.Thread(target=run, args=(t,)) for t in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors, errors
+    assert len(results) == 3 * 3 * len(views)
+    for (t, r, i), est in results.items():
+        ref = serial[i]
+        assert est.label == ref.label and abs(est.yaw - ref.yaw) < 1e-9, (t, r, i)
+        np.testing.assert_allclose(est.completion, ref.completion, atol=1e-4)
+        np.testing.assert_allclose(est.pose, ref.pose, atol=1e-6)
+
+
 def test_bad_model_dir_refuses_to_start(ros_context, tmp_path):
     from beo_ros.ros.node import BeoNode, StartupError
     missing = tmp_path / 'no_such_models'
