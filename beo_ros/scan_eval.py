@@ -32,6 +32,8 @@ def add_arguments(ap):
     ap.add_argument('--max-iter', type=int, default=40, help='VBPCA iterations per refit')
     ap.add_argument('--no-congeal', dest='congeal', action='store_false',
                     help='do not yaw-align the training objects within each class')
+    ap.add_argument('--no-mirror', dest='mirror', action='store_false',
+                    help='do not add the mirror image (y flip) of every training grid')
     ap.add_argument('--voxel-size', type=float, default=0.5 / 32)
     ap.add_argument('--grid', type=int, default=32)
     ap.add_argument('--yaw-step', type=float, default=2.0, help='yaw search step (degrees)')
@@ -66,15 +68,22 @@ def circular_spread_deg(angles, period_deg=90.0):
     return float(mean), float(np.rad2deg(np.sqrt(-2 * np.log(r)) / k))
 
 
-def fit_models(objs, k, max_iter, congeal=True):
-    """Class models (ModelBank without classifier) from ScanObjects."""
+def fit_models(objs, k, max_iter, congeal=True, mirror=False):
+    """Class models (ModelBank without classifier) from ScanObjects.
+
+    ``mirror``: also train on the mirror image of every grid
+    (:func:`beo_ros.core.scan_training.mirror_augment`).
+    """
     from .core.bank import ModelBank
     from .core.congeal import congeal_classes
+    from .core.scan_training import mirror_augment
     from .core.training import fit_class_models
-    X, M = objs.X, objs.masks
+    X, M, y = objs.X, objs.masks, objs.y
+    if mirror:
+        X, y, M = mirror_augment(X, y, M, objs.spec.size)
     if congeal:
-        X, M = congeal_classes(X, objs.y, objs.spec.size, masks=M)
-    models = fit_class_models(X, objs.y, objs.names, objs.spec, k, M, max_iter=max_iter)
+        X, M = congeal_classes(X, y, objs.spec.size, masks=M)
+    models = fit_class_models(X, y, objs.names, objs.spec, k, M, max_iter=max_iter)
     return ModelBank(models, objs.spec)
 
 
@@ -105,6 +114,7 @@ def plot_completions(path, items, spec):
 
 
 def run(args) -> dict:
+    from .core.inference import FEATURE_NAMES
     from .core.scan_training import load_scan_objects
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -125,7 +135,7 @@ def run(args) -> dict:
         te = np.flatnonzero(held)
         scene = '+'.join(group)
         t0 = time.time()
-        bank = fit_models(objs.subset(~held), args.k, args.max_iter, args.congeal)
+        bank = fit_models(objs.subset(~held), args.k, args.max_iter, args.congeal, args.mirror)
         t_fit = time.time() - t0
         for i in te:
             est = bank.estimate(grids[i], yaw_step_deg=args.yaw_step)
@@ -133,8 +143,17 @@ def run(args) -> dict:
             T = objs.grid_to_input[i]
             pts = objs.points[i]
             pg = (np.linalg.inv(T) @ np.c_[pts, np.ones(len(pts))].T).T[:, :3]
+            h = pts @ objs.ups[i] + objs.plane_d[i]
+            ext = np.ptp(pg, axis=0) * spec.voxel_size
+            feats = bank.features(grids[i], yaw_step_deg=args.yaw_step)[0]
             rec = dict(scene=str(objs.scenes[i]), object=int(objs.object_ids[i]), true=names[objs.y[i]],
                        pred=est.label, correct=bool(pred == objs.y[i]),
+                       n_points=int(len(pts)), extent_cm=[round(float(e) * 100, 1) for e in ext],
+                       above_table_cm=round(float(h.min()) * 100, 1),
+                       n_occupied=int((grids[i] == 1).sum()),
+                       unknown_fraction=round(float((grids[i] < 0).mean()), 4),
+                       features={names[c]: dict(zip(FEATURE_NAMES, np.round(feats[c], 4).tolist()))
+                                 for c in range(len(names))},
                        scores={k: round(v, 4) for k, v in est.scores.items()},
                        yaw_deg=round(float(np.rad2deg(est.yaw)), 1),
                        footprint_deg=round(float(np.rad2deg(footprint_angle(pg))), 1),
@@ -157,7 +176,8 @@ def run(args) -> dict:
         protocol=('leave-one-scene-out' if len(groups) == len(scenes) else
                   f'{len(groups)}-fold leave-scenes-out (every scene held out once)') +
                  '; class models refit without the held-out scenes '
-                 f'(k={args.k}, max_iter={args.max_iter}, congeal={args.congeal}); '
+                 f'(k={args.k}, max_iter={args.max_iter}, congeal={args.congeal}, '
+                 f'mirror={args.mirror}); '
                  'max-likelihood class, full yaw search',
         n_objects=len(recs), n_scenes=len(scenes), n_folds=len(groups), classes=names,
         accuracy=round(float(np.mean(y_true == y_pred)), 4),

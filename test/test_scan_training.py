@@ -70,3 +70,24 @@ def test_shipped_tabletop_model_classifies_a_real_object():
     est = bank.estimate_points(pts, sensor_origin=(0, 0, 0), up=up, yaw_step_deg=3.0)
     assert est.label == 'cylinder', est.scores
     assert est.completed_points.shape[1] == 3 and len(est.completed_points) > 50
+
+
+def test_mirror_training_set_and_train_scan_bank(small_set, tmp_path):
+    from beo_ros import load_models
+    from beo_ros.core.scan_training import mirror_augment, train_scan_bank
+    s = small_set
+    n = s.spec.size
+    X, y, M = mirror_augment(s.X, s.y, s.masks, n)
+    m = len(s)
+    assert X.shape == (2 * m, n ** 3) and (y[:m] == y[m:]).all()
+    assert np.array_equal(X[m:].reshape(m, n, n, n), s.X.reshape(m, n, n, n)[:, :, ::-1])
+    assert M[m:].sum() == s.masks.sum()  # as many observed voxels as the originals
+    X5, y5, names, M5, spec = load_scan_training_set([OSD / 'learn0.pcd', OSD / 'learn33.pcd'],
+                                                     mirror=True)
+    assert len(X5) == len(y5) == len(M5) and len(X5) % 2 == 0
+    files = [OSD / f'learn{i}.pcd' for i in (0, 1, 33, 34)]
+    bank = train_scan_bank(files, k=2, max_iter=3)
+    assert bank.classes == ['box', 'cylinder'] and not bank.classifier  # max-likelihood rule
+    assert bank.training['mirror'] and bank.training['n_training_grids'] == 2 * m
+    bank.save(tmp_path / 'm')
+    assert load_models(tmp_path / 'm').classes == ['box', 'cylinder']

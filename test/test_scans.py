@@ -162,3 +162,34 @@ def test_osd_object_views(osd_scenes):
         w = object_view(pts, up, d, spec=GridSpec(32))
         occ = np.argwhere(w.grid == OCCUPIED)
         assert np.ptp(occ, axis=0).max() == 31
+
+
+def test_mirror_augment_is_the_view_of_the_mirrored_object():
+    """Mirroring a view grid (y flip) = voxelizing the mirrored object from the same camera."""
+    from beo_ros.core.scan_training import mirror_augment
+    scene, up, d = synthetic_scene()
+    pts = segment_objects(scene)[2]
+    v = object_view(pts, up, d)
+    # an asymmetric cut of the box (one half only 8 cm tall), so that the two views differ
+    keep = ((pts - pts.mean(axis=0)) @ np.cross(up, pts.mean(axis=0)) < 0) | (pts @ up + d < 0.08)
+    pts = pts[keep]
+    # mirror the points about the vertical plane through the camera and the object's centroid
+    z = up / np.linalg.norm(up)
+    c = pts.mean(axis=0)
+    x = c - z * (c @ z)
+    x /= np.linalg.norm(x)
+    n_y = np.cross(z, x)  # normal of the mirror plane (contains the camera, up and the centroid)
+    mirrored = pts - 2 * np.outer(pts @ n_y, n_y)
+    a, b = object_view(pts, up, d).grid, object_view(mirrored, up, d).grid
+    assert (a != b).sum() > 50  # the cut box is not mirror-symmetric
+    n = a.shape[0]
+    X = (a == OCCUPIED).reshape(1, -1).astype(np.float32)
+    M = (a != UNKNOWN).reshape(1, -1)
+    X2, y2, M2, g2 = mirror_augment(X, [1], M, n, groups=['s'])
+    assert X2.shape == (2, n ** 3) and list(y2) == [1, 1] and list(g2) == ['s', 's']
+    assert np.array_equal(X2[0], X[0]) and np.array_equal(M2[0], M[0])
+    flipped = np.where(M2[1], X2[1], -1).reshape(a.shape)
+    # equal up to the grid placement (the y centre is the middle of the observed y range)
+    best = min((flipped != np.roll(b, s, axis=1)).sum() for s in (-1, 0, 1))
+    assert best <= 0.01 * (b != 0).sum(), best
+    assert v.grid.shape == a.shape

@@ -163,15 +163,105 @@ def load_scan_objects(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32, voxel_s
                        np.array(T, dtype=np.float64))
 
 
+def mirror_augment(X, y, masks, n, groups=None) -> tuple:
+    """Append the left-right mirror image of every training grid (flip of the grid's y axis).
+
+    A scan grid is in the viewer frame (z up, x horizontal from the camera toward the object's
+    centroid, y = z x x, the grid's y centre at the middle of the observed y range, within a few
+    cm of the camera's vertical plane), so the mirror y -> -y keeps the camera where it was (same
+    elevation and distance, azimuth within a few degrees): the mirrored grid, with its mirrored
+    mask, is the view of the mirrored object from the same camera.
+    Boxes and cylinders are mirror-symmetric classes, so this doubles the training views without
+    inventing a viewpoint. Returns (X', y', masks'[, groups']) with the mirrored copies appended
+    after the originals (``groups``: e.g. scene ids, repeated so folds keep a pair together).
+    """
+    X = np.asarray(X)
+    m = len(X)
+
+    def flip(a):
+        return np.ascontiguousarray(a.reshape(m, n, n, n)[:, :, ::-1, :]).reshape(m, -1)
+
+    out = (np.concatenate([X, flip(X)]), np.concatenate([np.asarray(y), np.asarray(y)]),
+           np.concatenate([masks, flip(np.asarray(masks))]))
+    if groups is not None:
+        out += (np.concatenate([np.asarray(groups), np.asarray(groups)]),)
+    return out
+
+
 def load_scan_training_set(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32,
-                           voxel_size=0.5 / 32, verbose=False) -> tuple:
+                           voxel_size=0.5 / 32, verbose=False, mirror=False) -> tuple:
     """(X float32 (m, N^3), y (m,), names, masks bool (m, N^3), spec) for ``beo-train --scans``.
 
     See :func:`load_scan_objects` (which also returns scene ids, points and planes).
+    ``mirror``: append the mirror image of every grid (:func:`mirror_augment`); off by default
+    because ``beo-train`` folds its out-of-fold features over objects, and an object and its
+    mirror image in different folds would leak (use :func:`train_scan_bank`, which keeps pairs
+    and scenes together).
     """
     s = load_scan_objects(paths, scan_classes, grid, voxel_size, verbose)
+    if mirror:
+        X, y, M = mirror_augment(s.X, s.y, s.masks, s.spec.size)
+        return X, y, s.names, M, s.spec
     if verbose:
         counts = ', '.join(f'{n} {int((s.y == c).sum())}' for c, n in enumerate(s.names))
         print(f'{len(s)} scan objects ({counts}); {100 * (1 - s.masks.mean()):.0f} % of the '
               f'voxels unknown', file=sys.stderr)
     return s.X, s.y, s.names, s.masks, s.spec
+
+
+def train_scan_bank(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32, voxel_size=0.5 / 32,
+                    k=8, max_iter=200, mirror=True, congeal=False, verbose=False):
+    """Class models from labelled scans, with the maximum-likelihood class rule (no classifier).
+
+    The objects are voxelized as in :func:`load_scan_objects`, ``mirror`` appends the mirror image
+    of every grid (:func:`mirror_augment`), ``congeal`` yaw-aligns them within each class, and one
+    VBPCA model per class is fitted with the unknown voxels as missing data. These are the
+    settings the leave-one-scene-out evaluation (``beo-eval --scans``) measures.
+    """
+    import time
+    from .bank import ModelBank
+    from .training import fit_class_models
+    t0 = time.time()
+    s = load_scan_objects(paths, scan_classes, grid, voxel_size, verbose)
+    X, y, M = s.X, s.y, s.masks
+    if mirror:
+        X, y, M = mirror_augment(X, y, M, s.spec.size)
+    if congeal:
+        from .congeal import congeal_classes
+        X, M = congeal_classes(X, y, s.spec.size, masks=M, verbose=verbose)
+    models = fit_class_models(X, y, s.names, s.spec, k, M, max_iter=max_iter)
+    info = dict(inputs=[str(p) for p in paths], scan_classes=str(scan_classes), k=k,
+                max_iter=max_iter, mirror=bool(mirror), congeal=bool(congeal),
+                n_objects=int(len(s)), n_training_grids=int(len(X)), classifier_views=0,
+                rule='maximum likelihood', fit_seconds=round(time.time() - t0, 1))
+    return ModelBank(models, s.spec, None, info)
+
+
+def main(argv=None):
+    """``python -m beo_ros.core.scan_training learn*.pcd -o models/tabletop_32``."""
+    import argparse
+    ap = argparse.ArgumentParser(prog='python -m beo_ros.core.scan_training',
+                                 description=train_scan_bank.__doc__)
+    ap.add_argument('scans', nargs='+', help='labelled OSD PCD scenes')
+    ap.add_argument('-o', '--out', required=True, help='model directory to write')
+    ap.add_argument('--scan-classes', default=DEFAULT_SCAN_CLASSES)
+    ap.add_argument('--grid', type=int, default=32)
+    ap.add_argument('--voxel-size', type=float, default=0.5 / 32)
+    ap.add_argument('--k', type=int, default=8)
+    ap.add_argument('--max-iter', type=int, default=200)
+    ap.add_argument('--no-mirror', dest='mirror', action='store_false')
+    ap.add_argument('--congeal', action='store_true')
+    args = ap.parse_args(argv)
+    try:
+        bank = train_scan_bank(args.scans, args.scan_classes, args.grid, args.voxel_size, args.k,
+                               args.max_iter, args.mirror, args.congeal, verbose=True)
+        bank.save(args.out)
+    except (ValueError, OSError) as e:
+        print(f'scan_training: error: {e}', file=sys.stderr)
+        return 2
+    print(f'wrote {args.out}: {bank.classes}, {bank.training}', file=sys.stderr)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
