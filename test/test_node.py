@@ -321,7 +321,7 @@ def test_parameters_validated_and_runtime_changeable(harness, tmp_path):
                              ('min_points', 60000, 'max_points'),
                              ('model_dir', str(tmp_path / 'nope'), 'nope'),
                              ('input_topics', ['/other'], ''),
-                             ('workers', 3, ''), ('workers', 0, '')):
+                             ('workers', 3, ''), ('workers', 0, ''), ('blas_threads', 2, '')):
         r = set_(name, value)
         assert not r.successful, (name, value)
         assert why in r.reason
@@ -495,6 +495,27 @@ def test_bank_estimates_concurrently_like_serially(ros_tiny_model_dir):
         np.testing.assert_allclose(est.pose, ref.pose, atol=1e-6)
 
 
+def test_blas_threads_capped_while_the_node_lives(ros_context, ros_bank_source):
+    threadpoolctl = pytest.importorskip('threadpoolctl')
+    from beo_ros.ros.node import BeoNode
+
+    def blas_threads():
+        return [p['num_threads'] for p in threadpoolctl.threadpool_info()
+                if p['user_api'] == 'blas']
+
+    before = blas_threads()
+    model_dir, bank = ros_bank_source
+    base = [Parameter('model_dir', value=model_dir)] if model_dir else []
+    node = BeoNode(context=ros_context, bank=bank,
+                   parameter_overrides=base + [Parameter('blas_threads', value=1)])
+    try:
+        assert node.get_parameter('workers').value == 2
+        assert all(n == 1 for n in blas_threads())
+    finally:
+        node.destroy_node()
+    assert blas_threads() == before
+
+
 def test_bad_model_dir_refuses_to_start(ros_context, tmp_path):
     from beo_ros.ros.node import BeoNode, StartupError
     missing = tmp_path / 'no_such_models'
@@ -515,7 +536,7 @@ def test_bad_parameter_override_refuses_to_start(ros_context, ros_bank_source):
     base = [Parameter('model_dir', value=model_dir)] if model_dir else []
     for p in (Parameter('yaw_step_deg', value=90.0), Parameter('up_vector', value=[0.0, 0.0, 0.0]),
               Parameter('min_points', value=100), Parameter('workers', value=0),
-              Parameter('workers', value=65)):
+              Parameter('workers', value=65), Parameter('blas_threads', value=-1)):
         extra = [Parameter('max_points', value=50)] if p.name == 'min_points' else []
         with pytest.raises(StartupError, match=p.name):
             BeoNode(context=ros_context, bank=bank, parameter_overrides=base + [p] + extra)

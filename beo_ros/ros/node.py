@@ -134,11 +134,13 @@ class BeoNode(Node):
     def __init__(self, node_name: str = 'beo', *, bank=None, **kwargs):
         super().__init__(node_name, **kwargs)
         self._worker = None
+        self._blas_limits = None
         self._destroyed = False
         try:
             self._setup(bank)
         except BaseException:
             self._shutdown_worker()
+            self._restore_blas()
             super().destroy_node()
             self._destroyed = True
             raise
@@ -161,6 +163,7 @@ class BeoNode(Node):
 
         self._bank_lock = threading.Lock()  # serialises model reloads (the swap itself is atomic)
         self._n_workers = int(self.get_parameter('workers').value)
+        self._blas_limits = self._limit_blas_threads(int(self.get_parameter('blas_threads').value))
         # at most `workers` estimates run at once (worker threads and service calls together)
         self._est_slots = threading.Semaphore(self._n_workers)
         self._svc_waiting = 0
@@ -232,6 +235,27 @@ class BeoNode(Node):
         self._worker = self._workers[0]
         self.get_logger().info(f'listening on {self._topics} with {self._n_workers} worker(s)')
 
+    def _limit_blas_threads(self, n):
+        """Cap the BLAS thread pools of the process at ``n`` threads (0: leave them).
+
+        The workers already run estimates in parallel; a multi-threaded BLAS under each of them
+        oversubscribes the cores, and OpenBLAS's spinning threads then slow every estimate down
+        many times over when the machine is busy. Restored by destroy_node.
+        """
+        if n <= 0:
+            return None
+        try:
+            from threadpoolctl import threadpool_limits
+        except ImportError:
+            self.get_logger().warning('threadpoolctl is not installed: blas_threads is ignored')
+            return None
+        return threadpool_limits(limits=n, user_api='blas')
+
+    def _restore_blas(self):
+        limits, self._blas_limits = self._blas_limits, None
+        if limits is not None:
+            limits.restore_original_limits()
+
     def _declare_parameters(self):
         d = self.declare_parameter
         d('model_dir', default_model_dir(), ParameterDescriptor(
@@ -265,12 +289,15 @@ class BeoNode(Node):
         d('workers', 2, _idesc('Estimation worker threads (concurrent estimates, services '
                                'included); about one per CPU core. Read-only', 1, 64,
                                read_only=True))
+        d('blas_threads', 1, _idesc('Threads of the BLAS library for the whole process (0: '
+                                    'leave its default); parallelism comes from the workers. '
+                                    'Read-only', 0, 64, read_only=True))
 
     def _params(self) -> dict:
         return {p: self.get_parameter(p).value for p in (
             'model_dir', 'base_frame', 'sensor_origin', 'up_vector', 'yaw_step_deg',
             'min_points', 'max_points', 'completion_threshold', 'publish_completed',
-            'diagnostics_period', 'workers')}
+            'diagnostics_period', 'workers', 'blas_threads')}
 
     @staticmethod
     def _check(name, value, merged) -> str | None:
@@ -655,6 +682,7 @@ class BeoNode(Node):
             return
         self._destroyed = True
         self._shutdown_worker()
+        self._restore_blas()
         super().destroy_node()
 
 
