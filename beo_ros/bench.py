@@ -299,6 +299,62 @@ def _pct(a, q):
     return float(np.percentile(a, q)) if len(a) else float('nan')
 
 
+def _replay_probe(cfg_json=None):
+    """Child process of :func:`node_bench`: a separate ROS process, like ``ros2 bag play``
+    plus a consumer. Replays the bag at one rate until ``n`` clouds are sent and records, per
+    header stamp, when each cloud was published and when its ``~/estimates`` arrived
+    (``time.monotonic``: CLOCK_MONOTONIC, the same clock in every process). Prints JSON."""
+    cfg = json.loads(cfg_json if cfg_json is not None else sys.argv[1])
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+
+    from beo_ros.ros.bag import replay
+    from beo_ros.ros.conversions import interfaces
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=int(cfg['domain']))
+    node = rclpy.create_node('beo_bench_player', context=ctx)
+    sent, got = {}, {}
+    lock = threading.Lock()
+
+    def on_est(m):
+        with lock:
+            got[m.header.stamp.sec * 10**9 + m.header.stamp.nanosec] = time.monotonic()
+    node.create_subscription(interfaces().ObjectEstimate, '/beo/estimates', on_est, 1000)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    th = threading.Thread(target=ex.spin, daemon=True)
+    th.start()
+    end = time.monotonic() + 20
+    while node.count_publishers('/beo/estimates') < 1 and time.monotonic() < end:
+        time.sleep(0.05)
+    time.sleep(0.5)  # let the node's estimates publisher match our subscription
+    stop = threading.Event()
+    n = int(cfg['n'])
+
+    def on_publish(topic, data, stamp_ns):
+        sent[stamp_ns] = time.monotonic()
+        if len(sent) >= n:
+            stop.set()
+    stats = replay(cfg['bag'], node, topics=['/beo/input'], rate=float(cfg['rate']) / BAG_HZ,
+                   stop=stop, on_publish=on_publish, wait_subscribers=1, wait_timeout=20.0)
+    quiet = time.monotonic()
+    last = -1
+    while time.monotonic() - quiet < float(cfg.get('quiet_s', 1.5)):  # estimates still coming
+        time.sleep(0.05)
+        with lock:
+            if len(got) != last:
+                last, quiet = len(got), time.monotonic()
+    with lock:
+        print(json.dumps({'sent': {str(k): v for k, v in sent.items()},
+                          'got': {str(k): v for k, v in got.items()}, 'wall_s': stats.wall_s}),
+              flush=True)
+    rclpy.try_shutdown(context=ctx)   # ends ex.spin()
+    th.join(timeout=5.0)
+    ex.shutdown(timeout_sec=2.0)
+    node.destroy_node()
+
+
 def node_bench(bank, X, y, n, idx, args, rng):
     """A real BeoNode fed by a rosbag2 replay (open loop) at fixed rates, plus a closed loop.
 
@@ -310,8 +366,12 @@ def node_bench(bank, X, y, n, idx, args, rng):
     was dropped or lost. Closed loop (latency without queueing): the next cloud is published
     when the previous estimate arrived.
     """
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'OFF'
+    # the bag player runs in its own process (like ros2 bag play), so discovery stays on the
+    # local host, on a domain of our own
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    domain = 150 + os.getpid() % 80
     try:
+        import subprocess
         import tempfile
 
         import rclpy
@@ -323,7 +383,7 @@ def node_bench(bank, X, y, n, idx, args, rng):
         from sensor_msgs.msg import PointCloud2
         from std_msgs.msg import Header
 
-        from beo_ros.ros.bag import replay
+        import rosbags  # noqa: F401 - the bag and its player need it
         from beo_ros.ros.conversions import interfaces, xyz_to_cloud
         from beo_ros.ros.node import BeoNode
         msgs = interfaces()
@@ -340,7 +400,7 @@ def node_bench(bank, X, y, n, idx, args, rng):
     _write_node_bag(bag_path, clouds, n_msgs, xyz_to_cloud, Header, TimeMsg)
 
     ctx = Context()
-    rclpy.init(context=ctx)
+    rclpy.init(context=ctx, domain_id=domain)
     node = client = executor = None
     try:
         overrides = [Parameter('input_topics', value=['/beo/input'])]
@@ -401,27 +461,28 @@ def node_bench(bank, X, y, n, idx, args, rng):
                 got.clear()
             c0 = node.counters()
             n_send = max(int(round(rate * args.node_duration)), 1)
-            sent = {}
-            stop = threading.Event()
-
-            def on_publish(topic, data, stamp_ns, sent=sent, stop=stop, n_send=n_send):
-                sent[stamp_ns] = time.perf_counter()
-                if len(sent) >= n_send:
-                    stop.set()
-            stats = replay(bag_path, client, topics=['/beo/input'], rate=rate / BAG_HZ,
-                           stop=stop, on_publish=on_publish, wait_subscribers=1)
+            env = dict(os.environ, ROS_DOMAIN_ID=str(domain),
+                       ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+            cfg = json.dumps({'bag': str(bag_path), 'rate': rate, 'n': n_send,
+                              'domain': domain})
+            proc = subprocess.run(
+                [sys.executable, '-c', 'from beo_ros.bench import _replay_probe; _replay_probe()',
+                 cfg], env=env, capture_output=True, text=True, timeout=120 + 2 * n_send / rate)
+            if proc.returncode != 0:
+                raise RuntimeError(f'bag player failed: {proc.stderr[-2000:]}')
+            probe = json.loads(proc.stdout.strip().splitlines()[-1])
+            sent = {int(k): v for k, v in probe['sent'].items()}
             settle()
             c1 = node.counters()
             d = {k: c1[k] - c0.get(k, 0) for k in c1}
-            with cond:  # estimates of the published clouds reach the client
-                cond.wait_for(lambda: sum(k in sent for k in got) >= d['processed'], timeout=5)
-                arrived = {k: v for k, v in got.items() if k in sent}
+            arrived = {int(k): v for k, v in probe['got'].items() if int(k) in sent}
             lat = np.array([arrived[k] - sent[k] for k in arrived]) * 1e3
             # output rate: estimates per second from the first to the last estimate
             span = (max(arrived.values()) - min(arrived.values())) if arrived else 0.0
+            stats_wall = probe['wall_s']
             row = {
                 'rate_hz': rate, 'sent': len(sent),
-                'sent_per_s': (len(sent) - 1) / stats.wall_s if stats.wall_s > 0 else rate,
+                'sent_per_s': (len(sent) - 1) / stats_wall if stats_wall > 0 else rate,
                 'received': d['received'], 'estimates': len(arrived),
                 'dropped_stale': d['dropped_stale'], 'rejected': d['rejected'],
                 'errors': d['errors'], 'lost': len(sent) - d['received'],
@@ -484,10 +545,11 @@ def node_bench(bank, X, y, n, idx, args, rng):
         'cloud_points_median': float(np.median([len(c) for c in clouds])),
         'node_stage_p50_ms': {k: v * 1e3 for k, v in core.items()},
         'node_counters': counters,
-        'mode': (f'open loop: rosbag2 of {len(clouds)} rendered clouds replayed with beo-replay\'s '
-                 f'replay() at {", ".join(f"{r:g}" for r in rates)} Hz for '
-                 f'{args.node_duration:g} s each into an in-process BeoNode (workers={workers}, '
-                 'MultiThreadedExecutor); sustained = no stale drops, nothing lost'),
+        'mode': (f'open loop: rosbag2 of {len(clouds)} rendered clouds replayed by a separate '
+                 f'process (beo-replay\'s replay(), which also receives the estimates) at '
+                 f'{", ".join(f"{r:g}" for r in rates)} Hz for {args.node_duration:g} s each '
+                 f'into BeoNode (workers={workers}, MultiThreadedExecutor); sustained = no stale '
+                 'drops, nothing lost'),
     }
 
 
