@@ -383,7 +383,7 @@ def node_bench(bank, X, y, n, idx, args, rng):
         from sensor_msgs.msg import PointCloud2
         from std_msgs.msg import Header
 
-        import rosbags  # noqa: F401 - the bag and its player need it
+        __import__('rosbags')  # the bag and its player need it
         from beo_ros.ros.conversions import interfaces, xyz_to_cloud
         from beo_ros.ros.node import BeoNode
         msgs = interfaces()
