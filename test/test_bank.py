@@ -90,7 +90,8 @@ def test_estimate_contract(tiny, which):
     assert own == sorted(own, reverse=True)
     others = [x.score for x in h if x.label != best]
     assert others == sorted(others, reverse=True)
-    assert {'pose_and_features', 'classify', 'completion', 'total'} <= set(e.timings)
+    assert {'pose_and_features', 'classify', 'pose_refinement', 'completion',
+            'total'} <= set(e.timings)
     assert all(t >= 0 for t in e.timings.values())
     assert e.timings['total'] >= e.timings['pose_and_features']
     assert e.features.shape == (2, 6) and np.isfinite(e.features).all()

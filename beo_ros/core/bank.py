@@ -383,6 +383,7 @@ class ModelBank:
         mode = 'complete' if (grid < 0).mean() < 0.01 else 'partial'
         probs, unknown = self.classify_features(feats, mode)
         best = int(np.argmax(probs))
+        t_cls = time.perf_counter()
         if yaw is None and refine_deg > 0:
             per[best] = self._refine(grid, best, per[best], yaw_step_deg, refine_deg,
                                      stage2_step_deg, stage2_modes, stage2_window_deg)
@@ -403,7 +404,8 @@ class ModelBank:
             completion=completion, variance=variance,
             hypotheses=[Hypothesis(lab, float(np.mod(y + np.pi, 2 * np.pi) - np.pi), float(s))
                         for lab, y, s in hyps[:n_hypotheses]],
-            timings={'pose_and_features': t1 - t0, 'classify': t2 - t1, 'completion': t3 - t2,
+            timings={'pose_and_features': t1 - t0, 'classify': t_cls - t1,
+                     'pose_refinement': t2 - t_cls, 'completion': t3 - t2,
                      'total': t3 - t0},
             features=feats, grid=grid)
 

@@ -33,7 +33,8 @@ class Estimate:
         completion: float32 (N,N,N) occupancy probability.
         variance: float32 (N,N,N) predictive variance of the occupancy.
         hypotheses: top (class, yaw) hypotheses, best first.
-        timings: seconds per stage ('pose', 'completion', 'classify', 'total', ...).
+        timings: seconds per stage ('pose_and_features', 'classify', 'pose_refinement',
+            'completion', 'total'; 'voxelize' from ``estimate_points``).
         grid: int8 (N,N,N) labelled input grid (1 occupied, 0 free, -1 unknown).
         pose: float64 (4,4) object frame in the input frame (only from ``estimate_points``): the
             translation is the object centre in metres, the rotation is ``yaw`` about the up vector.
