@@ -115,8 +115,10 @@ def test_quick_bench_smoke(tmp_path, capsys):
             assert row['received'] + row['lost'] == row['sent']
             assert (row['estimates'] + row['dropped_stale'] + row['rejected'] + row['errors']
                     + row['missing_estimates'] == row['received'])
-            assert row['sustained'] == (row['dropped_stale'] == 0 and row['lost'] == 0
-                                        and row['estimates'] == row['sent'])
+            assert row['sustained'] == (row['dropped_stale'] <= 0.05 * row['sent']
+                                        and row['lost'] == 0 and row['rejected'] == 0
+                                        and row['errors'] == 0
+                                        and row['missing_estimates'] == 0)
         assert node['closed_loop']['objects'] > 0
         assert 'Node (real rclpy, bag replay' in (out / 'bench.md').read_text()
     assert _finite_numbers({k: v for k, v in res.items() if k != 'node'})

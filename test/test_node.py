@@ -321,7 +321,7 @@ def test_parameters_validated_and_runtime_changeable(harness, tmp_path):
                              ('min_points', 60000, 'max_points'),
                              ('model_dir', str(tmp_path / 'nope'), 'nope'),
                              ('input_topics', ['/other'], ''),
-                             ('workers', 3, ''), ('workers', 0, ''), ('blas_threads', 2, '')):
+                             ('workers', 2, ''), ('workers', 0, ''), ('blas_threads', 2, '')):
         r = set_(name, value)
         assert not r.successful, (name, value)
         assert why in r.reason
@@ -387,6 +387,13 @@ def harness1(ros_context, ros_bank_source):
     h.close()
 
 
+@pytest.fixture
+def harness2(ros_context, ros_bank_source):
+    h = Harness(ros_context, *ros_bank_source, workers=2)
+    yield h
+    h.close()
+
+
 def test_only_latest_cloud_per_topic_is_kept(harness1):
     """One worker busy: newer clouds replace unprocessed ones (counted as stale)."""
     harness = harness1
@@ -410,8 +417,9 @@ def test_only_latest_cloud_per_topic_is_kept(harness1):
     assert not node._slots
 
 
-def test_two_workers_keep_latest_cloud_and_in_flight_limit(harness):
+def test_two_workers_keep_latest_cloud_and_in_flight_limit(harness2):
     """Two workers busy with two clouds of one topic: a third waits, newer ones replace it."""
+    harness = harness2
     node = harness.node
     assert node.get_parameter('workers').value == 2
     assert node._warm.wait(TIMEOUT)  # the warm-up estimate is done
@@ -434,9 +442,10 @@ def test_two_workers_keep_latest_cloud_and_in_flight_limit(harness):
     assert c['received'] == c['processed'] + c['dropped_stale']
 
 
-def test_two_workers_overlap_and_publish_each_topic_in_order(harness):
+def test_two_workers_overlap_and_publish_each_topic_in_order(harness2):
     """A slow cloud and a fast later cloud of one topic are estimated at the same time, but
     the later one is published only after the earlier one."""
+    harness = harness2
     node = harness.node
     slow_pts, fast_pts = box_view(n=3000), box_view(n=1500)
     assert node._warm.wait(TIMEOUT)
@@ -509,7 +518,7 @@ def test_blas_threads_capped_while_the_node_lives(ros_context, ros_bank_source):
     node = BeoNode(context=ros_context, bank=bank,
                    parameter_overrides=base + [Parameter('blas_threads', value=1)])
     try:
-        assert node.get_parameter('workers').value == 2
+        assert node.get_parameter('workers').value == 1
         assert all(n == 1 for n in blas_threads())
     finally:
         node.destroy_node()

@@ -286,9 +286,9 @@ class BeoNode(Node):
             description='Publish ~/completed (x y z probability)',
             type=ParameterType.PARAMETER_BOOL))
         d('diagnostics_period', 1.0, _fdesc('Seconds between /diagnostics messages', 0.1, 60.0))
-        d('workers', 2, _idesc('Estimation worker threads (concurrent estimates, services '
-                               'included); about one per CPU core. Read-only', 1, 64,
-                               read_only=True))
+        d('workers', 1, _idesc('Estimation worker threads (concurrent estimates, services '
+                               'included); more than 1 helps only with idle cores to spare '
+                               '(the GIL). Read-only', 1, 64, read_only=True))
         d('blas_threads', 1, _idesc('Threads of the BLAS library for the whole process (0: '
                                     'leave its default); parallelism comes from the workers. '
                                     'Read-only', 0, 64, read_only=True))
