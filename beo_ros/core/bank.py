@@ -27,6 +27,9 @@ CLASS_KEYS = ('W', 'mean', 'noise_variance', 'coarse_noise_variance', 'loading_c
               'mean_variance', 'component_variance')
 OPTIONAL_CLASS_KEYS = ('coarse_noise_map',)
 MODES = ('complete', 'partial')
+# stage 1 (all classes, leading components) searches at this step; the chosen class is then
+# refined at the requested resolution, so a finer stage 1 costs time and gains nothing (measured)
+SEARCH_STEP_DEG = 2.0
 
 
 class ModelError(ValueError):
@@ -259,10 +262,11 @@ class ModelBank:
             raise ValueError('grid values must be 1 (occupied), 0 (free) or -1 (unknown)')
         return grid
 
-    def features(self, grid, yaw=None, yaw_step_deg=1.0, exhaustive=True):
-        """Per-class best yaw, exact posterior and features for a labelled grid.
+    def features(self, grid, yaw=None, yaw_step_deg=SEARCH_STEP_DEG, exhaustive=True):
+        """Per-class best yaw (stage-1 search every ``yaw_step_deg``), exact posterior and
+        features for a labelled grid.
 
-        Returns (features (C, F), list of per-class dicts: yaw, exact, hypotheses).
+        Returns (features (C, F), list of per-class dicts: yaw, exact, hypotheses, searched).
         """
         grid = self.check_grid(grid)
         if not 0.05 <= yaw_step_deg <= 90:
@@ -283,6 +287,7 @@ class ModelBank:
             yaws_c, ll_c = searched[c]
             modes = top_modes(ll_c, 3, max(1, int(round(20.0 / yaw_step_deg))))
             per.append(dict(yaw=float(best_yaw[c]), exact=ex, searched=searched[c],
+                            search_step_deg=float(yaw_step_deg),
                             hypotheses=[(float(yaws_c[i]), float(ll_c[i])) for i in modes]))
         return np.array(feats), per
 
@@ -337,7 +342,8 @@ class ModelBank:
             rows = None
             if stage2_modes:
                 sy, sl = per_c['searched']
-                m0 = top_modes(sl, stage2_modes, max(1, int(round(20.0 / step_deg))))
+                m0 = top_modes(sl, stage2_modes, max(1, int(round(
+                    20.0 / per_c.get('search_step_deg', step_deg)))))
                 r = np.rint(sy[m0] / step).astype(int)
                 w = int(round(stage2_window_deg / stage2_step_deg))
                 rows = np.unique((r[:, None] + np.arange(-w, w + 1)).ravel() % len(yaws))
@@ -360,25 +366,31 @@ class ModelBank:
         return best
 
     def estimate(self, grid, yaw=None, yaw_step_deg=1.0, n_hypotheses=5, exhaustive=True,
-                 refine_deg=3.0, stage2_step_deg=1.0, stage2_modes=6, stage2_window_deg=15.0):
+                 refine_deg=3.0, stage2_modes=6, stage2_window_deg=15.0, search_step_deg=None):
         """Classify, orient and complete one labelled grid (see :class:`Estimate`).
 
         Args:
             grid: int8 (N, N, N), 1 occupied, 0 free, -1 unknown, axes x, y, z, z up.
             yaw: if given (radians), no pose search is done.
-            exhaustive: score all 360 / yaw_step_deg yaws at once (default); False searches
-                coarse-to-fine (5 degree steps, then the best modes at yaw_step_deg).
-            refine_deg: the chosen class's yaw is re-solved exactly at full resolution within
-                +-refine_deg of the pooled optimum (0: off).
-            stage2_step_deg: the chosen class is re-scored on the pooled grid with all its
-                components (not only the leading ``pose_components``) at this step, within
-                +-stage2_window_deg of its ``stage2_modes`` best search modes (None: all yaws);
-                stage2_step_deg=None skips this.
-            yaw_step_deg: resolution of the yaw search (360 / step candidates).
+            yaw_step_deg: resolution of the returned yaw.
+            search_step_deg: step of the stage-1 search over all classes (default
+                max(SEARCH_STEP_DEG, yaw_step_deg)); its features feed the classifier.
+            exhaustive: stage 1 scores all 360 / search_step_deg yaws at once (default); False
+                searches coarse-to-fine (5 degree steps, then the best modes).
+            stage2_modes, stage2_window_deg: the chosen class is re-scored on the pooled grid
+                with all its components (not only the leading ``pose_components``) every
+                yaw_step_deg within +-stage2_window_deg of its ``stage2_modes`` best stage-1
+                modes (None: all yaws);
+            refine_deg: then it is re-solved exactly at full resolution within +-refine_deg
+                (0: no refinement at all, the stage-1 yaw is returned).
         """
         t0 = time.perf_counter()
         grid = self.check_grid(grid)
-        feats, per = self.features(grid, yaw, yaw_step_deg, exhaustive)
+        if not 0.05 <= yaw_step_deg <= 90:
+            raise ValueError(f'yaw_step_deg must be in [0.05, 90], got {yaw_step_deg}')
+        if search_step_deg is None:
+            search_step_deg = max(SEARCH_STEP_DEG, yaw_step_deg)
+        feats, per = self.features(grid, yaw, search_step_deg, exhaustive)
         t1 = time.perf_counter()
         mode = 'complete' if (grid < 0).mean() < 0.01 else 'partial'
         probs, unknown = self.classify_features(feats, mode)
@@ -386,7 +398,7 @@ class ModelBank:
         t_cls = time.perf_counter()
         if yaw is None and refine_deg > 0:
             per[best] = self._refine(grid, best, per[best], yaw_step_deg, refine_deg,
-                                     stage2_step_deg, stage2_modes, stage2_window_deg)
+                                     yaw_step_deg, stage2_modes, stage2_window_deg)
         t2 = time.perf_counter()
         completion, variance = self._completion(grid, per, probs, best)
         est_yaw = per[best]['yaw']
