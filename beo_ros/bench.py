@@ -407,6 +407,8 @@ def node_bench(bank, X, y, n, idx, args, rng):
         overrides = [Parameter('input_topics', value=['/beo/input'])]
         if args.node_workers:
             overrides.append(Parameter('workers', value=int(args.node_workers)))
+        if args.node_blas_threads is not None:
+            overrides.append(Parameter('blas_threads', value=int(args.node_blas_threads)))
         node = BeoNode('beo', context=ctx, bank=bank, parameter_overrides=overrides)
         workers = int(node.get_parameter('workers').value)
         client = rclpy.create_node('beo_bench_client', context=ctx)
@@ -741,6 +743,9 @@ def parse_args(argv):
                          'clouds dropped as stale (and none lost, rejected or unanswered)')
     ap.add_argument('--node-workers', type=int, default=0,
                     help="the node's workers parameter (0: its default)")
+    ap.add_argument('--node-blas-threads', type=int, default=None,
+                    help="the node's blas_threads parameter (default: the node's default; "
+                         "0: the BLAS library's own default)")
     args = ap.parse_args(argv)
     if args.quick:
         p = data_path(args.data)
