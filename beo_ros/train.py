@@ -31,6 +31,10 @@ def main(argv=None):
                     help='class:scene ranges for --scans, by the number in learnN.pcd')
     ap.add_argument('--voxel-size', type=float, default=0.5 / 32,
                     help='metres per voxel for --scans (metric grid)')
+    ap.add_argument('--mirror', action='store_true',
+                    help='--scans: also train on the mirror image of every scan grid (needs '
+                         '--views 0: out-of-fold folds over objects would split mirror pairs)')
+    ap.add_argument('--max-iter', type=int, default=200, help='VBPCA iterations per class (with --mirror)')
     ap.add_argument('--congeal', action='store_true',
                     help='align the yaw of unaligned training objects within each class')
     ap.add_argument('--views', type=int, default=1,
@@ -40,7 +44,20 @@ def main(argv=None):
     ap.add_argument('--seed', type=int, default=0)
     ap.add_argument('--oof-out', help='also save the out-of-fold features and records (npz)')
     args = ap.parse_args(argv)
+    if args.mirror and not (args.scans and args.views == 0):
+        ap.error('--mirror is for --scans with --views 0 (maximum-likelihood rule)')
     try:
+        if args.mirror:
+            from .core.scan_training import train_scan_bank
+            t0 = time.time()
+            bank = train_scan_bank(args.inputs, args.scan_classes, args.grid or 32,
+                                   args.voxel_size, args.k, args.max_iter, mirror=True,
+                                   congeal=args.congeal, verbose=True)
+            bank.save(args.out)
+            print(f'wrote {args.out}: {len(bank.classes)} classes {bank.classes}, '
+                  f'{bank.training["n_training_grids"]} training grids, '
+                  f'{time.time() - t0:.1f} s')
+            return 0
         if args.scans:
             from .core.scan_training import load_scan_training_set
             X, y, names, masks, spec = load_scan_training_set(

@@ -121,3 +121,14 @@ def test_help_exits_0(main, capsys):
         main(['--help'])
     assert ei.value.code == 0
     assert 'usage' in capsys.readouterr().out
+
+
+@pytest.mark.parametrize('extra', [[], ['--scans'], ['--scans', '--views', '1']])
+def test_train_mirror_needs_scans_without_classifier(tmp_path, capsys, extra):
+    # mirror pairs split over out-of-fold folds would leak into the classifier features
+    write_npz(tmp_path / 'd.npz', count=2)
+    with pytest.raises(SystemExit) as ei:
+        train.main([str(tmp_path / 'd.npz'), '-o', str(tmp_path / 'm'), '--mirror'] + extra)
+    assert ei.value.code == 2
+    assert '--mirror' in capsys.readouterr().err
+    assert not (tmp_path / 'm').exists()

@@ -235,33 +235,3 @@ def train_scan_bank(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32, voxel_siz
                 n_objects=int(len(s)), n_training_grids=int(len(X)), classifier_views=0,
                 rule='maximum likelihood', fit_seconds=round(time.time() - t0, 1))
     return ModelBank(models, s.spec, None, info)
-
-
-def main(argv=None):
-    """``python -m beo_ros.core.scan_training learn*.pcd -o models/tabletop_32``."""
-    import argparse
-    ap = argparse.ArgumentParser(prog='python -m beo_ros.core.scan_training',
-                                 description=train_scan_bank.__doc__)
-    ap.add_argument('scans', nargs='+', help='labelled OSD PCD scenes')
-    ap.add_argument('-o', '--out', required=True, help='model directory to write')
-    ap.add_argument('--scan-classes', default=DEFAULT_SCAN_CLASSES)
-    ap.add_argument('--grid', type=int, default=32)
-    ap.add_argument('--voxel-size', type=float, default=0.5 / 32)
-    ap.add_argument('--k', type=int, default=8)
-    ap.add_argument('--max-iter', type=int, default=200)
-    ap.add_argument('--no-mirror', dest='mirror', action='store_false')
-    ap.add_argument('--congeal', action='store_true')
-    args = ap.parse_args(argv)
-    try:
-        bank = train_scan_bank(args.scans, args.scan_classes, args.grid, args.voxel_size, args.k,
-                               args.max_iter, args.mirror, args.congeal, verbose=True)
-        bank.save(args.out)
-    except (ValueError, OSError) as e:
-        print(f'scan_training: error: {e}', file=sys.stderr)
-        return 2
-    print(f'wrote {args.out}: {bank.classes}, {bank.training}', file=sys.stderr)
-    return 0
-
-
-if __name__ == '__main__':
-    sys.exit(main())
