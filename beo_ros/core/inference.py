@@ -92,8 +92,10 @@ class InferenceEngine:
         self._PD, self._PT, self._iu = self._pooled_terms(range(self.C), self.kp)
         self._PD_c = [np.ascontiguousarray(self._PD[:, c]) for c in range(self.C)]
         self._PT_c = [np.ascontiguousarray(self._PT[:, c]) for c in range(self.C)]
-        self._full_terms = {}
         self._noise_maps = list(coarse_noise_maps or [None] * self.C)
+        self._full_terms = {}
+        for c in range(self.C):   # built here, not on first use: no slow first queries
+            self._build_full_terms(c)
         self._maps = {}
         self._full_maps = {}
         self._local = threading.local()
@@ -119,6 +121,13 @@ class InferenceEngine:
             PT = PT / noise
         return (np.ascontiguousarray(PD, dtype=np.float32),
                 np.ascontiguousarray(PT, dtype=np.float32), iu)
+
+    def _build_full_terms(self, c):
+        """Stage-2 arrays of class c: all k components, per-voxel noise if the class has it."""
+        noise = self._noise_maps[c]
+        PD, PT, iu = self._pooled_terms([c], self.k, noise)
+        inv = None if noise is None else np.append(1.0 / np.asarray(noise, np.float64), 0)
+        self._full_terms[c] = (PD[:, 0].copy(), PT[:, 0].copy(), iu, inv)
 
     # ------------------------------------------------------------------ pose search
     def _rotation_maps(self, yaws):
@@ -187,13 +196,7 @@ class InferenceEngine:
             AT = Tr @ self._PT.reshape(len(D) - 1, -1)
             vc = self.v_coarse[None, :]
         elif full:
-            noise = self._noise_maps[c]
-            terms = self._full_terms.get(c)
-            if terms is None:
-                PD, PT, iu = self._pooled_terms([c], self.k, noise)
-                inv = None if noise is None else np.append(1.0 / np.asarray(noise, np.float64), 0)
-                terms = self._full_terms[c] = (PD[:, 0].copy(), PT[:, 0].copy(), iu, inv)
-            PD, PT, iu, inv = terms
+            PD, PT, iu, inv = self._full_terms[c]
             if inv is not None:
                 return self._weighted_scores(Dr @ PD, Tr @ PT, np.take(TT, idx) @ inv[:-1], iu)
             C, AD, AT, kp = 1, Dr @ PD, Tr @ PT, self.k
