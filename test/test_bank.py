@@ -266,6 +266,31 @@ def test_exact_loglik_equals_dense_gaussian_marginal():
                                        atol=1e-8)
 
 
+def test_exact_posterior_with_few_known_voxels_and_small_noise():
+    # the known-voxel gram is the full gram minus the unknown rows' gram; with fewer known
+    # voxels than components and a small noise variance, float32 rounding of that difference
+    # made G = I + gram / v indefinite (LinAlgError inside fit_bank on ModelNet classes of 20)
+    n, k = 16, 6
+    rng = np.random.default_rng(3)
+    W = (rng.standard_normal((1, n ** 3, k)) * 3).astype(np.float32)
+    mu = rng.uniform(0, 1, (1, n ** 3)).astype(np.float32)
+    v = np.array([1e-4])
+    eng = InferenceEngine(W, mu, v, v, n, pose_components=2)
+    grid = np.full((n,) * 3, -1, dtype=np.int8)
+    grid[7:9, 7, 7] = 1
+    grid[8, 8, 8] = 0
+    ex = eng.exact(grid, 0, 0.0)
+    K = np.flatnonzero(ex['canon'] >= 0)
+    assert len(K) == 3 < k
+    y = (ex['canon'][K] == 1).astype(np.float64)
+    WK = W[0][K].astype(np.float64)
+    Cov = WK @ WK.T + v[0] * np.eye(len(K))
+    r = y - mu[0][K].astype(np.float64)
+    _, ld = np.linalg.slogdet(Cov)
+    dense = -0.5 * (len(K) * np.log(2 * np.pi) + ld + r @ np.linalg.solve(Cov, r))
+    np.testing.assert_allclose(ex['loglik'], dense, rtol=1e-6)
+
+
 def test_pooled_scores_equal_dense_gaussian_of_pooled_grid():
     # the coarse score of yaw 0 is the Gaussian marginal of the pooled occupancy fractions when
     # every voxel is known (D = 1): a dense check of the batched formula

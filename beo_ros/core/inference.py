@@ -168,7 +168,11 @@ class InferenceEngine:
         D = (pool2(known) / 8.0).ravel()
         T = (pool2(occ) / 8.0).ravel()
         TT = np.where(D > 0, T * T / np.maximum(D, 1e-6), 0.0)
-        return np.append(D, 1.0), np.append(T, 0.0), np.append(TT, 0.0).astype(np.float32)
+        # float32 throughout (D and T are multiples of 1/8: exact), so the gathers in scores()
+        # write into their float32 buffers without a cast
+        one, zero = np.float32(1.0), np.float32(0.0)
+        return (np.append(D, one), np.append(T, zero),
+                np.append(TT, zero).astype(np.float32))
 
     def scores(self, pooled, yaws, c=None, full=False, rows=None):
         """Pooled log-likelihood (Y, C) of every yaw for all classes, or (Y, 1) for class c.
@@ -276,11 +280,13 @@ class InferenceEngine:
         U = np.flatnonzero(canon < 0)
         O = np.flatnonzero(canon == 1)
         W, mu, v = self.W[c], self.mu[c], self.v[c]
-        # float32 products over the unknown rows (the float64 totals are precomputed)
-        WU, muU = np.take(W, U, axis=0), np.take(mu, U)
-        gram = self.gram[c] - (WU.T @ WU).astype(np.float64)
+        # float64: the known-voxel gram is a difference of two large sums, and G = I + gram / v
+        # with a small v amplifies float32 rounding into an indefinite matrix
+        WU = np.take(W, U, axis=0).astype(np.float64)
+        muU = np.take(mu, U)
+        gram = self.gram[c] - WU.T @ WU
         b = (np.take(W, O, axis=0).sum(axis=0, dtype=np.float64)
-             - (self.wmu[c] - (muU @ WU).astype(np.float64))) / v
+             - (self.wmu[c] - muU @ WU)) / v
         rr = (len(O) - 2 * np.take(mu, O).sum(dtype=np.float64) + self.mu2[c]
               - (muU.astype(np.float64) ** 2).sum())
         nk = self.d - len(U)
