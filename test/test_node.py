@@ -394,15 +394,20 @@ def harness2(ros_context, ros_bank_source):
     h.close()
 
 
+def _gated_node(harness, workers):
+    """The harness's node after its warm-up, with a bank that holds estimates at a gate."""
+    node = harness.node
+    assert node.get_parameter('workers').value == workers
+    assert node._warm.wait(TIMEOUT)  # the warm-up estimate is done
+    gated = node._bank = GatedBank(node._bank)
+    return node, gated, cloud(box_view())
+
+
 def test_only_latest_cloud_per_topic_is_kept(harness1):
     """One worker busy: newer clouds replace unprocessed ones (counted as stale)."""
     harness = harness1
-    node = harness.node
-    assert node.get_parameter('workers').value == 1
-    assert node._warm.wait(TIMEOUT)  # the warm-up estimate is done
-    gated = node._bank = GatedBank(node._bank)
+    node, gated, msg = _gated_node(harness, 1)
     try:
-        msg = cloud(box_view())
         node._on_cloud(msg, '/beo/input')
         gated.wait(lambda g: len(g.entered) == 1)
         for _ in range(5):
@@ -420,12 +425,8 @@ def test_only_latest_cloud_per_topic_is_kept(harness1):
 def test_two_workers_keep_latest_cloud_and_in_flight_limit(harness2):
     """Two workers busy with two clouds of one topic: a third waits, newer ones replace it."""
     harness = harness2
-    node = harness.node
-    assert node.get_parameter('workers').value == 2
-    assert node._warm.wait(TIMEOUT)  # the warm-up estimate is done
-    gated = node._bank = GatedBank(node._bank)
+    node, gated, msg = _gated_node(harness, 2)
     try:
-        msg = cloud(box_view())
         node._on_cloud(msg, '/beo/input')
         gated.wait(lambda g: len(g.entered) == 1)
         node._on_cloud(msg, '/beo/input')
