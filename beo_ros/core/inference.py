@@ -280,15 +280,22 @@ class InferenceEngine:
         U = np.flatnonzero(canon < 0)
         O = np.flatnonzero(canon == 1)
         W, mu, v = self.W[c], self.mu[c], self.v[c]
-        # float64: the known-voxel gram is a difference of two large sums, and G = I + gram / v
-        # with a small v amplifies float32 rounding into an indefinite matrix
-        WU = np.take(W, U, axis=0).astype(np.float64)
-        muU = np.take(mu, U)
-        gram = self.gram[c] - WU.T @ WU
-        b = (np.take(W, O, axis=0).sum(axis=0, dtype=np.float64)
-             - (self.wmu[c] - muU @ WU)) / v
-        rr = (len(O) - 2 * np.take(mu, O).sum(dtype=np.float64) + self.mu2[c]
-              - (muU.astype(np.float64) ** 2).sum())
+        # W_K^T W_K, W_K^T mu_K and |mu_K|^2 over the known voxels K, from whichever of K and U
+        # is smaller (the totals over all voxels are precomputed). float64: with few known
+        # voxels and a small v, float32 rounding of the difference made G indefinite
+        if 2 * len(U) <= self.d:
+            WU = np.take(W, U, axis=0).astype(np.float64)
+            muU = np.take(mu, U).astype(np.float64)
+            gram = self.gram[c] - WU.T @ WU
+            wmu = self.wmu[c] - muU @ WU
+            mu2 = self.mu2[c] - muU @ muU
+        else:
+            K = np.flatnonzero(canon >= 0)
+            WK = np.take(W, K, axis=0).astype(np.float64)
+            muK = np.take(mu, K).astype(np.float64)
+            gram, wmu, mu2 = WK.T @ WK, muK @ WK, muK @ muK
+        b = (np.take(W, O, axis=0).sum(axis=0, dtype=np.float64) - wmu) / v
+        rr = len(O) - 2 * np.take(mu, O).sum(dtype=np.float64) + mu2
         nk = self.d - len(U)
         G = np.eye(self.k) + gram / v
         quad, logdet, m = batched_cholesky_terms(G[None], b[None], lapack_below=2)
