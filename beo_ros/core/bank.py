@@ -65,11 +65,6 @@ class ClassModel:
                    component_variance=est.component_variance_.astype(np.float32))
 
 
-def coarse_noise_variance(X, est, n):
-    """Residual variance of 2x-pooled training grids X (m, n^3) under the fitted model."""
-    return coarse_noise(X, est, n)[0]
-
-
 def coarse_noise(X, est, n, shrink=100.0, floor=1e-4):
     """Residual variance of 2x-pooled training grids X (m, n^3) under the fitted model: the
     scalar over all voxels, and per pooled voxel (n^3 / 8,), shrunk toward the scalar as if

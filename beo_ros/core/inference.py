@@ -86,16 +86,15 @@ class InferenceEngine:
         self.wmu = np.einsum('cda,cd->ca', self.W, self.mu, dtype=np.float64)     # (C, k)
         self.mu2 = (self.mu.astype(np.float64) ** 2).sum(axis=1)                   # (C,)
         # coarse model: 2x pooled mean of the first kp components (stage 1: all classes) and
-        # of all k components (stage 2: one class at a time, built on first use)
+        # of all k components (stage 2: one class at a time)
         self.nc = n // 2
         self.kp = int(min(pose_components, self.k))
         self._PD, self._PT, self._iu = self._pooled_terms(range(self.C), self.kp)
         self._PD_c = [np.ascontiguousarray(self._PD[:, c]) for c in range(self.C)]
         self._PT_c = [np.ascontiguousarray(self._PT[:, c]) for c in range(self.C)]
-        self._noise_maps = list(coarse_noise_maps or [None] * self.C)
-        self._full_terms = {}
-        for c in range(self.C):   # built here, not on first use: no slow first queries
-            self._build_full_terms(c)
+        # built here, not on first use: no slow first queries
+        self._full_terms = [self._full_class_terms(c, noise) for c, noise in
+                            enumerate(coarse_noise_maps or [None] * self.C)]
         self._maps = {}
         self._full_maps = {}
         self._local = threading.local()
@@ -122,12 +121,12 @@ class InferenceEngine:
         return (np.ascontiguousarray(PD, dtype=np.float32),
                 np.ascontiguousarray(PT, dtype=np.float32), iu)
 
-    def _build_full_terms(self, c):
-        """Stage-2 arrays of class c: all k components, per-voxel noise if the class has it."""
-        noise = self._noise_maps[c]
+    def _full_class_terms(self, c, noise):
+        """Stage-2 arrays of class c: all k components, per-voxel noise (dc,) if given; returns
+        (PD, PT, iu, 1 / noise or None)."""
         PD, PT, iu = self._pooled_terms([c], self.k, noise)
-        inv = None if noise is None else np.append(1.0 / np.asarray(noise, np.float64), 0)
-        self._full_terms[c] = (PD[:, 0].copy(), PT[:, 0].copy(), iu, inv)
+        inv = None if noise is None else 1.0 / np.asarray(noise, np.float64)
+        return PD[:, 0].copy(), PT[:, 0].copy(), iu, inv
 
     # ------------------------------------------------------------------ pose search
     def _rotation_maps(self, yaws):
@@ -192,50 +191,43 @@ class InferenceEngine:
             buf = self._local.buf = np.empty((2, idx.size), dtype=np.float32)
         Dr = np.take(D, idx, out=buf[0, :idx.size].reshape(idx.shape))
         Tr = np.take(T, idx, out=buf[1, :idx.size].reshape(idx.shape))
-        tt = cnt @ TT.astype(np.float64)
-        neff = cnt @ D.astype(np.float64)
-        kp, iu = self.kp, self._iu
+        Y, inv = len(yaws), None
         if c is None:
-            C, AD = self.C, Dr @ self._PD.reshape(len(D) - 1, -1)
-            AT = Tr @ self._PT.reshape(len(D) - 1, -1)
-            vc = self.v_coarse[None, :]
+            dc = len(D) - 1
+            PD, PT, iu, kp, C = (self._PD.reshape(dc, -1), self._PT.reshape(dc, -1), self._iu,
+                                 self.kp, self.C)
         elif full:
             PD, PT, iu, inv = self._full_terms[c]
-            if inv is not None:
-                return self._weighted_scores(Dr @ PD, Tr @ PT, np.take(TT, idx) @ inv[:-1], iu)
-            C, AD, AT, kp = 1, Dr @ PD, Tr @ PT, self.k
-            vc = self.v_coarse[None, c:c + 1]
+            kp, C = self.k, 1
         else:
-            C, AD, AT = 1, Dr @ self._PD_c[c], Tr @ self._PT_c[c]
-            vc = self.v_coarse[None, c:c + 1]
-        npair, Y = len(iu[0]), len(yaws)
-        AD = AD.reshape(Y, C, -1).astype(np.float64)
-        AT = AT.reshape(Y, C, -1).astype(np.float64)
+            PD, PT, iu, kp, C = self._PD_c[c], self._PT_c[c], self._iu, self.kp, 1
+        AD = (Dr @ PD).reshape(Y, C, -1).astype(np.float64)
+        AT = (Tr @ PT).reshape(Y, C, -1).astype(np.float64)
+        if inv is not None:   # per-voxel noise, already divided into the terms
+            return self._loglik(AD[:, :, :-1], AT, (np.take(TT, idx) @ inv)[:, None],
+                                AD[:, :, -1], iu, kp)
+        # one noise variance per class: the TT and D sums are mat-vecs with the cell counts
+        vc = self.v_coarse[None, :] if c is None else self.v_coarse[None, c:c + 1]
+        tt = cnt @ TT.astype(np.float64)
+        neff = cnt @ D.astype(np.float64)
+        return self._loglik(AD / vc[..., None], AT / vc[..., None], tt[:, None] / vc,
+                            neff[:, None] * np.log(2 * np.pi * vc), iu, kp)
+
+    @staticmethod
+    def _loglik(AD, AT, tt, lognoise, iu, kp):
+        """Log-likelihood (Y, C) from noise-scaled sums over the rotated pooled cells:
+        AD (Y, C, npair + kp + 1) of D * [pairs | mu*W | mu^2] / noise, AT (Y, C, kp + 1) of
+        T * [W | mu] / noise, tt (Y, C) of TT / noise and lognoise (Y, C) of D log(2 pi noise)."""
+        Y, C = AD.shape[:2]
+        npair = len(iu[0])
         gram = np.zeros((Y, C, kp, kp))
         gram[:, :, iu[0], iu[1]] = AD[:, :, :npair]
         gram = gram + np.triu(gram, 1).swapaxes(2, 3)
-        mw, mm = AD[:, :, npair:npair + kp], AD[:, :, -1]
-        tw, tm = AT[:, :, :kp], AT[:, :, -1]
-        G = np.eye(kp) + gram / vc[..., None, None]
-        b = (tw - mw) / vc[..., None]
+        G = np.eye(kp) + gram
+        b = AT[:, :, :kp] - AD[:, :, npair:npair + kp]
         quad, logdet, _ = batched_cholesky_terms(G.reshape(-1, kp, kp), b.reshape(-1, kp))
-        rr = tt[:, None] - 2 * tm + mm
-        return -0.5 * (neff[:, None] * np.log(2 * np.pi * vc) + rr / vc
-                       - quad.reshape(Y, C) + logdet.reshape(Y, C))
-
-    def _weighted_scores(self, AD, AT, tt, iu):
-        """(Y, 1) log-likelihood from per-voxel-noise terms (see ``_pooled_terms``): AD (Y, m),
-        AT (Y, k+1), tt (Y,) = sum of TT / noise over the rotated cells."""
-        k, npair = self.k, len(iu[0])
-        AD, AT = AD.astype(np.float64), AT.astype(np.float64)
-        gram = np.zeros((len(AD), k, k))
-        gram[:, iu[0], iu[1]] = AD[:, :npair]
-        gram = gram + np.triu(gram, 1).swapaxes(1, 2)
-        G = np.eye(k) + gram
-        b = AT[:, :k] - AD[:, npair:npair + k]
-        quad, logdet, _ = batched_cholesky_terms(G, b)
-        rr = tt - 2 * AT[:, k] + AD[:, npair + k]
-        return (-0.5 * (AD[:, -1] + rr - quad + logdet))[:, None]
+        rr = tt - 2 * AT[:, :, kp] + AD[:, :, npair + kp]
+        return -0.5 * (lognoise + rr - quad.reshape(Y, C) + logdet.reshape(Y, C))
 
     def search(self, grid, step_deg=1.0, coarse_step_deg=5.0, n_modes=2, window_deg=None,
                exhaustive=False):
