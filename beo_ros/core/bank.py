@@ -261,16 +261,19 @@ class ModelBank:
         """Per-class best yaw (stage-1 search every ``yaw_step_deg``), exact posterior and
         features for a labelled grid.
 
-        Returns (features (C, F), list of per-class dicts: yaw, exact, hypotheses, searched).
+        Returns (features (C, F), list of per-class dicts: yaw, exact, hypotheses, searched,
+        search_step_deg, pooled (the grid's pooled weights, shared)).
         """
         grid = self.check_grid(grid)
         if not 0.05 <= yaw_step_deg <= 90:
             raise ValueError(f'yaw_step_deg must be in [0.05, 90], got {yaw_step_deg}')
         eng = self.engine
+        pooled = eng.pooled(grid)
         if yaw is None:
-            best_yaw, best_ll, searched = eng.search(grid, yaw_step_deg, exhaustive=exhaustive)
+            best_yaw, best_ll, searched = eng.search(grid, yaw_step_deg, exhaustive=exhaustive,
+                                                     pooled=pooled)
         else:
-            best_ll = eng.scores(eng.pooled(grid), [float(yaw)])[0]
+            best_ll = eng.scores(pooled, [float(yaw)])[0]
             best_yaw = np.full(eng.C, float(yaw))
             searched = [(np.array([float(yaw)]), best_ll[c:c + 1]) for c in range(eng.C)]
         edt_pad = np.append(observed_edt(grid).ravel(), 0.0)
@@ -282,7 +285,7 @@ class ModelBank:
             yaws_c, ll_c = searched[c]
             modes = top_modes(ll_c, 3, max(1, int(round(20.0 / yaw_step_deg))))
             per.append(dict(yaw=float(best_yaw[c]), exact=ex, searched=searched[c],
-                            search_step_deg=float(yaw_step_deg),
+                            search_step_deg=float(yaw_step_deg), pooled=pooled,
                             hypotheses=[(float(yaws_c[i]), float(ll_c[i])) for i in modes]))
         return np.array(feats), per
 
@@ -342,7 +345,10 @@ class ModelBank:
                 r = np.rint(sy[m0] / step).astype(int)
                 w = int(round(stage2_window_deg / stage2_step_deg))
                 rows = np.unique((r[:, None] + np.arange(-w, w + 1)).ravel() % len(yaws))
-            ll = self.engine.scores(self.engine.pooled(grid), yaws, c, full=True, rows=rows)[:, 0]
+            pooled = per_c.get('pooled')
+            if pooled is None:
+                pooled = self.engine.pooled(grid)
+            ll = self.engine.scores(pooled, yaws, c, full=True, rows=rows)[:, 0]
             if rows is not None:
                 full_ll = np.full(len(yaws), -np.inf)
                 full_ll[rows] = ll

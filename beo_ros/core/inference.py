@@ -230,15 +230,16 @@ class InferenceEngine:
         return -0.5 * (lognoise + rr - quad.reshape(Y, C) + logdet.reshape(Y, C))
 
     def search(self, grid, step_deg=1.0, coarse_step_deg=5.0, n_modes=2, window_deg=None,
-               exhaustive=False):
+               exhaustive=False, pooled=None):
         """Best yaw of every class on the pooled grid.
 
         Scores every class at ``coarse_step_deg`` in one batched product, then each class's
         ``n_modes`` best modes at ``step_deg`` within +-``window_deg`` (default: the coarse
         step); ``exhaustive`` scores all 360 / step_deg yaws instead.
+        ``pooled``: ``self.pooled(grid)`` if the caller has it already.
         Returns (best yaw (C,), best log-likelihood (C,), list of per-class (yaws, ll)).
         """
-        P = self.pooled(grid)
+        P = self.pooled(grid) if pooled is None else pooled
         step = np.deg2rad(step_deg)
         if exhaustive or coarse_step_deg <= step_deg:
             yaws = np.arange(int(round(2 * np.pi / step))) * step
