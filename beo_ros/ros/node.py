@@ -133,7 +133,7 @@ class BeoNode(Node):
 
     def __init__(self, node_name: str = 'beo', *, bank=None, **kwargs):
         super().__init__(node_name, **kwargs)
-        self._worker = None
+        self._workers = []
         self._blas_limits = None
         self._destroyed = False
         try:
@@ -232,7 +232,6 @@ class BeoNode(Node):
                          for i in range(self._n_workers)]
         for w in self._workers:
             w.start()
-        self._worker = self._workers[0]
         self.get_logger().info(f'listening on {self._topics} with {self._n_workers} worker(s)')
 
     def _limit_blas_threads(self, n):
@@ -665,16 +664,14 @@ class BeoNode(Node):
     # ------------------------------------------------------------------ teardown
     def _shutdown_worker(self):
         """Stop the worker threads; each finishes (and publishes) the cloud it is working on."""
-        workers = getattr(self, '_workers', None) or [getattr(self, '_worker', None)]
         cond = getattr(self, '_cond', None)
         if cond is not None:
             with cond:
                 self._stop = True
                 cond.notify_all()
         deadline = time.monotonic() + 30.0
-        for worker in workers:
-            if (worker is not None and worker.is_alive()
-                    and worker is not threading.current_thread()):
+        for worker in self._workers:
+            if worker.is_alive() and worker is not threading.current_thread():
                 worker.join(timeout=max(deadline - time.monotonic(), 0.1))
 
     def destroy_node(self):
