@@ -378,7 +378,6 @@ def node_bench(bank, X, y, n, idx, args, rng):
         import rclpy
         from builtin_interfaces.msg import Time as TimeMsg
         from rclpy.context import Context
-        from rclpy.executors import MultiThreadedExecutor
         from rclpy.parameter import Parameter
         from rclpy.qos import qos_profile_sensor_data
         from sensor_msgs.msg import PointCloud2
@@ -386,7 +385,7 @@ def node_bench(bank, X, y, n, idx, args, rng):
 
         __import__('rosbags')  # the bag and its player need it
         from beo_ros.ros.conversions import interfaces, xyz_to_cloud
-        from beo_ros.ros.node import BeoNode
+        from beo_ros.ros.node import BeoNode, make_executor
         msgs = interfaces()
     except Exception as e:  # noqa: BLE001 - ROS, rosbags or interfaces missing
         return {'skipped': f'{type(e).__name__}: {e}'}
@@ -409,8 +408,12 @@ def node_bench(bank, X, y, n, idx, args, rng):
             overrides.append(Parameter('workers', value=int(args.node_workers)))
         if args.node_blas_threads is not None:
             overrides.append(Parameter('blas_threads', value=int(args.node_blas_threads)))
+        if args.node_worker_processes is not None:
+            overrides.append(Parameter('worker_processes',
+                                       value=int(args.node_worker_processes)))
         node = BeoNode('beo', context=ctx, bank=bank, parameter_overrides=overrides)
-        workers = int(node.get_parameter('workers').value)
+        workers = int(node._n_workers)  # threads actually used (>= worker_processes)
+        procs = int(node.get_parameter('worker_processes').value)
         client = rclpy.create_node('beo_bench_client', context=ctx)
         got = {}   # header stamp (ns) -> perf_counter when the estimate arrived
         cond = threading.Condition()
@@ -421,7 +424,7 @@ def node_bench(bank, X, y, n, idx, args, rng):
                 cond.notify_all()
         client.create_subscription(msgs.ObjectEstimate, '/beo/estimates', on_est, 1000)
         pub = client.create_publisher(PointCloud2, '/beo/input', qos_profile_sensor_data)
-        executor = MultiThreadedExecutor(num_threads=4, context=ctx)
+        executor = make_executor(ctx)  # the executor of beo-node
         executor.add_node(node)
         executor.add_node(client)
         th = threading.Thread(target=executor.spin, daemon=True)
@@ -545,6 +548,7 @@ def node_bench(bank, X, y, n, idx, args, rng):
         'dropped_stale': int(best['dropped_stale']),
         'max_objects_per_s': max(r['objects_per_s'] for r in per_rate),
         'rates': per_rate, 'closed_loop': closed, 'workers': workers,
+        'worker_processes': procs,
         'duration_s': float(args.node_duration), 'clouds': len(clouds),
         'cloud_points_median': float(np.median([len(c) for c in clouds])),
         'node_stage_p50_ms': {k: v * 1e3 for k, v in core.items()},
@@ -552,7 +556,8 @@ def node_bench(bank, X, y, n, idx, args, rng):
         'mode': (f'open loop: rosbag2 of {len(clouds)} rendered clouds replayed by a separate '
                  f'process (beo-replay\'s replay(), which also receives the estimates) at '
                  f'{", ".join(f"{r:g}" for r in rates)} Hz for {args.node_duration:g} s each '
-                 f'into BeoNode (workers={workers}, MultiThreadedExecutor); sustained = stale '
+                 f'into BeoNode (workers={workers}, worker_processes={procs}, '
+                 f'SingleThreadedExecutor); sustained = stale '
                  f'drops <= {args.node_max_drop:g} of the clouds, nothing lost'),
     }
 
@@ -660,7 +665,8 @@ def markdown(res):
     node = res.get('node') or {}
     if 'objects_per_s' in node:
         sus = node.get('sustained_rate_hz')
-        lines += [f"Node (real rclpy, bag replay, workers={node.get('workers')}): "
+        lines += [f"Node (real rclpy, bag replay, workers={node.get('workers')}, "
+                  f"worker_processes={node.get('worker_processes', 0)}): "
                   + (f"sustains {sus:g} Hz: {node['objects_per_s']:.2f} objects/s out, "
                      if sus else 'sustains none of the rates; at the lowest: '
                      f"{node['objects_per_s']:.2f} objects/s out, ")
@@ -743,6 +749,8 @@ def parse_args(argv):
                          'clouds dropped as stale (and none lost, rejected or unanswered)')
     ap.add_argument('--node-workers', type=int, default=0,
                     help="the node's workers parameter (0: its default)")
+    ap.add_argument('--node-worker-processes', type=int, default=None,
+                    help="the node's worker_processes parameter (default: its default)")
     ap.add_argument('--node-blas-threads', type=int, default=None,
                     help="the node's blas_threads parameter (default: the node's default; "
                          "0: the BLAS library's own default)")
@@ -859,7 +867,8 @@ def main(argv=None):
               f"vs paper: {res['speedup_vs_paper']:.1f}x")
     node = res['node']
     if 'objects_per_s' in node:
-        print(f"node (workers={node['workers']}): sustains "
+        print(f"node (workers={node['workers']}, "
+              f"worker_processes={node.get('worker_processes', 0)}): sustains "
               f"{node['sustained_rate_hz'] or 0:g} Hz replay, {node['objects_per_s']:.2f} "
               f"objects/s out ({node['dropped_stale']} dropped, {node['lost']} lost), "
               f"end-to-end p50 {node['e2e_p50_ms']:.1f} ms, p95 {node['e2e_p95_ms']:.1f} ms; "

@@ -321,7 +321,8 @@ def test_parameters_validated_and_runtime_changeable(harness, tmp_path):
                              ('min_points', 60000, 'max_points'),
                              ('model_dir', str(tmp_path / 'nope'), 'nope'),
                              ('input_topics', ['/other'], ''),
-                             ('workers', 2, ''), ('workers', 0, ''), ('blas_threads', 2, '')):
+                             ('workers', 2, ''), ('workers', 0, ''), ('blas_threads', 2, ''),
+                             ('worker_processes', 1, '')):
         r = set_(name, value)
         assert not r.successful, (name, value)
         assert why in r.reason
@@ -546,7 +547,110 @@ def test_bad_parameter_override_refuses_to_start(ros_context, ros_bank_source):
     base = [Parameter('model_dir', value=model_dir)] if model_dir else []
     for p in (Parameter('yaw_step_deg', value=90.0), Parameter('up_vector', value=[0.0, 0.0, 0.0]),
               Parameter('min_points', value=100), Parameter('workers', value=0),
-              Parameter('workers', value=65), Parameter('blas_threads', value=-1)):
+              Parameter('workers', value=65), Parameter('blas_threads', value=-1),
+              Parameter('worker_processes', value=-1), Parameter('worker_processes', value=65)):
         extra = [Parameter('max_points', value=50)] if p.name == 'min_points' else []
         with pytest.raises(StartupError, match=p.name):
             BeoNode(context=ros_context, bank=bank, parameter_overrides=base + [p] + extra)
+
+
+@pytest.fixture
+def harness_procs(ros_context, ros_bank_source):
+    h = Harness(ros_context, *ros_bank_source, worker_processes=2)
+    yield h
+    h.close()
+
+
+def _alive(pid):
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:  # a zombie (exited, not yet reaped) counts as gone
+        with open(f'/proc/{pid}/stat') as f:
+            return f.read().rsplit(')', 1)[1].split()[0] != 'Z'
+    except OSError:
+        return False
+
+
+def test_worker_processes_estimate_like_in_process(harness_procs, tmp_path):
+    """worker_processes=2: estimates come from the processes (2 worker threads feed them),
+    same result as the node's own bank; a model reload replaces the processes."""
+    harness = harness_procs
+    node = harness.node
+    assert node._n_workers == 2 and len(node._pool.pids) == 2
+    pts = box_view()
+    msg = cloud(pts)
+    est = harness.wait('estimates', republish=msg)[0]
+    ref = node._bank.estimate_points(cloud_to_xyz(msg)[0])
+    assert est.label == ref.label
+    assert list(est.class_names) == list(node._bank.classes)
+    np.testing.assert_allclose(pose_to_matrix(est.pose), ref.pose, atol=1e-6)
+    harness.wait('completed', republish=msg)
+    r = harness.call(harness.complete, harness.good_request(complete=True))
+    assert r.success and r.completed_cloud.width > 0, r.message
+    req = harness.good_request()
+    req.cloud = cloud(box_view()[:5])
+    r = harness.call(harness.classify, req)
+    assert not r.success and 'points' in r.message
+    diag = harness.wait('diag', pred=lambda m: any(
+        kv.key == 'worker_processes' for kv in m.status[0].values))[-1].status[0]
+    values = {kv.key: kv.value for kv in diag.values}
+    assert values['worker_processes'] == '2' and values['worker_restarts'] == '0'
+    model_dir = node.get_parameter('model_dir').value
+    if model_dir:
+        import shutil
+        old = list(node._pool.pids)
+        copy = tmp_path / 'models_copy'
+        shutil.copytree(model_dir, copy)
+        assert node.set_parameters([Parameter('model_dir', value=str(copy))])[0].successful
+        assert set(node._pool.pids).isdisjoint(old)
+        assert harness.call(harness.classify, harness.good_request()).success
+        end = time.monotonic() + 10
+        while any(map(_alive, old)) and time.monotonic() < end:
+            time.sleep(0.05)
+        assert not any(map(_alive, old))
+    assert node.counters()['errors'] == 0
+
+
+def test_killed_worker_process_is_replaced(harness_procs):
+    """A worker process killed (idle or mid-estimate): logged, counted, processes restarted,
+    the stream goes on."""
+    import signal
+    harness = harness_procs
+    node = harness.node
+    assert node._warm.wait(TIMEOUT)
+    old = list(node._pool.pids)
+    os.kill(old[0], signal.SIGKILL)
+    harness.wait('estimates', republish=cloud(box_view()))
+    c = harness.wait_counter(lambda c: c['worker_restarts'] == 1)
+    new = list(node._pool.pids)
+    assert len(new) == 2 and set(new).isdisjoint(old)
+    assert not any(map(_alive, old))
+    # both killed, probably while estimating: a cloud in flight is tried again on the new
+    # processes (else the next request finds the pool broken and restarts it)
+    processed = c['processed']
+    node._on_cloud(cloud(box_view(n=30000)), '/beo/input')
+    for pid in new:
+        os.kill(pid, signal.SIGKILL)
+    harness.wait_counter(lambda c: c['processed'] > processed)
+    assert harness.call(harness.classify, harness.good_request()).success
+    c = harness.wait_counter(lambda c: c['worker_restarts'] == 2)
+    assert c['errors'] == 0 and c['service_failures'] == 0 and not any(map(_alive, new))
+
+
+def test_worker_processes_stop_with_the_node(ros_context, ros_bank_source):
+    from beo_ros.ros.node import BeoNode
+    model_dir, bank = ros_bank_source
+    base = [Parameter('model_dir', value=model_dir)] if model_dir else []
+    node = BeoNode(context=ros_context, bank=bank, parameter_overrides=base + [
+        Parameter('worker_processes', value=1), Parameter('workers', value=1)])
+    pids = list(node._pool.pids)
+    assert node._n_workers == 1 and len(pids) == 1 and _alive(pids[0])
+    r = node.set_parameters([Parameter('worker_processes', value=2)])[0]
+    assert not r.successful
+    t0 = time.monotonic()
+    node.destroy_node()
+    assert time.monotonic() - t0 < 10
+    assert node._pool is None and not _alive(pids[0])
+    node.destroy_node()  # idempotent

@@ -10,10 +10,12 @@ publishes, in the input cloud's frame:
 - ``/diagnostics`` diagnostic_msgs/DiagnosticArray (rates, stage latencies, counters).
 
 Services ``~/classify`` and ``~/complete`` take one cloud each. Each input topic keeps only its
-latest unprocessed cloud; ``workers`` worker threads do the estimation (numpy/BLAS and open3d
-release the GIL, so they overlap on several cores) and services stay responsive. Results of one
-topic are published in the order its clouds were received, even when several of its clouds are
-in flight on different workers.
+latest unprocessed cloud; ``workers`` worker threads convert, estimate and publish, so services
+stay responsive. With ``worker_processes`` N > 0 the threads hand the estimates to N spawned
+processes, each with its own copy of the model bank, so N estimates run in parallel without
+sharing the node's GIL (an embedding script then needs the ``if __name__ == '__main__':``
+guard of multiprocessing's spawn). Results of one topic are published in the order its clouds
+were received, even when several of its clouds are in flight on different workers.
 """
 from __future__ import annotations
 
@@ -31,7 +33,7 @@ from geometry_msgs.msg import PoseStamped
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 ParameterType, SetParametersResult)
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 from rclpy.time import Time
@@ -41,6 +43,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from beo_ros.ros.conversions import (CloudFormatError, cloud_to_xyz, completed_cloud,
                                      estimate_to_msg, interfaces, object_dimensions)
+from beo_ros.ros.procpool import BrokenProcessPool, EstimatorPool, PoolRetired, warm_up_points
 
 try:  # optional: TF gives the up vector when base_frame is set
     import tf2_ros
@@ -135,11 +138,15 @@ class BeoNode(Node):
         super().__init__(node_name, **kwargs)
         self._workers = []
         self._blas_limits = None
+        self._pool = None
+        self._pool_lock = threading.Lock()  # pool creation, replacement and shutdown
+        self._pool_closed = False
         self._destroyed = False
         try:
             self._setup(bank)
         except BaseException:
             self._shutdown_worker()
+            self._shutdown_pool()
             self._restore_blas()
             super().destroy_node()
             self._destroyed = True
@@ -156,13 +163,16 @@ class BeoNode(Node):
             self._declare_parameters()
         except Exception as e:  # out-of-range / wrong-type overrides
             raise StartupError(f'invalid parameter: {type(e).__name__}: {e}') from e
-        for name in ('sensor_origin', 'up_vector', 'min_points', 'max_points', 'workers'):
+        for name in ('sensor_origin', 'up_vector', 'min_points', 'max_points', 'workers',
+                     'worker_processes'):
             reason = self._check(name, self.get_parameter(name).value, self._params())
             if reason:
                 raise StartupError(f'invalid parameter: {reason}')
 
         self._bank_lock = threading.Lock()  # serialises model reloads (the swap itself is atomic)
-        self._n_workers = int(self.get_parameter('workers').value)
+        self._n_procs = int(self.get_parameter('worker_processes').value)
+        # each process is fed by a thread of its own
+        self._n_workers = max(int(self.get_parameter('workers').value), self._n_procs)
         self._blas_limits = self._limit_blas_threads(int(self.get_parameter('blas_threads').value))
         # at most `workers` estimates run at once (worker threads and service calls together)
         self._est_slots = threading.Semaphore(self._n_workers)
@@ -173,13 +183,23 @@ class BeoNode(Node):
             bank = load_bank(model_dir)
             self.get_logger().info(f"loaded models from '{model_dir}': classes {bank.classes}")
         self._bank = bank
+        if self._n_procs:
+            t0 = time.monotonic()
+            try:
+                self._pool = self._new_pool(bank)
+            except Exception as e:
+                raise StartupError(f'cannot start {self._n_procs} worker process(es) '
+                                   f'({type(e).__name__}: {e}); a script that creates the '
+                                   "node needs the if __name__ == '__main__': guard") from e
+            self.get_logger().info(f'{self._n_procs} worker process(es) ready in '
+                                   f'{time.monotonic() - t0:.1f} s')
 
         self._stats_lock = threading.Lock()
         self._counters = collections.Counter({k: 0 for k in (
             'received', 'processed', 'dropped_stale', 'order_waits', 'rejected',
             'rejected_format',
             'rejected_too_few_points', 'errors', 'downsampled', 'nonfinite_points',
-            'service_calls', 'service_failures')})
+            'service_calls', 'service_failures', 'worker_restarts')})
         self._latency = collections.defaultdict(lambda: collections.deque(maxlen=LATENCY_WINDOW))
         self._last_diag = (time.monotonic(), collections.Counter(self._counters))
 
@@ -232,7 +252,13 @@ class BeoNode(Node):
                          for i in range(self._n_workers)]
         for w in self._workers:
             w.start()
-        self.get_logger().info(f'listening on {self._topics} with {self._n_workers} worker(s)')
+        procs = f' and {self._n_procs} worker process(es)' if self._n_procs else ''
+        self.get_logger().info(f'listening on {self._topics} with {self._n_workers} worker '
+                               f'thread(s){procs}')
+
+    def _new_pool(self, bank):
+        """Worker processes with a copy of ``bank``, warmed up (blocks for a few seconds)."""
+        return EstimatorPool(self._n_procs, bank, int(self.get_parameter('blas_threads').value))
 
     def _limit_blas_threads(self, n):
         """Cap the BLAS thread pools of the process at ``n`` threads (0: leave them).
@@ -287,17 +313,22 @@ class BeoNode(Node):
             type=ParameterType.PARAMETER_BOOL))
         d('diagnostics_period', 1.0, _fdesc('Seconds between /diagnostics messages', 0.1, 60.0))
         d('workers', 1, _idesc('Estimation worker threads (concurrent estimates, services '
-                               'included); more than 1 helps only with idle cores to spare '
+                               'included); at least worker_processes are used. Without worker '
+                               'processes more than 1 helps only with idle cores to spare '
                                '(the GIL). Read-only', 1, 64, read_only=True))
-        d('blas_threads', 1, _idesc('Threads of the BLAS library for the whole process (0: '
-                                    'leave its default); parallelism comes from the workers. '
-                                    'Read-only', 0, 64, read_only=True))
+        d('worker_processes', 0, _idesc('Processes that run the estimates, each with its own '
+                                        'copy of the models (0: in the worker threads); '
+                                        'several estimate in parallel without sharing the '
+                                        "node's GIL. Read-only", 0, 64, read_only=True))
+        d('blas_threads', 1, _idesc('Threads of the BLAS library for the node process and '
+                                    'each worker process (0: leave its default); parallelism '
+                                    'comes from the workers. Read-only', 0, 64, read_only=True))
 
     def _params(self) -> dict:
         return {p: self.get_parameter(p).value for p in (
             'model_dir', 'base_frame', 'sensor_origin', 'up_vector', 'yaw_step_deg',
             'min_points', 'max_points', 'completion_threshold', 'publish_completed',
-            'diagnostics_period', 'workers', 'blas_threads')}
+            'diagnostics_period', 'workers', 'worker_processes', 'blas_threads')}
 
     @staticmethod
     def _check(name, value, merged) -> str | None:
@@ -311,6 +342,8 @@ class BeoNode(Node):
                     f"({merged['max_points']})")
         if name == 'workers' and not (isinstance(value, int) and 1 <= value <= 64):
             return f'workers must be an integer in 1 .. 64, got {value!r}'
+        if name == 'worker_processes' and not (isinstance(value, int) and 0 <= value <= 64):
+            return f'worker_processes must be an integer in 0 .. 64, got {value!r}'
         return None
 
     def _on_set_parameters(self, params) -> SetParametersResult:
@@ -327,7 +360,15 @@ class BeoNode(Node):
             except StartupError as e:
                 return SetParametersResult(successful=False, reason=str(e))
             with self._bank_lock:
-                self._bank = bank
+                if self._n_procs:
+                    try:
+                        self._swap_pool(bank)
+                    except Exception as e:
+                        return SetParametersResult(
+                            successful=False, reason=f'worker processes cannot load the models '
+                                                     f'of {new["model_dir"]!r}: {e}')
+                else:
+                    self._bank = bank
             self.get_logger().info(f"reloaded models from '{new['model_dir']}'")
         if 'diagnostics_period' in new:  # re-timing (not re-creating) is safe while spinning
             self._diag_timer.timer_period_ns = int(new['diagnostics_period'] * 1e9)
@@ -350,12 +391,10 @@ class BeoNode(Node):
 
     def _warm_up(self):
         """One throw-away estimate of a synthetic box so the first real cloud is not slow."""
-        rng = np.random.default_rng(0)
-        pts = rng.uniform(-0.2, 0.2, size=(400, 3)) + [1.0, 0.0, 0.0]
-        pts[:, 0] = 0.8  # the face of a box seen from the origin
         t0 = time.monotonic()
         try:
-            self._estimate(pts, np.zeros(3), np.array([0.0, 0.0, 1.0]), self._params(), 0.5)
+            self._estimate(warm_up_points(), np.zeros(3), np.array([0.0, 0.0, 1.0]),
+                           self._params(), 0.5)
         except Exception as e:  # warm-up is best effort
             self.get_logger().debug(f'warm-up estimate failed: {type(e).__name__}: {e}')
         self._record('warm_up', time.monotonic() - t0)
@@ -468,10 +507,10 @@ class BeoNode(Node):
         return [2 * (x * z + y * w), 2 * (y * z - x * w), 1 - 2 * (x * x + y * y)]
 
     def _estimate(self, pts, origin, up, p, threshold, priority=False):
-        """Run the bank in one of the ``workers`` estimation slots (service calls go first);
-        core ValueError -> InputRejected. ``ModelBank.estimate_points`` is safe to call from
-        several threads (its caches only gain immutable entries; scratch buffers are
-        thread-local)."""
+        """Run the bank in one of the ``workers`` estimation slots (service calls go first),
+        in this process or in a worker process; core ValueError -> InputRejected.
+        ``ModelBank.estimate_points`` is safe to call from several threads (its caches only
+        gain immutable entries; scratch buffers are thread-local)."""
         if priority:
             with self._svc_lock:
                 self._svc_waiting += 1
@@ -485,6 +524,11 @@ class BeoNode(Node):
                 time.sleep(0.001)
             self._est_slots.acquire()
         try:
+            if self._n_procs:
+                try:
+                    return self._pool_estimate(pts, origin, up, p['yaw_step_deg'], threshold)
+                except ValueError as e:
+                    raise InputRejected(f'estimator rejected the cloud: {e}') from e
             bank = self._bank  # one bank per estimate, even if model_dir is reloaded meanwhile
             try:
                 est = bank.estimate_points(pts, sensor_origin=origin, up=up,
@@ -494,6 +538,47 @@ class BeoNode(Node):
             return est, list(bank.classes)
         finally:
             self._est_slots.release()
+
+    def _pool_estimate(self, *args):
+        """Estimate in a worker process -> (Estimate, class names). A dead process breaks the
+        pool: it is replaced and the cloud tried once more (it may not be the cloud's fault)."""
+        for attempt in range(4):
+            pool = self._pool
+            if pool is None:
+                raise RuntimeError('the worker processes are shut down')
+            try:
+                return pool.estimate(*args)
+            except PoolRetired:  # replaced by a model reload meanwhile: use the new one
+                if self._pool is pool:
+                    raise
+            except BrokenProcessPool as e:
+                self._replace_broken_pool(pool, e)
+                if attempt:
+                    raise
+        raise RuntimeError('no usable worker process pool')
+
+    def _replace_broken_pool(self, broken, err):
+        """Replace ``broken`` (unless another worker already did); counted in worker_restarts."""
+        with self._pool_lock:
+            if self._pool is not broken or self._pool_closed:
+                return
+            self._count('worker_restarts')
+            self.get_logger().error(f'a worker process died ({err}); restarting the '
+                                    f'{self._n_procs} worker process(es)')
+            broken.shutdown(timeout=1.0)
+            self._pool = self._new_pool(self._bank)
+
+    def _swap_pool(self, bank):
+        """Start worker processes for ``bank``, then switch to them and to ``bank``; estimates
+        already sent to the old processes finish there."""
+        new = self._new_pool(bank)
+        with self._pool_lock:
+            if self._pool_closed:
+                new.shutdown()
+                raise RuntimeError('the node is shutting down')
+            old, self._pool, self._bank = self._pool, new, bank
+        if old is not None:
+            old.shutdown(timeout=None)
 
     def _record(self, stage, seconds):
         with self._stats_lock:
@@ -639,6 +724,9 @@ class BeoNode(Node):
         level, message = DiagnosticStatus.OK, 'ok'
         if delta['errors']:
             level, message = DiagnosticStatus.ERROR, f"{delta['errors']} estimation errors"
+        elif delta['worker_restarts']:
+            level, message = (DiagnosticStatus.ERROR,
+                              f"worker processes restarted {delta['worker_restarts']}x")
         elif delta['rejected']:
             level, message = DiagnosticStatus.WARN, f"{delta['rejected']} inputs rejected"
         elif delta['dropped_stale']:
@@ -652,6 +740,7 @@ class BeoNode(Node):
         values += [KeyValue(key=k, value=str(v)) for k, v in sorted(counters.items())]
         values.append(KeyValue(key='input_topics', value=','.join(self._topics)))
         values.append(KeyValue(key='workers', value=str(self._n_workers)))
+        values.append(KeyValue(key='worker_processes', value=str(self._n_procs)))
         with self._cond:
             values.append(KeyValue(key='in_flight', value=str(self._in_flight)))
         status = DiagnosticStatus(level=level, name=f'{self.get_name()}: estimator',
@@ -674,14 +763,34 @@ class BeoNode(Node):
             if worker.is_alive() and worker is not threading.current_thread():
                 worker.join(timeout=max(deadline - time.monotonic(), 0.1))
 
+    def _shutdown_pool(self):
+        """Stop the worker processes (after the threads: their last estimates need them)."""
+        with self._pool_lock:
+            self._pool_closed = True
+            pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(timeout=5.0)
+
     def destroy_node(self):
-        """Stop the worker threads, then destroy the node (idempotent)."""
+        """Stop the worker threads and processes, then destroy the node (idempotent)."""
         if self._destroyed:
             return
         self._destroyed = True
         self._shutdown_worker()
+        self._shutdown_pool()
         self._restore_blas()
         super().destroy_node()
+
+
+def make_executor(context=None):
+    """The executor ``main`` spins the node with: single-threaded.
+
+    The node's own worker threads (and processes) do the heavy work; the executor only hands
+    over clouds and serves the services (one at a time, each waiting for an estimation slot).
+    rclpy's MultiThreadedExecutor took ~0.7 of a core of Python at 20 clouds/s in the node
+    bench, starving the estimates and delaying the clouds until the DDS queue dropped them.
+    """
+    return SingleThreadedExecutor(context=context)
 
 
 def _drain(executor):
@@ -703,7 +812,7 @@ def main(args=None):
     failed = False
     try:
         node = BeoNode()
-        executor = MultiThreadedExecutor(num_threads=4)
+        executor = make_executor()
         executor.add_node(node)
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):

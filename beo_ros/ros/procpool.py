@@ -1,0 +1,159 @@
+"""Estimation in worker processes, each with its own copy of the model bank.
+
+The node's estimates are numpy/BLAS plus a good deal of Python; in worker threads they share
+the node's GIL with message conversion and the rclpy executor. Worker processes (spawned, so
+they never inherit rclpy's threads and never import it) run estimates truly in parallel.
+Everything here is picklable and ROS-free: the processes import only ``beo_ros.core``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import multiprocessing
+import os
+import signal
+import time
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+
+import numpy as np
+
+__all__ = ['BrokenProcessPool', 'EstimatorPool', 'PoolRetired', 'bank_source', 'warm_up_points']
+
+_bank = None         # this worker process's bank
+_blas_limits = None  # kept alive: threadpoolctl restores the limits when it is collected
+
+
+class PoolRetired(RuntimeError):
+    """The pool was shut down (model reload or node shutdown) before the estimate was sent."""
+
+
+def warm_up_points() -> np.ndarray:
+    """(400, 3) points on the face of a box 0.8 m ahead of a sensor at the origin, z up."""
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-0.2, 0.2, size=(400, 3)) + [1.0, 0.0, 0.0]
+    pts[:, 0] = 0.8
+    return pts
+
+
+def bank_source(bank):
+    """What a worker process rebuilds ``bank`` from: a ModelBank's constructor arguments (its
+    inference engine holds a thread-local and is cheaper to rebuild than to send), else the
+    bank itself (it must pickle)."""
+    from beo_ros.core.bank import ModelBank
+    if isinstance(bank, ModelBank):
+        return ('state', type(bank), (bank.models, bank.spec, bank.classifier, bank.training,
+                                      bank.pose_components))
+    return ('object', None, bank)
+
+
+def _init(source, blas_threads):
+    """Process initializer: BLAS threads, the bank, one throw-away estimate."""
+    global _bank, _blas_limits
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the node's: it shuts us down
+    if blas_threads > 0:
+        try:
+            from threadpoolctl import threadpool_limits
+            _blas_limits = threadpool_limits(limits=blas_threads, user_api='blas')
+        except ImportError:
+            pass
+    kind, cls, value = source
+    _bank = cls(*value) if kind == 'state' else value
+    try:  # the first estimate fills caches; no real cloud should pay for it
+        _bank.estimate_points(warm_up_points())
+    except Exception:  # noqa: BLE001 - warm-up is best effort
+        pass
+
+
+def _ready(delay):
+    time.sleep(delay)  # long enough for a not yet ready sibling to take a task too
+    return os.getpid()
+
+
+def _estimate(points, origin, up, yaw_step_deg, threshold):
+    """Estimate in this worker process -> (Estimate without its grids, class names)."""
+    est = _bank.estimate_points(points, sensor_origin=origin, up=up, yaw_step_deg=yaw_step_deg,
+                                threshold=threshold)
+    if dataclasses.is_dataclass(est):
+        # the node needs neither the (N,N,N) grids nor the features: ~0.3 MB less per result
+        est = dataclasses.replace(est, completion=None, variance=None, grid=None, features=None)
+    return est, list(_bank.classes)
+
+
+class EstimatorPool:
+    """``n`` spawned processes, each estimating with its own copy of ``bank``.
+
+    The constructor returns once every process has loaded the bank and run its warm-up
+    estimate. A process that dies breaks the whole pool (pending estimates raise
+    BrokenProcessPool); the owner replaces it.
+
+    Args:
+        n: number of processes.
+        bank: the bank to copy (see :func:`bank_source`).
+        blas_threads: BLAS threads per process (0: library default).
+        timeout: seconds to wait for the processes to be ready.
+
+    Raises:
+        RuntimeError: the processes did not start (BrokenProcessPool) or not in time.
+    """
+
+    def __init__(self, n: int, bank, blas_threads: int = 1, timeout: float = 120.0):
+        self.n = int(n)
+        self._closed = False
+        self._pool = ProcessPoolExecutor(
+            self.n, mp_context=multiprocessing.get_context('spawn'), initializer=_init,
+            initargs=(bank_source(bank), int(blas_threads)))
+        try:
+            self.pids = self._wait_ready(timeout)
+        except BaseException:
+            self.shutdown(timeout=1.0)
+            raise
+
+    def _wait_ready(self, timeout):
+        """Pids of the processes once each has run a task (so its initializer is done)."""
+        deadline = time.monotonic() + timeout
+        pids = set()
+        while len(pids) < self.n:
+            # the first n submissions spawn the n processes (spawned on demand, one per task
+            # while none is idle); a process answers only after its initializer
+            futures = [self._pool.submit(_ready, 0.05) for _ in range(self.n)]
+            for f in futures:
+                pids.add(f.result(timeout=max(deadline - time.monotonic(), 0.01)))
+        return sorted(pids)
+
+    def estimate(self, points, origin, up, yaw_step_deg, threshold):
+        """Estimate one cloud in a worker process (blocks) -> (Estimate, class names).
+
+        Raises ValueError from the core as is, BrokenProcessPool when a process died,
+        PoolRetired after :meth:`shutdown`.
+        """
+        try:
+            future = self._pool.submit(_estimate, np.ascontiguousarray(points, np.float64),
+                                       np.asarray(origin, np.float64), np.asarray(up, np.float64),
+                                       float(yaw_step_deg), float(threshold))
+        except RuntimeError as e:
+            if self._closed and not isinstance(e, BrokenProcessPool):
+                raise PoolRetired('the estimator pool was shut down') from e
+            raise
+        return future.result()
+
+    @property
+    def broken(self) -> bool:
+        return bool(getattr(self._pool, '_broken', False))
+
+    def shutdown(self, timeout: float | None = 5.0):
+        """Stop the processes; estimates already running finish, queued ones are cancelled.
+
+        ``timeout`` None returns at once (the pool winds down in the background); otherwise
+        processes still alive after ``timeout`` seconds are terminated.
+        """
+        self._closed = True
+        procs = list((getattr(self._pool, '_processes', None) or {}).values())
+        self._pool.shutdown(wait=False, cancel_futures=timeout is not None)
+        if timeout is None:
+            return
+        deadline = time.monotonic() + timeout
+        for p in procs:
+            p.join(max(deadline - time.monotonic(), 0.0))
+            if p.is_alive():
+                p.terminate()
+                p.join(1.0)
