@@ -542,19 +542,23 @@ class BeoNode(Node):
     def _pool_estimate(self, *args):
         """Estimate in a worker process -> (Estimate, class names). A dead process breaks the
         pool: it is replaced and the cloud tried once more (it may not be the cloud's fault)."""
-        for attempt in range(4):
+        retried = False
+        for _ in range(8):
             pool = self._pool
             if pool is None:
                 raise RuntimeError('the worker processes are shut down')
             try:
                 return pool.estimate(*args)
-            except PoolRetired:  # replaced by a model reload meanwhile: use the new one
-                if self._pool is pool:
+            except PoolRetired as e:  # not sent: the pool broke earlier, or a reload replaced it
+                if pool.broken:
+                    self._replace_broken_pool(pool, e)
+                elif self._pool is pool:
                     raise
-            except BrokenProcessPool as e:
+            except BrokenProcessPool as e:  # a process died while this cloud was in the pool
                 self._replace_broken_pool(pool, e)
-                if attempt:
+                if retried:
                     raise
+                retried = True
         raise RuntimeError('no usable worker process pool')
 
     def _replace_broken_pool(self, broken, err):

@@ -24,7 +24,8 @@ _blas_limits = None  # kept alive: threadpoolctl restores the limits when it is 
 
 
 class PoolRetired(RuntimeError):
-    """The pool was shut down (model reload or node shutdown) before the estimate was sent."""
+    """The estimate was not sent: the pool was shut down (model reload, node shutdown) or was
+    already broken."""
 
 
 def warm_up_points() -> np.ndarray:
@@ -123,15 +124,17 @@ class EstimatorPool:
     def estimate(self, points, origin, up, yaw_step_deg, threshold):
         """Estimate one cloud in a worker process (blocks) -> (Estimate, class names).
 
-        Raises ValueError from the core as is, BrokenProcessPool when a process died,
-        PoolRetired after :meth:`shutdown`.
+        Raises ValueError from the core as is, BrokenProcessPool when a process died while the
+        estimate was queued or running, PoolRetired when it could not be sent.
         """
         try:
             future = self._pool.submit(_estimate, np.ascontiguousarray(points, np.float64),
                                        np.asarray(origin, np.float64), np.asarray(up, np.float64),
                                        float(yaw_step_deg), float(threshold))
+        except BrokenProcessPool as e:
+            raise PoolRetired('the estimator pool is broken') from e
         except RuntimeError as e:
-            if self._closed and not isinstance(e, BrokenProcessPool):
+            if self._closed:
                 raise PoolRetired('the estimator pool was shut down') from e
             raise
         return future.result()
