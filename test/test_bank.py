@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from beo_ros.core.bank import ModelBank, ModelError
-from beo_ros.core.grid import rotate_grid
+from beo_ros.core.grid import rotate_grid, yaw_source_index
 from beo_ros.core.inference import InferenceEngine
 from beo_ros.core.synthetic import (make_tiny_bank, partial_view, primitive_shapes,
                                     render_view_points)
@@ -172,30 +172,80 @@ def test_full_component_scores_equal_the_leading_components_when_all_are_used():
 
 def test_per_voxel_noise_scores_equal_a_dense_weighted_gaussian():
     # the per-voxel-noise path against the Gaussian marginal of the pooled observation written
-    # out densely: y_K ~ N(mu_K, W_K W_K^T + diag(noise_K)), each cell weighted by its known
-    # fraction D (a cell with D known of 8 voxels counts D times, with mean T / D)
-    from beo_ros.core.grid import yaw_source_index
+    # out densely in the observed frame: observed cell q is explained by canonical cell
+    # R(-yaw) q of the model (beyond the model's grid: empty, with the noise of its outer
+    # shell); y ~ N(mu_q, W_q W_q^T + diag(noise_q)), each cell weighted by its known fraction
+    # D (a cell with D known of 8 voxels counts D times, with mean T / D)
+    from beo_ros.core.inference import pool2
     tiny = make_tiny_bank()
     eng = tiny.engine
-    c, yaw = 1, 0.7
-    g = views()[0]
-    D, T, TT = eng.pooled(g)
-    got = eng.scores((D, T, TT), [yaw], c, full=True)[0, 0]
-    idx = yaw_source_index(eng.nc, [-yaw])[0]
-    Dr, Tr, TTr = D[idx].astype(float), T[idx].astype(float), TT[idx].astype(float)
     n, nc = eng.n, eng.nc
-    from beo_ros.core.inference import pool2
+    c = 1
+    g = views()[0]
+    D, T, TT = (a[:-1].astype(float) for a in eng.pooled(g))
     W = (pool2(eng.W[c].reshape(n, n, n, -1).astype(float)) / 8).reshape(nc ** 3, -1)
     mu = (pool2(eng.mu[c].reshape(n, n, n).astype(float)) / 8).ravel()
     psi = tiny.models[c].coarse_noise_map.astype(float)
-    # weighted least squares form of the marginal: precision D / psi per cell
-    w = Dr / psi
-    G = np.eye(W.shape[1]) + (W * w[:, None]).T @ W
-    b = W.T @ (Tr / psi - w * mu)
-    rr = (TTr / psi - 2 * Tr * mu / psi + w * mu ** 2).sum()
-    want = -0.5 * ((Dr * np.log(2 * np.pi * psi)).sum() + rr - b @ np.linalg.solve(G, b)
-                   + np.linalg.slogdet(G)[1])
-    np.testing.assert_allclose(got, want, rtol=1e-5)
+    shell = np.ones((nc,) * 3, dtype=bool)
+    shell[1:-1, 1:-1, 1:-1] = False
+    W = np.vstack([W, np.zeros((1, W.shape[1]))])
+    mu = np.append(mu, 0.0)
+    psi = np.append(psi, np.median(psi[shell.ravel()]))
+    for yaw in (0.0, 0.7, 2.0):
+        got = eng.scores(eng.pooled(g), [yaw], c, full=True)[0, 0]
+        q = yaw_source_index(nc, [yaw])[0]
+        Wq, muq, pq = W[q], mu[q], psi[q]
+        # weighted least squares form of the marginal: precision D / psi per cell
+        w = D / pq
+        G = np.eye(W.shape[1]) + (Wq * w[:, None]).T @ Wq
+        b = Wq.T @ (T / pq - w * muq)
+        rr = (TT / pq - 2 * T * muq / pq + w * muq ** 2).sum()
+        want = -0.5 * ((D * np.log(2 * np.pi * pq)).sum() + rr - b @ np.linalg.solve(G, b)
+                       + np.linalg.slogdet(G)[1])
+        np.testing.assert_allclose(got, want, rtol=1e-5)
+
+
+def test_pooled_scores_are_of_the_observation_in_its_own_frame():
+    # every yaw scores the same data: the pooled observation as it is, against the model
+    # rotated into the observed frame (scalar noise, leading components), densely
+    from beo_ros.core.inference import pool2
+    tiny = make_tiny_bank()
+    eng = tiny.engine
+    n, nc, kp = eng.n, eng.nc, eng.kp
+    g = views()[1]
+    D, T, TT = (a[:-1].astype(float) for a in eng.pooled(g))
+    for c in range(eng.C):
+        W = (pool2(eng.W[c, :, :kp].reshape(n, n, n, -1).astype(float)) / 8).reshape(-1, kp)
+        mu = (pool2(eng.mu[c].reshape(n, n, n).astype(float)) / 8).ravel()
+        W, mu, v = np.vstack([W, np.zeros((1, kp))]), np.append(mu, 0.0), eng.v_coarse[c]
+        for yaw in (0.3, 1.1, 4.0):
+            q = yaw_source_index(nc, [yaw])[0]
+            Wq, muq = W[q], mu[q]
+            G = np.eye(kp) + (Wq * D[:, None]).T @ Wq / v
+            b = Wq.T @ (T - D * muq) / v
+            rr = (TT - 2 * T * muq + D * muq ** 2).sum() / v
+            want = -0.5 * (D.sum() * np.log(2 * np.pi * v) + rr - b @ np.linalg.solve(G, b)
+                           + np.linalg.slogdet(G)[1])
+            # float32 products of a tiny ill-conditioned model: ~1e-5 relative, as above
+            np.testing.assert_allclose(eng.scores(eng.pooled(g), [yaw], c)[0, 0], want,
+                                       rtol=1e-4)
+
+
+def test_every_yaw_scores_the_same_observation():
+    # against an empty model (W = 0, mu = 0) the likelihood of an observation is the same at
+    # every yaw, at full resolution and pooled: the observation is never resampled (resampling
+    # it into the model's frame dropped or doubled thin parts at some yaws, and those yaws won)
+    n, k = 16, 2
+    rng = np.random.default_rng(4)
+    grid = rng.choice(np.array([-1, 0, 1], dtype=np.int8), size=(n,) * 3, p=[0.3, 0.6, 0.1])
+    eng = InferenceEngine(np.zeros((1, n ** 3, k), np.float32), np.zeros((1, n ** 3), np.float32),
+                          [0.05], [0.05], n, pose_components=k)
+    yaws = np.deg2rad(np.arange(0, 360, 7.0))
+    full = np.array([eng.exact(grid, 0, float(y))['loglik'] for y in yaws])
+    known, occ = (grid >= 0).sum(), (grid == 1).sum()
+    np.testing.assert_allclose(full, -0.5 * (known * np.log(2 * np.pi * 0.05) + occ / 0.05))
+    pooled = eng.scores(eng.pooled(grid), yaws)[:, 0]
+    np.testing.assert_allclose(pooled, pooled[0], rtol=1e-6)
 
 
 def test_scoring_a_subset_of_rows_equals_the_same_rows_of_all(tiny):
@@ -248,14 +298,18 @@ def test_exact_loglik_equals_dense_gaussian_marginal():
     for c in range(C):
         for yaw in (0.0, np.pi / 2, 0.6):
             ex = eng.exact(grid, c, yaw)
-            # the canonical labels: the observation rotated by -yaw, free outside the grid
+            # the canonical labels (for the features): the observation rotated by -yaw, free
+            # outside the grid
             canon = rotate_grid(grid, -yaw, fill=0).ravel()
             np.testing.assert_array_equal(ex['canon'], canon)
-            K = np.flatnonzero(canon >= 0)
-            y = (canon[K] == 1).astype(np.float64)
-            WK = W[c][K].astype(np.float64)
+            # the likelihood: of the known observed voxels as they are, each explained by the
+            # canonical voxel the model rotated by yaw puts there (empty beyond its grid)
+            src = yaw_source_index(n, [yaw])[0]
+            K = np.flatnonzero(grid.ravel() >= 0)
+            y = (grid.ravel()[K] == 1).astype(np.float64)
+            WK = np.vstack([W[c], np.zeros((1, k))])[src[K]].astype(np.float64)
             Cov = WK @ WK.T + v[c] * np.eye(len(K))
-            r = y - mu[c][K].astype(np.float64)
+            r = y - np.append(mu[c], 0)[src[K]].astype(np.float64)
             _, ld = np.linalg.slogdet(Cov)
             dense = -0.5 * (len(K) * np.log(2 * np.pi) + ld + r @ np.linalg.solve(Cov, r))
             assert ex['n_known'] == len(K)
@@ -506,8 +560,11 @@ def test_pose_of_rotated_objects(pose_case):
     # The pose search scores yaws on the 2x-pooled grid with nearest-neighbour rotation: at 16^3
     # (pooled 8^3) all yaws within about +-7 deg of a multiple of 90 give the same pooled grid,
     # so the yaw resolution is several degrees, not yaw_step_deg. Measured (true class, 1 deg
-    # step): complete views median 4.2 deg, max 19.9; partial views median 3.8 deg, max 13.3
-    # (16 views each).
+    # step, the model rotated into the observed frame): complete views median 5.8 deg, max
+    # 20.9, 12 of 16 within 15; partial views median 6.9 deg, max 24.9, 12 of 16 (16 views
+    # each). Rotating the observation into the model's frame instead scored 4.2 / 3.8 deg here,
+    # because these views were made by the same nearest-neighbour rotation it then undid; on
+    # ModelNet10 at 32^3 it lost (see README: yaw within 10 deg 0.70 -> 0.73 of 397 views).
     bank, cases = pose_case
     for mode in ('complete', 'partial'):
         err = []
@@ -516,9 +573,9 @@ def test_pose_of_rotated_objects(pose_case):
                 ye, _, _ = bank.engine.search(g, 1.0, exhaustive=True)
                 err.append(np.rad2deg(abs(wrap(ye[c] - yaw))))
         err = np.array(err)
-        assert np.median(err) <= 6.0, (mode, err.round(1))
-        assert np.mean(err <= 15) >= 0.8, (mode, err.round(1))
-        assert err.max() <= 25, (mode, err.round(1))
+        assert np.median(err) <= 8.0, (mode, err.round(1))
+        assert np.mean(err <= 15) >= 0.7, (mode, err.round(1))
+        assert err.max() <= 30, (mode, err.round(1))
 
 
 @pytest.mark.xfail(strict=True, reason='yaw resolution of the pooled 8^3 search at 16^3 is '
@@ -531,10 +588,10 @@ def test_pose_within_a_few_degrees(pose_case):
 
 
 def test_coarse_to_fine_agrees_with_exhaustive(pose_case):
-    # Measured on these 32 views (true class): the best yaw agrees within 1 deg in 21 of 32,
-    # and in 5 coarse-to-fine misses the exhaustive optimum (yaw 5-15 deg away, a much lower
-    # log-likelihood: the peak is narrower than the 5 deg coarse step). Ties on the pooled
-    # plateaus account for the remaining disagreements of equal log-likelihood.
+    # Measured on these 32 views (true class): the best yaw agrees within 1 deg in 15 of 32 and
+    # the log-likelihoods are equal in 15; in the others coarse-to-fine misses the exhaustive
+    # optimum (the peaks on the pooled 8^3 grid are narrower than the 5 deg coarse step). At
+    # 16^3 coarse-to-fine is not good enough, which is why estimate() searches exhaustively.
     bank, cases = pose_case
     eng = bank.engine
     same, gaps = [], []
@@ -545,9 +602,9 @@ def test_coarse_to_fine_agrees_with_exhaustive(pose_case):
         assert np.all(llc <= lle + 1e-4 * np.abs(lle))
         same.append(np.rad2deg(abs(wrap(ye[c] - yc[c]))) <= 1.0 + 1e-9)
         gaps.append(lle[c] - llc[c])
-    assert np.mean(same) > 0.5, (np.mean(same), np.round(gaps, 1))
-    # the same optimum: equal log-likelihood (a tie or the same yaw) for the majority
-    assert np.mean(np.array(gaps) <= 1e-4 * np.abs(lle).max()) >= 0.6, np.round(gaps, 1)
+    assert np.mean(same) >= 0.4, (np.mean(same), np.round(gaps, 1))
+    # the same optimum: equal log-likelihood (a tie or the same yaw) for a large part
+    assert np.mean(np.array(gaps) <= 1e-4 * np.abs(lle).max()) >= 0.4, np.round(gaps, 1)
 
 
 # ---------------------------------------------------------------------- classifier path
@@ -598,7 +655,8 @@ def test_unknown_for_random_scatter(clf_bank):
 
 def test_full_resolution_refinement_sharpens_the_yaw(pose_case):
     # estimate() re-solves the chosen class exactly at full resolution within +-3 deg of the
-    # pooled optimum; on these asymmetric shapes that must beat the pooled search
+    # pooled optimum; on these asymmetric shapes that must beat the pooled search (measured:
+    # median 7.2 deg pooled, 5.5 refined, of 32 views at 16^3)
     bank, cases = pose_case
     pooled, refined = [], []
     for g, yaw, c, _ in cases:
@@ -608,7 +666,7 @@ def test_full_resolution_refinement_sharpens_the_yaw(pose_case):
         assert ref['exact']['loglik'] >= per[c]['exact']['loglik']
         refined.append(np.rad2deg(abs(wrap(ref['yaw'] - yaw))))
     assert np.median(refined) < np.median(pooled), (np.round(pooled, 1), np.round(refined, 1))
-    assert np.median(refined) <= 3.0, np.round(refined, 1)
+    assert np.median(refined) <= 6.0, np.round(refined, 1)
 
 
 def test_shipped_model_answers_unknown_for_dense_clutter():

@@ -3,6 +3,13 @@
 Everything is batched: the pose search scores every (yaw, class) pair with two matrix products
 over a 2x-pooled grid, then the best yaws of each class are re-scored exactly at full resolution.
 
+Every score is a likelihood of the *observation as it is*: the model is rotated into the observed
+frame (nearest neighbour), each observed voxel counted once. Resampling the observation into the
+model's frame instead drops and duplicates observed voxels differently at every yaw (thin parts
+such as chair legs vanish at some angles), so the scores of different yaws would describe
+different data; that made the likelihood landscape jagged and its maximum often 10-40 degrees
+off for thin objects.
+
 Notation (per class): W (d, k) loadings, mu (d,) mean, v noise variance. Given known voxels K
 with values y_K, the coefficient posterior is N(m, S) with
     S^-1 = G = I + W_K^T W_K / v,     m = S W_K^T (y_K - mu_K) / v,
@@ -85,6 +92,9 @@ class InferenceEngine:
         self.gram = np.einsum('cda,cdb->cab', self.W, self.W, dtype=np.float64)   # (C, k, k)
         self.wmu = np.einsum('cda,cd->ca', self.W, self.mu, dtype=np.float64)     # (C, k)
         self.mu2 = (self.mu.astype(np.float64) ** 2).sum(axis=1)                   # (C,)
+        # voxels where a class model is not exactly zero (never-occupied voxels have W = 0 and
+        # mu = 0): the exact posterior only needs these rows
+        self.support = np.any(self.W != 0, axis=2) | (self.mu != 0)               # (C, d)
         # coarse model: 2x pooled mean of the first kp components (stage 1: all classes) and
         # of all k components (stage 2: one class at a time)
         self.nc = n // 2
@@ -123,33 +133,60 @@ class InferenceEngine:
 
     def _full_class_terms(self, c, noise):
         """Stage-2 arrays of class c: all k components, per-voxel noise (dc,) if given; returns
-        (PD, PT, iu, 1 / noise or None)."""
+        (PD, PT, iu, 1 / noise or None, noise outside the grid or None)."""
         PD, PT, iu = self._pooled_terms([c], self.k, noise)
-        inv = None if noise is None else 1.0 / np.asarray(noise, np.float64)
-        return PD[:, 0].copy(), PT[:, 0].copy(), iu, inv
+        if noise is None:
+            return PD[:, 0].copy(), PT[:, 0].copy(), iu, None, None
+        noise = np.asarray(noise, np.float64)
+        # observed cells beyond the rotated model's grid get the noise of its outer shell
+        # (empty space, like the grid's corners), not the class scalar: the scalar is far
+        # larger, and a yaw that turns the corners out of the grid would lose by it
+        nc = self.nc
+        shell = np.ones((nc,) * 3, dtype=bool)
+        shell[1:-1, 1:-1, 1:-1] = False
+        return (PD[:, 0].copy(), PT[:, 0].copy(), iu, 1.0 / noise,
+                float(np.median(noise[shell.ravel()])))
 
     # ------------------------------------------------------------------ pose search
     def _rotation_maps(self, yaws):
-        """Gather maps (Y, dc) of the pooled grid for ``yaws`` and how often each source cell is
-        used per yaw (Y, dc + 1), so sums over rotated cells are one mat-vec."""
+        """Scatter maps of the pooled grid for ``yaws``, the model rotated into the observed
+        frame: observed cell q shows canonical cell R(-yaw) q, so a canonical cell sums the
+        weights of 0, 1, 2 or 3 observed cells. Returns (first (Y, dc) int index into a pooled
+        observation padded with a zero entry, so a gather gives each canonical cell one of its
+        observed cells; extra: a list of (flat position in (Y, dc), observed cell) arrays, one
+        per further cell, positions unique within each array)."""
         key = np.asarray(yaws, dtype=np.float64).tobytes()
         if key in self._maps:
             return self._maps[key]
-        # canonical voxel p takes the observed voxel R(yaw) p: rotate the observation by -yaw
-        idx = yaw_source_index(self.nc, -np.asarray(yaws)).astype(np.intp)
-        Y, m = idx.shape[0], self.nc ** 3 + 1
-        cnt = np.bincount((idx + (np.arange(Y) * m)[:, None]).ravel(),
-                          minlength=Y * m).reshape(Y, m).astype(np.float64)
+        dc = self.nc ** 3
+        inv = yaw_source_index(self.nc, np.asarray(yaws)).astype(np.int64)   # (Y, dc)
+        Y = len(inv)
+        flat = (inv + (np.arange(Y) * (dc + 1))[:, None]).ravel()   # (yaw, canonical cell)
+        order = np.argsort(flat, kind='stable')
+        sflat = flat[order]
+        rank = np.arange(len(sflat)) - np.searchsorted(sflat, sflat, side='left')
+        cell = sflat % (dc + 1)
+        inside = cell < dc        # observed cells beyond the canonical grid show empty space
+        pos = (sflat // (dc + 1)) * dc + cell                 # flat position in (Y, dc)
+        src = order % dc
+        first = np.full(Y * dc, dc, dtype=np.intp)
+        sel = inside & (rank == 0)
+        first[pos[sel]] = src[sel]
+        extra = []
+        for r in range(1, int(rank[inside].max(initial=0)) + 1):
+            sel = inside & (rank == r)
+            extra.append((pos[sel].astype(np.intp), src[sel].astype(np.intp)))
+        out = (first.reshape(Y, dc), extra)
         if len(self._maps) < 16 and len(yaws) >= 36:   # keep the regular search grids only
-            self._maps[key] = (idx, cnt)
-        return idx, cnt
+            self._maps[key] = out
+        return out
 
     def _full_map(self, yaw):
         """Full-resolution gather map rotating the observation by -yaw (cached per yaw)."""
-        key = round(float(yaw), 9)
+        key = round(float(np.mod(yaw, 2 * np.pi)), 9)
         idx = self._full_maps.get(key)
         if idx is None:
-            idx = yaw_source_index(self.n, [-yaw])[0].astype(np.intp)
+            idx = yaw_source_index(self.n, [-yaw])[0]   # int32: 720 cached maps take 94 MB
             if len(self._full_maps) < 720:
                 self._full_maps[key] = idx
         return idx
@@ -161,7 +198,7 @@ class InferenceEngine:
 
     def pooled(self, grid):
         """2x-pooled observation: weights D (known fraction), T (D * occupied fraction), and
-        T^2 / D, each (dc + 1,) with a last entry for 'outside the grid' (empty space)."""
+        T^2 / D, each (dc + 1,) float32 with a last zero entry (the padding of the gathers)."""
         known = (grid >= 0).astype(np.float32)
         occ = (grid == 1).astype(np.float32)
         D = (pool2(known) / 8.0).ravel()
@@ -169,9 +206,8 @@ class InferenceEngine:
         TT = np.where(D > 0, T * T / np.maximum(D, 1e-6), 0.0)
         # float32 throughout (D and T are multiples of 1/8: exact), so the gathers in scores()
         # write into their float32 buffers without a cast
-        one, zero = np.float32(1.0), np.float32(0.0)
-        return (np.append(D, one), np.append(T, zero),
-                np.append(TT, zero).astype(np.float32))
+        zero = np.float32(0.0)
+        return (np.append(D, zero), np.append(T, zero), np.append(TT, zero).astype(np.float32))
 
     def scores(self, pooled, yaws, c=None, full=False, rows=None):
         """Pooled log-likelihood (Y, C) of every yaw for all classes, or (Y, 1) for class c.
@@ -182,36 +218,58 @@ class InferenceEngine:
         """
         D, T, TT = pooled
         yaws = np.atleast_1d(np.asarray(yaws, dtype=np.float64))
-        idx, cnt = self._rotation_maps(yaws)
+        first, extra = self._rotation_maps(yaws)
+        dc = len(D) - 1
         if rows is not None:
-            yaws, idx, cnt = yaws[rows], idx[rows], cnt[rows]
-        # np.take into reused buffers: several times faster than fancy indexing here
+            rows = np.asarray(rows)
+            keep = np.full(len(yaws), -1, dtype=np.intp)
+            keep[rows] = np.arange(len(rows))
+            sub = []
+            for pos, src in extra:
+                new = keep[pos // dc]
+                ok = new >= 0
+                sub.append((new[ok] * dc + pos[ok] % dc, src[ok]))
+            yaws, first, extra = yaws[rows], first[rows], sub
+        Y = len(yaws)
+        # the observed cells summed per canonical cell: one gather (np.take into reused
+        # buffers: several times faster than fancy indexing), then the few extra cells
+        n = first.size
         buf = getattr(self._local, 'buf', None)
-        if buf is None or buf.shape[1] < idx.size:
-            buf = self._local.buf = np.empty((2, idx.size), dtype=np.float32)
-        Dr = np.take(D, idx, out=buf[0, :idx.size].reshape(idx.shape))
-        Tr = np.take(T, idx, out=buf[1, :idx.size].reshape(idx.shape))
-        Y, inv = len(yaws), None
+        if buf is None or buf.shape[1] < n:
+            buf = self._local.buf = np.empty((2, n), dtype=np.float32)
+        Dr = np.take(D, first, out=buf[0, :n].reshape(first.shape))
+        Tr = np.take(T, first, out=buf[1, :n].reshape(first.shape))
+        for pos, src in extra:
+            Dr.ravel()[pos] += D[src]
+            Tr.ravel()[pos] += T[src]
+        inv = None
         if c is None:
-            dc = len(D) - 1
             PD, PT, iu, kp, C = (self._PD.reshape(dc, -1), self._PT.reshape(dc, -1), self._iu,
                                  self.kp, self.C)
         elif full:
-            PD, PT, iu, inv = self._full_terms[c]
+            PD, PT, iu, inv, v_out = self._full_terms[c]
             kp, C = self.k, 1
         else:
             PD, PT, iu, kp, C = self._PD_c[c], self._PT_c[c], self._iu, self.kp, 1
         AD = (Dr @ PD).reshape(Y, C, -1).astype(np.float64)
         AT = (Tr @ PT).reshape(Y, C, -1).astype(np.float64)
+        # every observed cell counts once, whatever the yaw: the TT and D totals are constants;
+        # cells that show nothing of the canonical grid are explained by empty space
+        D_all = float(D[:dc].sum(dtype=np.float64))
+        TT_all = float(TT[:dc].sum(dtype=np.float64))
         if inv is not None:   # per-voxel noise, already divided into the terms
-            return self._loglik(AD[:, :, :-1], AT, (np.take(TT, idx) @ inv)[:, None],
-                                AD[:, :, -1], iu, kp)
-        # one noise variance per class: the TT and D sums are mat-vecs with the cell counts
+            TTr = np.take(TT, first).astype(np.float64)
+            for pos, src in extra:
+                TTr.ravel()[pos] += TT[src]
+            D_out = D_all - Dr.sum(axis=1, dtype=np.float64)
+            TT_out = TT_all - TTr.sum(axis=1)
+            return self._loglik(AD[:, :, :-1], AT, (TTr @ inv + TT_out / v_out)[:, None],
+                                AD[:, :, -1] + (D_out * np.log(2 * np.pi * v_out))[:, None],
+                                iu, kp)
         vc = self.v_coarse[None, :] if c is None else self.v_coarse[None, c:c + 1]
-        tt = cnt @ TT.astype(np.float64)
-        neff = cnt @ D.astype(np.float64)
-        return self._loglik(AD / vc[..., None], AT / vc[..., None], tt[:, None] / vc,
-                            neff[:, None] * np.log(2 * np.pi * vc), iu, kp)
+        return self._loglik(AD / vc[..., None], AT / vc[..., None],
+                            np.full((Y, 1), TT_all) / vc,
+                            np.full((Y, 1), D_all) * np.log(2 * np.pi * vc), iu, kp)
 
     @staticmethod
     def _loglik(AD, AT, tt, lognoise, iu, kp):
@@ -270,26 +328,42 @@ class InferenceEngine:
         """
         idx = self._full_map(yaw)
         canon = np.take(np.append(grid.ravel(), np.int8(0)), idx)  # outside the grid: free
-        U = np.flatnonzero(canon < 0)
-        O = np.flatnonzero(canon == 1)
         W, mu, v = self.W[c], self.mu[c], self.v[c]
-        # W_K^T W_K, W_K^T mu_K and |mu_K|^2 over the known voxels K, from whichever of K and U
-        # is smaller (the totals over all voxels are precomputed). float64: with few known
-        # voxels and a small v, float32 rounding of the difference made G indefinite
-        if 2 * len(U) <= self.d:
-            WU = np.take(W, U, axis=0).astype(np.float64)
-            muU = np.take(mu, U).astype(np.float64)
-            gram = self.gram[c] - WU.T @ WU
-            wmu = self.wmu[c] - muU @ WU
-            mu2 = self.mu2[c] - muU @ muU
+        # the likelihood is of the observation as it is: observed voxel q is explained by
+        # canonical voxel inv[q] (the model rotated by yaw; d: outside, explained as empty)
+        g = grid.ravel()
+        inv = self._full_map(-yaw)
+        d = self.d
+        cK = np.bincount(inv[g >= 0], minlength=d + 1)[:d]
+        cO = np.bincount(inv[g == 1], minlength=d + 1)[:d]
+        nk = int(np.count_nonzero(g >= 0))
+        n_occ = int(np.count_nonzero(g == 1))
+        # the gram, W^T mu and |mu|^2 weighted by cK: from the precomputed float64 totals
+        # corrected where cK != 1, or directly, whichever touches fewer rows. Long sums over
+        # rows run in float32 (BLAS) and are added to float64; with few known voxels and a
+        # small v a float32 *difference* of grams made G indefinite, but then the direct sum
+        # over the few known rows is taken, in float64
+        supp = self.support[c]
+        N = np.flatnonzero((cK != 1) & supp)
+        P = np.flatnonzero(cK * supp)
+        rows, base = (N, 1.0) if len(N) < len(P) else (P, 0.0)
+        w = cK[rows].astype(np.float32) - np.float32(base)
+        WR = np.take(W, rows, axis=0)
+        muR = np.take(mu, rows)
+        if len(rows) < 4096:   # cheap anyway: float64 where a few rows carry all the evidence
+            w, WR, muR = w.astype(np.float64), WR.astype(np.float64), muR.astype(np.float64)
+        wmuR = w * muR
+        gram = (WR * w[:, None]).T @ WR
+        wmu = wmuR @ WR
+        mu2 = float(wmuR.astype(np.float64) @ muR)
+        if base:
+            gram, wmu, mu2 = self.gram[c] + gram, self.wmu[c] + wmu, self.mu2[c] + mu2
         else:
-            K = np.flatnonzero(canon >= 0)
-            WK = np.take(W, K, axis=0).astype(np.float64)
-            muK = np.take(mu, K).astype(np.float64)
-            gram, wmu, mu2 = WK.T @ WK, muK @ WK, muK @ muK
-        b = (np.take(W, O, axis=0).sum(axis=0, dtype=np.float64) - wmu) / v
-        rr = len(O) - 2 * np.take(mu, O).sum(dtype=np.float64) + mu2
-        nk = self.d - len(U)
+            gram, wmu = gram.astype(np.float64), wmu.astype(np.float64)
+        O = np.flatnonzero(cO)
+        wO = cO[O].astype(np.float64)
+        b = (wO @ np.take(W, O, axis=0).astype(np.float64) - wmu) / v
+        rr = n_occ - 2 * wO @ np.take(mu, O).astype(np.float64) + mu2
         G = np.eye(self.k) + gram / v
         quad, logdet, m = batched_cholesky_terms(G[None], b[None], lapack_below=2)
         ll = -0.5 * (nk * np.log(2 * np.pi * v) + rr / v - quad[0] + logdet[0])
