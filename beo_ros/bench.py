@@ -408,7 +408,7 @@ def node_bench(bank, X, y, n, idx, args, rng):
             overrides.append(Parameter('workers', value=int(args.node_workers)))
         if args.node_blas_threads is not None:
             overrides.append(Parameter('blas_threads', value=int(args.node_blas_threads)))
-        if args.node_worker_processes is not None:
+        if args.node_worker_processes is not None and args.node_worker_processes >= 0:
             overrides.append(Parameter('worker_processes',
                                        value=int(args.node_worker_processes)))
         node = BeoNode('beo', context=ctx, bank=bank, parameter_overrides=overrides)
@@ -749,8 +749,9 @@ def parse_args(argv):
                          'clouds dropped as stale (and none lost, rejected or unanswered)')
     ap.add_argument('--node-workers', type=int, default=0,
                     help="the node's workers parameter (0: its default)")
-    ap.add_argument('--node-worker-processes', type=int, default=None,
-                    help="the node's worker_processes parameter (default: its default)")
+    ap.add_argument('--node-worker-processes', type=int, default=2,
+                    help="the node's worker_processes parameter (default 2, as in "
+                         "config/beo.yaml; -1: the node's built-in default, 0)")
     ap.add_argument('--node-blas-threads', type=int, default=None,
                     help="the node's blas_threads parameter (default: the node's default; "
                          "0: the BLAS library's own default)")
