@@ -331,8 +331,9 @@ class ModelBank:
     def _refine(self, grid, c, per_c, step_deg=1.0, window_deg=3.0, stage2_step_deg=1.0,
                 stage2_modes=6, stage2_window_deg=15.0):
         """Refine the yaw of class ``c``: re-score it on the pooled grid with all its components
-        (every ``stage2_step_deg``; None skips this), then re-solve it exactly at full resolution
-        within +-window_deg (the pooled grid cannot tell apart yaws a few degrees apart)."""
+        (every ``stage2_step_deg``; None skips this), then re-solve it exactly at full resolution,
+        climbing to the best yaw within +-window_deg (the pooled grid cannot tell apart yaws a
+        few degrees apart)."""
         best = per_c
         if stage2_step_deg:
             step = np.deg2rad(stage2_step_deg)
@@ -358,12 +359,22 @@ class ModelBank:
             y0 = float(yaws[modes[0]])
             best = dict(per_c, yaw=y0, exact=self.engine.exact(grid, c, y0),
                         hypotheses=[(float(yaws[i]), float(ll[i])) for i in modes])
-        offs = np.deg2rad(np.arange(-window_deg, window_deg + 1e-9, step_deg))
-        y0 = best['yaw']
-        for y in y0 + offs[offs != 0]:
-            ex = self.engine.exact(grid, c, float(y))
-            if ex['loglik'] > best['exact']['loglik']:
-                best = dict(best, yaw=float(y), exact=ex)
+        # hill climbing in step_deg steps up to +-window_deg (the full-resolution likelihood is
+        # smooth at this scale, up to the plateaus of the nearest-neighbour rotation, which the
+        # climb walks across): 2-4 exact solves instead of a scan of the whole window
+        step, y0 = np.deg2rad(step_deg), best['yaw']
+        for direction in (1, -1):
+            top = best['exact']['loglik']
+            for i in range(1, int(round(window_deg / step_deg)) + 1):
+                y = float(y0 + direction * i * step)
+                ex = self.engine.exact(grid, c, y)
+                if ex['loglik'] < top:
+                    break
+                top = ex['loglik']
+                if top > best['exact']['loglik']:
+                    best = dict(best, yaw=y, exact=ex)
+            if best['yaw'] != y0:
+                break
         return best
 
     def estimate(self, grid, yaw=None, yaw_step_deg=1.0, n_hypotheses=5, exhaustive=True,
