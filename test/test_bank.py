@@ -150,6 +150,16 @@ def test_batched_scores_equal_per_yaw_and_per_class_loop(tiny):
         np.testing.assert_allclose(all_, per_yaw, rtol=1e-4, atol=1e-6)
 
 
+def test_stage2_noise_map_is_off_by_default():
+    # measured: with the observed-frame scoring the per-voxel noise lowers the yaw accuracy
+    tiny = make_tiny_bank()
+    assert all(m.coarse_noise_map is not None for m in tiny.models)
+    assert all(t[3] is None for t in tiny.engine._full_terms)
+    from beo_ros.core.bank import ModelBank
+    on = ModelBank(tiny.models, tiny.spec, stage2_noise_map=True).engine
+    assert all(t[3] is not None for t in on._full_terms)
+
+
 def test_full_component_scores_equal_the_leading_components_when_all_are_used():
     # stage 2 (full=True) scores class c with all k components; with pose_components = k the
     # stage-1 arrays hold the same components, so both paths must agree: without a noise map,
@@ -162,7 +172,8 @@ def test_full_component_scores_equal_the_leading_components_when_all_are_used():
     for noise in ('none', 'constant'):
         models = [dataclasses.replace(m, coarse_noise_map=None if noise == 'none' else np.full_like(
             m.coarse_noise_map, m.coarse_noise_variance)) for m in tiny.models]
-        eng = ModelBank(models, tiny.spec, pose_components=tiny.engine.k).engine
+        eng = ModelBank(models, tiny.spec, pose_components=tiny.engine.k,
+                        stage2_noise_map=True).engine
         for g in views():
             P = eng.pooled(g)
             for c in range(eng.C):
@@ -176,9 +187,10 @@ def test_per_voxel_noise_scores_equal_a_dense_weighted_gaussian():
     # R(-yaw) q of the model (beyond the model's grid: empty, with the noise of its outer
     # shell); y ~ N(mu_q, W_q W_q^T + diag(noise_q)), each cell weighted by its known fraction
     # D (a cell with D known of 8 voxels counts D times, with mean T / D)
+    from beo_ros.core.bank import ModelBank
     from beo_ros.core.inference import pool2
     tiny = make_tiny_bank()
-    eng = tiny.engine
+    eng = ModelBank(tiny.models, tiny.spec, stage2_noise_map=True).engine
     n, nc = eng.n, eng.nc
     c = 1
     g = views()[0]
