@@ -697,3 +697,15 @@ def test_shipped_model_answers_unknown_for_dense_clutter():
     est = bank.estimate(partial_view(mean >= np.quantile(mean, 1 - mean.clip(0, 1).mean()),
                                      0.5, 0.4))
     assert est.label != 'unknown'
+
+
+def test_bank_pickles_as_its_constructor_arguments():
+    # worker processes receive the bank pickled; the engine is rebuilt, settings kept
+    import pickle
+    tiny = make_tiny_bank()
+    on = ModelBank(tiny.models, tiny.spec, pose_components=2, stage2_noise_map=True)
+    back = pickle.loads(pickle.dumps(on))
+    assert back.engine is not on.engine
+    assert back.pose_components == 2 and back.stage2_noise_map
+    g = views()[0]
+    assert back.estimate(g).scores == pytest.approx(on.estimate(g).scores)

@@ -124,6 +124,7 @@ class ModelBank:
         self.classifier = classifier
         self.training = dict(training or {})
         self.pose_components = int(pose_components)
+        self.stage2_noise_map = bool(stage2_noise_map)
         k = max(m.W.shape[1] for m in models)
         W = np.zeros((len(models), d, k), dtype=np.float32)
         for i, m in enumerate(models):
@@ -132,6 +133,12 @@ class ModelBank:
             W, np.stack([m.mean for m in models]), [m.noise_variance for m in models],
             [m.coarse_noise_variance for m in models], spec.size, pose_components,
             coarse_noise_maps=[m.coarse_noise_map for m in models] if stage2_noise_map else None)
+
+    def __reduce__(self):
+        # pickled as its constructor arguments: the inference engine (thread-local scratch,
+        # caches) is rebuilt on the other side, e.g. in a worker process
+        return (type(self), (self.models, self.spec, self.classifier, self.training,
+                             self.pose_components, self.stage2_noise_map))
 
     @property
     def classes(self):

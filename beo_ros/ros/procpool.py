@@ -17,7 +17,7 @@ from concurrent.futures.process import BrokenProcessPool
 
 import numpy as np
 
-__all__ = ['BrokenProcessPool', 'EstimatorPool', 'PoolRetired', 'bank_source', 'warm_up_points']
+__all__ = ['BrokenProcessPool', 'EstimatorPool', 'PoolRetired', 'warm_up_points']
 
 _bank = None         # this worker process's bank
 _blas_limits = None  # kept alive: threadpoolctl restores the limits when it is collected
@@ -36,18 +36,7 @@ def warm_up_points() -> np.ndarray:
     return pts
 
 
-def bank_source(bank):
-    """What a worker process rebuilds ``bank`` from: a ModelBank's constructor arguments (its
-    inference engine holds a thread-local and is cheaper to rebuild than to send), else the
-    bank itself (it must pickle)."""
-    from beo_ros.core.bank import ModelBank
-    if isinstance(bank, ModelBank):
-        return ('state', type(bank), (bank.models, bank.spec, bank.classifier, bank.training,
-                                      bank.pose_components))
-    return ('object', None, bank)
-
-
-def _init(source, blas_threads):
+def _init(bank, blas_threads):
     """Process initializer: BLAS threads, the bank, one throw-away estimate."""
     global _bank, _blas_limits
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the node's: it shuts us down
@@ -57,8 +46,7 @@ def _init(source, blas_threads):
             _blas_limits = threadpool_limits(limits=blas_threads, user_api='blas')
         except ImportError:
             pass
-    kind, cls, value = source
-    _bank = cls(*value) if kind == 'state' else value
+    _bank = bank
     try:  # the first estimate fills caches; no real cloud should pay for it
         _bank.estimate_points(warm_up_points())
     except Exception:  # noqa: BLE001 - warm-up is best effort
@@ -89,7 +77,8 @@ class EstimatorPool:
 
     Args:
         n: number of processes.
-        bank: the bank to copy (see :func:`bank_source`).
+        bank: the bank to copy (it must pickle; a ModelBank pickles as its constructor
+            arguments).
         blas_threads: BLAS threads per process (0: library default).
         timeout: seconds to wait for the processes to be ready.
 
@@ -102,7 +91,7 @@ class EstimatorPool:
         self._closed = False
         self._pool = ProcessPoolExecutor(
             self.n, mp_context=multiprocessing.get_context('spawn'), initializer=_init,
-            initargs=(bank_source(bank), int(blas_threads)))
+            initargs=(bank, int(blas_threads)))
         try:
             self.pids = self._wait_ready(timeout)
         except BaseException:
