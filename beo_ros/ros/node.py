@@ -390,7 +390,10 @@ class BeoNode(Node):
             self._cond.notify()
 
     def _warm_up(self):
-        """One throw-away estimate of a synthetic box so the first real cloud is not slow."""
+        """One throw-away estimate of a synthetic box so the first real cloud is not slow
+        (worker processes warm themselves up before the pool reports ready)."""
+        if self._n_procs:
+            return
         t0 = time.monotonic()
         try:
             self._estimate(warm_up_points(), np.zeros(3), np.array([0.0, 0.0, 1.0]),
