@@ -408,7 +408,7 @@ def node_bench(bank, X, y, n, idx, args, rng):
             overrides.append(Parameter('workers', value=int(args.node_workers)))
         if args.node_blas_threads is not None:
             overrides.append(Parameter('blas_threads', value=int(args.node_blas_threads)))
-        if args.node_worker_processes is not None and args.node_worker_processes >= 0:
+        if args.node_worker_processes >= 0:
             overrides.append(Parameter('worker_processes',
                                        value=int(args.node_worker_processes)))
         node = BeoNode('beo', context=ctx, bank=bank, parameter_overrides=overrides)
