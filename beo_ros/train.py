@@ -43,6 +43,10 @@ def main(argv=None):
     ap.add_argument('--pose-components', type=int, default=8)
     ap.add_argument('--seed', type=int, default=0)
     ap.add_argument('--oof-out', help='also save the out-of-fold features and records (npz)')
+    ap.add_argument('--row-standardize', choices=('auto', 'on', 'off'), default='auto',
+                    help='standardise every feature across the classes of its row before the '
+                         'classifier; auto: per mode, whichever cross-validates better (needs '
+                         '3+ classes)')
     args = ap.parse_args(argv)
     if args.mirror and not (args.scans and args.views == 0):
         ap.error('--mirror is for --scans with --views 0 (maximum-likelihood rule)')
@@ -95,7 +99,9 @@ def main(argv=None):
                         pose_components=args.pose_components, classifier_views=args.views,
                         folds=args.folds, seed=args.seed, verbose=True,
                         training=dict(inputs=[str(p) for p in args.inputs], congeal=args.congeal),
-                        grids=grids, oof_path=args.oof_out)
+                        grids=grids, oof_path=args.oof_out,
+                        row_standardize={'auto': 'auto', 'on': True, 'off': False}[
+                            args.row_standardize])
         bank.save(args.out)
     except (ValueError, OSError) as e:
         print(f'beo-train: error: {e}', file=sys.stderr)

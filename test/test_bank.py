@@ -665,6 +665,78 @@ def test_unknown_for_random_scatter(clf_bank):
         assert bank.estimate(g).label == 'unknown'
 
 
+def test_classifier_input_row_standardize_removes_per_object_affine_changes():
+    from beo_ros.core.bank import classifier_input
+    from beo_ros.core.inference import FEATURE_NAMES
+    nf = len(FEATURE_NAMES)
+    rng = np.random.default_rng(0)
+    F = rng.normal(size=(5, 3 * nf))
+    assert np.array_equal(classifier_input(F, 3), F)
+    Z = classifier_input(F, 3, row_standardize=True).reshape(5, 3, nf)
+    assert np.allclose(Z.mean(axis=1), 0) and np.allclose(Z.std(axis=1), 1)
+    # what an object does to every class alike (per-feature scale and offset) drops out
+    a, b = rng.uniform(0.1, 10, (5, 1, nf)), rng.normal(size=(5, 1, nf))
+    G = (F.reshape(5, 3, nf) * a + b).reshape(5, -1)
+    assert np.allclose(classifier_input(G, 3, True), Z.reshape(5, -1))
+    # one (C, F) array is one row
+    assert np.allclose(classifier_input(F[0].reshape(3, nf), 3, True), Z[:1].reshape(1, -1))
+
+
+def _three_shapes(n, count, rng):
+    X, y, _ = primitive_shapes(n, count, rng)
+    c = (n - 1) / 2.0
+    ii, jj, kk = np.meshgrid(*(np.arange(n) - c,) * 3, indexing='ij')
+    extra = []
+    for _ in range(count):  # a third class: ellipsoids
+        a, b, h = rng.uniform(0.25, 0.45, 3) * n
+        extra.append(((ii / a) ** 2 + (jj / (0.6 * b)) ** 2 + (kk / h) ** 2 <= 1).ravel())
+    return (np.vstack([X, np.array(extra, dtype=np.float32)]),
+            np.concatenate([y, np.full(count, 2)]), ['box', 'cylinder', 'ellipsoid'])
+
+
+def test_row_standardized_classifier_is_chosen_saved_and_checked(tmp_path):
+    from beo_ros.core.grid import GridSpec
+    from beo_ros.core.training import fit_bank
+    X, y, names = _three_shapes(N, 6, np.random.default_rng(3))
+    bank = fit_bank(X, y, names, GridSpec(size=N), k=3, pose_components=3, classifier_views=1,
+                    folds=2, seed=0, row_standardize=True)
+    for mode, clf in bank.classifier.items():
+        assert bool(clf['row_standardize'])
+        assert bank.training['cross_validation'][mode]['row_standardize'] is True
+    again = ModelBank.load(bank.save(tmp_path / 'rs'))
+    assert all(bool(c['row_standardize']) for c in again.classifier.values())
+    g = X[-1].reshape((N,) * 3).astype(np.int8)
+    e1, e2 = bank.estimate(g, yaw=0.0), again.estimate(g, yaw=0.0)
+    assert e1.label == e2.label and e1.scores == pytest.approx(e2.scores)
+    # the input rule changes the answer: the same weights on raw features differ
+    raw = dict(again.classifier['complete'], row_standardize=np.asarray(False))
+    f, _ = again.features(g, yaw=0.0)
+    assert not np.allclose(again.classify_features(f, 'complete')[0],
+                           ModelBank(again.models, again.spec, {'complete': raw}
+                                     ).classify_features(f, 'complete')[0])
+    # 'auto' tries both and records the other one's accuracy
+    auto = fit_bank(X, y, names, GridSpec(size=N), k=3, pose_components=3, classifier_views=1,
+                    folds=2, seed=0)
+    rep = auto.training['cross_validation']['complete']
+    assert isinstance(rep['row_standardize'], bool) and 0 <= rep['accuracy_other_input'] <= 1
+    assert rep['accuracy'] >= rep['accuracy_other_input']
+    # two classes: only raw features
+    with pytest.raises(ValueError, match='at least 3 classes'):
+        fit_bank(X[y < 2], y[y < 2], names[:2], GridSpec(size=N), k=3, classifier_views=1,
+                 folds=2, row_standardize=True)
+    with pytest.raises(ValueError, match='row_standardize'):
+        fit_bank(X, y, names, GridSpec(size=N), k=3, row_standardize='yes')
+
+
+def test_two_class_model_with_row_standardized_classifier_is_refused(clf_bank, tmp_path):
+    bank, _, _ = clf_bank
+    path = bank.save(tmp_path / 'two')
+    clf = {mode: dict(c, row_standardize=np.asarray(True)) for mode, c in bank.classifier.items()}
+    ModelBank(bank.models, bank.spec, clf, bank.training).save(path)
+    with pytest.raises(ModelError, match='at least 3 classes'):
+        ModelBank.load(path)
+
+
 def test_full_resolution_refinement_sharpens_the_yaw(pose_case):
     # estimate() re-solves the chosen class exactly at full resolution within +-3 deg of the
     # pooled optimum; on these asymmetric shapes that must beat the pooled search (measured:

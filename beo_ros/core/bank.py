@@ -87,6 +87,23 @@ def _sha256(path):
     return h.hexdigest()
 
 
+def classifier_input(F, n_classes, row_standardize=False):
+    """Classifier input rows (r, C*F) from feature rows (r, C*F) or one (C, F) array.
+
+    ``row_standardize``: every feature is standardised across the classes of its own row
+    (mean 0, std 1 over the C values). That removes what an object does to all classes alike
+    (its size, how much of it was seen) and leaves how the classes compare on it: 5-fold CV
+    on the ModelNet10 train split, complete 0.863 -> 0.891, partial 0.847 -> 0.869. Needs
+    C >= 3 (with two classes it keeps only the sign of each difference).
+    """
+    F = np.asarray(F, dtype=np.float64).reshape(-1, n_classes * len(FEATURE_NAMES))
+    if not row_standardize:
+        return F
+    R = F.reshape(len(F), n_classes, len(FEATURE_NAMES))
+    R = (R - R.mean(axis=1, keepdims=True)) / (R.std(axis=1, keepdims=True) + 1e-9)
+    return R.reshape(len(F), -1)
+
+
 def _softmax(z):
     z = z - z.max()
     e = np.exp(z)
@@ -253,6 +270,9 @@ class ModelBank:
                 if mode not in MODES or clf.get('coef', np.zeros(0)).shape != (len(classes), nf):
                     raise ModelError(f'{fp}: classifier {mode!r} does not fit {len(classes)} '
                                      f'classes x {len(FEATURE_NAMES)} features')
+                if bool(clf.get('row_standardize', False)) and len(classes) < 3:
+                    raise ModelError(f'{fp}: classifier {mode!r} standardises features across '
+                                     f'classes, which needs at least 3 classes')
         return cls(models, spec, classifier, manifest.get('training'),
                    manifest.get('pose_components', 8))
 
@@ -305,7 +325,8 @@ class ModelBank:
         """Class probabilities (C,) and the unknown flag from a (C, F) feature array."""
         if self.classifier and mode in self.classifier:
             clf = self.classifier[mode]
-            x = (feats.ravel() - clf['mean']) / clf['scale']
+            x = classifier_input(feats, len(self.models), bool(clf.get('row_standardize', False)))
+            x = (x[0] - clf['mean']) / clf['scale']
             p = _softmax(clf['coef'] @ x + clf['intercept'])
             best = int(np.argmax(p))
             unknown = bool(feats[best, 0] < float(clf['unknown_threshold'][best]))

@@ -8,7 +8,7 @@ import zipfile
 
 import numpy as np
 
-from .bank import ClassModel, ModelBank, coarse_noise
+from .bank import ClassModel, ModelBank, classifier_input, coarse_noise
 from .grid import yaw_error
 from .inference import FEATURE_NAMES
 from .synthetic import random_partial_view
@@ -83,7 +83,7 @@ def _hypothesis_quality(engine, grid, per, yaw, rotated):
     return dict(yaw_err=np.array(errs), iou=np.array(ious))
 
 
-def cross_validated_report(F, y, records, C=1.0, folds=5, seed=0):
+def cross_validated_report(F, y, records, C=1.0, folds=5, seed=0, row_standardize=False):
     """Accuracy (and, for partial views, yaw and IoU) of the classifier on out-of-fold features,
     itself cross-validated: every object's class comes from a classifier that never saw it."""
     from sklearn.linear_model import LogisticRegression
@@ -93,10 +93,12 @@ def cross_validated_report(F, y, records, C=1.0, folds=5, seed=0):
     clf = make_pipeline(StandardScaler(), LogisticRegression(C=C, max_iter=2000))
     cv = StratifiedKFold(n_splits=min(folds, int(np.bincount(y).min())), shuffle=True,
                          random_state=seed)
-    pred = cross_val_predict(clf, F, y, cv=cv)
     nf = len(FEATURE_NAMES)
+    pred = cross_val_predict(clf, classifier_input(F, F.shape[1] // nf, row_standardize), y, cv=cv)
     ml = np.argmax(F[:, 0::nf], axis=1)
+    recall = [np.mean(pred[y == c] == c) for c in np.unique(y)]
     rep = dict(n=int(len(y)), accuracy=float(np.mean(pred == y)),
+               balanced_accuracy=float(np.mean(recall)),
                accuracy_max_likelihood=float(np.mean(ml == y)))
     if records and 'yaw_err' in records[0]:
         err = np.rad2deg([r['yaw_err'][p] for r, p in zip(records, pred)])
@@ -109,12 +111,14 @@ def cross_validated_report(F, y, records, C=1.0, folds=5, seed=0):
     return {k: round(v, 4) if isinstance(v, float) else v for k, v in rep.items()}
 
 
-def train_classifier(F, y, n_classes, C=1.0):
-    """Standardised multinomial logistic regression on features F (r, C*F) -> arrays dict."""
+def train_classifier(F, y, n_classes, C=1.0, row_standardize=False):
+    """Standardised multinomial logistic regression on features F (r, C*F) -> arrays dict
+    (``row_standardize``: see ``classifier_input``)."""
     from sklearn.linear_model import LogisticRegression
-    mean = F.mean(axis=0)
-    scale = F.std(axis=0) + 1e-9
-    lr = LogisticRegression(C=C, max_iter=2000).fit((F - mean) / scale, y)
+    Z = classifier_input(F, n_classes, row_standardize)
+    mean = Z.mean(axis=0)
+    scale = Z.std(axis=0) + 1e-9
+    lr = LogisticRegression(C=C, max_iter=2000).fit((Z - mean) / scale, y)
     coef = np.zeros((n_classes, F.shape[1]))
     intercept = np.full(n_classes, -30.0)
     coef[lr.classes_] = lr.coef_ if len(lr.classes_) > 2 else np.vstack([-lr.coef_, lr.coef_])
@@ -132,11 +136,13 @@ def train_classifier(F, y, n_classes, C=1.0):
             med = np.median(own)
             mad = 1.4826 * np.median(np.abs(own - med))
             thr[c] = med - 6.0 * max(mad, 1e-3)
-    return dict(mean=mean, scale=scale, coef=coef, intercept=intercept, unknown_threshold=thr)
+    return dict(mean=mean, scale=scale, coef=coef, intercept=intercept, unknown_threshold=thr,
+                row_standardize=np.asarray(bool(row_standardize)))
 
 
 def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_views=1,
-             folds=5, seed=0, C=1.0, verbose=False, training=None, grids=None, oof_path=None):
+             folds=5, seed=0, C=1.0, verbose=False, training=None, grids=None, oof_path=None,
+             row_standardize='auto'):
     """Fit class models on all of X and a classifier on out-of-fold features.
 
     ``classifier_views``: random partial views per training object for the partial-view
@@ -146,7 +152,13 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
     with pose search (``bank.features(grid)``) instead of synthetic random views.
     ``oof_path``: also save the out-of-fold features, labels and per-hypothesis yaw errors and
     IoUs there (npz) for analysis.
+    ``row_standardize``: True, False or 'auto' (per mode, whichever gives the higher
+    cross-validated accuracy; never with fewer than 3 classes). See ``classifier_input``.
     """
+    if row_standardize not in (True, False, 'auto'):
+        raise ValueError(f"row_standardize must be True, False or 'auto', got {row_standardize!r}")
+    if row_standardize is True and len(names) < 3:
+        raise ValueError('row_standardize needs at least 3 classes')
     X = np.asarray(X, dtype=np.float32)
     y = np.asarray(y)
     t0 = time.time()
@@ -184,8 +196,17 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
         for mode in feats:
             if feats[mode]:
                 F, lab = np.vstack(feats[mode]), np.array(labels[mode])
-                classifier[mode] = train_classifier(F, lab, len(names), C)
-                cv_report[mode] = cross_validated_report(F, lab, records[mode], C, seed=seed)
+                if row_standardize == 'auto':
+                    options = [False, True] if len(names) >= 3 else [False]
+                else:
+                    options = [row_standardize]
+                reports = [cross_validated_report(F, lab, records[mode], C, seed=seed,
+                                                  row_standardize=o) for o in options]
+                best = int(np.argmax([r['accuracy'] for r in reports]))
+                cv_report[mode] = dict(reports[best], row_standardize=options[best])
+                if len(options) > 1:
+                    cv_report[mode]['accuracy_other_input'] = reports[1 - best]['accuracy']
+                classifier[mode] = train_classifier(F, lab, len(names), C, options[best])
         info['cross_validation'] = cv_report
         if oof_path:
             arrays = {}
