@@ -64,7 +64,11 @@ def summarize(recs, classes):
         if not r:
             continue
         lat = np.array([x['latency'] for x in r]) * 1000
+        recall = [np.mean([x['label'] == c for x in r if x['truth'] == c]) for c in classes
+                  if any(x['truth'] == c for x in r)]
+        # mean per-class recall: what the accuracy would be with equal counts per class
         s = dict(n=len(r), accuracy=float(np.mean([x['label'] == x['truth'] for x in r])),
+                 balanced_accuracy=float(np.mean(recall)),
                  latency_p50_ms=float(np.median(lat)), latency_p95_ms=float(np.percentile(lat, 95)))
         if mode == 'partial':
             e = np.array([x['yaw_err_deg'] for x in r])
@@ -97,14 +101,15 @@ def summarize(recs, classes):
 
 
 def print_table(summary, file=sys.stdout):
-    print(f"{'mode':10s} {'n':>5s} {'acc':>6s} {'yaw<=10':>8s} {'+flip':>6s} {'IoU':>6s} "
+    print(f"{'mode':10s} {'n':>5s} {'acc':>6s} {'bal':>6s} {'yaw<=10':>8s} {'+flip':>6s} {'IoU':>6s} "
           f"{'p50 ms':>7s} {'p95 ms':>7s}", file=file)
     for mode in ('complete', 'partial'):
         if mode not in summary:
             continue
         s = summary[mode]
         f = (lambda k: f"{s[k]:.3f}" if k in s else '-')
-        print(f"{mode:10s} {s['n']:5d} {s['accuracy']:6.3f} {f('yaw_within_10'):>8s} "
+        print(f"{mode:10s} {s['n']:5d} {s['accuracy']:6.3f} {f('balanced_accuracy'):>6s} "
+              f"{f('yaw_within_10'):>8s} "
               f"{f('yaw_within_10_or_flip'):>6s} {f('iou'):>6s} {s['latency_p50_ms']:7.1f} "
               f"{s['latency_p95_ms']:7.1f}", file=file)
 

@@ -61,7 +61,11 @@ def test_eval_writes_json_and_png(trained, capsys):
     for mode in ('complete', 'partial'):
         assert s[mode]['n'] == 6
         assert 0 <= s[mode]['accuracy'] <= 1
-        assert np.array(s[mode]['confusion']).sum() == 6
+        cm = np.array(s[mode]['confusion'])
+        assert cm.sum() == 6
+        rows = cm.sum(axis=1) > 0  # balanced accuracy: mean recall over the classes present
+        assert s[mode]['balanced_accuracy'] == pytest.approx(
+            np.mean(np.diag(cm)[rows] / cm.sum(axis=1)[rows]))
     assert 0 <= s['partial']['iou'] <= 1
     assert 0 <= s['partial']['yaw_within_10'] <= 1
     png = (out / 'eval.png').read_bytes()
