@@ -728,6 +728,30 @@ def test_row_standardized_classifier_is_chosen_saved_and_checked(tmp_path):
         fit_bank(X, y, names, GridSpec(size=N), k=3, row_standardize='yes')
 
 
+def test_unknown_when_the_classes_that_explain_the_object_hold_little_probability():
+    # three classes; the classifier's weights put the winner by the second feature, the
+    # bound is on the first (per-voxel log-likelihood)
+    from beo_ros.core.inference import FEATURE_NAMES
+    nf = len(FEATURE_NAMES)
+    bank = make_tiny_bank(n=8, k=2)
+    models = bank.models + [bank.models[0]]
+    coef = np.zeros((3, 3 * nf))
+    for c in range(3):
+        coef[c, c * nf + 1] = 1.0
+    clf = dict(mean=np.zeros(3 * nf), scale=np.ones(3 * nf), coef=coef, intercept=np.zeros(3),
+               unknown_threshold=np.array([-1.0, -1.0, -1.0]))
+    b3 = ModelBank(models, bank.spec, {'complete': clf})
+    feats = np.zeros((3, nf))
+    feats[:, 1] = [np.log(0.4), np.log(0.35), np.log(0.25)]  # probabilities 0.4, 0.35, 0.25
+    feats[:, 0] = [0.0, -5.0, -5.0]  # only the winner explains it: 0.4 < 0.5
+    p, unknown = b3.classify_features(feats, 'complete')
+    assert np.argmax(p) == 0 and p[0] == pytest.approx(0.4) and unknown
+    feats[:, 0] = [0.0, 0.0, -5.0]  # the explaining classes hold 0.75
+    assert not b3.classify_features(feats, 'complete')[1]
+    feats[:, 0] = [-5.0, 0.0, 0.0]  # the winner itself does not explain it
+    assert b3.classify_features(feats, 'complete')[1]
+
+
 def test_two_class_model_with_row_standardized_classifier_is_refused(clf_bank, tmp_path):
     bank, _, _ = clf_bank
     path = bank.save(tmp_path / 'two')
