@@ -1,0 +1,148 @@
+"""Leave-one-scene-out evaluation of the tabletop models (beo_ros.scan_eval): out-of-fold
+features and the scene-grouped second-level classifier comparison, on small generated scenes."""
+import json
+
+import numpy as np
+import pytest
+
+from beo_ros.core.inference import FEATURE_NAMES
+from beo_ros.core.pcd import write_pcd
+from beo_ros.scan_eval import (
+    classifier_comparison, classifier_design, main, scene_cv_predictions)
+
+
+def _scene_points(kind, rng, n_obj=2):
+    """Camera at the origin (y down, z forward) pitched down 40 deg, table 0.6 m below it, and
+    ``n_obj`` boxes or cylinders on the table (their camera-facing surfaces). -> (points, labels)"""
+    pitch = np.radians(40)
+    up = np.array([0.0, -np.cos(pitch), -np.sin(pitch)])
+    fwd = np.cross([1.0, 0, 0], up)
+    fwd /= np.linalg.norm(fwd)
+    side = np.cross(up, fwd)
+    table_c = 0.9 * fwd - 0.6 * up
+
+    def to_cam(a, b, h):
+        return table_c + np.outer(a, side) + np.outer(b, fwd) + np.outer(h, up)
+
+    m = 3000
+    pts = [to_cam(rng.uniform(-0.45, 0.45, m), rng.uniform(-0.35, 0.35, m),
+                  rng.normal(0, 0.002, m))]
+    labels = [np.ones(m)]
+    for j in range(n_obj):
+        x0 = -0.15 + 0.3 * j
+        r = rng.uniform(0.04, 0.06)
+        h = rng.uniform(0.1, 0.2)
+        k = 1200
+        if kind == 'box':
+            p = np.r_[to_cam(x0 + rng.uniform(-r, r, k), np.full(k, -r), rng.uniform(0, h, k)),
+                      to_cam(x0 + rng.uniform(-r, r, k), rng.uniform(-r, r, k), np.full(k, h))]
+        else:
+            a = rng.uniform(np.pi, 2 * np.pi, k)          # the half facing the camera
+            rr = r * np.sqrt(rng.uniform(0, 1, k))
+            b = rng.uniform(0, 2 * np.pi, k)
+            p = np.r_[to_cam(x0 + r * np.cos(a), r * np.sin(a), rng.uniform(0, h, k)),
+                      to_cam(x0 + rr * np.cos(b), rr * np.sin(b), np.full(k, h))]
+        pts.append(p)
+        labels.append(np.full(len(p), 10 * (j + 2)))
+    return np.concatenate(pts).astype(np.float32), np.concatenate(labels).astype(np.uint32)
+
+
+@pytest.fixture(scope='module')
+def scan_files(tmp_path_factory):
+    """learn0, learn1 (boxes) and learn33, learn34 (cylinders): 2 objects per scene."""
+    d = tmp_path_factory.mktemp('scans')
+    files = []
+    for i, (num, kind) in enumerate([(0, 'box'), (1, 'box'), (33, 'cyl'), (34, 'cyl')]):
+        pts, lab = _scene_points(kind, np.random.default_rng(i))
+        f = d / f'learn{num}.pcd'
+        write_pcd(f, {'x': pts[:, 0], 'y': pts[:, 1], 'z': pts[:, 2], 'label': lab})
+        files.append(f)
+    return files
+
+
+def test_classifier_design():
+    F = np.arange(2 * 2 * 6, dtype=float).reshape(2, 2, 6)
+    assert classifier_design(F, 'all').shape == (2, 12)
+    np.testing.assert_array_equal(classifier_design(F, 'all')[1], F[1].ravel())
+    np.testing.assert_array_equal(classifier_design(F, 'diff'), F[:, 0] - F[:, 1])
+    with pytest.raises(ValueError):
+        classifier_design(np.zeros((2, 3, 6)), 'diff')
+    with pytest.raises(ValueError):
+        classifier_design(F, 'ratio')
+    with pytest.raises(ValueError):
+        classifier_design(F[0], 'all')
+
+
+def _features(rng, n_scenes=12, per_scene=4):
+    """Features where the log-likelihood (feature 0) is biased toward class 0 and useless for
+    class 1, while feature 2 (rmse) separates the classes: a learned rule must beat max-lik."""
+    y = np.repeat(np.arange(n_scenes) % 2, per_scene)
+    groups = np.repeat([f's{i}' for i in range(n_scenes)], per_scene)
+    F = rng.normal(0, 1, (len(y), 2, len(FEATURE_NAMES)))
+    F[:, 0, 0] += 3.0                                # class 0 always has the larger loglik
+    F[:, 1, 2] += np.where(y == 1, -4.0, 4.0)        # rmse of class 1 tells the classes apart
+    return F, y, groups
+
+
+def test_scene_cv_is_grouped_and_learns():
+    rng = np.random.default_rng(0)
+    F, y, groups = _features(rng)
+    comp = classifier_comparison(F, y, groups, ['a', 'b'])
+    assert set(comp) == {'max_likelihood', 'lr_all_C0.1', 'lr_all_C1', 'lr_diff_C0.1',
+                         'lr_diff_C1'}
+    ml = comp['max_likelihood']
+    assert ml['accuracy'] == pytest.approx(np.mean(np.argmax(F[:, :, 0], 1) == y), abs=1e-4)
+    assert ml['accuracy'] < 0.7
+    for name in ('lr_all_C1', 'lr_diff_C1'):
+        assert comp[name]['accuracy'] > 0.9, comp[name]
+        assert np.sum(comp[name]['confusion']) + comp[name]['n_unknown'] == len(y)
+        assert comp[name]['n_correct'] == len(y) - len(comp[name]['wrong'])
+    # grouped: a scene's predictions do not depend on its own labels. Scene s3 lies apart
+    # from all others (feature 3 shifted), so a regression that saw its flipped labels would
+    # flip its answers; one that never saw the scene keeps them.
+    te = groups == 's3'
+    F2 = F.copy()
+    F2[te, :, 3] += 8.0
+    y2 = y.copy()
+    y2[te] = 1 - y2[te]
+    for kind in ('all', 'diff'):
+        pred, _ = scene_cv_predictions(F2, y, groups, kind, 1.0)
+        pred2, _ = scene_cv_predictions(F2, y2, groups, kind, 1.0)
+        np.testing.assert_array_equal(pred[te], pred2[te])
+    # the 'unknown' check of ModelBank.classify_features: an object far worse explained than
+    # the training objects of its predicted class is 'unknown' and counts as wrong
+    F3 = F.copy()
+    F3[0, :, 0] = -1e3
+    pred, unknown = scene_cv_predictions(F3, y, groups, 'all', 1.0)
+    assert unknown[0] and not unknown[1:].any()
+    rep = classifier_comparison(F3, y, groups, variants=(('all', 1.0),))['lr_all_C1']
+    assert rep['n_unknown'] == 1 and 0 in rep['wrong']
+
+
+def test_loso_saves_out_of_fold_features(scan_files, tmp_path):
+    out = tmp_path / 'ev'
+    rc = main(['--scans', *map(str, scan_files), '--out', str(out), '--no-congeal', '--k', '2',
+               '--max-iter', '3', '--grid', '16', '--voxel-size', '0.03125',
+               '--yaw-step', '10', '--figures', '0'])
+    assert rc == 0
+    z = np.load(out / 'oof_features.npz')
+    m = len(z['y'])
+    assert m == 8 and z['features'].shape == (m, 2, len(FEATURE_NAMES))
+    assert list(z['classes']) == ['box', 'cylinder']
+    assert list(z['feature_names']) == list(FEATURE_NAMES)
+    assert sorted(set(z['scenes'])) == ['learn0', 'learn1', 'learn33', 'learn34']
+    assert np.isfinite(z['features']).all()
+    res = json.loads((out / 'scan_eval.json').read_text())
+    s, recs = res['summary'], res['objects']
+    # the saved features are the ones of the records, under the models fitted without the scene
+    for r, f, sc, oid in zip(recs, z['features'], z['scenes'], z['object_ids']):
+        assert (r['scene'], r['object']) == (sc, oid)
+        np.testing.assert_allclose([r['features']['box'][n] for n in FEATURE_NAMES], f[0],
+                                   atol=1e-4)
+    # the maximum-likelihood rule on the saved features is the rule the loop used
+    cv = s['classifier_cv']
+    assert cv['max_likelihood']['accuracy'] == pytest.approx(s['accuracy'], abs=1e-4)
+    assert cv['max_likelihood']['confusion'] == s['confusion']
+    for name in ('lr_all_C0.1', 'lr_all_C1', 'lr_diff_C0.1', 'lr_diff_C1'):
+        assert 0.0 <= cv[name]['accuracy'] <= 1.0
+        assert np.sum(cv[name]['confusion']) + cv[name]['n_unknown'] == m
