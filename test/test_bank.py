@@ -752,6 +752,24 @@ def test_unknown_when_the_classes_that_explain_the_object_hold_little_probabilit
     assert b3.classify_features(feats, 'complete')[1]
 
 
+def test_cross_validated_report_keeps_the_views_of_an_object_in_one_fold():
+    # 3 identical rows (views) per object, random labels: a classifier that saw one view of
+    # an object answers its other views from memory; grouped by object it is at chance
+    from beo_ros.core.inference import FEATURE_NAMES
+    from beo_ros.core.training import cross_validated_report
+    rng = np.random.default_rng(0)
+    n_obj = 40
+    F0 = rng.normal(size=(n_obj, 20 * len(FEATURE_NAMES)))
+    y0 = np.arange(n_obj) % 2
+    F, y, groups = np.repeat(F0, 3, axis=0), np.repeat(y0, 3), np.repeat(np.arange(n_obj), 3)
+    leaky = cross_validated_report(F, y, [], folds=5)['accuracy']
+    grouped = cross_validated_report(F, y, [], folds=5, groups=groups)['accuracy']
+    assert leaky > 0.9 and grouped < 0.75, (leaky, grouped)
+    # one row per object: the same as without groups
+    assert (cross_validated_report(F0, y0, [], groups=np.arange(n_obj))
+            == cross_validated_report(F0, y0, []))
+
+
 def test_two_class_model_with_row_standardized_classifier_is_refused(clf_bank, tmp_path):
     bank, _, _ = clf_bank
     path = bank.save(tmp_path / 'two')

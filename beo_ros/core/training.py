@@ -83,18 +83,29 @@ def _hypothesis_quality(engine, grid, per, yaw, rotated):
     return dict(yaw_err=np.array(errs), iou=np.array(ious))
 
 
-def cross_validated_report(F, y, records, C=1.0, folds=5, seed=0, row_standardize=False):
+def cross_validated_report(F, y, records, C=1.0, folds=5, seed=0, row_standardize=False,
+                           groups=None):
     """Accuracy (and, for partial views, yaw and IoU) of the classifier on out-of-fold features,
-    itself cross-validated: every object's class comes from a classifier that never saw it."""
+    itself cross-validated: every object's class comes from a classifier that never saw it.
+
+    ``groups`` (r,): the object of every row, when objects have several rows (views); all
+    rows of an object then fall in the same fold.
+    """
     from sklearn.linear_model import LogisticRegression
-    from sklearn.model_selection import StratifiedKFold, cross_val_predict
+    from sklearn.model_selection import StratifiedGroupKFold, StratifiedKFold, cross_val_predict
     from sklearn.pipeline import make_pipeline
     from sklearn.preprocessing import StandardScaler
     clf = make_pipeline(StandardScaler(), LogisticRegression(C=C, max_iter=2000))
-    cv = StratifiedKFold(n_splits=min(folds, int(np.bincount(y).min())), shuffle=True,
-                         random_state=seed)
+    if groups is not None and len(np.unique(groups)) < len(y):
+        per_class = min(len(np.unique(groups[y == c])) for c in np.unique(y))
+        cv = StratifiedGroupKFold(n_splits=min(folds, per_class), shuffle=True, random_state=seed)
+    else:
+        groups = None
+        cv = StratifiedKFold(n_splits=min(folds, int(np.bincount(y).min())), shuffle=True,
+                             random_state=seed)
     nf = len(FEATURE_NAMES)
-    pred = cross_val_predict(clf, classifier_input(F, F.shape[1] // nf, row_standardize), y, cv=cv)
+    pred = cross_val_predict(clf, classifier_input(F, F.shape[1] // nf, row_standardize), y,
+                             cv=cv, groups=groups)
     ml = np.argmax(F[:, 0::nf], axis=1)
     recall = [np.mean(pred[y == c] == c) for c in np.unique(y)]
     rep = dict(n=int(len(y)), accuracy=float(np.mean(pred == y)),
@@ -175,6 +186,7 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
         feats = {'complete': [], 'partial': []}
         labels = {'complete': [], 'partial': []}
         records = {'complete': [], 'partial': []}
+        objects = {'complete': [], 'partial': []}
         for f in progress_bar(range(folds), 'out-of-fold features', disable=not verbose):
             tr, te = fold != f, np.flatnonzero(fold == f)
             sub = ModelBank(fit_class_models(X[tr], y[tr], names, spec, k,
@@ -185,12 +197,14 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
                     F, _ = sub.features(np.asarray(grids[i], dtype=np.int8))
                     feats['partial'].append(F.ravel()[None])
                     labels['partial'].append(y[i])
+                    objects['partial'].append(i)
                     records['partial'].append({})  # no ground-truth yaw for real scans
                     continue
                 out = view_features(sub, X[i:i + 1], rng, classifier_views, complete=masks is None)
                 for mode, (F, _, recs) in out.items():
                     feats[mode].append(F)
                     labels[mode] += [y[i]] * len(F)
+                    objects[mode] += [i] * len(F)
                     records[mode] += recs
         classifier, cv_report = {}, {}
         for mode in feats:
@@ -201,7 +215,9 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
                 else:
                     options = [row_standardize]
                 reports = [cross_validated_report(F, lab, records[mode], C, seed=seed,
-                                                  row_standardize=o) for o in options]
+                                                  row_standardize=o,
+                                                  groups=np.array(objects[mode]))
+                           for o in options]
                 best = int(np.argmax([r['accuracy'] for r in reports]))
                 cv_report[mode] = dict(reports[best], row_standardize=options[best])
                 if len(options) > 1:
@@ -214,6 +230,7 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
                 if feats[mode]:
                     arrays[f'{mode}_features'] = np.vstack(feats[mode])
                     arrays[f'{mode}_labels'] = np.array(labels[mode])
+                    arrays[f'{mode}_objects'] = np.array(objects[mode])
                     if records[mode] and records[mode][0]:
                         for key in records[mode][0]:
                             arrays[f'{mode}_{key}'] = np.array([r[key] for r in records[mode]])
