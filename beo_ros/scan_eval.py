@@ -10,7 +10,10 @@ explains it best (the paper's maximum-likelihood rule). Every held-out object's 
 features under the models fitted without its scene (out-of-fold features) are saved to
 ``oof_features.npz``; on them, logistic-regression rules (all C x F features, or the F
 differences of two classes; C = 0.1, 1) are compared with the maximum-likelihood rule by a
-second-level leave-one-scene-out (``summary['classifier_cv']``). Caveat of that second level:
+second-level leave-one-scene-out (``summary['classifier_cv']``), and so is the shipped tabletop
+rule, the 'points' classifier (``points_C1``: the C per-class log-likelihoods + the side-normal
+descriptors r4, frac10 of the object's raw points, :mod:`beo_ros.core.normals`; the descriptors
+are saved in ``oof_features.npz`` as ``point_descriptors``). Caveat of that second level:
 the training rows' features came from models that had seen the held-out scene (not nested).
 Reported: accuracy, confusion, and for boxes the yaw
 consistency: the estimated yaw against the box's own edge direction from its points (minimum-area
@@ -159,6 +162,44 @@ def scene_cv_predictions(F, y, groups, kind='all', C=1.0):
     return pred, unknown
 
 
+POINT_CLASSIFIER_CS = (0.1, 1.0)
+
+
+def scene_cv_point_predictions(F, D, y, groups, C=1.0):
+    """Second-level leave-one-group-out predictions of the 'points' classifier.
+
+    F: (m, C, nf) out-of-fold features (only ``F[:, :, 0]``, the log-likelihood, is used);
+    D: (m, 2) side-normal descriptors; every object's class from
+    :func:`beo_ros.core.scan_training.train_point_classifier` fitted on the other groups'
+    objects, applied with ``bank.apply_point_classifier`` (the code ``ModelBank.estimate_points``
+    runs, 'unknown' check included). Objects with undefined (NaN) descriptors take the
+    maximum-likelihood class, as ``estimate_points`` falls back (and are left out of the fits).
+    Returns (pred (m,), unknown (m,) bool).
+    """
+    from .core.bank import apply_point_classifier
+    from .core.scan_training import train_point_classifier
+    F = np.asarray(F, dtype=np.float64)
+    L = F[:, :, 0]
+    D = np.asarray(D, dtype=np.float64).reshape(len(F), -1)
+    y = np.asarray(y)
+    groups = np.asarray(groups)
+    ok = np.isfinite(D).all(axis=1)
+    pred = np.argmax(L, axis=1)
+    unknown = np.zeros(len(y), dtype=bool)
+    for g in dict.fromkeys(groups.tolist()):
+        te = (groups == g) & ok
+        tr = (groups != g) & ok
+        if not te.any():
+            continue
+        if len(np.unique(y[tr])) < 2:
+            pred[te] = y[tr][0] if tr.any() else pred[te]
+            continue
+        clf = train_point_classifier(L[tr], D[tr], y[tr], F.shape[1], C)
+        p, unknown[te] = apply_point_classifier(clf, L[te], D[te])
+        pred[te] = np.argmax(p, axis=1)
+    return pred, unknown
+
+
 def _rule_report(y, pred, n_classes, unknown=None):
     unknown = np.zeros(len(y), dtype=bool) if unknown is None else np.asarray(unknown)
     ok = (pred == y) & ~unknown
@@ -169,9 +210,12 @@ def _rule_report(y, pred, n_classes, unknown=None):
                 accuracy_without_unknown_check=round(float(np.mean(pred == y)), 4))
 
 
-def classifier_comparison(F, y, groups, names=None, variants=CLASSIFIER_VARIANTS):
+def classifier_comparison(F, y, groups, names=None, variants=CLASSIFIER_VARIANTS,
+                          point_descriptors=None):
     """The maximum-likelihood rule (argmax of the log-likelihood feature) against the
-    scene-grouped cross-validated logistic-regression variants, on the same out-of-fold features.
+    scene-grouped cross-validated logistic-regression variants, on the same out-of-fold features
+    (with ``point_descriptors`` (m, 2) also the 'points' classifier, ``points_C<C>``, see
+    :func:`scene_cv_point_predictions`).
 
     Returns {'max_likelihood': report, 'lr_<kind>_C<C>': report, ...}; a report holds accuracy
     (an 'unknown' answer counts as wrong), n_correct, n_unknown, the confusion of the known
@@ -189,6 +233,13 @@ def classifier_comparison(F, y, groups, names=None, variants=CLASSIFIER_VARIANTS
         pred, unknown = scene_cv_predictions(F, y, groups, kind, C)
         out[f'lr_{kind}_C{C:g}'] = dict(_rule_report(y, pred, n_classes, unknown),
                                         wrong=np.flatnonzero((pred != y) | unknown).tolist())
+    if point_descriptors is not None:
+        for C in POINT_CLASSIFIER_CS:
+            pred, unknown = scene_cv_point_predictions(F, point_descriptors, y, groups, C)
+            out[f'points_C{C:g}'] = dict(
+                _rule_report(y, pred, n_classes, unknown),
+                wrong=np.flatnonzero((pred != y) | unknown).tolist(),
+                n_descriptors_undefined=int((~np.isfinite(point_descriptors).all(axis=1)).sum()))
     return out
 
 
@@ -220,7 +271,7 @@ def plot_completions(path, items, spec):
 
 def run(args) -> dict:
     from .core.inference import FEATURE_NAMES
-    from .core.scan_training import load_scan_objects
+    from .core.scan_training import load_scan_objects, scan_point_descriptors
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.time()
@@ -306,11 +357,18 @@ def run(args) -> dict:
                 within_10_deg=round(float(np.mean(np.abs(dev) <= 10)), 4))
     idx = np.array([i for i, _ in oof], dtype=int)
     F = np.array([f for _, f in oof], dtype=np.float64)
+    # side-normal descriptors of the raw points (no fitting: the same under any fold)
+    t_d = time.perf_counter()
+    D = scan_point_descriptors(objs.subset(idx))
+    summary['point_descriptor_ms_mean'] = round(
+        1e3 * (time.perf_counter() - t_d) / max(len(idx), 1), 2)
     np.savez_compressed(out / 'oof_features.npz', features=F, y=objs.y[idx],
                         scenes=objs.scenes[idx], object_ids=objs.object_ids[idx],
-                        classes=np.array(names), feature_names=np.array(FEATURE_NAMES))
+                        classes=np.array(names), feature_names=np.array(FEATURE_NAMES),
+                        point_descriptors=D)
     if len(groups) > 1:
-        comp = classifier_comparison(F, objs.y[idx], objs.scenes[idx], names)
+        comp = classifier_comparison(F, objs.y[idx], objs.scenes[idx], names,
+                                     point_descriptors=D)
         for rep in comp.values():
             rep['wrong'] = [f'{objs.scenes[idx[j]]}/{objs.object_ids[idx[j]]}'
                             for j in rep['wrong']]
@@ -319,7 +377,9 @@ def run(args) -> dict:
                      "object's class from a logistic regression (standardised, features of the "
                      'other scenes) that never saw its scene; lr_all: the C x F features '
                      "(with the 'unknown' check, counted wrong), lr_diff: the F differences "
-                     'class 0 minus class 1; max_likelihood: argmax of loglik',
+                     "class 0 minus class 1; points: the C loglik + the raw points' side-normal "
+                     "descriptors r4, frac10 (the shipped tabletop rule of estimate_points, "
+                     "'unknown' check counted wrong); max_likelihood: argmax of loglik",
             **comp)
     summary['seconds'] = round(time.time() - t_start, 1)
     (out / 'scan_eval.json').write_text(json.dumps(dict(summary=summary, objects=recs),

@@ -35,6 +35,11 @@ def main(argv=None):
                     help='--scans: also train on the mirror image of every scan grid (needs '
                          '--views 0: out-of-fold folds over objects would split mirror pairs)')
     ap.add_argument('--max-iter', type=int, default=200, help='VBPCA iterations per class (with --mirror)')
+    ap.add_argument('--point-classifier', metavar='OOF_NPZ', default=None,
+                    help="--scans --mirror: also store a 'points' classifier (used by "
+                         'estimate_points: per-class loglik + side-normal descriptors of the raw '
+                         'points), fitted on every object with its out-of-fold features from '
+                         'this oof_features.npz of a leave-one-scene-out beo-eval --scans run')
     ap.add_argument('--congeal', action='store_true',
                     help='align the yaw of unaligned training objects within each class')
     ap.add_argument('--views', type=int, default=1,
@@ -50,13 +55,16 @@ def main(argv=None):
     args = ap.parse_args(argv)
     if args.mirror and not (args.scans and args.views == 0):
         ap.error('--mirror is for --scans with --views 0 (maximum-likelihood rule)')
+    if args.point_classifier and not args.mirror:
+        ap.error('--point-classifier is for --scans --mirror --views 0')
     try:
         if args.mirror:
             from .core.scan_training import train_scan_bank
             t0 = time.time()
             bank = train_scan_bank(args.inputs, args.scan_classes, args.grid or 32,
                                    args.voxel_size, args.k, args.max_iter, mirror=True,
-                                   congeal=args.congeal, verbose=True)
+                                   congeal=args.congeal, verbose=True,
+                                   point_classifier=args.point_classifier)
             bank.save(args.out)
             print(f'wrote {args.out}: {len(bank.classes)} classes {bank.classes}, '
                   f'{bank.training["n_training_grids"]} training grids, '

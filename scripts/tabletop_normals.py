@@ -1,8 +1,9 @@
 #!/usr/bin/env python
-"""Measurement (not shipped): does a surface-normal cue from each object's raw segmented points
-separate box from cylinder better, together with the BEO log-likelihood margin?
+"""Measurement: does a surface-normal cue from each object's raw segmented points separate box
+from cylinder better, together with the BEO log-likelihood margin?
 
-Not imported by the package or the tests. Usage (from the repository root):
+Not imported by the package or the tests; it imports the package's descriptor maths
+(``beo_ros.core.normals``, which the shipped 'points' classifier of ``models/tabletop_32`` uses). Usage (from the repository root):
 
     .venv/bin/python scripts/tabletop_normals.py /tmp/beo_loso/oof_features.npz [--json out.json]
 
@@ -12,8 +13,10 @@ classes). The scans are read from ``$BEO_DATA_DIR/osd/learn/learn*.pcd``; ``BEO_
 defaults to ``../shared/data`` relative to the repository.
 
 Per object (camera-frame points of its OSD label, the scene's fitted table normal ``up``):
-normals by open3d ``estimate_normals`` (KD-tree hybrid search, radius 2 cm, at most 30
-neighbours), oriented toward the camera at the origin; "side" points are those whose normal is
+normals by ``beo_ros.core.normals.point_normals`` (PCA of the at most 30 nearest neighbours
+within 2 cm, as open3d's hybrid ``estimate_normals``, computed at at most 2000 evenly strided
+points of the object; the first measurement used open3d at all points), oriented toward the
+camera at the origin; "side" points are those whose normal is
 within 45 deg of horizontal (|n . up| < cos 45 deg); theta is the horizontal direction of a side
 normal about ``up``. The three descriptors (fixed before any per-object result was seen; all
 invariant to a rotation about ``up``):
@@ -30,7 +33,9 @@ Second level: leave-one-scene-out over the 29 scenes, every object's class from 
 (mean / std of the training rows) logistic regression fitted on the other 28 scenes' objects
 only (as ``beo_ros.scan_eval.scene_cv_predictions`` does for its 'diff' input). Variants, all
 reported: (a) the 3 normal descriptors, (b) the loglik margin (box minus cylinder, per known
-voxel), (c) margin + the 3 descriptors; each at C = 0.1 and 1. The maximum-likelihood rule on
+voxel), (c) margin + the 3 descriptors, (d) ``r4, frac10`` only, (e) the shipped 'points'
+classifier (``beo_ros.scan_eval.scene_cv_point_predictions``: the C per-class loglik values +
+``r4, frac10``, with its 'unknown' check); each at C = 0.1 and 1. The maximum-likelihood rule on
 the same out-of-fold features is the reference.
 """
 from __future__ import annotations
@@ -47,47 +52,25 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-RADIUS = 0.02
-MAX_NN = 30
-SIDE_COS = np.cos(np.radians(45.0))
-MODE_TOL_DEG = 10.0
+from beo_ros.core.normals import (  # noqa: E402  (the package's own maths: no drift)
+    MIN_SIDE, SIDE_COS, descriptors_from_normals, point_normals, side_normal_descriptors)
+
 DESCRIPTORS = ('r4', 'frac10', 'surf_var')
 CS = (0.1, 1.0)
 
 
-def horizontal_basis(up):
-    up = np.asarray(up, float) / np.linalg.norm(up)
-    a = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    e1 = a - (a @ up) * up
-    e1 /= np.linalg.norm(e1)
-    return up, e1, np.cross(up, e1)
-
-
-def normal_descriptors(points, up, radius=RADIUS, max_nn=MAX_NN):
-    """(r4, frac10, surf_var, n_side) of one object's camera-frame points."""
-    import open3d as o3d
+def normal_descriptors(points, up):
+    """(r4, frac10, surf_var, n_side) of one object's camera-frame points: r4 and frac10 are
+    ``beo_ros.core.normals.side_normal_descriptors`` (what the shipped 'points' classifier
+    sees); surf_var is the median surface variation over the side points of the same normals."""
     pts = np.asarray(points, dtype=np.float64)
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-    param = o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=max_nn)
-    cloud.estimate_normals(param)
-    cloud.orient_normals_towards_camera_location(np.zeros(3))
-    n = np.asarray(cloud.normals)
-    cloud.estimate_covariances(param)
-    cov = np.asarray(cloud.covariances)
-    ev = np.linalg.eigvalsh(cov)                     # ascending
-    sv = ev[:, 0] / np.maximum(ev.sum(axis=1), 1e-30)
-    up, e1, e2 = horizontal_basis(up)
-    side = np.abs(n @ up) < SIDE_COS
-    ns = int(side.sum())
-    if ns < 10:
-        return np.nan, np.nan, np.nan, ns
-    theta = np.arctan2(n[side] @ e2, n[side] @ e1)
-    r4 = float(np.abs(np.mean(np.exp(4j * theta))))
-    t90 = np.degrees(theta) % 90.0
-    cand = np.arange(0.0, 90.0, 1.0)
-    dist = np.abs((t90[None, :] - cand[:, None] + 45.0) % 90.0 - 45.0)
-    frac10 = float((dist <= MODE_TOL_DEG).mean(axis=1).max())
-    return r4, frac10, float(np.median(sv[side])), ns
+    r4, frac10 = side_normal_descriptors(pts, up, np.zeros(3))
+    _, n, sv = point_normals(pts, np.zeros(3))
+    _, _, ns = descriptors_from_normals(n, up)
+    u = np.asarray(up, float) / np.linalg.norm(up)
+    side = np.isfinite(n).all(axis=1) & (np.abs(n @ u) < SIDE_COS)
+    surf_var = float(np.median(sv[side])) if ns >= MIN_SIDE else np.nan
+    return r4, frac10, surf_var, ns
 
 
 def loso_lr(Z, y, groups, C):
@@ -107,7 +90,8 @@ def loso_lr(Z, y, groups, C):
 
 def report(name, y, pred, labels):
     conf = np.zeros((2, 2), dtype=int)
-    np.add.at(conf, (y, pred), 1)
+    known = pred >= 0                                # -1: 'unknown' (counted wrong)
+    np.add.at(conf, (y[known], pred[known]), 1)
     wrong = [labels[i] for i in np.flatnonzero(pred != y)]
     return dict(variant=name, accuracy=round(float(np.mean(pred == y)), 4),
                 n_correct=int((pred == y).sum()), confusion=conf.tolist(), wrong=wrong)
@@ -150,10 +134,17 @@ def main(argv=None):
     results = [report('maximum likelihood (reference)', y, ml, labels)]
     sets = (('(a) normals: r4, frac10, surf_var', desc),
             ('(b) loglik margin', margin[:, None]),
-            ('(c) margin + normals', np.column_stack([margin, desc])))
+            ('(c) margin + normals', np.column_stack([margin, desc])),
+            ('(d) r4, frac10', desc[:, :2]))
     for name, Z in sets:
         for C in CS:
             results.append(report(f'{name}, C = {C:g}', y, loso_lr(Z, y, scenes, C), labels))
+    from beo_ros.scan_eval import scene_cv_point_predictions
+    for C in CS:
+        pred, unknown = scene_cv_point_predictions(F, desc[:, :2], y, scenes, C)
+        results.append(report(f"(e) 'points' classifier (loglik x C + r4, frac10), C = {C:g}"
+                              f' ({int(unknown.sum())} unknown, counted wrong)', y,
+                              np.where(unknown, -1, pred), labels))
 
     print('per class: median [IQR] of each descriptor')
     for c, cname in enumerate(d['classes'].astype(str)):

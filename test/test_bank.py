@@ -823,3 +823,137 @@ def test_bank_pickles_as_its_constructor_arguments():
     assert back.pose_components == 2 and back.stage2_noise_map
     g = views()[0]
     assert back.estimate(g).scores == pytest.approx(on.estimate(g).scores)
+
+
+# ---------------------------------------------------------------------- 'points' classifier
+def _points_classifier(n_classes, favour, r4_weight=0.0):
+    """A hand-made 'points' classifier: intercepts favour class ``favour`` (plus an optional
+    weight on r4 for class 0), never 'unknown'."""
+    nin = n_classes + 2
+    coef = np.zeros((n_classes, nin))
+    coef[0, n_classes] = r4_weight
+    intercept = np.zeros(n_classes)
+    intercept[favour] = 5.0
+    return dict(mean=np.zeros(nin), scale=np.ones(nin), coef=coef, intercept=intercept,
+                unknown_threshold=np.full(n_classes, -np.inf))
+
+
+def _box_cloud(tiny):
+    occ = tiny.models[0].mean.reshape((N,) * 3) > 0.5
+    return render_view_points(occ, 0.5, 0.3, np.deg2rad(30), distance=2.0, size=0.4,
+                              ray_spacing=0.25)
+
+
+@pytest.fixture(scope='module')
+def points_bank(tiny):
+    # the class the grid rule picks for the rendered cloud; the classifier favours another one
+    pts, origin = _box_cloud(tiny)
+    ml = tiny.estimate_points(pts, sensor_origin=origin)
+    other = (tiny.classes.index(ml.label) + 1) % len(tiny.classes)
+    bank = ModelBank(tiny.models, tiny.spec, {'points': _points_classifier(len(tiny.classes),
+                                                                           other)},
+                     tiny.training, tiny.pose_components)
+    return bank, pts, origin, ml, other
+
+
+def test_points_classifier_decides_estimate_points_but_not_estimate(points_bank):
+    bank, pts, origin, ml, other = points_bank
+    assert ml.classifier_mode == 'max_likelihood' and ml.point_features is None
+    e = bank.estimate_points(pts, sensor_origin=origin)
+    assert e.classifier_mode == 'points' and e.classifier_note == ''
+    assert e.point_features.shape == (2,) and np.isfinite(e.point_features).all()
+    assert 'point_descriptors' in e.timings
+    assert e.label == bank.classes[other] != ml.label
+    assert e.scores[bank.classes[other]] > 0.9
+    assert e.hypotheses[0].label == bank.classes[other]   # refined pose of the winner
+    # estimate(grid) without points: the grid rule, exactly as a bank without the classifier
+    g = e.grid
+    plain = ModelBank(bank.models, bank.spec, None, bank.training, bank.pose_components)
+    a, b = bank.estimate(g), plain.estimate(g)
+    assert a.classifier_mode == b.classifier_mode == 'max_likelihood'
+    assert a.label == b.label and a.scores == pytest.approx(b.scores) and a.yaw == b.yaw
+    # the descriptors passed by hand do the same as estimate_points
+    c = bank.estimate(g, point_features=e.point_features)
+    assert c.classifier_mode == 'points' and c.label == e.label
+    with pytest.raises(ValueError, match='point_features'):
+        bank.estimate(g, point_features=[0.5])
+
+
+def test_points_classifier_uses_the_descriptors(tiny):
+    # a weight on r4 only: the class follows the descriptor value passed in
+    clf = _points_classifier(len(tiny.classes), 1, r4_weight=40.0)
+    clf['intercept'][:] = 0.0
+    clf['intercept'][0] = -20.0                          # class 0 iff r4 > 0.5
+    bank = ModelBank(tiny.models, tiny.spec, {'points': clf})
+    g = views()[0]
+    assert bank.estimate(g, point_features=[0.9, 0.8]).label == bank.classes[0]
+    assert bank.estimate(g, point_features=[0.1, 0.3]).label == bank.classes[1]
+
+
+def test_undefined_descriptors_fall_back_to_the_grid_rule_and_say_so(points_bank):
+    bank, _, _, ml, _ = points_bank
+    # a flat horizontal patch: no side normals, so the descriptors are undefined
+    u, v = np.meshgrid(np.linspace(-0.1, 0.1, 40), np.linspace(-0.1, 0.1, 40))
+    flat = np.c_[u.ravel(), v.ravel(), np.zeros(u.size)]
+    e = bank.estimate_points(flat, sensor_origin=(0.0, -1.0, 1.0))
+    assert np.isnan(e.point_features).all()
+    assert e.classifier_mode == 'max_likelihood' and 'undefined' in e.classifier_note
+    plain = ModelBank(bank.models, bank.spec).estimate_points(flat, sensor_origin=(0.0, -1.0, 1.0))
+    assert e.scores == pytest.approx(plain.scores)
+
+
+def test_points_classifier_round_trips_and_pickles(points_bank, tmp_path):
+    import pickle
+    bank, pts, origin, _, _ = points_bank
+    bank.save(tmp_path / 'p')
+    assert 'classifier.npz' in _manifest(tmp_path / 'p')['files']
+    back = ModelBank.load(tmp_path / 'p')
+    assert back.has_point_classifier
+    for k, v in bank.classifier['points'].items():
+        np.testing.assert_array_equal(back.classifier['points'][k], v)
+    e0 = bank.estimate_points(pts, sensor_origin=origin)
+    for other in (back, pickle.loads(pickle.dumps(back))):
+        e = other.estimate_points(pts, sensor_origin=origin)
+        assert e.classifier_mode == 'points' and e.label == e0.label
+        assert e.scores == pytest.approx(e0.scores)
+        np.testing.assert_allclose(e.point_features, e0.point_features)
+
+
+def _rewrite_points_classifier(p, **change):
+    from beo_ros.core.bank import _sha256
+    with np.load(p / 'classifier.npz') as z:
+        arrays = {k: z[k] for k in z.files}
+    for k, v in change.items():
+        if v is None:
+            arrays.pop(f'points__{k}')
+        else:
+            arrays[f'points__{k}'] = v
+    np.savez_compressed(p / 'classifier.npz', **arrays)
+    m = _manifest(p)
+    m['files']['classifier.npz'] = _sha256(p / 'classifier.npz')
+    _write_manifest(p, m)
+
+
+@pytest.mark.parametrize('change, msg', [
+    (dict(coef=np.zeros((2, 3))), "'coef' has shape"),
+    (dict(mean=np.zeros(5)), "'mean' has shape"),
+    (dict(intercept=None), "no 'intercept'"),
+    (dict(scale=np.array([1.0, np.nan, 1.0, 1.0])), 'NaN'),
+    (dict(scale=np.array([1.0, 0.0, 1.0, 1.0])), 'positive'),
+    (dict(unknown_threshold=np.array([np.nan, 0.0])), 'NaN'),
+    (dict(extra=np.zeros(2)), 'unexpected'),
+])
+def test_malformed_points_classifier_is_refused(points_bank, tmp_path, change, msg):
+    bank = points_bank[0]
+    assert len(bank.classes) == 2
+    bank.save(tmp_path / 'p')
+    _rewrite_points_classifier(tmp_path / 'p', **change)
+    with pytest.raises(ModelError, match=msg):
+        ModelBank.load(tmp_path / 'p')
+
+
+def test_malformed_points_classifier_is_refused_by_the_constructor(tiny):
+    clf = _points_classifier(len(tiny.classes), 0)
+    clf['coef'] = clf['coef'][:, :-1]
+    with pytest.raises(ModelError, match='coef'):
+        ModelBank(tiny.models, tiny.spec, {'points': clf})

@@ -8,7 +8,8 @@ import pytest
 from beo_ros.core.inference import FEATURE_NAMES
 from beo_ros.core.pcd import write_pcd
 from beo_ros.scan_eval import (
-    classifier_comparison, classifier_design, main, scene_cv_predictions)
+    classifier_comparison, classifier_design, main, scene_cv_point_predictions,
+    scene_cv_predictions)
 
 
 def _scene_points(kind, rng, n_obj=2):
@@ -143,6 +144,52 @@ def test_loso_saves_out_of_fold_features(scan_files, tmp_path):
     cv = s['classifier_cv']
     assert cv['max_likelihood']['accuracy'] == pytest.approx(s['accuracy'], abs=1e-4)
     assert cv['max_likelihood']['confusion'] == s['confusion']
-    for name in ('lr_all_C0.1', 'lr_all_C1', 'lr_diff_C0.1', 'lr_diff_C1'):
+    for name in ('lr_all_C0.1', 'lr_all_C1', 'lr_diff_C0.1', 'lr_diff_C1', 'points_C0.1',
+                 'points_C1'):
         assert 0.0 <= cv[name]['accuracy'] <= 1.0
         assert np.sum(cv[name]['confusion']) + cv[name]['n_unknown'] == m
+    # the side-normal descriptors of every object's raw points are saved and separate the
+    # generated boxes (flat faces) from the cylinders (round fronts)
+    D = z['point_descriptors']
+    assert D.shape == (m, 2) and np.isfinite(D).all()
+    box = z['y'] == 0
+    assert D[box, 0].min() > D[~box, 0].max(), D
+
+
+def test_scene_cv_point_predictions_learn_from_the_descriptors_and_are_grouped():
+    from beo_ros.core.bank import apply_point_classifier
+    from beo_ros.core.scan_training import train_point_classifier
+    rng = np.random.default_rng(1)
+    F, y, groups = _features(rng)
+    # r4 high for class 0, low for class 1; the loglik is biased toward class 0
+    D = np.c_[np.where(y == 0, 0.85, 0.1) + rng.normal(0, 0.05, len(y)),
+              np.where(y == 0, 0.8, 0.3) + rng.normal(0, 0.05, len(y))]
+    comp = classifier_comparison(F, y, groups, variants=(), point_descriptors=D)
+    assert comp['max_likelihood']['accuracy'] < 0.7
+    assert comp['points_C1']['accuracy'] > 0.95 and comp['points_C0.1']['accuracy'] > 0.95
+    # grouped: flipping the labels of a held-out scene that lies apart changes nothing for it
+    te = groups == 's3'
+    D2 = D.copy()
+    D2[te] += 5.0
+    y2 = y.copy()
+    y2[te] = 1 - y2[te]
+    p1, _ = scene_cv_point_predictions(F, D2, y, groups)
+    p2, _ = scene_cv_point_predictions(F, D2, y2, groups)
+    np.testing.assert_array_equal(p1[te], p2[te])
+    # undefined descriptors: that object keeps the maximum-likelihood class
+    D3 = D.copy()
+    i = int(np.flatnonzero(y == 1)[0])
+    D3[i] = np.nan
+    p3, u3 = scene_cv_point_predictions(F, D3, y, groups)
+    assert p3[i] == np.argmax(F[i, :, 0]) and not u3[i]
+    # the trained classifier: binary fit as a calibrated two-class softmax
+    from sklearn.linear_model import LogisticRegression
+    clf = train_point_classifier(F[:, :, 0], D, y, 2)
+    assert clf['coef'].shape == (2, 4) and set(clf) == {
+        'mean', 'scale', 'coef', 'intercept', 'unknown_threshold'}
+    Z = (np.hstack([F[:, :, 0], D]) - clf['mean']) / clf['scale']
+    lr = LogisticRegression(C=1.0, max_iter=2000).fit(Z, y)
+    p, unknown = apply_point_classifier(clf, F[:, :, 0], D)
+    np.testing.assert_allclose(p[:, 1], lr.predict_proba(Z)[:, 1], atol=1e-6)
+    with pytest.raises(ValueError, match='NaN'):
+        train_point_classifier(F[:, :, 0], D3, y, 2)

@@ -91,3 +91,36 @@ def test_mirror_training_set_and_train_scan_bank(small_set, tmp_path):
     assert bank.training['mirror'] and bank.training['n_training_grids'] == 2 * m
     bank.save(tmp_path / 'm')
     assert load_models(tmp_path / 'm').classes == ['box', 'cylinder']
+
+
+def test_train_scan_bank_with_a_points_classifier(small_set, tmp_path):
+    from beo_ros import load_models
+    from beo_ros.core.inference import FEATURE_NAMES
+    from beo_ros.core.scan_training import scan_point_descriptors, train_scan_bank
+    s = small_set
+    D = scan_point_descriptors(s)
+    assert D.shape == (len(s), 2) and np.isfinite(D).all()
+    # boxes show perpendicular flat faces, cylinders a round front
+    assert np.median(D[s.y == 0, 0]) > 0.5 > np.median(D[s.y == 1, 0])
+    rng = np.random.default_rng(0)
+    oof = tmp_path / 'oof_features.npz'
+    F = rng.normal(0, 1, (len(s), 2, len(FEATURE_NAMES)))
+    order = rng.permutation(len(s))                   # rows are matched by scene and object id
+    np.savez(oof, features=F[order], y=s.y[order], scenes=s.scenes[order],
+             object_ids=s.object_ids[order], classes=np.array(s.names))
+    files = [OSD / f'learn{i}.pcd' for i in (0, 1, 33, 34)]
+    bank = train_scan_bank(files, k=2, max_iter=3, point_classifier=oof)
+    assert bank.has_point_classifier and bank.classifier['points']['coef'].shape == (2, 4)
+    assert bank.training['point_classifier']['n_objects'] == len(s)
+    bank.save(tmp_path / 'm')
+    back = load_models(tmp_path / 'm')
+    assert back.has_point_classifier
+    est = back.estimate_points(s.points[0], sensor_origin=(0, 0, 0), up=s.ups[0],
+                               yaw_step_deg=5.0)
+    assert est.classifier_mode == 'points'
+    np.testing.assert_allclose(est.point_features, D[0])
+    # an npz without every object is refused
+    np.savez(oof, features=F[1:], y=s.y[1:], scenes=s.scenes[1:], object_ids=s.object_ids[1:],
+             classes=np.array(s.names))
+    with pytest.raises(ValueError, match='no out-of-fold features'):
+        train_scan_bank(files, k=2, max_iter=3, point_classifier=oof)

@@ -6,6 +6,9 @@ Layout of a model directory::
     class_00_<name>.npz    W (d, k) float32, mean (d,), noise_variance, coarse_noise_variance,
                            loading_covariance (k, k), mean_variance (d,), component_variance (k,)
     classifier.npz         optional: standardisation + multinomial logistic regression per mode
+                           ('complete', 'partial': on the (C, F) grid features; 'points': on the
+                           C per-class log-likelihoods + the 2 side-normal descriptors of the raw
+                           points, used by ``estimate_points`` only)
 """
 from __future__ import annotations
 
@@ -27,6 +30,10 @@ CLASS_KEYS = ('W', 'mean', 'noise_variance', 'coarse_noise_variance', 'loading_c
               'mean_variance', 'component_variance')
 OPTIONAL_CLASS_KEYS = ('coarse_noise_map',)
 MODES = ('complete', 'partial')
+# optional classifier of estimate_points: inputs are feats[:, 0] (the C per-class exact
+# log-likelihoods per known voxel) followed by the descriptors of beo_ros.core.normals
+POINTS_MODE = 'points'
+POINT_CLASSIFIER_KEYS = ('mean', 'scale', 'coef', 'intercept', 'unknown_threshold')
 # stage 1 (all classes, leading components) searches at this step; the chosen class is then
 # refined at the requested resolution, so a finer stage 1 costs time and gains nothing (measured)
 SEARCH_STEP_DEG = 2.0
@@ -110,6 +117,56 @@ def _softmax(z):
     return e / e.sum()
 
 
+def check_point_classifier(clf, n_classes, where='classifier'):
+    """Raise ModelError unless ``clf`` is a usable 'points' classifier for ``n_classes``:
+    mean, scale (C+2,), coef (C, C+2), intercept (C,), unknown_threshold (C,), all finite
+    (unknown_threshold may be -inf: never 'unknown'), scale > 0."""
+    from .normals import DESCRIPTOR_NAMES
+    n_in = n_classes + len(DESCRIPTOR_NAMES)
+    shapes = dict(mean=(n_in,), scale=(n_in,), coef=(n_classes, n_in), intercept=(n_classes,),
+                  unknown_threshold=(n_classes,))
+    if not isinstance(clf, dict):
+        raise ModelError(f"{where}: 'points' classifier must be a dict of arrays")
+    for key, shape in shapes.items():
+        if key not in clf:
+            raise ModelError(f"{where}: 'points' classifier has no {key!r} array")
+        a = np.asarray(clf[key])
+        if a.shape != shape or not np.issubdtype(a.dtype, np.number):
+            raise ModelError(f"{where}: 'points' classifier {key!r} has shape {a.shape}, expected "
+                             f"{shape} ({n_classes} classes; inputs: {n_classes} log-likelihoods "
+                             f"+ {', '.join(DESCRIPTOR_NAMES)})")
+        ok = (~np.isnan(a) & (a < np.inf)).all() if key == 'unknown_threshold' else \
+            np.isfinite(a).all()
+        if not ok:
+            raise ModelError(f"{where}: 'points' classifier {key!r} contains NaN or Inf")
+    if (np.asarray(clf['scale']) <= 0).any():
+        raise ModelError(f"{where}: 'points' classifier 'scale' must be positive")
+    extra = sorted(set(clf) - set(POINT_CLASSIFIER_KEYS))
+    if extra:
+        raise ModelError(f"{where}: 'points' classifier has unexpected arrays {extra}")
+
+
+def apply_point_classifier(clf, loglik, descriptors):
+    """Class probabilities (m, C) and unknown flags (m,) of a 'points' classifier.
+
+    loglik: (m, C) per-class exact log-likelihood per known voxel (``features[:, 0]``);
+    descriptors: (m, 2) finite side-normal descriptors (:mod:`beo_ros.core.normals`).
+    'unknown' as in ``ModelBank.classify_features``: the winner's log-likelihood is below its
+    ``unknown_threshold``, or the classes above theirs hold less than half the probability.
+    """
+    L = np.atleast_2d(np.asarray(loglik, dtype=np.float64))
+    D = np.atleast_2d(np.asarray(descriptors, dtype=np.float64))
+    z = (np.hstack([L, D]) - clf['mean']) / clf['scale']
+    logits = z @ np.asarray(clf['coef'], dtype=np.float64).T + clf['intercept']
+    logits -= logits.max(axis=1, keepdims=True)
+    p = np.exp(logits)
+    p /= p.sum(axis=1, keepdims=True)
+    best = np.argmax(p, axis=1)
+    explains = L >= clf['unknown_threshold']
+    unknown = ~explains[np.arange(len(L)), best] | ((p * explains).sum(axis=1) < 0.5)
+    return p, unknown
+
+
 class ModelBank:
     """A set of class models over one grid, with pose search, completion and classification.
 
@@ -117,7 +174,9 @@ class ModelBank:
         models: list of ClassModel (same d = spec.size ** 3).
         spec: GridSpec of the training grids.
         classifier: dict mode -> dict(mean, scale, coef, intercept, unknown_threshold), or None
-            (then the class with the largest likelihood wins, as in the paper).
+            (then the class with the largest likelihood wins, as in the paper). Mode 'points'
+            (optional, see :func:`check_point_classifier`) is used by ``estimate_points``: on
+            the per-class log-likelihoods + the raw points' side-normal descriptors.
         training: free-form dict recorded in the manifest.
         pose_components: leading components used by the coarse pose search.
         stage2_noise_map: score the stage-2 refinement with the per-voxel noise variance of
@@ -136,6 +195,8 @@ class ModelBank:
             if m.W.ndim != 2 or m.W.shape[0] != d or m.mean.shape != (d,):
                 raise ModelError(f'class {m.name!r}: W {m.W.shape} / mean {m.mean.shape} do not '
                                  f'match the {spec.size}^3 grid')
+        if classifier and POINTS_MODE in classifier:
+            check_point_classifier(classifier[POINTS_MODE], len(models))
         self.models = list(models)
         self.spec = spec
         self.classifier = classifier
@@ -160,6 +221,11 @@ class ModelBank:
     @property
     def classes(self):
         return [m.name for m in self.models]
+
+    @property
+    def has_point_classifier(self) -> bool:
+        """True when ``estimate_points`` classifies with the raw points' normal descriptors."""
+        return bool(self.classifier) and POINTS_MODE in self.classifier
 
     # ------------------------------------------------------------------ persistence
     def save(self, path):
@@ -267,6 +333,9 @@ class ModelBank:
                 raise ModelError(f'{fp}: unreadable: {e}') from None
             nf = len(FEATURE_NAMES) * len(classes)
             for mode, clf in classifier.items():
+                if mode == POINTS_MODE:
+                    check_point_classifier(clf, len(classes), str(fp))
+                    continue
                 if mode not in MODES or clf.get('coef', np.zeros(0)).shape != (len(classes), nf):
                     raise ModelError(f'{fp}: classifier {mode!r} does not fit {len(classes)} '
                                      f'classes x {len(FEATURE_NAMES)} features')
@@ -339,6 +408,13 @@ class ModelBank:
             return p, unknown
         # the paper's rule: the class whose model explains the observation best
         return _softmax(feats[:, 0] * 50.0), False
+
+    def classify_points(self, feats, point_features):
+        """Class probabilities (C,) and the unknown flag of the 'points' classifier from the
+        (C, F) grid features and the (2,) finite side-normal descriptors of the raw points."""
+        p, unknown = apply_point_classifier(self.classifier[POINTS_MODE],
+                                            np.asarray(feats)[:, 0][None], point_features)
+        return p[0], bool(unknown[0])
 
     def _completion(self, grid, per, probs, best, min_prob=0.1, max_classes=3):
         """Occupancy probability and variance (N, N, N) in the observed frame, averaged over the
@@ -417,7 +493,8 @@ class ModelBank:
         return best
 
     def estimate(self, grid, yaw=None, yaw_step_deg=1.0, n_hypotheses=5, exhaustive=True,
-                 refine_deg=3.0, stage2_modes=6, stage2_window_deg=15.0, search_step_deg=None):
+                 refine_deg=3.0, stage2_modes=6, stage2_window_deg=15.0, search_step_deg=None,
+                 point_features=None):
         """Classify, orient and complete one labelled grid (see :class:`Estimate`).
 
         Args:
@@ -434,6 +511,12 @@ class ModelBank:
                 modes (None: all yaws);
             refine_deg: then it is re-solved exactly at full resolution within +-refine_deg
                 (0: no refinement at all, the stage-1 yaw is returned).
+            point_features: optional (2,) side-normal descriptors of the object's raw points
+                (:func:`beo_ros.core.normals.side_normal_descriptors`; ``estimate_points``
+                passes them). When the bank has a 'points' classifier and they are finite, that
+                classifier decides the class (and so the refined pose and the completion);
+                NaN descriptors fall back to the grid rule (``classifier_note`` says so).
+                None: the grid rule, exactly as without this argument.
         """
         t0 = time.perf_counter()
         grid = self.check_grid(grid)
@@ -444,7 +527,22 @@ class ModelBank:
         feats, per = self.features(grid, yaw, search_step_deg, exhaustive)
         t1 = time.perf_counter()
         mode = 'complete' if (grid < 0).mean() < 0.01 else 'partial'
-        probs, unknown = self.classify_features(feats, mode)
+        rule, note = None, ''
+        if point_features is not None:
+            point_features = np.asarray(point_features, dtype=np.float64).reshape(-1)
+            if point_features.shape != (2,):
+                raise ValueError(f'point_features must be 2 values (r4, frac10), got shape '
+                                 f'{point_features.shape}')
+            if self.has_point_classifier:
+                if np.isfinite(point_features).all():
+                    probs, unknown = self.classify_points(feats, point_features)
+                    rule = POINTS_MODE
+                else:
+                    note = ("'points' classifier not used: side-normal descriptors undefined "
+                            '(too few points or side normals); grid rule')
+        if rule is None:
+            probs, unknown = self.classify_features(feats, mode)
+            rule = mode if self.classifier and mode in self.classifier else 'max_likelihood'
         best = int(np.argmax(probs))
         t_cls = time.perf_counter()
         if yaw is None and refine_deg > 0:
@@ -470,13 +568,16 @@ class ModelBank:
             timings={'pose_and_features': t1 - t0, 'classify': t_cls - t1,
                      'pose_refinement': t2 - t_cls, 'completion': t3 - t2,
                      'total': t3 - t0},
-            features=feats, grid=grid)
+            features=feats, grid=grid, classifier_mode=rule, point_features=point_features,
+            classifier_note=note)
 
     def estimate_points(self, points, sensor_origin=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0),
                         yaw_step_deg=1.0, threshold=0.5, center=None):
         """Estimate from an (n, 3) cloud in metres (any frame; the sensor at ``sensor_origin``).
 
         The pose and completed points come back in the input frame (see :class:`Estimate`).
+        With a 'points' classifier the side-normal descriptors of the (finite) points are
+        computed too (``timings['point_descriptors']``) and passed to :meth:`estimate`.
         """
         from .voxelize import grid_to_points, voxelize_view
         t0 = time.perf_counter()
@@ -484,7 +585,14 @@ class ModelBank:
                              dtype=np.float64), np.asarray(up, dtype=np.float64), self.spec,
                              center=center)
         t1 = time.perf_counter()
-        est = self.estimate(view.grid, yaw_step_deg=yaw_step_deg)
+        point_features = None
+        if self.has_point_classifier:
+            from .normals import side_normal_descriptors
+            pts_in = np.asarray(points, dtype=np.float64)
+            point_features = side_normal_descriptors(
+                pts_in[np.isfinite(pts_in).all(axis=1)], up, sensor_origin)
+        t2 = time.perf_counter()
+        est = self.estimate(view.grid, yaw_step_deg=yaw_step_deg, point_features=point_features)
         T = np.asarray(view.grid_to_input, dtype=np.float64)
         c = (self.spec.size - 1) / 2.0
         centre = T @ np.array([c, c, c, 1.0])
@@ -498,6 +606,8 @@ class ModelBank:
         est.completed_points = np.asarray(pts, dtype=np.float32)
         est.completed_probability = np.asarray(prob, dtype=np.float32)
         est.timings['voxelize'] = t1 - t0
+        if point_features is not None:
+            est.timings['point_descriptors'] = t2 - t1
         est.timings['total'] = time.perf_counter() - t0
         return est
 

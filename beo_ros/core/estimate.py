@@ -34,7 +34,17 @@ class Estimate:
         variance: float32 (N,N,N) predictive variance of the occupancy.
         hypotheses: top (class, yaw) hypotheses, best first.
         timings: seconds per stage ('pose_and_features', 'classify', 'pose_refinement',
-            'completion', 'total'; 'voxelize' from ``estimate_points``).
+            'completion', 'total'; 'voxelize' and, for a bank with a 'points' classifier,
+            'point_descriptors' from ``estimate_points``).
+        classifier_mode: the rule that decided the class: 'points' (the bank's classifier on
+            the per-class log-likelihood + the raw points' side-normal descriptors),
+            'complete' / 'partial' (the bank's classifier on the grid features) or
+            'max_likelihood' (no classifier for this case).
+        point_features: float64 (2,) side-normal descriptors (r4, frac10) of the raw points
+            (see :mod:`beo_ros.core.normals`), or None (not computed: no points, or the bank
+            has no 'points' classifier); NaN when undefined for this cloud.
+        classifier_note: why the 'points' classifier was not used although the bank has one
+            (e.g. its descriptors are undefined for a tiny cloud: the grid rule decided), else ''.
         grid: int8 (N,N,N) labelled input grid (1 occupied, 0 free, -1 unknown).
         pose: float64 (4,4) object frame in the input frame (only from ``estimate_points``): the
             translation is the object centre in metres, the rotation is ``yaw`` about the up vector.
@@ -57,6 +67,9 @@ class Estimate:
     grid_to_input: np.ndarray | None = None
     completed_points: np.ndarray | None = None
     completed_probability: np.ndarray | None = None
+    classifier_mode: str = ''
+    point_features: np.ndarray | None = None
+    classifier_note: str = ''
 
     @property
     def probability(self) -> float:

@@ -209,9 +209,92 @@ def load_scan_training_set(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32,
     return s.X, s.y, s.names, s.masks, s.spec
 
 
+def scan_point_descriptors(objs) -> np.ndarray:
+    """(m, 2) side-normal descriptors (r4, frac10) of every object of a :class:`ScanObjects`
+    from its camera-frame points (sensor at the origin) and its scene's table normal, as
+    ``ModelBank.estimate_points`` computes them (:mod:`beo_ros.core.normals`)."""
+    from .normals import side_normal_descriptors
+    return np.array([side_normal_descriptors(p, u, np.zeros(3))
+                     for p, u in zip(objs.points, objs.ups)], dtype=np.float64).reshape(-1, 2)
+
+
+def train_point_classifier(loglik, descriptors, y, n_classes, C=1.0):
+    """The 'points' classifier of a ModelBank (see ``bank.check_point_classifier``).
+
+    loglik: (m, C) per-class exact log-likelihood per known voxel of each training object under
+    class models that did not see it (out-of-fold, e.g. ``oof_features.npz`` of
+    ``beo-eval --scans``: ``features[:, :, 0]``); descriptors: (m, 2) finite side-normal
+    descriptors; y: (m,) labels. A logistic regression on the standardised (mean / std of these
+    rows) C + 2 inputs; a binary fit becomes the two-class softmax with logits -z/2, +z/2
+    (probabilities = the regression's). ``unknown_threshold`` as for the grid classifiers: per
+    class, median - 6 scaled MADs of its own objects' log-likelihood (-inf with < 5 objects).
+    Returns dict(mean, scale, coef (C, C+2), intercept (C,), unknown_threshold (C,)).
+    """
+    from sklearn.linear_model import LogisticRegression
+    L = np.asarray(loglik, dtype=np.float64).reshape(len(y), n_classes)
+    D = np.asarray(descriptors, dtype=np.float64).reshape(len(y), -1)
+    y = np.asarray(y)
+    if not (np.isfinite(L).all() and np.isfinite(D).all()):
+        raise ValueError('point classifier inputs contain NaN or Inf (undefined descriptors?)')
+    Z = np.hstack([L, D])
+    mean = Z.mean(axis=0)
+    scale = Z.std(axis=0) + 1e-9
+    lr = LogisticRegression(C=C, max_iter=2000).fit((Z - mean) / scale, y)
+    coef = np.zeros((n_classes, Z.shape[1]))
+    intercept = np.full(n_classes, -30.0)
+    if len(lr.classes_) > 2:
+        coef[lr.classes_], intercept[lr.classes_] = lr.coef_, lr.intercept_
+    else:
+        coef[lr.classes_] = np.vstack([-lr.coef_, lr.coef_]) / 2
+        intercept[lr.classes_] = np.hstack([-lr.intercept_, lr.intercept_]) / 2
+    thr = np.full(n_classes, -np.inf)
+    for c in range(n_classes):
+        own = L[y == c, c]
+        if len(own) >= 5:
+            med = np.median(own)
+            mad = 1.4826 * np.median(np.abs(own - med))
+            thr[c] = med - 6.0 * max(mad, 1e-3)
+    return dict(mean=mean, scale=scale, coef=coef, intercept=intercept, unknown_threshold=thr)
+
+
+def point_classifier_from_oof(oof_path, objs, C=1.0):
+    """Train the 'points' classifier on every object of ``objs`` (:class:`ScanObjects`) from the
+    out-of-fold features of a leave-one-scene-out run (``oof_features.npz`` of
+    ``beo-eval --scans``, rows matched by scene and object id; every object must be there) and
+    the objects' side-normal descriptors (recomputed from their points).
+    Returns (classifier dict, info dict)."""
+    with np.load(oof_path, allow_pickle=False) as z:
+        F = np.asarray(z['features'], dtype=np.float64)
+        rows = {(str(s), int(o)): i for i, (s, o) in enumerate(zip(z['scenes'], z['object_ids']))}
+        classes = [str(c) for c in z['classes']]
+    if classes != list(objs.names):
+        raise ValueError(f'{oof_path}: classes {classes} differ from the scans {objs.names}')
+    missing = [f'{s}/{o}' for s, o in zip(objs.scenes, objs.object_ids)
+               if (str(s), int(o)) not in rows]
+    if missing:
+        raise ValueError(f'{oof_path}: no out-of-fold features for {len(missing)} objects '
+                         f'({", ".join(missing[:5])}...)')
+    idx = [rows[(str(s), int(o))] for s, o in zip(objs.scenes, objs.object_ids)]
+    L = F[idx][:, :, 0]
+    D = scan_point_descriptors(objs)
+    bad = ~np.isfinite(D).all(axis=1)
+    if bad.any():
+        raise ValueError(f'side-normal descriptors undefined for {int(bad.sum())} objects')
+    clf = train_point_classifier(L, D, objs.y, len(objs.names), C)
+    info = dict(point_classifier=dict(
+        oof_features=str(oof_path), C=float(C), n_objects=int(len(objs)),
+        inputs='per-class loglik (out-of-fold, leave-one-scene-out) + r4, frac10'))
+    return clf, info
+
+
 def train_scan_bank(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32, voxel_size=0.5 / 32,
-                    k=8, max_iter=200, mirror=True, congeal=False, verbose=False):
-    """Class models from labelled scans, with the maximum-likelihood class rule (no classifier).
+                    k=8, max_iter=200, mirror=True, congeal=False, verbose=False,
+                    point_classifier=None, point_C=1.0):
+    """Class models from labelled scans, with the maximum-likelihood class rule (no classifier),
+    or with a 'points' classifier for ``estimate_points`` (``point_classifier``: the
+    ``oof_features.npz`` of a leave-one-scene-out ``beo-eval --scans`` run with the same
+    settings, see :func:`point_classifier_from_oof`; ``estimate(grid)`` keeps the
+    maximum-likelihood rule).
 
     The objects are voxelized as in :func:`load_scan_objects`, ``mirror`` appends the mirror image
     of every grid (:func:`mirror_augment`), ``congeal`` yaw-aligns them within each class, and one
@@ -223,6 +306,10 @@ def train_scan_bank(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32, voxel_siz
     from .training import fit_class_models
     t0 = time.time()
     s = load_scan_objects(paths, scan_classes, grid, voxel_size, verbose)
+    classifier = extra = None
+    if point_classifier is not None:  # before the fit: a bad npz fails fast
+        clf, extra = point_classifier_from_oof(point_classifier, s, point_C)
+        classifier = {'points': clf}
     X, y, M = s.X, s.y, s.masks
     if mirror:
         X, y, M = mirror_augment(X, y, M, s.spec.size)
@@ -234,4 +321,7 @@ def train_scan_bank(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32, voxel_siz
                 max_iter=max_iter, mirror=bool(mirror), congeal=bool(congeal),
                 n_objects=int(len(s)), n_training_grids=int(len(X)), classifier_views=0,
                 rule='maximum likelihood', fit_seconds=round(time.time() - t0, 1))
-    return ModelBank(models, s.spec, None, info)
+    if classifier is not None:
+        info.update(extra, rule="estimate_points: 'points' classifier (loglik + side-normal "
+                                'descriptors); estimate(grid): maximum likelihood')
+    return ModelBank(models, s.spec, classifier, info)

@@ -1,0 +1,102 @@
+"""Side-normal descriptors of raw object points (beo_ros.core.normals), on generated clouds."""
+import numpy as np
+import pytest
+
+from beo_ros.core.normals import point_normals, side_normal_descriptors
+
+UP = np.array([0.0, 0.0, 1.0])
+SENSOR = np.array([-0.6, -0.45, 0.4])        # in front of and above the object at the origin
+
+
+def _grid(a, b, step=0.004):
+    u, v = np.meshgrid(np.arange(0, a, step), np.arange(0, b, step), indexing='ij')
+    return u.ravel(), v.ravel()
+
+
+def box_front(w=0.12, d=0.08, h=0.15, rng=None):
+    """The faces of an axis-aligned box visible from SENSOR: -x and -y sides and the top."""
+    rng = rng or np.random.default_rng(0)
+    parts = []
+    u, v = _grid(d, h)
+    parts.append(np.c_[np.zeros_like(u), u, v])            # x = 0 face
+    u, v = _grid(w, h)
+    parts.append(np.c_[u, np.zeros_like(u), v])            # y = 0 face
+    u, v = _grid(w, d)
+    parts.append(np.c_[u, v, np.full_like(u, h)])          # top
+    p = np.concatenate(parts) - [w / 2, d / 2, 0]
+    return p + rng.normal(0, 0.0005, p.shape)
+
+
+def cylinder_front(r=0.04, h=0.12, rng=None):
+    """The half of a vertical cylinder's side facing SENSOR, and its top."""
+    rng = rng or np.random.default_rng(1)
+    toward = np.arctan2(SENSOR[1], SENSOR[0])
+    a, z = np.meshgrid(toward + np.linspace(-np.pi / 2, np.pi / 2, 80),
+                       np.arange(0, h, 0.004), indexing='ij')
+    side = np.c_[r * np.cos(a.ravel()), r * np.sin(a.ravel()), z.ravel()]
+    u, v = _grid(2 * r, 2 * r)
+    top = np.c_[u - r, v - r, np.full_like(u, h)]
+    top = top[np.hypot(top[:, 0], top[:, 1]) <= r]
+    p = np.concatenate([side, top])
+    return p + rng.normal(0, 0.0005, p.shape)
+
+
+def rot_z(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
+def test_box_faces_fold_onto_one_direction_and_a_cylinder_front_does_not():
+    r4_box, f_box = side_normal_descriptors(box_front(), UP, SENSOR)
+    r4_cyl, f_cyl = side_normal_descriptors(cylinder_front(), UP, SENSOR)
+    assert r4_box > 0.8 and f_box > 0.8, (r4_box, f_box)   # edges blur a few normals
+    assert r4_cyl < 0.2 and f_cyl < 0.4, (r4_cyl, f_cyl)
+
+
+@pytest.mark.parametrize('make', [box_front, cylinder_front])
+def test_invariant_to_rotation_about_up_and_to_the_frame(make):
+    pts = make()
+    ref = side_normal_descriptors(pts, UP, SENSOR)
+    for a in (0.3, 1.0, 2.5):
+        R = rot_z(a)
+        got = side_normal_descriptors(pts @ R.T, UP, R @ SENSOR)
+        np.testing.assert_allclose(got, ref, atol=0.02)
+    # a camera-like frame (z forward, y down) with up expressed in it, sensor at its origin
+    M = np.array([[0, -1.0, 0], [0.3, 0, -0.954], [0.954, 0, 0.3]])
+    M, _ = np.linalg.qr(M)
+    M *= np.sign(np.linalg.det(M))
+    got = side_normal_descriptors((pts - SENSOR) @ M.T, M @ UP, np.zeros(3))
+    np.testing.assert_allclose(got, ref, atol=0.02)
+
+
+def test_normals_point_toward_the_sensor_and_subsampling_is_bounded():
+    pts = box_front()
+    idx, n, sv = point_normals(pts, SENSOR, max_query=500)
+    assert len(idx) <= 500 and n.shape == (len(idx), 3) and sv.shape == (len(idx),)
+    ok = np.isfinite(n).all(axis=1)
+    assert ok.mean() > 0.99
+    assert (np.einsum('ij,ij->i', n[ok], SENSOR - pts[idx][ok]) >= 0).all()
+    np.testing.assert_allclose(np.linalg.norm(n[ok], axis=1), 1.0, atol=1e-9)
+    full = side_normal_descriptors(pts, UP, SENSOR, max_query=None)
+    np.testing.assert_allclose(side_normal_descriptors(pts, UP, SENSOR), full, atol=0.03)
+
+
+def test_undefined_for_tiny_or_sideless_clouds():
+    assert np.isnan(side_normal_descriptors(box_front()[:5], UP, SENSOR)).all()
+    u, v = _grid(0.2, 0.2)
+    flat = np.c_[u, v, np.zeros_like(u)]                  # a table top: no side normals
+    assert np.isnan(side_normal_descriptors(flat, UP, SENSOR)).all()
+    isolated = np.arange(60, dtype=float)[:, None] * [0.1, 0.0, 0.0]   # no neighbours in 2 cm
+    assert np.isnan(side_normal_descriptors(isolated, UP, SENSOR)).all()
+
+
+@pytest.mark.parametrize('points, up, origin, msg', [
+    (np.zeros((20, 2)), UP, SENSOR, r'\(n, 3\)'),
+    (np.r_[box_front()[:20], [[np.nan, 0, 0]]], UP, SENSOR, 'NaN'),
+    (box_front()[:20], np.zeros(3), SENSOR, 'up'),
+    (box_front()[:20], np.array([0, 0, np.inf]), SENSOR, 'up'),
+    (box_front()[:20], UP, np.array([0.0, 1.0]), 'sensor_origin'),
+])
+def test_bad_input_is_refused(points, up, origin, msg):
+    with pytest.raises(ValueError, match=msg):
+        side_normal_descriptors(points, up, origin)
