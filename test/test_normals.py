@@ -100,3 +100,19 @@ def test_undefined_for_tiny_or_sideless_clouds():
 def test_bad_input_is_refused(points, up, origin, msg):
     with pytest.raises(ValueError, match=msg):
         side_normal_descriptors(points, up, origin)
+
+
+def test_frac10_and_r4_match_their_definitions():
+    from beo_ros.core.normals import descriptors_from_normals
+    rng = np.random.default_rng(3)
+    theta = np.r_[rng.normal(0.4, 0.05, 300), rng.normal(0.4 + np.pi / 2, 0.05, 200),
+                  rng.uniform(-np.pi, np.pi, 500)]
+    n = np.c_[np.cos(theta), np.sin(theta), rng.uniform(-0.3, 0.3, len(theta))]
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    r4, frac10, ns = descriptors_from_normals(n, UP)
+    assert ns == len(theta)
+    assert r4 == pytest.approx(abs(np.mean(np.exp(4j * theta))), abs=1e-9)
+    t90 = np.degrees(theta) % 90.0
+    dist = np.abs((t90[None, :] - np.arange(90.0)[:, None] + 45.0) % 90.0 - 45.0)
+    assert frac10 == pytest.approx((dist <= 10.0).mean(axis=1).max(), abs=2.0 / len(theta))
+    assert frac10 > 0.5

@@ -193,3 +193,17 @@ def test_scene_cv_point_predictions_learn_from_the_descriptors_and_are_grouped()
     np.testing.assert_allclose(p[:, 1], lr.predict_proba(Z)[:, 1], atol=1e-6)
     with pytest.raises(ValueError, match='NaN'):
         train_point_classifier(F[:, :, 0], D3, y, 2)
+
+
+def test_loso_from_points_uses_the_deployment_path(scan_files, tmp_path):
+    out = tmp_path / 'fp'
+    rc = main(['--scans', *map(str, scan_files), '--out', str(out), '--no-congeal', '--k', '2',
+               '--max-iter', '3', '--grid', '16', '--voxel-size', '0.03125',
+               '--yaw-step', '10', '--figures', '0', '--from-points', '--scenes', '2'])
+    assert rc == 0
+    z = np.load(out / 'oof_features.npz')
+    assert str(z['grid_source']) == 'estimate_points'
+    res = json.loads((out / 'scan_eval.json').read_text())
+    assert 'estimate_points' in res['summary']['protocol']
+    assert len(z['y']) == 4 and np.isfinite(z['features']).all()
+    assert z['point_descriptors'].shape == (4, 2)

@@ -69,6 +69,9 @@ def test_shipped_tabletop_model_classifies_a_real_object():
     pts = max(segment_objects(scene).values(), key=len)  # the biggest mug/can, camera frame
     est = bank.estimate_points(pts, sensor_origin=(0, 0, 0), up=up, yaw_step_deg=3.0)
     assert est.label == 'cylinder', est.scores
+    # the shipped rule: the 'points' classifier on loglik + the raw points' normal descriptors
+    assert bank.has_point_classifier and est.classifier_mode == 'points', est.classifier_note
+    assert np.isfinite(est.point_features).all() and est.point_features[0] < 0.5  # round front
     assert est.completed_points.shape[1] == 3 and len(est.completed_points) > 50
 
 

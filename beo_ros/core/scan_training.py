@@ -260,13 +260,15 @@ def train_point_classifier(loglik, descriptors, y, n_classes, C=1.0):
 def point_classifier_from_oof(oof_path, objs, C=1.0):
     """Train the 'points' classifier on every object of ``objs`` (:class:`ScanObjects`) from the
     out-of-fold features of a leave-one-scene-out run (``oof_features.npz`` of
-    ``beo-eval --scans``, rows matched by scene and object id; every object must be there) and
+    ``beo-eval --scans``, rows matched by scene and object id; every object must be there; best
+    from a ``--from-points`` run, whose features come from ``estimate_points`` like in use) and
     the objects' side-normal descriptors (recomputed from their points).
     Returns (classifier dict, info dict)."""
     with np.load(oof_path, allow_pickle=False) as z:
         F = np.asarray(z['features'], dtype=np.float64)
         rows = {(str(s), int(o)): i for i, (s, o) in enumerate(zip(z['scenes'], z['object_ids']))}
         classes = [str(c) for c in z['classes']]
+        source = str(z['grid_source']) if 'grid_source' in z.files else 'grid'
     if classes != list(objs.names):
         raise ValueError(f'{oof_path}: classes {classes} differ from the scans {objs.names}')
     missing = [f'{s}/{o}' for s, o in zip(objs.scenes, objs.object_ids)
@@ -282,7 +284,8 @@ def point_classifier_from_oof(oof_path, objs, C=1.0):
         raise ValueError(f'side-normal descriptors undefined for {int(bad.sum())} objects')
     clf = train_point_classifier(L, D, objs.y, len(objs.names), C)
     info = dict(point_classifier=dict(
-        oof_features=str(oof_path), C=float(C), n_objects=int(len(objs)),
+        oof_features=str(oof_path), oof_grid_source=source, C=float(C),
+        n_objects=int(len(objs)),
         inputs='per-class loglik (out-of-fold, leave-one-scene-out) + r4, frac10'))
     return clf, info
 
