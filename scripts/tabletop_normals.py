@@ -3,7 +3,8 @@
 from cylinder better, together with the BEO log-likelihood margin?
 
 Not imported by the package or the tests; it imports the package's descriptor maths
-(``beo_ros.core.normals``, which the shipped 'points' classifier of ``models/tabletop_32`` uses). Usage (from the repository root):
+(``beo_ros.core.normals``, which the shipped 'points' classifier of ``models/tabletop_32``
+uses). Usage (from the repository root):
 
     .venv/bin/python scripts/tabletop_normals.py /tmp/beo_loso/oof_features.npz [--json out.json]
 
