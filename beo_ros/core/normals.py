@@ -133,7 +133,8 @@ def side_normal_descriptors(points, up, sensor_origin=(0.0, 0.0, 0.0), max_query
         points: (n, 3) float, metres, any frame (e.g. the camera frame); all rows finite.
         up: (3,) gravity-up direction (e.g. the table normal) in the same frame, any length.
         sensor_origin: (3,) sensor position in the same frame.
-        max_query: see :func:`point_normals` (the default keeps the cost to a few ms).
+        max_query: see :func:`point_normals` (with the default, p50 12 ms per OSD object of
+            2k-28k points on 2 cores).
 
     Returns float64 (2,) = (r4, frac10), both in [0, 1]; NaN for clouds too small to say
     anything (fewer than ``MIN_POINTS`` points or ``MIN_SIDE`` side normals). Raises ValueError
