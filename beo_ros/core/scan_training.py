@@ -231,6 +231,8 @@ def train_point_classifier(loglik, descriptors, y, n_classes, C=1.0):
     Returns dict(mean, scale, coef (C, C+2), intercept (C,), unknown_threshold (C,)).
     """
     from sklearn.linear_model import LogisticRegression
+
+    from .training import loglik_bounds
     L = np.asarray(loglik, dtype=np.float64).reshape(len(y), n_classes)
     D = np.asarray(descriptors, dtype=np.float64).reshape(len(y), -1)
     y = np.asarray(y)
@@ -247,14 +249,8 @@ def train_point_classifier(loglik, descriptors, y, n_classes, C=1.0):
     else:
         coef[lr.classes_] = np.vstack([-lr.coef_, lr.coef_]) / 2
         intercept[lr.classes_] = np.hstack([-lr.intercept_, lr.intercept_]) / 2
-    thr = np.full(n_classes, -np.inf)
-    for c in range(n_classes):
-        own = L[y == c, c]
-        if len(own) >= 5:
-            med = np.median(own)
-            mad = 1.4826 * np.median(np.abs(own - med))
-            thr[c] = med - 6.0 * max(mad, 1e-3)
-    return dict(mean=mean, scale=scale, coef=coef, intercept=intercept, unknown_threshold=thr)
+    return dict(mean=mean, scale=scale, coef=coef, intercept=intercept,
+                unknown_threshold=loglik_bounds(L, y, n_classes))
 
 
 def point_classifier_from_oof(oof_path, objs, C=1.0):

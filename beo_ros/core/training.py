@@ -122,6 +122,24 @@ def cross_validated_report(F, y, records, C=1.0, folds=5, seed=0, row_standardiz
     return {k: round(v, 4) if isinstance(v, float) else v for k, v in rep.items()}
 
 
+def loglik_bounds(ll, y, n_classes):
+    """Per-class lower bounds (C,) of the 'unknown' test from out-of-fold log-likelihoods.
+
+    ll: (m, C) per-voxel log-likelihood of every training object under every class; y: (m,).
+    The winning class must explain an object about as well as its own out-of-fold objects: a
+    robust bound (median - 6 scaled MADs of their log-likelihood), so a single outlier among
+    them cannot drag it down; -inf for a class with fewer than 5 objects.
+    """
+    thr = np.full(n_classes, -np.inf)
+    for c in range(n_classes):
+        own = ll[y == c, c]
+        if len(own) >= 5:
+            med = np.median(own)
+            mad = 1.4826 * np.median(np.abs(own - med))
+            thr[c] = med - 6.0 * max(mad, 1e-3)
+    return thr
+
+
 def train_classifier(F, y, n_classes, C=1.0, row_standardize=False):
     """Standardised multinomial logistic regression on features F (r, C*F) -> arrays dict
     (``row_standardize``: see ``classifier_input``)."""
@@ -135,18 +153,7 @@ def train_classifier(F, y, n_classes, C=1.0, row_standardize=False):
     coef[lr.classes_] = lr.coef_ if len(lr.classes_) > 2 else np.vstack([-lr.coef_, lr.coef_])
     intercept[lr.classes_] = lr.intercept_ if len(lr.classes_) > 2 else np.hstack(
         [-lr.intercept_, lr.intercept_])
-    # 'unknown': the winning class explains the object far worse than its own out-of-fold
-    # objects: a robust bound (median - 6 scaled MADs) on the per-voxel log-likelihood, so a
-    # single outlier among the training objects cannot drag it down
-    nf = len(FEATURE_NAMES)
-    ll = F[:, 0::nf]
-    thr = np.full(n_classes, -np.inf)
-    for c in range(n_classes):
-        own = ll[y == c, c]
-        if len(own) >= 5:
-            med = np.median(own)
-            mad = 1.4826 * np.median(np.abs(own - med))
-            thr[c] = med - 6.0 * max(mad, 1e-3)
+    thr = loglik_bounds(F[:, 0::len(FEATURE_NAMES)], y, n_classes)
     return dict(mean=mean, scale=scale, coef=coef, intercept=intercept, unknown_threshold=thr,
                 row_standardize=np.asarray(bool(row_standardize)))
 
