@@ -126,16 +126,6 @@ def classifier_design(F, kind='all'):
     raise ValueError(f"unknown classifier input {kind!r} (use 'all' or 'diff')")
 
 
-def _classify(clf, Z, F):
-    """Predictions (m,) and unknown flags (m,) of a ``train_classifier`` dict on design rows Z
-    (m, C * nf) with the raw features F (m, C, nf), as ``ModelBank.classify_features`` does."""
-    z = (Z - clf['mean']) / clf['scale']
-    logits = z @ clf['coef'].T + clf['intercept']
-    pred = np.argmax(logits, axis=1)
-    unknown = F[np.arange(len(F)), pred, 0] < clf['unknown_threshold'][pred]
-    return pred, unknown
-
-
 def scene_cv_predictions(F, y, groups, kind='all', C=1.0):
     """Second-level leave-one-group-out predictions of a standardised logistic regression.
 
@@ -148,6 +138,7 @@ def scene_cv_predictions(F, y, groups, kind='all', C=1.0):
     Returns (pred (m,), unknown (m,) bool).
     """
     from sklearn.linear_model import LogisticRegression
+    from .core.bank import classifier_probabilities
     from .core.training import train_classifier
     F = np.asarray(F, dtype=np.float64)
     y = np.asarray(y)
@@ -163,7 +154,8 @@ def scene_cv_predictions(F, y, groups, kind='all', C=1.0):
             continue
         if kind == 'all':
             clf = train_classifier(Z[tr], y[tr], F.shape[1], C)
-            pred[te], unknown[te] = _classify(clf, Z[te], F[te])
+            p, unknown[te] = classifier_probabilities(clf, Z[te], F[te, :, 0])
+            pred[te] = np.argmax(p, axis=1)
         else:
             mean = Z[tr].mean(axis=0)
             scale = Z[tr].std(axis=0) + 1e-9

@@ -117,6 +117,28 @@ def _softmax(z):
     return e / e.sum()
 
 
+def classifier_probabilities(clf, Z, loglik):
+    """Class probabilities (m, C) and 'unknown' flags (m,) of a classifier dict (mean, scale,
+    coef, intercept, unknown_threshold) on its input rows Z (m, n_in), given every row's
+    per-class exact log-likelihood per known voxel (m, C).
+
+    'unknown': the winner explains the object far worse than its own training objects, or the
+    classes that do explain it hold less than half the probability (the classifier compares
+    classes with each other, so random clutter that only one class tolerates can still win;
+    ModelNet10 out-of-fold rows rejected: 1.19 -> 1.26 % complete, 0.81 -> 0.83 % partial).
+    """
+    L = np.atleast_2d(np.asarray(loglik, dtype=np.float64))
+    z = (np.atleast_2d(np.asarray(Z, dtype=np.float64)) - clf['mean']) / clf['scale']
+    logits = z @ np.asarray(clf['coef'], dtype=np.float64).T + clf['intercept']
+    logits -= logits.max(axis=1, keepdims=True)
+    p = np.exp(logits)
+    p /= p.sum(axis=1, keepdims=True)
+    best = np.argmax(p, axis=1)
+    explains = L >= clf['unknown_threshold']
+    unknown = ~explains[np.arange(len(L)), best] | ((p * explains).sum(axis=1) < 0.5)
+    return p, unknown
+
+
 def check_point_classifier(clf, n_classes, where='classifier'):
     """Raise ModelError unless ``clf`` is a usable 'points' classifier for ``n_classes``:
     mean, scale (C+2,), coef (C, C+2), intercept (C,), unknown_threshold (C,), all finite
@@ -151,20 +173,11 @@ def apply_point_classifier(clf, loglik, descriptors):
 
     loglik: (m, C) per-class exact log-likelihood per known voxel (``features[:, 0]``);
     descriptors: (m, 2) finite side-normal descriptors (:mod:`beo_ros.core.normals`).
-    'unknown' as in ``ModelBank.classify_features``: the winner's log-likelihood is below its
-    ``unknown_threshold``, or the classes above theirs hold less than half the probability.
+    'unknown' as for every classifier (:func:`classifier_probabilities`).
     """
     L = np.atleast_2d(np.asarray(loglik, dtype=np.float64))
     D = np.atleast_2d(np.asarray(descriptors, dtype=np.float64))
-    z = (np.hstack([L, D]) - clf['mean']) / clf['scale']
-    logits = z @ np.asarray(clf['coef'], dtype=np.float64).T + clf['intercept']
-    logits -= logits.max(axis=1, keepdims=True)
-    p = np.exp(logits)
-    p /= p.sum(axis=1, keepdims=True)
-    best = np.argmax(p, axis=1)
-    explains = L >= clf['unknown_threshold']
-    unknown = ~explains[np.arange(len(L)), best] | ((p * explains).sum(axis=1) < 0.5)
-    return p, unknown
+    return classifier_probabilities(clf, np.hstack([L, D]), L)
 
 
 class ModelBank:
@@ -395,17 +408,8 @@ class ModelBank:
         if self.classifier and mode in self.classifier:
             clf = self.classifier[mode]
             x = classifier_input(feats, len(self.models), bool(clf.get('row_standardize', False)))
-            x = (x[0] - clf['mean']) / clf['scale']
-            p = _softmax(clf['coef'] @ x + clf['intercept'])
-            best = int(np.argmax(p))
-            # 'unknown': the winner explains the object far worse than its own training
-            # objects, or the classes that do explain it hold less than half the probability
-            # (the classifier compares classes with each other, so random clutter that only
-            # one class tolerates can still win; out-of-fold rows rejected: 1.19 -> 1.26 %
-            # complete, 0.81 -> 0.83 % partial)
-            explains = feats[:, 0] >= clf['unknown_threshold']
-            unknown = bool(not explains[best] or p @ explains < 0.5)
-            return p, unknown
+            p, unknown = classifier_probabilities(clf, x, feats[:, 0])
+            return p[0], bool(unknown[0])
         # the paper's rule: the class whose model explains the observation best
         return _softmax(feats[:, 0] * 50.0), False
 
