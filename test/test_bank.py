@@ -770,6 +770,21 @@ def test_cross_validated_report_keeps_the_views_of_an_object_in_one_fold():
             == cross_validated_report(F0, y0, []))
 
 
+def test_binary_classifier_probabilities_are_the_regressions():
+    from sklearn.linear_model import LogisticRegression
+    from beo_ros.core.bank import classifier_probabilities
+    from beo_ros.core.inference import FEATURE_NAMES
+    from beo_ros.core.training import train_classifier
+    rng = np.random.default_rng(1)
+    y = np.arange(60) % 2
+    F = rng.normal(size=(60, 2 * len(FEATURE_NAMES))) + y[:, None]
+    clf = train_classifier(F, y, 2)
+    p, _ = classifier_probabilities(clf, F, F[:, 0::len(FEATURE_NAMES)])
+    Z = (F - F.mean(axis=0)) / (F.std(axis=0) + 1e-9)
+    want = LogisticRegression(max_iter=2000).fit(Z, y).predict_proba(Z)
+    assert np.allclose(p, want, atol=1e-6)
+
+
 def test_two_class_model_with_row_standardized_classifier_is_refused(clf_bank, tmp_path):
     bank, _, _ = clf_bank
     path = bank.save(tmp_path / 'two')

@@ -150,9 +150,11 @@ def train_classifier(F, y, n_classes, C=1.0, row_standardize=False):
     lr = LogisticRegression(C=C, max_iter=2000).fit((Z - mean) / scale, y)
     coef = np.zeros((n_classes, F.shape[1]))
     intercept = np.full(n_classes, -30.0)
-    coef[lr.classes_] = lr.coef_ if len(lr.classes_) > 2 else np.vstack([-lr.coef_, lr.coef_])
+    # a binary fit becomes the two-class softmax with logits -z/2, +z/2: the regression's own
+    # probabilities (logits -z, +z would square the odds)
+    coef[lr.classes_] = lr.coef_ if len(lr.classes_) > 2 else np.vstack([-lr.coef_, lr.coef_]) / 2
     intercept[lr.classes_] = lr.intercept_ if len(lr.classes_) > 2 else np.hstack(
-        [-lr.intercept_, lr.intercept_])
+        [-lr.intercept_, lr.intercept_]) / 2
     thr = loglik_bounds(F[:, 0::len(FEATURE_NAMES)], y, n_classes)
     return dict(mean=mean, scale=scale, coef=coef, intercept=intercept, unknown_threshold=thr,
                 row_standardize=np.asarray(bool(row_standardize)))
