@@ -137,7 +137,6 @@ def scene_cv_predictions(F, y, groups, kind='all', C=1.0):
     'unknown' check of ``ModelBank.classify_features`` is applied too.
     Returns (pred (m,), unknown (m,) bool).
     """
-    from sklearn.linear_model import LogisticRegression
     from .core.bank import classifier_probabilities
     from .core.training import train_classifier
     F = np.asarray(F, dtype=np.float64)
@@ -157,11 +156,30 @@ def scene_cv_predictions(F, y, groups, kind='all', C=1.0):
             p, unknown[te] = classifier_probabilities(clf, Z[te], F[te, :, 0])
             pred[te] = np.argmax(p, axis=1)
         else:
-            mean = Z[tr].mean(axis=0)
-            scale = Z[tr].std(axis=0) + 1e-9
-            lr = LogisticRegression(C=C, max_iter=2000).fit((Z[tr] - mean) / scale, y[tr])
-            pred[te] = lr.predict((Z[te] - mean) / scale)
+            pred[te] = _logistic_predict(Z[tr], y[tr], Z[te], F.shape[1], C)
     return pred, unknown
+
+
+def _logistic_predict(Z_train, y_train, Z_test, n_classes, C):
+    from .core.training import fit_logistic
+    clf = fit_logistic(Z_train, y_train, n_classes, C)
+    z = (Z_test - clf['mean']) / clf['scale']
+    return np.argmax(z @ clf['coef'].T + clf['intercept'], axis=1)
+
+
+def scene_cv_logistic(Z, y, groups, C=1.0):
+    """Leave-one-group-out predictions (m,) of a standardised logistic regression on any input
+    rows Z (m, n_in) (no 'unknown' check): every row's class from a regression fitted on the
+    other groups' rows only."""
+    Z = np.asarray(Z, dtype=np.float64).reshape(len(y), -1)
+    y = np.asarray(y)
+    groups = np.asarray(groups)
+    n_classes = int(y.max()) + 1
+    pred = np.empty(len(y), dtype=int)
+    for g in dict.fromkeys(groups.tolist()):
+        te = groups == g
+        pred[te] = _logistic_predict(Z[~te], y[~te], Z[te], n_classes, C)
+    return pred
 
 
 POINT_CLASSIFIER_CS = (0.1, 1.0)

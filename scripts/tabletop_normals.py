@@ -32,7 +32,7 @@ invariant to a rotation about ``up``):
 
 Second level: leave-one-scene-out over the 29 scenes, every object's class from a standardised
 (mean / std of the training rows) logistic regression fitted on the other 28 scenes' objects
-only (as ``beo_ros.scan_eval.scene_cv_predictions`` does for its 'diff' input). Variants, all
+only (``beo_ros.scan_eval.scene_cv_logistic``). Variants, all
 reported: (a) the 3 normal descriptors, (b) the loglik margin (box minus cylinder, per known
 voxel), (c) margin + the 3 descriptors, (d) ``r4, frac10`` only, (e) the shipped 'points'
 classifier (``beo_ros.scan_eval.scene_cv_point_predictions``: the C per-class loglik values +
@@ -54,7 +54,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from beo_ros.core.normals import (  # noqa: E402  (the package's own maths: no drift)
-    MIN_SIDE, SIDE_COS, descriptors_from_normals, point_normals, side_normal_descriptors)
+    MIN_POINTS, MIN_SIDE, SIDE_COS, descriptors_from_normals, point_normals)
 
 DESCRIPTORS = ('r4', 'frac10', 'surf_var')
 CS = (0.1, 1.0)
@@ -65,28 +65,15 @@ def normal_descriptors(points, up):
     ``beo_ros.core.normals.side_normal_descriptors`` (what the shipped 'points' classifier
     sees); surf_var is the median surface variation over the side points of the same normals."""
     pts = np.asarray(points, dtype=np.float64)
-    r4, frac10 = side_normal_descriptors(pts, up, np.zeros(3))
+    if len(pts) < MIN_POINTS:
+        return np.nan, np.nan, np.nan, 0
+    # the normals of side_normal_descriptors, computed once for all three descriptors
     _, n, sv = point_normals(pts, np.zeros(3))
-    _, _, ns = descriptors_from_normals(n, up)
+    r4, frac10, ns = descriptors_from_normals(n, up)
     u = np.asarray(up, float) / np.linalg.norm(up)
     side = np.isfinite(n).all(axis=1) & (np.abs(n @ u) < SIDE_COS)
     surf_var = float(np.median(sv[side])) if ns >= MIN_SIDE else np.nan
     return r4, frac10, surf_var, ns
-
-
-def loso_lr(Z, y, groups, C):
-    """Leave-one-group-out predictions of a standardised logistic regression."""
-    from sklearn.linear_model import LogisticRegression
-    Z = np.asarray(Z, dtype=np.float64).reshape(len(y), -1)
-    pred = np.empty(len(y), dtype=int)
-    for g in dict.fromkeys(groups.tolist()):
-        te = groups == g
-        tr = ~te
-        mean = Z[tr].mean(axis=0)
-        scale = Z[tr].std(axis=0) + 1e-9
-        lr = LogisticRegression(C=C, max_iter=2000).fit((Z[tr] - mean) / scale, y[tr])
-        pred[te] = lr.predict((Z[te] - mean) / scale)
-    return pred
 
 
 def report(name, y, pred, labels):
@@ -107,6 +94,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
 
     from beo_ros.core.scans import fit_table_plane, load_scene, segment_objects
+    from beo_ros.scan_eval import scene_cv_logistic, scene_cv_point_predictions
 
     d = np.load(args.npz, allow_pickle=False)
     F, y = d['features'], d['y'].astype(int)
@@ -139,8 +127,8 @@ def main(argv=None):
             ('(d) r4, frac10', desc[:, :2]))
     for name, Z in sets:
         for C in CS:
-            results.append(report(f'{name}, C = {C:g}', y, loso_lr(Z, y, scenes, C), labels))
-    from beo_ros.scan_eval import scene_cv_point_predictions
+            results.append(report(f'{name}, C = {C:g}', y, scene_cv_logistic(Z, y, scenes, C),
+                                  labels))
     for C in CS:
         pred, unknown = scene_cv_point_predictions(F, desc[:, :2], y, scenes, C)
         results.append(report(f"(e) 'points' classifier (loglik x C + r4, frac10), C = {C:g}"

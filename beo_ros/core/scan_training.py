@@ -224,32 +224,18 @@ def train_point_classifier(loglik, descriptors, y, n_classes, C=1.0):
     loglik: (m, C) per-class exact log-likelihood per known voxel of each training object under
     class models that did not see it (out-of-fold, e.g. ``oof_features.npz`` of
     ``beo-eval --scans``: ``features[:, :, 0]``); descriptors: (m, 2) finite side-normal
-    descriptors; y: (m,) labels. A logistic regression on the standardised (mean / std of these
-    rows) C + 2 inputs; a binary fit becomes the two-class softmax with logits -z/2, +z/2
-    (probabilities = the regression's). ``unknown_threshold`` as for the grid classifiers: per
-    class, median - 6 scaled MADs of its own objects' log-likelihood (-inf with < 5 objects).
+    descriptors; y: (m,) labels. A standardised logistic regression on the C + 2 inputs
+    (``training.fit_logistic``); ``unknown_threshold`` as for the grid classifiers
+    (``training.loglik_bounds``).
     Returns dict(mean, scale, coef (C, C+2), intercept (C,), unknown_threshold (C,)).
     """
-    from sklearn.linear_model import LogisticRegression
-
-    from .training import loglik_bounds
+    from .training import fit_logistic, loglik_bounds
     L = np.asarray(loglik, dtype=np.float64).reshape(len(y), n_classes)
     D = np.asarray(descriptors, dtype=np.float64).reshape(len(y), -1)
     y = np.asarray(y)
     if not (np.isfinite(L).all() and np.isfinite(D).all()):
         raise ValueError('point classifier inputs contain NaN or Inf (undefined descriptors?)')
-    Z = np.hstack([L, D])
-    mean = Z.mean(axis=0)
-    scale = Z.std(axis=0) + 1e-9
-    lr = LogisticRegression(C=C, max_iter=2000).fit((Z - mean) / scale, y)
-    coef = np.zeros((n_classes, Z.shape[1]))
-    intercept = np.full(n_classes, -30.0)
-    if len(lr.classes_) > 2:
-        coef[lr.classes_], intercept[lr.classes_] = lr.coef_, lr.intercept_
-    else:
-        coef[lr.classes_] = np.vstack([-lr.coef_, lr.coef_]) / 2
-        intercept[lr.classes_] = np.hstack([-lr.intercept_, lr.intercept_]) / 2
-    return dict(mean=mean, scale=scale, coef=coef, intercept=intercept,
+    return dict(fit_logistic(np.hstack([L, D]), y, n_classes, C),
                 unknown_threshold=loglik_bounds(L, y, n_classes))
 
 

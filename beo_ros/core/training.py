@@ -140,23 +140,33 @@ def loglik_bounds(ll, y, n_classes):
     return thr
 
 
-def train_classifier(F, y, n_classes, C=1.0, row_standardize=False):
-    """Standardised multinomial logistic regression on features F (r, C*F) -> arrays dict
-    (``row_standardize``: see ``classifier_input``)."""
+def fit_logistic(Z, y, n_classes, C=1.0):
+    """Standardised logistic regression on input rows Z (m, n_in) with labels y (m,) ->
+    dict(mean, scale (n_in,), coef (n_classes, n_in), intercept (n_classes,)) in the softmax
+    form of ``bank.classifier_probabilities``. Classes absent from y get intercept -30 (never
+    chosen); a binary fit becomes the two-class softmax with logits -z/2, +z/2: the regression's
+    own probabilities (logits -z, +z would square the odds).
+    """
     from sklearn.linear_model import LogisticRegression
-    Z = classifier_input(F, n_classes, row_standardize)
+    Z = np.asarray(Z, dtype=np.float64)
     mean = Z.mean(axis=0)
     scale = Z.std(axis=0) + 1e-9
     lr = LogisticRegression(C=C, max_iter=2000).fit((Z - mean) / scale, y)
-    coef = np.zeros((n_classes, F.shape[1]))
+    coef = np.zeros((n_classes, Z.shape[1]))
     intercept = np.full(n_classes, -30.0)
-    # a binary fit becomes the two-class softmax with logits -z/2, +z/2: the regression's own
-    # probabilities (logits -z, +z would square the odds)
-    coef[lr.classes_] = lr.coef_ if len(lr.classes_) > 2 else np.vstack([-lr.coef_, lr.coef_]) / 2
-    intercept[lr.classes_] = lr.intercept_ if len(lr.classes_) > 2 else np.hstack(
-        [-lr.intercept_, lr.intercept_]) / 2
-    thr = loglik_bounds(F[:, 0::len(FEATURE_NAMES)], y, n_classes)
-    return dict(mean=mean, scale=scale, coef=coef, intercept=intercept, unknown_threshold=thr,
+    if len(lr.classes_) > 2:
+        coef[lr.classes_], intercept[lr.classes_] = lr.coef_, lr.intercept_
+    else:
+        coef[lr.classes_] = np.vstack([-lr.coef_, lr.coef_]) / 2
+        intercept[lr.classes_] = np.hstack([-lr.intercept_, lr.intercept_]) / 2
+    return dict(mean=mean, scale=scale, coef=coef, intercept=intercept)
+
+
+def train_classifier(F, y, n_classes, C=1.0, row_standardize=False):
+    """Standardised multinomial logistic regression on features F (r, C*F) -> arrays dict
+    (``row_standardize``: see ``classifier_input``)."""
+    clf = fit_logistic(classifier_input(F, n_classes, row_standardize), y, n_classes, C)
+    return dict(clf, unknown_threshold=loglik_bounds(F[:, 0::len(FEATURE_NAMES)], y, n_classes),
                 row_standardize=np.asarray(bool(row_standardize)))
 
 
