@@ -810,6 +810,24 @@ def test_full_resolution_refinement_sharpens_the_yaw(pose_case):
     assert np.median(refined) <= 6.0, np.round(refined, 1)
 
 
+def test_exact_probes_recover_yaws_the_pooled_optimum_misses(pose_case):
+    # _refine solves exactly at +-10 and +-20 deg of the pooled optimum before climbing; on
+    # these views the pooled optimum is often several degrees off (measured, 32 views at 16^3:
+    # median error 4.9 deg without probes, 1.2 with; within 5 deg 0.50 -> 0.94; 17 views
+    # better by > 1 deg, 2 worse)
+    bank, cases = pose_case
+    without, with_ = [], []
+    for g, yaw, c, _ in cases:
+        _, per = bank.features(g)
+        without.append(np.rad2deg(abs(wrap(bank._refine(g, c, dict(per[c]), probe_deg=())['yaw']
+                                           - yaw))))
+        with_.append(np.rad2deg(abs(wrap(bank._refine(g, c, dict(per[c]))['yaw'] - yaw))))
+    without, with_ = np.array(without), np.array(with_)
+    assert np.median(with_) < np.median(without) - 1.0, (np.round(without, 1), np.round(with_, 1))
+    assert np.mean(with_ <= 5) >= np.mean(without <= 5) + 0.25
+    assert (with_ < without - 1).sum() > 3 * (with_ > without + 1).sum()
+
+
 def test_shipped_model_answers_unknown_for_dense_clutter():
     # The shipped ModelNet10 bank's robust bound (median - 6 MAD of the out-of-fold
     # log-likelihood) rejects dense random clutter. Sparse scatter (2-5 % of the voxels) still
