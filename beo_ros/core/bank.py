@@ -485,7 +485,7 @@ class ModelBank:
         if window_deg > 0 and probe_deg:
             # exact solves a little further out: on 794 partial views of fold 0 (true class)
             # the probes at +-10, +-20 deg raised yaw <= 10 deg from 0.783 to 0.795 and with
-            # flips from 0.902 to 0.918 for 4 ms; probes at the other pooled modes or at the
+            # flips from 0.902 to 0.918 for about 5 ms; probes at the other pooled modes or at the
             # 90 and 180 deg turns did not help (the pooled ranking of distant modes is better)
             y0, top = best['yaw'], best['exact']['loglik']
             win = None
