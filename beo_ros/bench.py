@@ -633,7 +633,9 @@ def markdown(res):
     lines = [f"Data: {st.get('data')}; {len(st.get('classes', []))} classes, "
              f"{st.get('train_objects')} training objects, {st.get('queries')} queries "
              f"(seed {st.get('seed')}, k={st.get('k')}); beo: {st.get('beo_model')}; "
-             f"{st.get('cpu_count')} CPUs shared with other jobs.", '']
+             f"{st.get('cpu_count')} CPUs"
+             + (f", 1-min load average {st['load_average_1min']} at the start."
+                if st.get('load_average_1min') is not None else '.'), '']
     if all(p in res for p in ('beo', 'paper', 'icp')):
         lines += [table(res), '']
         extra = [f"speedup vs icp (p50) {res['speedup_vs_icp']:.1f}x",
@@ -797,7 +799,9 @@ def main(argv=None):
         'slow_repeats': args.slow_repeats, 'quick': bool(args.quick),
         'protocol': 'one random partial view per held-out object: yaw U[0,360), azimuth '
                     'U[0,360), elevation U[10,50] deg (beo_ros.core.synthetic)',
-        'cpu_count': os.cpu_count()}}
+        'cpu_count': os.cpu_count(),
+        # other work on the machine shows here (the bench does not know what else runs)
+        'load_average_1min': round(os.getloadavg()[0], 2) if hasattr(os, 'getloadavg') else None}}
 
     # ---- beo
     t0 = time.perf_counter()
