@@ -128,6 +128,10 @@ def test_check_grid(tiny):
             tiny.check_grid(b)
     with pytest.raises(ValueError, match='yaw_step_deg'):
         tiny.estimate(g, yaw_step_deg=0.0)
+    for bad in ((float('nan'),), (-10.0,), (0.0,), ('10',)):
+        with pytest.raises(ValueError, match='probe_deg'):
+            tiny.estimate(g, probe_deg=bad)
+    assert np.isfinite(tiny.estimate(g, probe_deg=None).yaw)
 
 
 # ---------------------------------------------------------------------- the batched search

@@ -547,6 +547,10 @@ class ModelBank:
         grid = self.check_grid(grid)
         if not 0.05 <= yaw_step_deg <= 90:
             raise ValueError(f'yaw_step_deg must be in [0.05, 90], got {yaw_step_deg}')
+        probe_deg = tuple(probe_deg or ())
+        if not all(isinstance(p, (int, float, np.floating, np.integer)) and 0 < p <= 180
+                   for p in probe_deg):
+            raise ValueError(f'probe_deg must be offsets in (0, 180] degrees, got {probe_deg}')
         if search_step_deg is None:
             search_step_deg = max(SEARCH_STEP_DEG, yaw_step_deg)
         feats, per = self.features(grid, yaw, search_step_deg, exhaustive)
