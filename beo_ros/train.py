@@ -52,6 +52,10 @@ def main(argv=None):
                     help='standardise every feature across the classes of its row before the '
                          'classifier; auto: per mode, whichever cross-validates better (needs '
                          '3+ classes)')
+    ap.add_argument('--descriptors', choices=('auto', 'on', 'off'), default='auto',
+                    help="also give the classifier 12 yaw-invariant shape descriptors of the "
+                         "grid's occupied voxels; auto: per mode, whichever cross-validates "
+                         'better')
     args = ap.parse_args(argv)
     if args.mirror and not (args.scans and args.views == 0):
         ap.error('--mirror is for --scans with --views 0 (maximum-likelihood rule)')
@@ -109,7 +113,8 @@ def main(argv=None):
                         training=dict(inputs=[str(p) for p in args.inputs], congeal=args.congeal),
                         grids=grids, oof_path=args.oof_out,
                         row_standardize={'auto': 'auto', 'on': True, 'off': False}[
-                            args.row_standardize])
+                            args.row_standardize],
+                        descriptors={'auto': 'auto', 'on': True, 'off': False}[args.descriptors])
         bank.save(args.out)
     except (ValueError, OSError) as e:
         print(f'beo-train: error: {e}', file=sys.stderr)

@@ -636,9 +636,12 @@ def clf_bank():
 def test_classifier_modes_and_cross_validation(clf_bank, tmp_path):
     bank, X, y = clf_bank
     assert set(bank.classifier) == {'complete', 'partial'}
-    for clf in bank.classifier.values():
-        assert clf['coef'].shape == (2, 12) and clf['unknown_threshold'].shape == (2,)
     cv = bank.training['cross_validation']
+    for mode, clf in bank.classifier.items():
+        # 'auto': the 12 per-class features, plus the 12 shape descriptors if they won
+        assert bool(clf['descriptors']) == cv[mode]['descriptors']
+        assert clf['coef'].shape == (2, 12 + 12 * cv[mode]['descriptors'])
+        assert clf['unknown_threshold'].shape == (2,)
     assert set(cv) == {'complete', 'partial'}
     for mode, rep in cv.items():
         assert rep['n'] == 16
@@ -715,9 +718,9 @@ def test_row_standardized_classifier_is_chosen_saved_and_checked(tmp_path):
     # the input rule changes the answer: the same weights on raw features differ
     raw = dict(again.classifier['complete'], row_standardize=np.asarray(False))
     f, _ = again.features(g, yaw=0.0)
-    assert not np.allclose(again.classify_features(f, 'complete')[0],
+    assert not np.allclose(again.classify_features(f, 'complete', g)[0],
                            ModelBank(again.models, again.spec, {'complete': raw}
-                                     ).classify_features(f, 'complete')[0])
+                                     ).classify_features(f, 'complete', g)[0])
     # 'auto' tries both and records the other one's accuracy
     auto = fit_bank(X, y, names, GridSpec(size=N), k=3, pose_components=3, classifier_views=1,
                     folds=2, seed=0)

@@ -6,7 +6,9 @@ Layout of a model directory::
     class_00_<name>.npz    W (d, k) float32, mean (d,), noise_variance, coarse_noise_variance,
                            loading_covariance (k, k), mean_variance (d,), component_variance (k,)
     classifier.npz         optional: standardisation + multinomial logistic regression per mode
-                           ('complete', 'partial': on the (C, F) grid features; 'points': on the
+                           ('complete', 'partial': on the (C, F) grid features, with
+                           ``descriptors`` also on the 12 shape descriptors of the grid
+                           (``beo_ros.core.shape``); 'points': on the
                            C per-class log-likelihoods + the 2 side-normal descriptors of the raw
                            points, used by ``estimate_points`` only)
 """
@@ -23,6 +25,7 @@ import numpy as np
 from .estimate import UNKNOWN_LABEL, Estimate, Hypothesis
 from .grid import GridSpec, yaw_matrix
 from .inference import FEATURE_NAMES, InferenceEngine, observed_edt, top_modes
+from .shape import DESCRIPTOR_NAMES, shape_descriptors
 
 FORMAT = 'beo_ros.models'
 VERSION = 1
@@ -96,21 +99,31 @@ def _sha256(path):
     return h.hexdigest()
 
 
-def classifier_input(F, n_classes, row_standardize=False):
-    """Classifier input rows (r, C*F) from feature rows (r, C*F) or one (C, F) array.
+def classifier_input(F, n_classes, row_standardize=False, descriptors=None):
+    """Classifier input rows (r, C*F [+ D]) from feature rows (r, C*F) or one (C, F) array.
 
     ``row_standardize``: every feature is standardised across the classes of its own row
     (mean 0, std 1 over the C values). That removes what an object does to all classes alike
     (its size, how much of it was seen) and leaves how the classes compare on it: 5-fold CV
     on the ModelNet10 train split, complete 0.863 -> 0.891, partial 0.847 -> 0.869. Needs
     C >= 3 (with two classes it keeps only the sign of each difference).
+    ``descriptors``: optional (r, D) or (D,) shape descriptors of the same rows
+    (:func:`beo_ros.core.shape.shape_descriptors`), appended as they are.
     """
     F = np.asarray(F, dtype=np.float64).reshape(-1, n_classes * len(FEATURE_NAMES))
-    if not row_standardize:
+    if row_standardize:
+        R = F.reshape(len(F), n_classes, len(FEATURE_NAMES))
+        R = (R - R.mean(axis=1, keepdims=True)) / (R.std(axis=1, keepdims=True) + 1e-9)
+        F = R.reshape(len(F), -1)
+    if descriptors is None:
         return F
-    R = F.reshape(len(F), n_classes, len(FEATURE_NAMES))
-    R = (R - R.mean(axis=1, keepdims=True)) / (R.std(axis=1, keepdims=True) + 1e-9)
-    return R.reshape(len(F), -1)
+    D = np.asarray(descriptors, dtype=np.float64).reshape(len(F), -1)
+    return np.hstack([F, D])
+
+
+def uses_descriptors(clf):
+    """Whether a grid classifier dict takes the shape descriptors as extra inputs."""
+    return bool(clf.get('descriptors', False))
 
 
 def _softmax(z):
@@ -346,14 +359,18 @@ class ModelBank:
                         classifier.setdefault(mode, {})[name] = z[key]
             except (OSError, ValueError) as e:
                 raise ModelError(f'{fp}: unreadable: {e}') from None
-            nf = len(FEATURE_NAMES) * len(classes)
             for mode, clf in classifier.items():
                 if mode == POINTS_MODE:
                     check_point_classifier(clf, len(classes), str(fp))
                     continue
+                nf = len(FEATURE_NAMES) * len(classes)
+                extra = (f' + {len(DESCRIPTOR_NAMES)} shape descriptors'
+                         if uses_descriptors(clf) else '')
+                if uses_descriptors(clf):
+                    nf += len(DESCRIPTOR_NAMES)
                 if mode not in MODES or clf.get('coef', np.zeros(0)).shape != (len(classes), nf):
                     raise ModelError(f'{fp}: classifier {mode!r} does not fit {len(classes)} '
-                                     f'classes x {len(FEATURE_NAMES)} features')
+                                     f'classes x {len(FEATURE_NAMES)} features{extra}')
                 if bool(clf.get('row_standardize', False)) and len(classes) < 3:
                     raise ModelError(f'{fp}: classifier {mode!r} standardises features across '
                                      f'classes, which needs at least 3 classes')
@@ -405,11 +422,19 @@ class ModelBank:
                             hypotheses=[(float(yaws_c[i]), float(ll_c[i])) for i in modes]))
         return np.array(feats), per
 
-    def classify_features(self, feats, mode):
-        """Class probabilities (C,) and the unknown flag from a (C, F) feature array."""
+    def classify_features(self, feats, mode, grid=None):
+        """Class probabilities (C,) and the unknown flag from a (C, F) feature array (and the
+        labelled grid, for a classifier that also takes its shape descriptors)."""
         if self.classifier and mode in self.classifier:
             clf = self.classifier[mode]
-            x = classifier_input(feats, len(self.models), bool(clf.get('row_standardize', False)))
+            desc = None
+            if uses_descriptors(clf):
+                if grid is None:
+                    raise ValueError(f'the {mode!r} classifier takes shape descriptors: pass the '
+                                     'grid')
+                desc = shape_descriptors(grid)
+            x = classifier_input(feats, len(self.models), bool(clf.get('row_standardize', False)),
+                                 desc)
             p, unknown = classifier_probabilities(clf, x, feats[:, 0])
             return p[0], bool(unknown[0])
         # the paper's rule: the class whose model explains the observation best
@@ -570,7 +595,7 @@ class ModelBank:
                     note = ("'points' classifier not used: side-normal descriptors undefined "
                             '(too few points or side normals); grid rule')
         if rule is None:
-            probs, unknown = self.classify_features(feats, mode)
+            probs, unknown = self.classify_features(feats, mode, grid)
             rule = mode if self.classifier and mode in self.classifier else 'max_likelihood'
         best = int(np.argmax(probs))
         t_cls = time.perf_counter()

@@ -11,6 +11,7 @@ import numpy as np
 from .bank import ClassModel, ModelBank, classifier_input, coarse_noise
 from .grid import yaw_error
 from .inference import FEATURE_NAMES
+from .shape import shape_descriptors
 from .synthetic import random_partial_view
 from .vbpca import VBPCA
 
@@ -46,11 +47,12 @@ def view_features(bank, X, rng, n_views=1, complete=True):
     """Features of objects X (m, N^3) under ``bank``: complete grids at yaw 0 and random partial
     views at unknown yaw (the evaluation protocol).
 
-    Returns dict mode -> (feature rows (r, C*F), object index (r,), records); a partial-view
-    record holds, per class hypothesis, the yaw error (rad) and the completion IoU (C,) each.
+    Returns dict mode -> (feature rows (r, C*F), object index (r,), records, shape descriptors
+    (r, D)); a partial-view record holds, per class hypothesis, the yaw error (rad) and the
+    completion IoU (C,) each.
     """
     n = bank.spec.size
-    out = {'complete': ([], [], []), 'partial': ([], [], [])}
+    out = {'complete': ([], [], [], []), 'partial': ([], [], [], [])}
     for i in range(len(X)):
         occ = X[i].reshape(n, n, n) > 0.5
         if complete:
@@ -58,6 +60,7 @@ def view_features(bank, X, rng, n_views=1, complete=True):
             out['complete'][0].append(f.ravel())
             out['complete'][1].append(i)
             out['complete'][2].append({})
+            out['complete'][3].append(shape_descriptors(occ.astype(np.int8)))
         for _ in range(n_views):
             grid, yaw, _, _, rotated = random_partial_view(occ, rng)
             f, per = bank.features(grid)
@@ -68,7 +71,9 @@ def view_features(bank, X, rng, n_views=1, complete=True):
             out['partial'][0].append(f.ravel())
             out['partial'][1].append(i)
             out['partial'][2].append(_hypothesis_quality(bank.engine, grid, per, yaw, rotated))
-    return {m: (np.array(a), np.array(b, dtype=int), r) for m, (a, b, r) in out.items() if a}
+            out['partial'][3].append(shape_descriptors(grid))
+    return {m: (np.array(a), np.array(b, dtype=int), r, np.array(d))
+            for m, (a, b, r, d) in out.items() if a}
 
 
 def _hypothesis_quality(engine, grid, per, yaw, rotated):
@@ -84,12 +89,13 @@ def _hypothesis_quality(engine, grid, per, yaw, rotated):
 
 
 def cross_validated_report(F, y, records, C=1.0, folds=5, seed=0, row_standardize=False,
-                           groups=None):
+                           groups=None, descriptors=None):
     """Accuracy (and, for partial views, yaw and IoU) of the classifier on out-of-fold features,
     itself cross-validated: every object's class comes from a classifier that never saw it.
 
     ``groups`` (r,): the object of every row, when objects have several rows (views); all
-    rows of an object then fall in the same fold.
+    rows of an object then fall in the same fold. ``descriptors`` (r, D): shape descriptors
+    appended to the classifier input (see ``classifier_input``).
     """
     from sklearn.linear_model import LogisticRegression
     from sklearn.model_selection import StratifiedGroupKFold, StratifiedKFold, cross_val_predict
@@ -104,8 +110,8 @@ def cross_validated_report(F, y, records, C=1.0, folds=5, seed=0, row_standardiz
         cv = StratifiedKFold(n_splits=min(folds, int(np.bincount(y).min())), shuffle=True,
                              random_state=seed)
     nf = len(FEATURE_NAMES)
-    pred = cross_val_predict(clf, classifier_input(F, F.shape[1] // nf, row_standardize), y,
-                             cv=cv, groups=groups)
+    pred = cross_val_predict(clf, classifier_input(F, F.shape[1] // nf, row_standardize,
+                                                   descriptors), y, cv=cv, groups=groups)
     ml = np.argmax(F[:, 0::nf], axis=1)
     recall = [np.mean(pred[y == c] == c) for c in np.unique(y)]
     rep = dict(n=int(len(y)), accuracy=float(np.mean(pred == y)),
@@ -162,17 +168,20 @@ def fit_logistic(Z, y, n_classes, C=1.0):
     return dict(mean=mean, scale=scale, coef=coef, intercept=intercept)
 
 
-def train_classifier(F, y, n_classes, C=1.0, row_standardize=False):
-    """Standardised multinomial logistic regression on features F (r, C*F) -> arrays dict
-    (``row_standardize``: see ``classifier_input``)."""
-    clf = fit_logistic(classifier_input(F, n_classes, row_standardize), y, n_classes, C)
+def train_classifier(F, y, n_classes, C=1.0, row_standardize=False, descriptors=None):
+    """Standardised multinomial logistic regression on features F (r, C*F) [+ shape
+    descriptors (r, D)] -> arrays dict (``row_standardize``, ``descriptors``: see
+    ``classifier_input``)."""
+    clf = fit_logistic(classifier_input(F, n_classes, row_standardize, descriptors), y,
+                       n_classes, C)
     return dict(clf, unknown_threshold=loglik_bounds(F[:, 0::len(FEATURE_NAMES)], y, n_classes),
-                row_standardize=np.asarray(bool(row_standardize)))
+                row_standardize=np.asarray(bool(row_standardize)),
+                descriptors=np.asarray(descriptors is not None))
 
 
 def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_views=1,
              folds=5, seed=0, C=1.0, verbose=False, training=None, grids=None, oof_path=None,
-             row_standardize='auto'):
+             row_standardize='auto', descriptors='auto'):
     """Fit class models on all of X and a classifier on out-of-fold features.
 
     ``classifier_views``: random partial views per training object for the partial-view
@@ -184,9 +193,16 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
     IoUs there (npz) for analysis.
     ``row_standardize``: True, False or 'auto' (per mode, whichever gives the higher
     cross-validated accuracy; never with fewer than 3 classes). See ``classifier_input``.
+    ``descriptors``: True, False or 'auto': also give the classifier the grid's shape
+    descriptors (:func:`beo_ros.core.shape.shape_descriptors`); 'auto' tries both, per mode,
+    together with the ``row_standardize`` options, and keeps the input with the highest
+    cross-validated accuracy (the first of equals: raw before standardised, without
+    descriptors before with them).
     """
     if row_standardize not in (True, False, 'auto'):
         raise ValueError(f"row_standardize must be True, False or 'auto', got {row_standardize!r}")
+    if descriptors not in (True, False, 'auto'):
+        raise ValueError(f"descriptors must be True, False or 'auto', got {descriptors!r}")
     if row_standardize is True and len(names) < 3:
         raise ValueError('row_standardize needs at least 3 classes')
     X = np.asarray(X, dtype=np.float32)
@@ -206,6 +222,7 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
         labels = {'complete': [], 'partial': []}
         records = {'complete': [], 'partial': []}
         objects = {'complete': [], 'partial': []}
+        descs = {'complete': [], 'partial': []}
         for f in progress_bar(range(folds), 'out-of-fold features', disable=not verbose):
             tr, te = fold != f, np.flatnonzero(fold == f)
             sub = ModelBank(fit_class_models(X[tr], y[tr], names, spec, k,
@@ -215,13 +232,15 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
                 if grids is not None:
                     F, _ = sub.features(np.asarray(grids[i], dtype=np.int8))
                     feats['partial'].append(F.ravel()[None])
+                    descs['partial'].append(shape_descriptors(np.asarray(grids[i]))[None])
                     labels['partial'].append(y[i])
                     objects['partial'].append(i)
                     records['partial'].append({})  # no ground-truth yaw for real scans
                     continue
                 out = view_features(sub, X[i:i + 1], rng, classifier_views, complete=masks is None)
-                for mode, (F, _, recs) in out.items():
+                for mode, (F, _, recs, D) in out.items():
                     feats[mode].append(F)
+                    descs[mode].append(D)
                     labels[mode] += [y[i]] * len(F)
                     objects[mode] += [i] * len(F)
                     records[mode] += recs
@@ -229,19 +248,29 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
         for mode in feats:
             if feats[mode]:
                 F, lab = np.vstack(feats[mode]), np.array(labels[mode])
+                D = np.vstack(descs[mode])
                 if row_standardize == 'auto':
-                    options = [False, True] if len(names) >= 3 else [False]
+                    rs_options = [False, True] if len(names) >= 3 else [False]
                 else:
-                    options = [row_standardize]
+                    rs_options = [row_standardize]
+                options = [(r, d) for d in ([False, True] if descriptors == 'auto'
+                                            else [descriptors]) for r in rs_options]
                 reports = [cross_validated_report(F, lab, records[mode], C, seed=seed,
-                                                  row_standardize=o,
-                                                  groups=np.array(objects[mode]))
-                           for o in options]
-                best = int(np.argmax([r['accuracy'] for r in reports]))
-                cv_report[mode] = dict(reports[best], row_standardize=options[best])
+                                                  row_standardize=r, groups=np.array(objects[mode]),
+                                                  descriptors=D if d else None)
+                           for r, d in options]
+                accs = [r['accuracy'] for r in reports]
+                best = int(np.argmax(accs))
+                rs, use_d = options[best]
+                cv_report[mode] = dict(reports[best], row_standardize=rs, descriptors=use_d)
                 if len(options) > 1:
-                    cv_report[mode]['accuracy_other_input'] = reports[1 - best]['accuracy']
-                classifier[mode] = train_classifier(F, lab, len(names), C, options[best])
+                    cv_report[mode]['accuracy_other_input'] = max(
+                        a for j, a in enumerate(accs) if j != best)
+                    cv_report[mode]['accuracy_by_input'] = {
+                        ('row-standardised' if r else 'raw') + (' + descriptors' if d else ''): a
+                        for (r, d), a in zip(options, accs)}
+                classifier[mode] = train_classifier(F, lab, len(names), C, rs,
+                                                    D if use_d else None)
         info['cross_validation'] = cv_report
         if oof_path:
             arrays = {}
@@ -250,6 +279,7 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
                     arrays[f'{mode}_features'] = np.vstack(feats[mode])
                     arrays[f'{mode}_labels'] = np.array(labels[mode])
                     arrays[f'{mode}_objects'] = np.array(objects[mode])
+                    arrays[f'{mode}_descriptors'] = np.vstack(descs[mode])
                     if records[mode] and records[mode][0]:
                         for key in records[mode][0]:
                             arrays[f'{mode}_{key}'] = np.array([r[key] for r in records[mode]])

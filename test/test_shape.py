@@ -1,0 +1,78 @@
+"""Shape descriptors (beo_ros.core.shape) and the classifiers that take them."""
+import numpy as np
+import pytest
+
+from beo_ros.core.bank import ModelBank, ModelError, classifier_input, uses_descriptors
+from beo_ros.core.grid import rotate_grid
+from beo_ros.core.shape import DESCRIPTOR_NAMES, shape_descriptors
+from beo_ros.core.synthetic import partial_view, primitive_shapes
+
+N = 16
+
+
+def _box(n=N):
+    g = np.zeros((n,) * 3, dtype=np.int8)
+    g[3:13, 5:10, 2:9] = 1
+    return g
+
+
+def test_descriptors_are_yaw_invariant_and_describe_the_shape():
+    g = _box()
+    d = shape_descriptors(g)
+    assert d.shape == (len(DESCRIPTOR_NAMES),) and np.isfinite(d).all()
+    # exact quarter turns about z: identical
+    for k in (1, 2, 3):
+        np.testing.assert_allclose(shape_descriptors(np.rot90(g, k, axes=(0, 1))), d,
+                                   atol=1e-12)
+    # any yaw: equal up to the voxel resampling
+    np.testing.assert_allclose(shape_descriptors(rotate_grid(g, np.deg2rad(37.0))), d,
+                               atol=0.12)
+    named = dict(zip(DESCRIPTOR_NAMES, d))
+    assert named['height'] == pytest.approx(7 / N)
+    assert named['elongation'] < 0.6               # a 10 x 5 footprint
+    assert named['log_count'] == pytest.approx(np.log(10 * 5 * 7))
+    # a taller object is taller
+    tall = np.zeros_like(g)
+    tall[3:13, 5:10, 0:15] = 1
+    assert dict(zip(DESCRIPTOR_NAMES, shape_descriptors(tall)))['height'] > named['height']
+
+
+def test_descriptors_use_only_occupied_voxels_and_check_input():
+    g = _box()
+    labelled = np.where(g == 1, 1, -1).astype(np.int8)      # unknown around: same voxels
+    np.testing.assert_allclose(shape_descriptors(labelled), shape_descriptors(g))
+    assert not shape_descriptors(np.zeros((N,) * 3, dtype=np.int8)).any()
+    with pytest.raises(ValueError, match='N, N, N'):
+        shape_descriptors(np.zeros((N, N), dtype=np.int8))
+
+
+def test_classifier_with_descriptors_is_trained_saved_checked_and_used(tmp_path):
+    from beo_ros.core.grid import GridSpec
+    from beo_ros.core.training import fit_bank
+    X, y, names = primitive_shapes(N, 8, np.random.default_rng(2))
+    bank = fit_bank(X, y, names, GridSpec(size=N), k=3, pose_components=3, classifier_views=1,
+                    folds=2, seed=0, descriptors=True)
+    for mode, clf in bank.classifier.items():
+        assert uses_descriptors(clf) and clf['coef'].shape == (2, 2 * 6 + len(DESCRIPTOR_NAMES))
+        assert bank.training['cross_validation'][mode]['descriptors'] is True
+    again = ModelBank.load(bank.save(tmp_path / 'd'))
+    g = partial_view(X[0].reshape((N,) * 3) > 0.5, 0.3, 0.5)
+    e1, e2 = bank.estimate(g), again.estimate(g)
+    assert e1.label == e2.label and e1.scores == pytest.approx(e2.scores)
+    # the descriptors are part of the input: other descriptors, other probabilities
+    f, _ = again.features(g)
+    clf = again.classifier['partial']
+    p1 = again.classify_features(f, 'partial', g)[0]
+    z = classifier_input(f, 2, bool(clf['row_standardize']), shape_descriptors(g) * 0 + 5.0)
+    from beo_ros.core.bank import classifier_probabilities
+    p2 = classifier_probabilities(clf, z, f[:, 0])[0][0]
+    assert not np.allclose(p1, p2)
+    with pytest.raises(ValueError, match='pass the grid'):
+        again.classify_features(f, 'partial')
+    # a descriptor classifier whose weights do not fit is refused on load, naming the file
+    bad = {m: dict(c, coef=np.asarray(c['coef'])[:, :12]) for m, c in again.classifier.items()}
+    path = ModelBank(again.models, again.spec, bad, again.training).save(tmp_path / 'bad')
+    with pytest.raises(ModelError, match='shape descriptors'):
+        ModelBank.load(path)
+    with pytest.raises(ValueError, match='descriptors'):
+        fit_bank(X, y, names, GridSpec(size=N), k=3, descriptors='yes')
