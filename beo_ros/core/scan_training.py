@@ -225,8 +225,8 @@ def train_point_classifier(loglik, descriptors, y, n_classes, C=1.0):
     class models that did not see it (out-of-fold, e.g. ``oof_features.npz`` of
     ``beo-eval --scans``: ``features[:, :, 0]``); descriptors: (m, 2) finite side-normal
     descriptors; y: (m,) labels. A standardised logistic regression on the C + 2 inputs
-    (``training.fit_logistic``); ``unknown_threshold`` as for the grid classifiers
-    (``training.loglik_bounds``).
+    (``training.fit_logistic``); ``unknown_threshold`` from ``training.loglik_bounds`` at
+    6 MADs (the shipped ``tabletop_32`` 'points' classifier was measured with it).
     Returns dict(mean, scale, coef (C, C+2), intercept (C,), unknown_threshold (C,)).
     """
     from .training import fit_logistic, loglik_bounds
@@ -236,7 +236,7 @@ def train_point_classifier(loglik, descriptors, y, n_classes, C=1.0):
     if not (np.isfinite(L).all() and np.isfinite(D).all()):
         raise ValueError('point classifier inputs contain NaN or Inf (undefined descriptors?)')
     return dict(fit_logistic(np.hstack([L, D]), y, n_classes, C),
-                unknown_threshold=loglik_bounds(L, y, n_classes))
+                unknown_threshold=loglik_bounds(L, y, n_classes, mads=6.0))
 
 
 def point_classifier_from_oof(oof_path, objs, C=1.0):

@@ -128,13 +128,22 @@ def cross_validated_report(F, y, records, C=1.0, folds=5, seed=0, row_standardiz
     return {k: round(v, 4) if isinstance(v, float) else v for k, v in rep.items()}
 
 
-def loglik_bounds(ll, y, n_classes):
+# the grid classifiers' 'unknown' bound, in scaled MADs below the median (see loglik_bounds)
+UNKNOWN_MADS = 8.0
+
+
+def loglik_bounds(ll, y, n_classes, mads=UNKNOWN_MADS):
     """Per-class lower bounds (C,) of the 'unknown' test from out-of-fold log-likelihoods.
 
     ll: (m, C) per-voxel log-likelihood of every training object under every class; y: (m,).
     The winning class must explain an object about as well as its own out-of-fold objects: a
-    robust bound (median - 6 scaled MADs of their log-likelihood), so a single outlier among
-    them cannot drag it down; -inf for a class with fewer than 5 objects.
+    robust bound (median - ``mads`` scaled MADs of their log-likelihood), so a single outlier
+    among them cannot drag it down; -inf for a class with fewer than 5 objects.
+    Every 'unknown' answer for an object of a known class is an error, so the bound is set by
+    how many of those it makes: on the ModelNet10 out-of-fold rows (shape-descriptor
+    classifier) 8 MADs flag 0.6 % of the complete objects and 0.3 % of the partial views,
+    6 MADs 1.4 % and 0.9 % (four fifths of them classified right), and both reject the same
+    random grids (10 % and >= 20 % of the voxels occupied; 15 % reads as night stand).
     """
     thr = np.full(n_classes, -np.inf)
     for c in range(n_classes):
@@ -142,7 +151,7 @@ def loglik_bounds(ll, y, n_classes):
         if len(own) >= 5:
             med = np.median(own)
             mad = 1.4826 * np.median(np.abs(own - med))
-            thr[c] = med - 6.0 * max(mad, 1e-3)
+            thr[c] = med - mads * max(mad, 1e-3)
     return thr
 
 
