@@ -76,3 +76,18 @@ def test_classifier_with_descriptors_is_trained_saved_checked_and_used(tmp_path)
         ModelBank.load(path)
     with pytest.raises(ValueError, match='descriptors'):
         fit_bank(X, y, names, GridSpec(size=N), k=3, descriptors='yes')
+    # the regularisation strength is cross-validated too, and the report says which won
+    from beo_ros.core.training import C_OPTIONS
+    for rep in bank.training['cross_validation'].values():
+        assert rep['C'] in C_OPTIONS and 0 <= rep['ece'] <= 1 and rep['log_loss'] > 0
+        assert len(rep['accuracy_by_input']) == len(C_OPTIONS)
+    with pytest.raises(ValueError, match='C must be'):
+        fit_bank(X, y, names, GridSpec(size=N), k=3, C=-1.0)
+
+
+def test_expected_calibration_error():
+    from beo_ros.core.training import expected_calibration_error
+    # confidence 0.9 everywhere, right 9 times in 10: calibrated
+    assert expected_calibration_error(np.full(10, 0.9), np.arange(10) < 9) == pytest.approx(0)
+    # confidence 0.9, right half the time: off by 0.4
+    assert expected_calibration_error(np.full(10, 0.9), np.arange(10) < 5) == pytest.approx(0.4)
