@@ -363,11 +363,9 @@ class ModelBank:
                 if mode == POINTS_MODE:
                     check_point_classifier(clf, len(classes), str(fp))
                     continue
-                nf = len(FEATURE_NAMES) * len(classes)
-                extra = (f' + {len(DESCRIPTOR_NAMES)} shape descriptors'
-                         if uses_descriptors(clf) else '')
-                if uses_descriptors(clf):
-                    nf += len(DESCRIPTOR_NAMES)
+                with_d = uses_descriptors(clf)
+                nf = len(FEATURE_NAMES) * len(classes) + with_d * len(DESCRIPTOR_NAMES)
+                extra = f' + {len(DESCRIPTOR_NAMES)} shape descriptors' if with_d else ''
                 if mode not in MODES or clf.get('coef', np.zeros(0)).shape != (len(classes), nf):
                     raise ModelError(f'{fp}: classifier {mode!r} does not fit {len(classes)} '
                                      f'classes x {len(FEATURE_NAMES)} features{extra}')
@@ -573,8 +571,8 @@ class ModelBank:
         if not 0.05 <= yaw_step_deg <= 90:
             raise ValueError(f'yaw_step_deg must be in [0.05, 90], got {yaw_step_deg}')
         probe_deg = tuple(probe_deg or ())
-        if not all(isinstance(p, (int, float, np.floating, np.integer)) and 0 < p <= 180
-                   for p in probe_deg):
+        if not all(isinstance(p, (int, float, np.floating, np.integer))
+                   and not isinstance(p, bool) and 0 < p <= 180 for p in probe_deg):
             raise ValueError(f'probe_deg must be offsets in (0, 180] degrees, got {probe_deg}')
         if search_step_deg is None:
             search_step_deg = max(SEARCH_STEP_DEG, yaw_step_deg)
