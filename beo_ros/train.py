@@ -16,6 +16,10 @@ from .core.grid import GridSpec
 from .core.training import fit_bank, load_meshes, load_voxel_npz
 
 
+# the values of the auto|on|off options, as fit_bank takes them
+AUTO_ON_OFF = {'auto': 'auto', 'on': True, 'off': False}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(prog='beo-train', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -48,11 +52,11 @@ def main(argv=None):
     ap.add_argument('--pose-components', type=int, default=8)
     ap.add_argument('--seed', type=int, default=0)
     ap.add_argument('--oof-out', help='also save the out-of-fold features and records (npz)')
-    ap.add_argument('--row-standardize', choices=('auto', 'on', 'off'), default='auto',
+    ap.add_argument('--row-standardize', choices=tuple(AUTO_ON_OFF), default='auto',
                     help='standardise every feature across the classes of its row before the '
                          'classifier; auto: per mode, whichever cross-validates better (needs '
                          '3+ classes)')
-    ap.add_argument('--descriptors', choices=('auto', 'on', 'off'), default='auto',
+    ap.add_argument('--descriptors', choices=tuple(AUTO_ON_OFF), default='auto',
                     help="also give the classifier 12 yaw-invariant shape descriptors of the "
                          "grid's occupied voxels; auto: per mode, whichever cross-validates "
                          'better')
@@ -112,9 +116,8 @@ def main(argv=None):
                         folds=args.folds, seed=args.seed, verbose=True,
                         training=dict(inputs=[str(p) for p in args.inputs], congeal=args.congeal),
                         grids=grids, oof_path=args.oof_out,
-                        row_standardize={'auto': 'auto', 'on': True, 'off': False}[
-                            args.row_standardize],
-                        descriptors={'auto': 'auto', 'on': True, 'off': False}[args.descriptors])
+                        row_standardize=AUTO_ON_OFF[args.row_standardize],
+                        descriptors=AUTO_ON_OFF[args.descriptors])
         bank.save(args.out)
     except (ValueError, OSError) as e:
         print(f'beo-train: error: {e}', file=sys.stderr)

@@ -25,7 +25,7 @@ import numpy as np
 from .estimate import UNKNOWN_LABEL, Estimate, Hypothesis
 from .grid import GridSpec, yaw_matrix
 from .inference import FEATURE_NAMES, InferenceEngine, observed_edt, top_modes
-from .shape import DESCRIPTOR_NAMES, shape_descriptors
+from .shape import DESCRIPTOR_NAMES as SHAPE_DESCRIPTORS, shape_descriptors
 
 FORMAT = 'beo_ros.models'
 VERSION = 1
@@ -139,8 +139,8 @@ def classifier_probabilities(clf, Z, loglik):
 
     'unknown': the winner explains the object far worse than its own training objects, or the
     classes that do explain it hold less than half the probability (the classifier compares
-    classes with each other, so random clutter that only one class tolerates can still win;
-    ModelNet10 out-of-fold rows rejected: 1.19 -> 1.26 % complete, 0.81 -> 0.83 % partial).
+    classes with each other, so random clutter that only one class tolerates can still win).
+    How far below is set where the bounds are fitted (``training.loglik_bounds``).
     """
     L = np.atleast_2d(np.asarray(loglik, dtype=np.float64))
     z = (np.atleast_2d(np.asarray(Z, dtype=np.float64)) - clf['mean']) / clf['scale']
@@ -158,8 +158,8 @@ def check_point_classifier(clf, n_classes, where='classifier'):
     """Raise ModelError unless ``clf`` is a usable 'points' classifier for ``n_classes``:
     mean, scale (C+2,), coef (C, C+2), intercept (C,), unknown_threshold (C,), all finite
     (unknown_threshold may be -inf: never 'unknown'), scale > 0."""
-    from .normals import DESCRIPTOR_NAMES
-    n_in = n_classes + len(DESCRIPTOR_NAMES)
+    from .normals import DESCRIPTOR_NAMES as POINT_DESCRIPTORS
+    n_in = n_classes + len(POINT_DESCRIPTORS)
     shapes = dict(mean=(n_in,), scale=(n_in,), coef=(n_classes, n_in), intercept=(n_classes,),
                   unknown_threshold=(n_classes,))
     if not isinstance(clf, dict):
@@ -171,7 +171,7 @@ def check_point_classifier(clf, n_classes, where='classifier'):
         if a.shape != shape or not np.issubdtype(a.dtype, np.number):
             raise ModelError(f"{where}: 'points' classifier {key!r} has shape {a.shape}, expected "
                              f"{shape} ({n_classes} classes; inputs: {n_classes} log-likelihoods "
-                             f"+ {', '.join(DESCRIPTOR_NAMES)})")
+                             f"+ {', '.join(POINT_DESCRIPTORS)})")
         ok = (~np.isnan(a) & (a < np.inf)).all() if key == 'unknown_threshold' else \
             np.isfinite(a).all()
         if not ok:
@@ -364,8 +364,8 @@ class ModelBank:
                     check_point_classifier(clf, len(classes), str(fp))
                     continue
                 with_d = uses_descriptors(clf)
-                nf = len(FEATURE_NAMES) * len(classes) + with_d * len(DESCRIPTOR_NAMES)
-                extra = f' + {len(DESCRIPTOR_NAMES)} shape descriptors' if with_d else ''
+                nf = len(FEATURE_NAMES) * len(classes) + with_d * len(SHAPE_DESCRIPTORS)
+                extra = f' + {len(SHAPE_DESCRIPTORS)} shape descriptors' if with_d else ''
                 if mode not in MODES or clf.get('coef', np.zeros(0)).shape != (len(classes), nf):
                     raise ModelError(f'{fp}: classifier {mode!r} does not fit {len(classes)} '
                                      f'classes x {len(FEATURE_NAMES)} features{extra}')
