@@ -1,12 +1,13 @@
 """ModelBank and InferenceEngine: persistence, the estimate contract, the batched pose search, the
 exact posterior formula, load errors, classifier and the point-cloud entry point."""
+import dataclasses
 import json
 import shutil
 
 import numpy as np
 import pytest
 
-from beo_ros.core.bank import ModelBank, ModelError
+from beo_ros.core.bank import ModelBank, ModelError, load_models
 from beo_ros.core.grid import rotate_grid, yaw_source_index
 from beo_ros.core.inference import InferenceEngine
 from beo_ros.core.synthetic import (make_tiny_bank, partial_view, primitive_shapes,
@@ -999,3 +1000,119 @@ def test_malformed_points_classifier_is_refused_by_the_constructor(tiny):
     clf['coef'] = clf['coef'][:, :-1]
     with pytest.raises(ModelError, match='coef'):
         ModelBank(tiny.models, tiny.spec, {'points': clf})
+
+
+# ---------------------------------------------------------------------- class prior
+def test_resolve_class_prior_accepts_names_dicts_and_weights_and_names_what_is_wrong():
+    from beo_ros.core.bank import resolve_class_prior
+    names = ['box', 'cylinder', 'ellipsoid']
+    assert resolve_class_prior('train', names) is None
+    assert resolve_class_prior('uniform', names) == pytest.approx([1 / 3] * 3)
+    assert resolve_class_prior({'box': 2, 'cylinder': 1, 'ellipsoid': 1}, names) == \
+        pytest.approx([0.5, 0.25, 0.25])
+    assert resolve_class_prior([0, 1, 3], names) == pytest.approx([0, 0.25, 0.75])
+    for bad, msg in [('Uniform', 'one of'), ({'box': 1}, 'missing'),
+                     ({'box': 1, 'cylinder': 1, 'ellipsoid': 1, 'cup': 1}, 'unknown'),
+                     ([1, 2], '3 weights'), ([1, -1, 1], '>= 0'), ([0, 0, 0], 'not all 0'),
+                     ([1, np.nan, 1], 'finite'), ({'box': 'a', 'cylinder': 1, 'ellipsoid': 1},
+                                                  'numbers'), (None, '3 weights')]:
+        with pytest.raises(ValueError, match=msg):
+            resolve_class_prior(bad, names)
+
+
+def _prior_bank():
+    """Three classes with a classifier that knows its training counts (4, 2, 2)."""
+    from beo_ros.core.inference import FEATURE_NAMES
+    nf = len(FEATURE_NAMES)
+    bank = make_tiny_bank(n=8, k=2)
+    coef = np.zeros((3, 3 * nf))
+    for c in range(3):
+        coef[c, c * nf + 1] = 1.0
+    clf = dict(mean=np.zeros(3 * nf), scale=np.ones(3 * nf), coef=coef, intercept=np.zeros(3),
+               unknown_threshold=np.full(3, -np.inf), class_counts=np.array([4.0, 2.0, 2.0]))
+    feats = np.zeros((3, nf))
+    feats[:, 1] = np.log([0.5, 0.3, 0.2])  # the classifier's own probabilities
+    third = dataclasses.replace(bank.models[0], name='box2')
+    return ModelBank(bank.models + [third], bank.spec, {'complete': clf}), feats
+
+
+def test_class_prior_moves_the_probabilities_by_bayes_rule():
+    bank, feats = _prior_bank()
+    assert bank.class_prior == 'train'
+    p_train = np.array([0.5, 0.3, 0.2])
+    assert bank.classify_features(feats, 'complete')[0] == pytest.approx(p_train)
+    # uniform: divide by the training frequencies (0.5, 0.25, 0.25) and renormalise
+    bank.class_prior = 'uniform'
+    want = p_train / np.array([0.5, 0.25, 0.25])
+    p = bank.classify_features(feats, 'complete')[0]
+    assert p == pytest.approx(want / want.sum()) and np.argmax(p) == 1
+    # explicit weights: a class of weight 0 is never chosen
+    bank.class_prior = [0, 1, 1]
+    p = bank.classify_features(feats, 'complete')[0]
+    assert p[0] == 0 and p[1:] / p[1:].sum() == pytest.approx([0.6, 0.4])
+    with pytest.raises(ValueError, match='3 weights'):
+        bank.class_prior = [1, 1]
+    assert bank.class_prior == pytest.approx([0, 0.5, 0.5])  # a refused value changes nothing
+
+
+def test_class_prior_without_class_counts_is_not_applied_and_the_estimate_says_so():
+    bank, feats = _prior_bank()
+    clf = {k: v for k, v in bank.classifier['complete'].items() if k != 'class_counts'}
+    old = ModelBank(bank.models, bank.spec, {'complete': clf}, class_prior='uniform')
+    assert old.classify_features(feats, 'complete')[0] == pytest.approx([0.5, 0.3, 0.2])
+    g = np.ones((8, 8, 8), np.int8)
+    e = old.estimate(g, yaw=0.0)
+    assert e.classifier_mode == 'complete' and 'no class_counts' in e.classifier_note
+    assert bank.estimate(g, yaw=0.0).classifier_note == ''
+
+
+def test_class_prior_is_saved_overridden_on_load_and_checked(tmp_path):
+    bank, feats = _prior_bank()
+    bank.class_prior = 'uniform'
+    path = bank.save(tmp_path / 'prior')
+    assert _manifest(path)['class_prior'] == 'uniform'
+    assert ModelBank.load(path).class_prior == 'uniform'
+    assert ModelBank.load(path, class_prior='train').class_prior == 'train'
+    weights = load_models(path, class_prior=[1, 2, 1])
+    assert weights.class_prior == pytest.approx([0.25, 0.5, 0.25])
+    assert _manifest(weights.save(tmp_path / 'w'))['class_prior'] == pytest.approx(
+        [0.25, 0.5, 0.25])
+    assert ModelBank.load(tmp_path / 'w').class_prior == pytest.approx([0.25, 0.5, 0.25])
+    with pytest.raises(ValueError, match='class_prior'):
+        ModelBank.load(path, class_prior='flat')
+    m = _manifest(path)
+    m['class_prior'] = 'flat'
+    _write_manifest(path, m)
+    with pytest.raises(ModelError, match=r'manifest.json: class_prior'):
+        ModelBank.load(path)
+    # without the key (older directories): the classifier as trained
+    del m['class_prior']
+    _write_manifest(path, m)
+    assert ModelBank.load(path).class_prior == 'train'
+
+
+def test_bad_class_counts_are_refused_on_load(tmp_path):
+    bank, _ = _prior_bank()
+    bank.classifier['complete']['class_counts'] = np.array([1.0, -1.0, 2.0])
+    path = bank.save(tmp_path / 'bad')
+    with pytest.raises(ModelError, match=r"classifier.npz: classifier 'complete': class_counts"):
+        ModelBank.load(path)
+
+
+def test_cross_validated_report_under_both_priors():
+    from beo_ros.core.inference import FEATURE_NAMES
+    from beo_ros.core.training import cross_validated_report
+    rng = np.random.default_rng(0)
+    y = np.repeat([0, 1, 2], [60, 20, 20])
+    F = rng.normal(size=(100, 3 * len(FEATURE_NAMES))) + 0.8 * np.eye(3)[y].repeat(
+        len(FEATURE_NAMES), axis=1)
+    tr = cross_validated_report(F, y, [])
+    un = cross_validated_report(F, y, [], class_prior='uniform')
+    assert tr['prior_accuracy'] == tr['accuracy'] == tr['accuracy_train_prior']
+    assert un['prior_accuracy'] == un['balanced_accuracy'] == un['balanced_accuracy_uniform_prior']
+    for key in ('accuracy_train_prior', 'accuracy_uniform_prior',
+                'balanced_accuracy_uniform_prior'):
+        assert tr[key] == un[key]
+    # the rare classes gain recall under the uniform prior, the common one loses accuracy
+    assert un['balanced_accuracy'] > tr['balanced_accuracy']
+    assert tr['accuracy'] >= un['accuracy']

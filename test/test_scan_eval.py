@@ -186,7 +186,8 @@ def test_scene_cv_point_predictions_learn_from_the_descriptors_and_are_grouped()
     from sklearn.linear_model import LogisticRegression
     clf = train_point_classifier(F[:, :, 0], D, y, 2)
     assert clf['coef'].shape == (2, 4) and set(clf) == {
-        'mean', 'scale', 'coef', 'intercept', 'unknown_threshold'}
+        'mean', 'scale', 'coef', 'intercept', 'unknown_threshold', 'class_counts'}
+    np.testing.assert_array_equal(clf['class_counts'], np.bincount(y, minlength=2))
     Z = (np.hstack([F[:, :, 0], D]) - clf['mean']) / clf['scale']
     lr = LogisticRegression(C=1.0, max_iter=2000).fit(Z, y)
     p, unknown = apply_point_classifier(clf, F[:, :, 0], D)

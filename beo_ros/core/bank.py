@@ -10,7 +10,9 @@ Layout of a model directory::
                            ``descriptors`` also on the 12 shape descriptors of the grid
                            (``beo_ros.core.shape``); 'points': on the
                            C per-class log-likelihoods + the 2 side-normal descriptors of the raw
-                           points, used by ``estimate_points`` only)
+                           points, used by ``estimate_points`` only); every mode may hold
+                           ``class_counts`` (C,): its training rows per class, the prior that
+                           ``class_prior`` replaces
 """
 from __future__ import annotations
 
@@ -37,6 +39,10 @@ MODES = ('complete', 'partial')
 # log-likelihoods per known voxel) followed by the descriptors of beo_ros.core.normals
 POINTS_MODE = 'points'
 POINT_CLASSIFIER_KEYS = ('mean', 'scale', 'coef', 'intercept', 'unknown_threshold')
+OPTIONAL_CLASSIFIER_KEYS = ('class_counts',)
+# named class priors: 'train' keeps the classifier's own probabilities (its training rows'
+# class frequencies are its prior); 'uniform' treats every class as equally likely a priori
+CLASS_PRIORS = ('train', 'uniform')
 # stage 1 (all classes, leading components) searches at this step; the chosen class is then
 # refined at the requested resolution, so a finer stage 1 costs time and gains nothing (measured)
 SEARCH_STEP_DEG = 2.0
@@ -126,16 +132,64 @@ def uses_descriptors(clf):
     return bool(clf.get('descriptors', False))
 
 
+def resolve_class_prior(prior, classes):
+    """A class prior as None ('train': the classifier's own) or positive weights (C,) summing
+    to 1. ``prior``: 'train', 'uniform', a dict class name -> weight >= 0 (every class), or C
+    weights >= 0 in class order; weights need not sum to 1. A class of weight 0 is never chosen.
+    Raises ValueError naming what is wrong."""
+    C = len(classes)
+    if isinstance(prior, str):
+        if prior == 'train':
+            return None
+        if prior == 'uniform':
+            return np.full(C, 1.0 / C)
+        raise ValueError(f'class_prior must be one of {CLASS_PRIORS}, a dict class -> weight or '
+                         f'{C} weights, got {prior!r}')
+    if isinstance(prior, dict):
+        unknown = sorted(set(prior) - set(classes))
+        missing = [c for c in classes if c not in prior]
+        if unknown or missing:
+            raise ValueError(f'class_prior must give a weight for every class {list(classes)}'
+                             + (f'; unknown {unknown}' if unknown else '')
+                             + (f'; missing {missing}' if missing else ''))
+        prior = [prior[c] for c in classes]
+    try:
+        w = np.asarray(prior, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f'class_prior weights must be numbers, got {prior!r}') from None
+    if w.shape != (C,):
+        raise ValueError(f'class_prior needs {C} weights (one per class), got shape {w.shape}')
+    if not np.isfinite(w).all() or (w < 0).any() or w.sum() <= 0:
+        raise ValueError(f'class_prior weights must be finite, >= 0 and not all 0, got {w}')
+    return w / w.sum()
+
+
+def prior_offset(clf, prior):
+    """Logit offsets (C,) that move a classifier dict from its training prior (its
+    ``class_counts``) to ``prior`` (C,) (Bayes' rule: p'(c|x) ~ p(c|x) prior_c / train_c),
+    or None when ``prior`` is None or the classifier has no class_counts."""
+    counts = clf.get('class_counts') if clf else None
+    if prior is None or counts is None:
+        return None
+    counts = np.asarray(counts, dtype=np.float64)
+    seen = counts > 0
+    with np.errstate(divide='ignore'):
+        off = np.where(seen, np.log(prior) - np.log(np.where(seen, counts, 1) / counts.sum()),
+                       0.0)
+    return off
+
+
 def _softmax(z):
     z = z - z.max()
     e = np.exp(z)
     return e / e.sum()
 
 
-def classifier_probabilities(clf, Z, loglik):
+def classifier_probabilities(clf, Z, loglik, offset=None):
     """Class probabilities (m, C) and 'unknown' flags (m,) of a classifier dict (mean, scale,
     coef, intercept, unknown_threshold) on its input rows Z (m, n_in), given every row's
-    per-class exact log-likelihood per known voxel (m, C).
+    per-class exact log-likelihood per known voxel (m, C); ``offset`` (C,): added to the
+    logits (a class prior, see :func:`prior_offset`).
 
     'unknown': the winner explains the object far worse than its own training objects, or the
     classes that do explain it hold less than half the probability (the classifier compares
@@ -145,6 +199,8 @@ def classifier_probabilities(clf, Z, loglik):
     L = np.atleast_2d(np.asarray(loglik, dtype=np.float64))
     z = (np.atleast_2d(np.asarray(Z, dtype=np.float64)) - clf['mean']) / clf['scale']
     logits = z @ np.asarray(clf['coef'], dtype=np.float64).T + clf['intercept']
+    if offset is not None:
+        logits = logits + offset
     logits -= logits.max(axis=1, keepdims=True)
     p = np.exp(logits)
     p /= p.sum(axis=1, keepdims=True)
@@ -178,21 +234,33 @@ def check_point_classifier(clf, n_classes, where='classifier'):
             raise ModelError(f"{where}: 'points' classifier {key!r} contains NaN or Inf")
     if (np.asarray(clf['scale']) <= 0).any():
         raise ModelError(f"{where}: 'points' classifier 'scale' must be positive")
-    extra = sorted(set(clf) - set(POINT_CLASSIFIER_KEYS))
+    check_class_counts(clf, n_classes, f"{where}: 'points' classifier")
+    extra = sorted(set(clf) - set(POINT_CLASSIFIER_KEYS) - set(OPTIONAL_CLASSIFIER_KEYS))
     if extra:
         raise ModelError(f"{where}: 'points' classifier has unexpected arrays {extra}")
 
 
-def apply_point_classifier(clf, loglik, descriptors):
+def check_class_counts(clf, n_classes, where):
+    """Raise ModelError unless the optional ``class_counts`` of ``clf`` are (C,) finite >= 0."""
+    if 'class_counts' not in clf:
+        return
+    a = np.asarray(clf['class_counts'])
+    if a.shape != (n_classes,) or not np.issubdtype(a.dtype, np.number) \
+            or not np.isfinite(a).all() or (a < 0).any() or a.sum() <= 0:
+        raise ModelError(f'{where}: class_counts must be {n_classes} finite counts >= 0, got '
+                         f'shape {a.shape}')
+
+
+def apply_point_classifier(clf, loglik, descriptors, offset=None):
     """Class probabilities (m, C) and unknown flags (m,) of a 'points' classifier.
 
     loglik: (m, C) per-class exact log-likelihood per known voxel (``features[:, 0]``);
     descriptors: (m, 2) finite side-normal descriptors (:mod:`beo_ros.core.normals`).
-    'unknown' as for every classifier (:func:`classifier_probabilities`).
+    'unknown' and ``offset`` as for every classifier (:func:`classifier_probabilities`).
     """
     L = np.atleast_2d(np.asarray(loglik, dtype=np.float64))
     D = np.atleast_2d(np.asarray(descriptors, dtype=np.float64))
-    return classifier_probabilities(clf, np.hstack([L, D]), L)
+    return classifier_probabilities(clf, np.hstack([L, D]), L, offset)
 
 
 class ModelBank:
@@ -207,6 +275,10 @@ class ModelBank:
             the per-class log-likelihoods + the raw points' side-normal descriptors.
         training: free-form dict recorded in the manifest.
         pose_components: leading components used by the coarse pose search.
+        class_prior: the prior over classes the probabilities assume (see
+            :func:`resolve_class_prior`): 'train' (default: the classifier as trained, its
+            training rows' class frequencies), 'uniform', or weights per class. Settable; the
+            manifest records the one a model directory was built for.
         stage2_noise_map: score the stage-2 refinement with the per-voxel noise variance of
             the pooled model (``coarse_noise_map``) instead of the class scalar. Off: since
             the observed-frame scoring it lowers the yaw accuracy (397 views of fold 0, yaw of
@@ -215,7 +287,7 @@ class ModelBank:
     """
 
     def __init__(self, models, spec: GridSpec, classifier=None, training=None,
-                 pose_components=8, stage2_noise_map=False):
+                 pose_components=8, stage2_noise_map=False, class_prior='train'):
         if not models:
             raise ModelError('a model bank needs at least one class')
         d = spec.size ** 3
@@ -228,6 +300,7 @@ class ModelBank:
         self.models = list(models)
         self.spec = spec
         self.classifier = classifier
+        self.class_prior = class_prior
         self.training = dict(training or {})
         self.pose_components = int(pose_components)
         self.stage2_noise_map = bool(stage2_noise_map)
@@ -244,11 +317,36 @@ class ModelBank:
         # pickled as its constructor arguments: the inference engine (thread-local scratch,
         # caches) is rebuilt on the other side, e.g. in a worker process
         return (type(self), (self.models, self.spec, self.classifier, self.training,
-                             self.pose_components, self.stage2_noise_map))
+                             self.pose_components, self.stage2_noise_map, self.class_prior))
 
     @property
     def classes(self):
         return [m.name for m in self.models]
+
+    @property
+    def class_prior(self):
+        """'train', 'uniform' or the (C,) normalised weights set (see the class docstring)."""
+        return self._class_prior
+
+    @class_prior.setter
+    def class_prior(self, prior):
+        weights = resolve_class_prior(prior, self.classes)
+        self._prior_weights = weights
+        self._class_prior = prior if isinstance(prior, str) else weights
+
+    def _prior_offset(self, clf):
+        """Logit offsets (C,) of ``clf`` for the bank's class prior, or None (see
+        :func:`prior_offset`)."""
+        return prior_offset(clf, self._prior_weights)
+
+    def prior_note(self, mode):
+        """Why the class prior is not applied to classifier ``mode`` ('' when it is, or when
+        the prior is 'train')."""
+        clf = (self.classifier or {}).get(mode)
+        if self._prior_weights is None or clf is None or 'class_counts' in clf:
+            return ''
+        return (f'class_prior not applied: the {mode!r} classifier has no class_counts '
+                '(trained before they were recorded); its training prior is used')
 
     @property
     def has_point_classifier(self) -> bool:
@@ -276,6 +374,8 @@ class ModelBank:
             'format': FORMAT, 'version': VERSION, 'classes': self.classes,
             'grid': dict(self.spec.to_dict(), axes='xyz', up='+z'),
             'pose_components': self.pose_components,
+            'class_prior': (self.class_prior if isinstance(self.class_prior, str)
+                            else [float(w) for w in self.class_prior]),  # in class order
             'features': list(FEATURE_NAMES),
             'training': self.training, 'files': files,
         }
@@ -283,8 +383,11 @@ class ModelBank:
         return path
 
     @classmethod
-    def load(cls, path):
-        """Load and check a model directory; raises ModelError naming the bad file."""
+    def load(cls, path, class_prior=None):
+        """Load and check a model directory; raises ModelError naming the bad file.
+
+        ``class_prior``: overrides the manifest's (None: the manifest's; 'train' when it has
+        none); a bad value raises ValueError (a bad one in the manifest: ModelError)."""
         path = Path(path)
         mf = path / 'manifest.json'
         if not path.is_dir():
@@ -363,6 +466,7 @@ class ModelBank:
                 if mode == POINTS_MODE:
                     check_point_classifier(clf, len(classes), str(fp))
                     continue
+                check_class_counts(clf, len(classes), f'{fp}: classifier {mode!r}')
                 with_d = uses_descriptors(clf)
                 nf = len(FEATURE_NAMES) * len(classes) + with_d * len(SHAPE_DESCRIPTORS)
                 extra = f' + {len(SHAPE_DESCRIPTORS)} shape descriptors' if with_d else ''
@@ -372,8 +476,14 @@ class ModelBank:
                 if bool(clf.get('row_standardize', False)) and len(classes) < 3:
                     raise ModelError(f'{fp}: classifier {mode!r} standardises features across '
                                      f'classes, which needs at least 3 classes')
+        if class_prior is None:
+            class_prior = manifest.get('class_prior', 'train')
+            try:
+                resolve_class_prior(class_prior, classes)
+            except ValueError as e:
+                raise ModelError(f'{mf}: {e}') from None
         return cls(models, spec, classifier, manifest.get('training'),
-                   manifest.get('pose_components', 8))
+                   manifest.get('pose_components', 8), class_prior=class_prior)
 
     # ------------------------------------------------------------------ queries
     def check_grid(self, grid):
@@ -433,16 +543,22 @@ class ModelBank:
                 desc = shape_descriptors(grid)
             x = classifier_input(feats, len(self.models), bool(clf.get('row_standardize', False)),
                                  desc)
-            p, unknown = classifier_probabilities(clf, x, feats[:, 0])
+            p, unknown = classifier_probabilities(clf, x, feats[:, 0], self._prior_offset(clf))
             return p[0], bool(unknown[0])
-        # the paper's rule: the class whose model explains the observation best
-        return _softmax(feats[:, 0] * 50.0), False
+        # the paper's rule: the class whose model explains the observation best (times the
+        # class prior, when one is set: 'uniform' changes nothing)
+        logits = feats[:, 0] * 50.0
+        if self._prior_weights is not None:
+            with np.errstate(divide='ignore'):
+                logits = logits + np.log(self._prior_weights)
+        return _softmax(logits), False
 
     def classify_points(self, feats, point_features):
         """Class probabilities (C,) and the unknown flag of the 'points' classifier from the
         (C, F) grid features and the (2,) finite side-normal descriptors of the raw points."""
-        p, unknown = apply_point_classifier(self.classifier[POINTS_MODE],
-                                            np.asarray(feats)[:, 0][None], point_features)
+        clf = self.classifier[POINTS_MODE]
+        p, unknown = apply_point_classifier(clf, np.asarray(feats)[:, 0][None], point_features,
+                                            self._prior_offset(clf))
         return p[0], bool(unknown[0])
 
     def _completion(self, grid, per, probs, best, min_prob=0.1, max_classes=3):
@@ -595,6 +711,7 @@ class ModelBank:
         if rule is None:
             probs, unknown = self.classify_features(feats, mode, grid)
             rule = mode if self.classifier and mode in self.classifier else 'max_likelihood'
+        note = '; '.join(n for n in (note, self.prior_note(rule)) if n)
         best = int(np.argmax(probs))
         t_cls = time.perf_counter()
         if yaw is None and refine_deg > 0:
@@ -664,11 +781,12 @@ class ModelBank:
         return est
 
 
-def load_models(path=None):
-    """Load a model directory (default: the shipped ``models/modelnet10_32``)."""
+def load_models(path=None, class_prior=None):
+    """Load a model directory (default: the shipped ``models/modelnet10_32``); ``class_prior``
+    overrides the manifest's (see :class:`ModelBank`)."""
     if path is None:
         path = default_model_dir()
-    return ModelBank.load(path)
+    return ModelBank.load(path, class_prior)
 
 
 def default_model_dir(name='modelnet10_32'):

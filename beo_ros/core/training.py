@@ -8,7 +8,8 @@ import zipfile
 
 import numpy as np
 
-from .bank import ClassModel, ModelBank, classifier_input, coarse_noise
+from .bank import (ClassModel, ModelBank, classifier_input, coarse_noise, prior_offset,
+                   resolve_class_prior)
 from .grid import yaw_error
 from .inference import FEATURE_NAMES
 from .shape import shape_descriptors
@@ -89,13 +90,17 @@ def _hypothesis_quality(engine, grid, per, yaw, rotated):
 
 
 def cross_validated_report(F, y, records, C=1.0, folds=5, seed=0, row_standardize=False,
-                           groups=None, descriptors=None):
+                           groups=None, descriptors=None, class_prior='train'):
     """Accuracy (and, for partial views, yaw and IoU) of the classifier on out-of-fold features,
     itself cross-validated: every object's class comes from a classifier that never saw it.
 
     ``groups`` (r,): the object of every row, when objects have several rows (views); all
     rows of an object then fall in the same fold. ``descriptors`` (r, D): shape descriptors
-    appended to the classifier input (see ``classifier_input``).
+    appended to the classifier input (see ``classifier_input``). ``class_prior``: the prior
+    the probabilities are moved to (``bank.resolve_class_prior``; the rows' own class
+    frequencies are the classifier's prior); ``prior_accuracy`` is the accuracy expected when
+    classes occur with the prior's frequencies (sum of prior x recall; 'train': the accuracy,
+    'uniform': the balanced accuracy). Every other number is on these rows as they are.
     """
     from sklearn.linear_model import LogisticRegression
     from sklearn.model_selection import StratifiedGroupKFold, StratifiedKFold, cross_val_predict
@@ -114,15 +119,32 @@ def cross_validated_report(F, y, records, C=1.0, folds=5, seed=0, row_standardiz
                                                 descriptors), y, cv=cv, groups=groups,
                           method='predict_proba')
     classes = np.unique(y)
+    n_classes = F.shape[1] // nf
+    counts = np.bincount(y, minlength=n_classes).astype(np.float64)
+    weights = resolve_class_prior(class_prior, range(n_classes))
+    P0 = P
+    train_pred = classes[np.argmax(P, axis=1)]
+    if weights is not None:
+        P = P * np.exp(prior_offset(dict(class_counts=counts), weights))[classes]
+        P /= P.sum(axis=1, keepdims=True)
     pred = classes[np.argmax(P, axis=1)]
     ml = np.argmax(F[:, 0::nf], axis=1)
-    recall = [np.mean(pred[y == c] == c) for c in classes]
+    recall = np.array([np.mean(pred[y == c] == c) for c in classes])
+    prior = counts[classes] / counts.sum() if weights is None else weights[classes]
     p_true = P[np.arange(len(y)), np.searchsorted(classes, y)]
     rep = dict(n=int(len(y)), accuracy=float(np.mean(pred == y)),
                balanced_accuracy=float(np.mean(recall)),
+               prior_accuracy=float(prior @ recall / prior.sum()),
                accuracy_max_likelihood=float(np.mean(ml == y)),
                log_loss=float(-np.mean(np.log(np.maximum(p_true, 1e-12)))),
                ece=expected_calibration_error(P.max(axis=1), pred == y))
+    # the same classifier under the two named priors, whichever was asked for
+    uni = np.exp(prior_offset(dict(class_counts=counts), np.full(n_classes, 1.0 / n_classes)))
+    for name, pr in (('train', train_pred), ('uniform', classes[np.argmax(
+            P0 * uni[classes], axis=1)])):
+        rep[f'accuracy_{name}_prior'] = float(np.mean(pr == y))
+        rep[f'balanced_accuracy_{name}_prior'] = float(np.mean([np.mean(pr[y == c] == c)
+                                                                for c in classes]))
     if records and 'yaw_err' in records[0]:
         err = np.rad2deg([r['yaw_err'][p] for r, p in zip(records, pred)])
         err_true = np.rad2deg([r['yaw_err'][t] for r, t in zip(records, y)])
@@ -181,8 +203,9 @@ def loglik_bounds(ll, y, n_classes, mads=UNKNOWN_MADS):
 
 def fit_logistic(Z, y, n_classes, C=1.0):
     """Standardised logistic regression on input rows Z (m, n_in) with labels y (m,) ->
-    dict(mean, scale (n_in,), coef (n_classes, n_in), intercept (n_classes,)) in the softmax
-    form of ``bank.classifier_probabilities``. Classes absent from y get intercept -30 (never
+    dict(mean, scale (n_in,), coef (n_classes, n_in), intercept (n_classes,), class_counts
+    (n_classes,): the rows per class, its prior) in the softmax form of
+    ``bank.classifier_probabilities``. Classes absent from y get intercept -30 (never
     chosen); a binary fit becomes the two-class softmax with logits -z/2, +z/2: the regression's
     own probabilities (logits -z, +z would square the odds).
     """
@@ -198,7 +221,8 @@ def fit_logistic(Z, y, n_classes, C=1.0):
     else:
         coef[lr.classes_] = np.vstack([-lr.coef_, lr.coef_]) / 2
         intercept[lr.classes_] = np.hstack([-lr.intercept_, lr.intercept_]) / 2
-    return dict(mean=mean, scale=scale, coef=coef, intercept=intercept)
+    return dict(mean=mean, scale=scale, coef=coef, intercept=intercept,
+                class_counts=np.bincount(np.asarray(y), minlength=n_classes).astype(np.float64))
 
 
 def train_classifier(F, y, n_classes, C=1.0, row_standardize=False, descriptors=None):
@@ -213,11 +237,12 @@ def train_classifier(F, y, n_classes, C=1.0, row_standardize=False, descriptors=
 
 
 def select_classifier(F, y, records, objects, D, n_classes, C=C_OPTIONS, seed=0,
-                      row_standardize='auto', descriptors='auto'):
+                      row_standardize='auto', descriptors='auto', class_prior='train'):
     """Cross-validate every classifier input (raw or row-standardised features, with or
     without the shape descriptors D (r, 12), each regularisation strength in ``C``: a number
     or a sequence) on out-of-fold features F (r, C*F) with labels y and the object of every
-    row, keep the most accurate (the first of equals, in that order), train it on all rows.
+    row, keep the most accurate under ``class_prior`` (its ``prior_accuracy``; the first of
+    equals, in that order), train it on all rows.
 
     Returns (classifier dict, report dict: the winner's ``cross_validated_report`` plus its
     row_standardize, descriptors and C, and every input's accuracy).
@@ -230,12 +255,15 @@ def select_classifier(F, y, records, objects, D, n_classes, C=C_OPTIONS, seed=0,
     options = [(r, d, c) for d in ([False, True] if descriptors == 'auto' else [descriptors])
                for r in rs_options for c in c_options]
     reports = [cross_validated_report(F, y, records, c, seed=seed, row_standardize=r,
-                                      groups=objects, descriptors=D if d else None)
+                                      groups=objects, descriptors=D if d else None,
+                                      class_prior=class_prior)
                for r, d, c in options]
-    accs = [r['accuracy'] for r in reports]
+    accs = [r['prior_accuracy'] for r in reports]
     best = int(np.argmax(accs))
     rs, use_d, c_best = options[best]
-    report = dict(reports[best], row_standardize=rs, descriptors=use_d, C=c_best)
+    report = dict(reports[best], row_standardize=rs, descriptors=use_d, C=c_best,
+                  class_prior=class_prior if isinstance(class_prior, str) else
+                  [float(w) for w in resolve_class_prior(class_prior, range(n_classes))])
     if len(options) > 1:
         report['accuracy_other_input'] = max(a for j, a in enumerate(accs) if j != best)
         report['accuracy_by_input'] = {
@@ -247,7 +275,7 @@ def select_classifier(F, y, records, objects, D, n_classes, C=C_OPTIONS, seed=0,
 
 def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_views=1,
              folds=5, seed=0, C=None, verbose=False, training=None, grids=None,
-             oof_path=None, row_standardize='auto', descriptors='auto'):
+             oof_path=None, row_standardize='auto', descriptors='auto', class_prior='train'):
     """Fit class models on all of X and a classifier on out-of-fold features.
 
     ``classifier_views``: random partial views per training object for the partial-view
@@ -258,7 +286,8 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
     ``oof_path``: also save the out-of-fold features, labels and per-hypothesis yaw errors and
     IoUs there (npz) for analysis.
     ``row_standardize``: True, False or 'auto' (per mode, whichever gives the higher
-    cross-validated accuracy; never with fewer than 3 classes). See ``classifier_input``.
+    cross-validated accuracy under ``class_prior``; never with fewer than 3 classes). See
+    ``classifier_input``.
     ``C``: the logistic regression's regularisation strength, or several (default
     ``C_OPTIONS``), cross-validated like the inputs below (``select_classifier``).
     ``descriptors``: True, False or 'auto': also give the classifier the grid's shape
@@ -266,6 +295,10 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
     together with the ``row_standardize`` options, and keeps the input with the highest
     cross-validated accuracy (the first of equals: raw before standardised, without
     descriptors before with them).
+    ``class_prior``: the prior over classes the bank assumes (``ModelBank.class_prior``;
+    default 'train': the training set's class frequencies; 'uniform': no class is favoured for
+    being common in the training set); inputs are chosen by the accuracy expected under it
+    (uniform: the balanced accuracy). The report gives the accuracy under both priors.
     """
     if C is None:
         C = C_OPTIONS
@@ -277,6 +310,8 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
         raise ValueError(f"descriptors must be True, False or 'auto', got {descriptors!r}")
     if row_standardize is True and len(names) < 3:
         raise ValueError('row_standardize needs at least 3 classes')
+    weights = resolve_class_prior(class_prior, names)
+    cv_prior = class_prior if isinstance(class_prior, str) else weights
     X = np.asarray(X, dtype=np.float32)
     y = np.asarray(y)
     t0 = time.time()
@@ -322,7 +357,7 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
                 classifier[mode], cv_report[mode] = select_classifier(
                     np.vstack(feats[mode]), np.array(labels[mode]), records[mode],
                     np.array(objects[mode]), np.vstack(descs[mode]), len(names), C, seed,
-                    row_standardize, descriptors)
+                    row_standardize, descriptors, cv_prior)
         info['cross_validation'] = cv_report
         if oof_path:
             arrays = {}
@@ -342,7 +377,7 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
             print(f'cross-validated (out-of-fold features, {folds} folds): {cv_report}',
                   file=sys.stderr)
         info['classifier_seconds'] = round(time.time() - t0 - info['fit_seconds'], 1)
-    return ModelBank(models, spec, classifier, info, pose_components)
+    return ModelBank(models, spec, classifier, info, pose_components, class_prior=class_prior)
 
 
 # ---------------------------------------------------------------------- data loading
