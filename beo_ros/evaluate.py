@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .core.bank import load_models
+from .core.bank import load_models, parse_class_prior
 from .core.grid import GridSpec, yaw_error
 from .core.synthetic import random_partial_view
 from .core.training import fit_bank, load_voxel_npz, progress_bar
@@ -181,14 +181,23 @@ def main(argv=None):
     ap.add_argument('--seed', type=int, default=0)
     ap.add_argument('--out', default='beo_eval_out', help='directory for JSON and PNG')
     ap.add_argument('--scans', nargs='+', help='tabletop PCD scans: leave-one-scene-out CV')
+    ap.add_argument('--class-prior', default='', metavar='PRIOR',
+                    help="prior over the classes: train, uniform or name=weight,... with every "
+                         "class; default: the model's own (--cv: train)")
     args, rest = ap.parse_known_args(argv)
     if args.scans:
+        if args.class_prior:
+            ap.error('--class-prior is not used with --scans')
         from . import scan_eval
         return scan_eval.main(['--scans', *args.scans, '--out', args.out, *rest])
     if rest:
         ap.error(f'unrecognized arguments: {" ".join(rest)}')
     if not args.data:
         ap.error('--data is required (or --scans)')
+    try:
+        class_prior = parse_class_prior(args.class_prior)
+    except ValueError as e:
+        ap.error(str(e))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(args.seed)
@@ -204,7 +213,7 @@ def main(argv=None):
                 t0 = time.time()
                 bank = fit_bank(X[tr], y[tr], names, GridSpec(size=n), k=args.k,
                                 classifier_views=args.train_views, seed=args.seed + f,
-                                verbose=True)
+                                verbose=True, class_prior=class_prior or 'train')
                 info.append(dict(fold=f, train=int(len(tr)), test=int(len(te)),
                                  train_seconds=round(time.time() - t0, 1)))
                 s, r, ex = evaluate_bank(bank, X[te], y[te], names, rng, args.views)
@@ -216,7 +225,7 @@ def main(argv=None):
             summary['folds'] = info
             summary['protocol'] = f'{args.cv}-fold stratified CV on {args.data}'
         else:
-            bank = load_models(args.model)
+            bank = load_models(args.model, class_prior)
             if bank.classes != names:
                 missing = set(names) - set(bank.classes)
                 if missing:
@@ -229,6 +238,8 @@ def main(argv=None):
     except (ValueError, OSError) as e:
         print(f'beo-eval: error: {e}', file=sys.stderr)
         return 2
+    summary['class_prior'] = bank.class_prior if isinstance(bank.class_prior, str) else \
+        dict(zip(bank.classes, map(float, bank.class_prior)))
     summary['command'] = 'beo-eval ' + ' '.join(sys.argv[1:] if argv is None else argv)
     print_table(summary)
     (out / 'eval.json').write_text(json.dumps(summary, indent=2) + '\n')

@@ -13,6 +13,7 @@ import time
 import numpy as np
 
 from .core.grid import GridSpec
+from .core.bank import parse_class_prior
 from .core.training import fit_bank, load_meshes, load_voxel_npz
 
 
@@ -60,7 +61,17 @@ def main(argv=None):
                     help="also give the classifier 12 yaw-invariant shape descriptors of the "
                          "grid's occupied voxels; auto: per mode, whichever cross-validates "
                          'better')
+    ap.add_argument('--class-prior', default='train', metavar='PRIOR',
+                    help="prior over the classes the model assumes (recorded in its manifest; "
+                         "the node's class_prior parameter overrides it): train (the training "
+                         "set's class frequencies), uniform, or name=weight,... with every "
+                         'class; the classifier input is chosen by the accuracy expected under '
+                         'it (default: %(default)s)')
     args = ap.parse_args(argv)
+    try:
+        class_prior = parse_class_prior(args.class_prior) or 'train'
+    except ValueError as e:
+        ap.error(str(e))
     if args.mirror and not (args.scans and args.views == 0):
         ap.error('--mirror is for --scans with --views 0 (maximum-likelihood rule)')
     if args.point_classifier and not args.mirror:
@@ -117,7 +128,7 @@ def main(argv=None):
                         training=dict(inputs=[str(p) for p in args.inputs], congeal=args.congeal),
                         grids=grids, oof_path=args.oof_out,
                         row_standardize=AUTO_ON_OFF[args.row_standardize],
-                        descriptors=AUTO_ON_OFF[args.descriptors])
+                        descriptors=AUTO_ON_OFF[args.descriptors], class_prior=class_prior)
         bank.save(args.out)
     except (ValueError, OSError) as e:
         print(f'beo-train: error: {e}', file=sys.stderr)

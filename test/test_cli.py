@@ -136,3 +136,32 @@ def test_train_mirror_needs_scans_without_classifier(tmp_path, capsys, extra):
     assert ei.value.code == 2
     assert '--mirror' in capsys.readouterr().err
     assert not (tmp_path / 'm').exists()
+
+
+def test_class_prior_flags(trained, tmp_path, capsys):
+    tmp, _ = trained
+    assert ModelBank.load(tmp / 'model').class_prior == 'train'
+    # beo-eval: the model's own prior unless told; a weight of 0 rules a class out
+    rc = evaluate.main(['--model', str(tmp / 'model'), '--data', str(tmp / 'test.npz'),
+                        '--max-objects', '4', '--out', str(tmp_path / 'e'),
+                        '--class-prior', 'box=0,cylinder=1'])
+    assert rc == 0
+    s = json.loads((tmp_path / 'e' / 'eval.json').read_text())
+    assert s['class_prior'] == {'box': 0.0, 'cylinder': 1.0}
+    assert all(row[0] == 0 for mode in ('complete', 'partial') for row in s[mode]['confusion'])
+    # a class the model does not have: exit 2 naming it; malformed text: a usage error
+    rc = evaluate.main(['--model', str(tmp / 'model'), '--data', str(tmp / 'test.npz'),
+                        '--out', str(tmp_path / 'e2'), '--class-prior', 'box=1,cup=1'])
+    assert rc == 2 and "unknown ['cup']" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        evaluate.main(['--data', 'x.npz', '--class-prior', 'box=one'])
+    assert "weight of 'box' is not a number" in capsys.readouterr().err
+    # beo-train records the prior in the manifest and picks the classifier under it
+    rc = train.main([str(tmp / 'train.npz'), '-o', str(tmp_path / 'm'), '--k', '3',
+                     '--folds', '2', '--views', '1', '--pose-components', '3',
+                     '--class-prior', 'uniform'])
+    assert rc == 0
+    bank = ModelBank.load(tmp_path / 'm')
+    assert bank.class_prior == 'uniform'
+    cv = bank.training['cross_validation']['partial']
+    assert cv['class_prior'] == 'uniform' and cv['prior_accuracy'] == cv['balanced_accuracy']

@@ -353,6 +353,36 @@ def test_parameters_validated_and_runtime_changeable(harness, tmp_path):
         assert harness.call(harness.classify, harness.good_request()).success
 
 
+def test_class_prior_parameter_is_checked_and_applied_to_the_estimates(harness):
+    node = harness.node
+    if not hasattr(node._bank, 'with_class_prior'):
+        pytest.skip('the fake bank has no class prior')
+
+    def set_(value):
+        return node.set_parameters([Parameter('class_prior', value=value)])[0]
+
+    classes = node._bank.classes
+    own = node._bank.class_prior
+    for value, why in (('flat', 'one of'), (f'{classes[0]}=1', 'missing'),
+                       (f'{classes[0]}=x', 'not a number'), ('a=1,a=2', 'each class once'),
+                       (','.join(f'{c}=0' for c in classes), 'not all 0')):
+        r = set_(value)
+        assert not r.successful and why in r.reason, (value, r.reason)
+        assert node._bank.class_prior == own
+    assert set_('uniform').successful and node._bank.class_prior == 'uniform'
+    r = harness.call(harness.classify, harness.good_request())
+    assert r.success, r.message
+    # the first class cannot be chosen with weight 0
+    weights = ','.join(f'{c}={0 if i == 0 else 1}' for i, c in enumerate(classes))
+    assert set_(weights).successful
+    assert node._bank.class_prior[0] == 0
+    r = harness.call(harness.classify, harness.good_request())
+    assert r.success and r.estimate.label != classes[0], r.message
+    # '' goes back to the model directory's own prior
+    assert set_('').successful and node._bank.class_prior == own
+    assert node._bank.models is node._base_bank.models  # a copy, no reload
+
+
 class GatedBank:
     """Wraps a bank: estimates of clouds with ``len(points) in hold`` wait for ``gate``."""
 
@@ -548,7 +578,8 @@ def test_bad_parameter_override_refuses_to_start(ros_context, ros_bank_source):
     for p in (Parameter('yaw_step_deg', value=90.0), Parameter('up_vector', value=[0.0, 0.0, 0.0]),
               Parameter('min_points', value=100), Parameter('workers', value=0),
               Parameter('workers', value=65), Parameter('blas_threads', value=-1),
-              Parameter('worker_processes', value=-1), Parameter('worker_processes', value=65)):
+              Parameter('worker_processes', value=-1), Parameter('worker_processes', value=65),
+              Parameter('class_prior', value='flat')):
         extra = [Parameter('max_points', value=50)] if p.name == 'min_points' else []
         with pytest.raises(StartupError, match=p.name):
             BeoNode(context=ros_context, bank=bank, parameter_overrides=base + [p] + extra)

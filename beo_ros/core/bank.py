@@ -164,6 +164,30 @@ def resolve_class_prior(prior, classes):
     return w / w.sum()
 
 
+def parse_class_prior(text):
+    """A class prior from text (a ROS parameter, a command-line flag): '' -> None (keep the
+    model directory's), 'train', 'uniform', or 'name=weight,name=weight,...' -> dict (check it
+    with :func:`resolve_class_prior`). Raises ValueError for malformed text."""
+    text = str(text).strip()
+    if not text:
+        return None
+    if '=' not in text:
+        return text
+    prior = {}
+    for item in text.split(','):
+        name, sep, value = item.partition('=')
+        name = name.strip()
+        if not sep or not name or name in prior:
+            raise ValueError(f"class_prior must be 'train', 'uniform' or 'name=weight,...' with "
+                             f'each class once, got {text!r}')
+        try:
+            prior[name] = float(value)
+        except ValueError:
+            raise ValueError(f'class_prior: weight of {name!r} is not a number: '
+                             f'{value.strip()!r}') from None
+    return prior
+
+
 def prior_offset(clf, prior):
     """Logit offsets (C,) that move a classifier dict from its training prior (its
     ``class_counts``) to ``prior`` (C,) (Bayes' rule: p'(c|x) ~ p(c|x) prior_c / train_c),
@@ -333,6 +357,14 @@ class ModelBank:
         weights = resolve_class_prior(prior, self.classes)
         self._prior_weights = weights
         self._class_prior = prior if isinstance(prior, str) else weights
+
+    def with_class_prior(self, prior):
+        """A copy of the bank with another class prior, sharing models, classifier and inference
+        engine (no rebuild); raises ValueError for a bad prior."""
+        new = object.__new__(type(self))
+        new.__dict__.update(self.__dict__)
+        new.class_prior = prior
+        return new
 
     def _prior_offset(self, clf):
         """Logit offsets (C,) of ``clf`` for the bank's class prior, or None (see

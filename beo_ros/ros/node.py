@@ -41,6 +41,7 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 from visualization_msgs.msg import Marker, MarkerArray
 
+from beo_ros.core.bank import parse_class_prior
 from beo_ros.ros.conversions import (CloudFormatError, cloud_to_xyz, completed_cloud,
                                      estimate_to_msg, interfaces, object_dimensions)
 from beo_ros.ros.procpool import BrokenProcessPool, EstimatorPool, PoolRetired, warm_up_points
@@ -77,6 +78,13 @@ def default_model_dir() -> str:
     except Exception:  # not installed through ament (PackageNotFoundError, no prefix path)
         pass
     return str(Path(__file__).resolve().parents[2] / 'models' / DEFAULT_MODEL)
+
+
+def with_class_prior(bank, text: str):
+    """``bank`` with the class prior of the ``class_prior`` parameter ('' keeps the bank's own);
+    a copy sharing the models. Raises ValueError for a bad value (naming what is wrong)."""
+    prior = parse_class_prior(text)
+    return bank if prior is None else bank.with_class_prior(prior)
 
 
 def load_bank(model_dir: str):
@@ -182,6 +190,12 @@ class BeoNode(Node):
             model_dir = self.get_parameter('model_dir').value or default_model_dir()
             bank = load_bank(model_dir)
             self.get_logger().info(f"loaded models from '{model_dir}': classes {bank.classes}")
+        self._base_bank = bank  # as loaded: the class_prior parameter is applied to a copy
+        try:
+            bank = with_class_prior(bank, self.get_parameter('class_prior').value)
+        except ValueError as e:
+            raise StartupError(f'invalid parameter: {e}') from None
+        self.get_logger().info(f'class prior: {bank.class_prior}')
         self._bank = bank
         if self._n_procs:
             t0 = time.monotonic()
@@ -311,6 +325,11 @@ class BeoNode(Node):
         d('publish_completed', True, ParameterDescriptor(
             description='Publish ~/completed (x y z probability)',
             type=ParameterType.PARAMETER_BOOL))
+        d('class_prior', '', ParameterDescriptor(
+            description="Prior over the classes: '' = the model directory's, 'train' = the "
+                        "training set's class frequencies, 'uniform', or 'name=weight,...' "
+                        'with every class (e.g. a kitchen: more chairs than beds)',
+            type=ParameterType.PARAMETER_STRING))
         d('diagnostics_period', 1.0, _fdesc('Seconds between /diagnostics messages', 0.1, 60.0))
         d('workers', 1, _idesc('Estimation worker threads (concurrent estimates, services '
                                'included); at least worker_processes are used. Without worker '
@@ -328,7 +347,7 @@ class BeoNode(Node):
         return {p: self.get_parameter(p).value for p in (
             'model_dir', 'base_frame', 'sensor_origin', 'up_vector', 'yaw_step_deg',
             'min_points', 'max_points', 'completion_threshold', 'publish_completed',
-            'diagnostics_period', 'workers', 'worker_processes', 'blas_threads')}
+            'class_prior', 'diagnostics_period', 'workers', 'worker_processes', 'blas_threads')}
 
     @staticmethod
     def _check(name, value, merged) -> str | None:
@@ -354,10 +373,14 @@ class BeoNode(Node):
             if reason:
                 return SetParametersResult(successful=False, reason=reason)
         new = {p.name: p.value for p in params}
-        if 'model_dir' in new and new['model_dir'] != self.get_parameter('model_dir').value:
+        reload = 'model_dir' in new and new['model_dir'] != self.get_parameter('model_dir').value
+        reprior = ('class_prior' in new
+                   and new['class_prior'] != self.get_parameter('class_prior').value)
+        if reload or reprior:
             try:
-                bank = load_bank(new['model_dir'])
-            except StartupError as e:
+                base = load_bank(new['model_dir']) if reload else self._base_bank
+                bank = with_class_prior(base, merged['class_prior'])
+            except (StartupError, ValueError) as e:
                 return SetParametersResult(successful=False, reason=str(e))
             with self._bank_lock:
                 if self._n_procs:
@@ -366,10 +389,13 @@ class BeoNode(Node):
                     except Exception as e:
                         return SetParametersResult(
                             successful=False, reason=f'worker processes cannot load the models '
-                                                     f'of {new["model_dir"]!r}: {e}')
+                                                     f'of {merged["model_dir"]!r}: {e}')
                 else:
                     self._bank = bank
-            self.get_logger().info(f"reloaded models from '{new['model_dir']}'")
+            self._base_bank = base
+            if reload:
+                self.get_logger().info(f"reloaded models from '{new['model_dir']}'")
+            self.get_logger().info(f'class prior: {bank.class_prior}')
         if 'diagnostics_period' in new:  # re-timing (not re-creating) is safe while spinning
             self._diag_timer.timer_period_ns = int(new['diagnostics_period'] * 1e9)
             self._diag_timer.reset()
