@@ -372,10 +372,15 @@ def test_class_prior_parameter_is_checked_and_applied_to_the_estimates(harness):
     assert set_('uniform').successful and node._bank.class_prior == 'uniform'
     r = harness.call(harness.classify, harness.good_request())
     assert r.success, r.message
-    # the first class cannot be chosen with weight 0
+    # the first class (the answer without a prior) cannot be chosen with weight 0
+    assert set_('').successful
+    assert harness.call(harness.classify, harness.good_request()).estimate.label == classes[0]
     weights = ','.join(f'{c}={0 if i == 0 else 1}' for i, c in enumerate(classes))
     assert set_(weights).successful
     assert node._bank.class_prior[0] == 0
+    from beo_ros.ros.node import prior_text
+    assert prior_text(node._bank) == ','.join(
+        f'{c}={0 if i == 0 else 1 / (len(classes) - 1):.4g}' for i, c in enumerate(classes))
     r = harness.call(harness.classify, harness.good_request())
     assert r.success and r.estimate.label != classes[0], r.message
     # '' goes back to the model directory's own prior
@@ -628,6 +633,7 @@ def test_worker_processes_estimate_like_in_process(harness_procs, tmp_path):
         kv.key == 'worker_processes' for kv in m.status[0].values))[-1].status[0]
     values = {kv.key: kv.value for kv in diag.values}
     assert values['worker_processes'] == '2' and values['worker_restarts'] == '0'
+    assert values['class_prior'] == 'train'
     model_dir = node.get_parameter('model_dir').value
     if model_dir:
         import shutil
@@ -641,6 +647,13 @@ def test_worker_processes_estimate_like_in_process(harness_procs, tmp_path):
         while any(map(_alive, old)) and time.monotonic() < end:
             time.sleep(0.05)
         assert not any(map(_alive, old))
+        # a new class prior reaches the processes (they get the bank with it)
+        classes = node._bank.classes
+        assert harness.call(harness.classify, harness.good_request()).estimate.label == classes[0]
+        weights = ','.join(f'{c}={0 if i == 0 else 1}' for i, c in enumerate(classes))
+        assert node.set_parameters([Parameter('class_prior', value=weights)])[0].successful
+        r = harness.call(harness.classify, harness.good_request())
+        assert r.success and r.estimate.label != classes[0], r.message
     assert node.counters()['errors'] == 0
 
 

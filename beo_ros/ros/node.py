@@ -87,6 +87,14 @@ def with_class_prior(bank, text: str):
     return bank if prior is None else bank.with_class_prior(prior)
 
 
+def prior_text(bank) -> str:
+    """The bank's class prior as the ``class_prior`` parameter would write it."""
+    prior = getattr(bank, 'class_prior', 'train')
+    if isinstance(prior, str):
+        return prior
+    return ','.join(f'{c}={float(w):.4g}' for c, w in zip(bank.classes, prior))
+
+
 def load_bank(model_dir: str):
     """Load a model bank, turning every failure into a StartupError naming the path."""
     path = Path(model_dir or default_model_dir()).expanduser()
@@ -195,7 +203,7 @@ class BeoNode(Node):
             bank = with_class_prior(bank, self.get_parameter('class_prior').value)
         except ValueError as e:
             raise StartupError(f'invalid parameter: {e}') from None
-        self.get_logger().info(f'class prior: {bank.class_prior}')
+        self.get_logger().info(f'class prior: {prior_text(bank)}')
         self._bank = bank
         if self._n_procs:
             t0 = time.monotonic()
@@ -395,7 +403,7 @@ class BeoNode(Node):
             self._base_bank = base
             if reload:
                 self.get_logger().info(f"reloaded models from '{new['model_dir']}'")
-            self.get_logger().info(f'class prior: {bank.class_prior}')
+            self.get_logger().info(f'class prior: {prior_text(bank)}')
         if 'diagnostics_period' in new:  # re-timing (not re-creating) is safe while spinning
             self._diag_timer.timer_period_ns = int(new['diagnostics_period'] * 1e9)
             self._diag_timer.reset()
@@ -774,6 +782,7 @@ class BeoNode(Node):
         values.append(KeyValue(key='input_topics', value=','.join(self._topics)))
         values.append(KeyValue(key='workers', value=str(self._n_workers)))
         values.append(KeyValue(key='worker_processes', value=str(self._n_procs)))
+        values.append(KeyValue(key='class_prior', value=prior_text(self._bank)))
         with self._cond:
             values.append(KeyValue(key='in_flight', value=str(self._in_flight)))
         status = DiagnosticStatus(level=level, name=f'{self.get_name()}: estimator',
