@@ -743,7 +743,7 @@ def test_unknown_when_the_classes_that_explain_the_object_hold_little_probabilit
     from beo_ros.core.inference import FEATURE_NAMES
     nf = len(FEATURE_NAMES)
     bank = make_tiny_bank(n=8, k=2)
-    models = bank.models + [bank.models[0]]
+    models = bank.models + [dataclasses.replace(bank.models[0], name='box2')]
     coef = np.zeros((3, 3 * nf))
     for c in range(3):
         coef[c, c * nf + 1] = 1.0
@@ -1089,6 +1089,18 @@ def test_class_prior_is_saved_overridden_on_load_and_checked(tmp_path):
     del m['class_prior']
     _write_manifest(path, m)
     assert ModelBank.load(path).class_prior == 'train'
+
+
+def test_class_names_must_be_distinct(tmp_path, tiny_dir):
+    tiny = make_tiny_bank(n=8, k=2)
+    with pytest.raises(ModelError, match='unique'):
+        ModelBank(tiny.models + [tiny.models[0]], tiny.spec)
+    path = _copy(tiny_dir, tmp_path)
+    m = _manifest(path)
+    m['classes'] = [m['classes'][0]] * len(m['classes'])
+    _write_manifest(path, m)
+    with pytest.raises(ModelError, match='distinct'):
+        ModelBank.load(path)
 
 
 def test_bad_class_counts_are_refused_on_load(tmp_path):

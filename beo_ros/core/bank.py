@@ -314,6 +314,9 @@ class ModelBank:
                  pose_components=8, stage2_noise_map=False, class_prior='train'):
         if not models:
             raise ModelError('a model bank needs at least one class')
+        names = [m.name for m in models]
+        if len(set(names)) != len(names):
+            raise ModelError(f'class names must be unique, got {names}')
         d = spec.size ** 3
         for m in models:
             if m.W.ndim != 2 or m.W.shape[0] != d or m.mean.shape != (d,):
@@ -441,6 +444,9 @@ class ModelBank:
             files = dict(manifest['files'])
         except (KeyError, TypeError, ValueError) as e:
             raise ModelError(f'{mf}: bad or missing entry: {e}') from None
+        if len(set(classes)) != len(classes) or not all(isinstance(c, str) and c
+                                                         for c in classes):
+            raise ModelError(f'{mf}: classes must be distinct non-empty names, got {classes}')
         if manifest['grid'].get('up', '+z') != '+z' or manifest['grid'].get('axes', 'xyz') != 'xyz':
             raise ModelError(f'{mf}: only axes xyz with up +z are supported')
         for fn, digest in files.items():
