@@ -133,7 +133,7 @@ def uses_descriptors(clf):
 
 
 def resolve_class_prior(prior, classes):
-    """A class prior as None ('train': the classifier's own) or positive weights (C,) summing
+    """A class prior as None ('train': the classifier's own) or weights (C,) >= 0 summing
     to 1. ``prior``: 'train', 'uniform', a dict class name -> weight >= 0 (every class), or C
     weights >= 0 in class order; weights need not sum to 1. A class of weight 0 is never chosen.
     Raises ValueError naming what is wrong."""
