@@ -14,6 +14,7 @@ from .grid import yaw_error
 from .inference import FEATURE_NAMES
 from .shape import shape_descriptors
 from .synthetic import random_partial_view
+from .verifier import TURNS, OrientationVerifier, turned_features
 from .vbpca import VBPCA
 
 
@@ -42,6 +43,58 @@ def fit_class_models(X, y, names, spec, k=20, masks=None, max_iter=200, tol=1e-5
         models.append(ClassModel.from_vbpca(name, est, *coarse_noise(
             Xf.astype(np.float32), est, spec.size)))
     return models
+
+
+# objects per chunk of the verifier's training views: every chunk has its own random stream,
+# so the views do not depend on how many processes make them
+VERIFIER_CHUNK = 64
+
+
+def _verifier_chunk(args):
+    """Verifier training rows of one chunk of objects (see ``verifier_training_set``)."""
+    X, n, views, seed, chunk = args
+    rng = np.random.default_rng([seed, chunk])
+    F, turn, obj = [], [], []
+    for i in range(len(X)):
+        occ = X[i].reshape(n, n, n) > 0.5
+        for _ in range(views):
+            grid, yaw, _, _, _ = random_partial_view(occ, rng)
+            jitter = np.deg2rad(rng.uniform(-5.0, 5.0, TURNS))
+            F.append(turned_features(grid, yaw + np.arange(TURNS) * np.pi / 2 + jitter))
+            turn += list(range(TURNS))
+            obj += [i] * TURNS
+    return np.vstack(F), np.array(turn), np.array(obj)
+
+
+def verifier_training_set(X, n, views=6, seed=0, processes=1, verbose=False):
+    """Rows for the orientation verifier from objects X (m, n^3) in their canonical pose:
+    ``views`` random partial views of each (the evaluation protocol), each turned into the
+    model's frame by its true yaw plus 0, 90, 180 and 270° (+- 5° of jitter).
+
+    Returns (features (m * views * 4, 1536) float32, turn (r,), object index (r,)). The same
+    for any ``processes`` (chunks of ``VERIFIER_CHUNK`` objects, each with its own stream).
+    """
+    X = np.asarray(X)
+    chunks = [(X[i:i + VERIFIER_CHUNK], n, views, seed, i // VERIFIER_CHUNK)
+              for i in range(0, len(X), VERIFIER_CHUNK)]
+    if processes > 1:
+        from concurrent.futures import ProcessPoolExecutor
+        with ProcessPoolExecutor(processes) as ex:
+            parts = list(progress_bar(ex.map(_verifier_chunk, chunks), 'verifier views',
+                                      total=len(chunks), disable=not verbose))
+    else:
+        parts = [_verifier_chunk(c) for c in progress_bar(chunks, 'verifier views',
+                                                          disable=not verbose)]
+    offsets = np.arange(len(chunks)) * VERIFIER_CHUNK
+    return (np.vstack([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
+            np.concatenate([p[2] + o for p, o in zip(parts, offsets)]))
+
+
+def fit_verifier(X, y, n, views=6, seed=0, processes=1, verbose=False, **params):
+    """An ``OrientationVerifier`` fitted on ``verifier_training_set`` rows of objects X
+    (m, n^3) with class labels y (m,); ``params`` go to the verifier."""
+    F, turn, obj = verifier_training_set(X, n, views, seed, processes, verbose)
+    return OrientationVerifier(**params).fit(F, turn, np.asarray(y)[obj], n)
 
 
 def view_features(bank, X, rng, n_views=1, complete=True):
@@ -275,7 +328,8 @@ def select_classifier(F, y, records, objects, D, n_classes, C=C_OPTIONS, seed=0,
 
 def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_views=1,
              folds=5, seed=0, C=None, verbose=False, training=None, grids=None,
-             oof_path=None, row_standardize='auto', descriptors='auto', class_prior='train'):
+             oof_path=None, row_standardize='auto', descriptors='auto', class_prior='train',
+             verifier_views=0, processes=1):
     """Fit class models on all of X and a classifier on out-of-fold features.
 
     ``classifier_views``: random partial views per training object for the partial-view
@@ -299,6 +353,9 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
     default 'train': the training set's class frequencies; 'uniform': no class is favoured for
     being common in the training set); inputs are chosen by the accuracy expected under it
     (uniform: the balanced accuracy). The report gives the accuracy under both priors.
+    ``verifier_views``: random views per object for the orientation verifier
+    (``fit_verifier``; 0: none, needs the objects in their canonical pose and N a multiple
+    of 8); ``processes`` make its views.
     """
     if C is None:
         C = C_OPTIONS
@@ -310,6 +367,11 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
         raise ValueError(f"descriptors must be True, False or 'auto', got {descriptors!r}")
     if row_standardize is True and len(names) < 3:
         raise ValueError('row_standardize needs at least 3 classes')
+    if not (isinstance(verifier_views, (int, np.integer)) and verifier_views >= 0):
+        raise ValueError(f'verifier_views must be an integer >= 0, got {verifier_views!r}')
+    if verifier_views and (masks is not None or spec.size % 8):
+        raise ValueError('the orientation verifier needs whole objects in their canonical pose '
+                         f'(no masks) on a grid of a multiple of 8 (got {spec.size})')
     weights = resolve_class_prior(class_prior, names)
     cv_prior = class_prior if isinstance(class_prior, str) else weights
     X = np.asarray(X, dtype=np.float32)
@@ -377,7 +439,14 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
             print(f'cross-validated (out-of-fold features, {folds} folds): {cv_report}',
                   file=sys.stderr)
         info['classifier_seconds'] = round(time.time() - t0 - info['fit_seconds'], 1)
-    return ModelBank(models, spec, classifier, info, pose_components, class_prior=class_prior)
+    verifier = None
+    if verifier_views > 0:
+        t1 = time.time()
+        verifier = fit_verifier(X, y, spec.size, verifier_views, seed, processes, verbose)
+        info.update(verifier_views=int(verifier_views),
+                    verifier_seconds=round(time.time() - t1, 1))
+    return ModelBank(models, spec, classifier, info, pose_components, class_prior=class_prior,
+                     verifier=verifier)
 
 
 # ---------------------------------------------------------------------- data loading

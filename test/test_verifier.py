@@ -1,0 +1,182 @@
+"""The orientation verifier: features, exported trees equal to scikit-learn's, the turn it
+picks inside ModelBank.estimate, model-file checks, deterministic training rows."""
+import pickle
+
+import numpy as np
+import pytest
+
+from beo_ros.core.bank import ModelBank, ModelError
+from beo_ros.core.grid import GridSpec, rotate_grid, yaw_error
+from beo_ros.core.synthetic import random_partial_view
+from beo_ros.core.training import fit_bank, verifier_training_set
+from beo_ros.core.verifier import (OrientationVerifier, check_arrays, turned_features,
+                                   verifier_features)
+from test_bank import N, asymmetric_shapes
+
+PARAMS = dict(max_iter=40, learning_rate=0.2)
+
+
+def test_features_are_pooled_label_fractions():
+    rng = np.random.default_rng(0)
+    g = rng.integers(-1, 2, size=(16, 16, 16)).astype(np.int8)
+    f = verifier_features(g)
+    assert f.shape == (3 * 512,) and f.dtype == np.float32
+    occ, free, unk = f.reshape(3, 8, 8, 8)
+    np.testing.assert_allclose(occ + free + unk, 1.0, atol=1e-6)
+    assert occ[0, 0, 0] == pytest.approx((g[:2, :2, :2] == 1).mean())
+    assert unk[7, 3, 5] == pytest.approx((g[14:, 6:8, 10:12] == -1).mean())
+    # turning by a hypothesis yaw looks at the view from the model's frame
+    t = turned_features(g, [0.0, np.pi / 2])
+    np.testing.assert_array_equal(t[0], f)
+    np.testing.assert_array_equal(t[1], verifier_features(rotate_grid(g, -np.pi / 2, fill=-1)))
+    for bad in (np.zeros((12, 12, 12)), np.zeros((16, 16, 8)), np.zeros((16, 16))):
+        with pytest.raises(ValueError, match='multiple of 8'):
+            verifier_features(bad)
+
+
+@pytest.fixture(scope='module')
+def trained():
+    X, y = asymmetric_shapes(10, np.random.default_rng(0))
+    F, turn, obj = verifier_training_set(X, N, views=3, seed=0)
+    return X, y, F, turn, obj, OrientationVerifier(**PARAMS).fit(F, turn, y[obj], N)
+
+
+def test_training_rows_are_the_true_pose_and_its_turns(trained):
+    X, y, F, turn, obj, _ = trained
+    assert F.shape == (len(X) * 3 * 4, 1536)
+    assert (np.bincount(turn) == len(X) * 3).all()
+    assert (np.bincount(obj) == 12).all()
+    # the same rows whatever the number of processes (each chunk has its own stream)
+    F2, turn2, obj2 = verifier_training_set(X, N, views=3, seed=0, processes=2)
+    np.testing.assert_array_equal(F2, F)
+    np.testing.assert_array_equal(obj2, obj)
+    F3, _, _ = verifier_training_set(X, N, views=3, seed=1)
+    assert not np.array_equal(F3, F)
+
+
+def test_exported_trees_give_scikit_learns_probabilities(trained):
+    from sklearn.ensemble import HistGradientBoostingClassifier
+    X, y, F, turn, obj, v = trained
+    assert v.classes_ == [0, 1] and v.n_features_in_ == 1536
+    for c in (0, 1):
+        m = y[obj] == c
+        ref = HistGradientBoostingClassifier(max_iter=40, learning_rate=0.2, max_leaf_nodes=15,
+                                             l2_regularization=1.0, early_stopping=False,
+                                             random_state=0).fit(F[m], turn[m])
+        np.testing.assert_allclose(np.exp(v.predict_log_proba(c, F[m][:30])),
+                                   ref.predict_proba(F[m][:30]), atol=1e-5)
+
+
+def test_it_tells_the_turn_of_new_views(trained):
+    *_, v = trained
+    Xt, yt = asymmetric_shapes(4, np.random.default_rng(7))
+    rng = np.random.default_rng(3)
+    right = []
+    for i in range(len(Xt)):
+        for _ in range(3):
+            g, yaw, *_ = random_partial_view(Xt[i].reshape((N,) * 3) > 0.5, rng)
+            lp = v.predict_log_proba(yt[i], turned_features(g, yaw + np.arange(4) * np.pi / 2))
+            right.append(np.argmax(lp[:, 0]) == 0)
+    assert np.mean(right) >= 0.75, np.mean(right)  # chance: 0.25
+
+
+def test_fit_checks_its_input():
+    v = OrientationVerifier()
+    with pytest.raises(ValueError, match='same m'):
+        v.fit(np.zeros((4, 1536)), np.zeros(3), np.zeros(4), 16)
+    with pytest.raises(ValueError, match='quarter turns'):
+        v.fit(np.zeros((4, 1536)), np.array([0, 1, 2, 4]), np.zeros(4), 16)
+    with pytest.raises(ValueError, match='all four turns'):
+        v.fit(np.zeros((4, 1536)), np.array([0, 1, 2, 2]), np.zeros(4), 16)
+    with pytest.raises(ValueError, match='weight'):
+        OrientationVerifier(weight=-1).fit(np.zeros((4, 1536)), np.arange(4), np.zeros(4), 16)
+
+
+@pytest.fixture(scope='module')
+def bank(trained):
+    X, y, *_, v = trained
+    b = fit_bank(X, y, ['ell', 'step'], GridSpec(size=N), k=4, pose_components=4,
+                 classifier_views=0, seed=0)
+    return ModelBank(b.models, b.spec, verifier=v)
+
+
+def test_estimate_takes_the_turn_with_the_best_combined_score(bank, monkeypatch):
+    X, _ = asymmetric_shapes(1, np.random.default_rng(9))
+    g, yaw, *_ = random_partial_view(X[0].reshape((N,) * 3) > 0.5, np.random.default_rng(2))
+    plain = bank.estimate(g, verify=False)
+    assert 'orientation_check' in plain.timings
+    # a verifier sure of the 180° turn wins over any likelihood difference
+    def sure_of_the_flip(c, F):  # rows: the refined yaw and its 90, 180, 270° turns
+        lp = np.full((len(F), 4), np.log(1e-6))
+        lp[2, 0] = np.log(1 - 3e-6)
+        return lp
+
+    monkeypatch.setattr(bank.verifier, 'predict_log_proba', sure_of_the_flip)
+    monkeypatch.setattr(bank.verifier, 'weight', 1e9)
+    turned = bank.estimate(g)
+    assert np.rad2deg(yaw_error(turned.yaw, plain.yaw + np.pi)) < 1e-6
+    # the completion follows the chosen yaw (it is the model's, turned)
+    assert not np.allclose(turned.completion, plain.completion)
+    # a verifier without an opinion leaves the likelihood's choice
+    monkeypatch.setattr(bank.verifier, 'predict_log_proba',
+                        lambda c, F: np.full((len(F), 4), np.log(0.25)))
+    assert bank.estimate(g).yaw == pytest.approx(plain.yaw)
+    # a given yaw is never turned
+    assert bank.estimate(g, yaw=0.3).yaw == pytest.approx(0.3)
+
+
+def test_the_real_verifier_does_not_hurt_on_asymmetric_shapes(bank):
+    Xt, yt = asymmetric_shapes(4, np.random.default_rng(5))
+    rng = np.random.default_rng(1)
+    err = {False: [], True: []}
+    for i in range(len(Xt)):
+        g, yaw, *_ = random_partial_view(Xt[i].reshape((N,) * 3) > 0.5, rng)
+        for verify in err:
+            err[verify].append(np.rad2deg(yaw_error(bank.estimate(g, verify=verify).yaw, yaw)))
+    assert np.mean(np.array(err[True]) <= 15) >= np.mean(np.array(err[False]) <= 15)
+
+
+def test_verifier_survives_save_load_and_pickling(bank, tmp_path):
+    path = bank.save(tmp_path / 'v')
+    again = ModelBank.load(path)
+    assert again.verifier.classes_ == [0, 1] and again.verifier.weight == bank.verifier.weight
+    X, _ = asymmetric_shapes(1, np.random.default_rng(4))
+    g, *_ = random_partial_view(X[1].reshape((N,) * 3) > 0.5, np.random.default_rng(0))
+    e1, e2, e3 = bank.estimate(g), again.estimate(g), pickle.loads(pickle.dumps(again)).estimate(g)
+    assert e1.yaw == e2.yaw == e3.yaw and e1.label == e2.label == e3.label
+
+
+@pytest.mark.parametrize('change, msg', [
+    (lambda a: a.pop('roots'), 'missing'),
+    (lambda a: a.__setitem__('left', a['left'] + 10 ** 6), 'left indices'),
+    (lambda a: a.__setitem__('grid_size', np.asarray(32)), '32'),
+    (lambda a: a.__setitem__('classes', np.array([0, 5])), 'distinct indices'),
+    (lambda a: a.__setitem__('feature', np.full_like(a['feature'], 2000)), 'feature indices'),
+    (lambda a: a.__setitem__('value', a['value'] * np.nan), 'finite'),
+    (lambda a: a.__setitem__('value', a['value'][:-1]), 'differ in length'),
+])
+def test_bad_verifier_files_are_refused(bank, tmp_path, change, msg):
+    import hashlib
+    import json
+    path = bank.save(tmp_path / 'bad')
+    arrays = dict(np.load(path / 'verifier.npz'))
+    change(arrays)
+    assert msg in (check_arrays(arrays, 2, N) or '')
+    np.savez_compressed(path / 'verifier.npz', **arrays)
+    m = json.loads((path / 'manifest.json').read_text())
+    m['files']['verifier.npz'] = hashlib.sha256((path / 'verifier.npz').read_bytes()).hexdigest()
+    (path / 'manifest.json').write_text(json.dumps(m))
+    with pytest.raises(ModelError, match='verifier.npz'):
+        ModelBank.load(path)
+
+
+def test_fit_bank_fits_a_verifier_when_asked():
+    X, y = asymmetric_shapes(6, np.random.default_rng(0))
+    b = fit_bank(X, y, ['ell', 'step'], GridSpec(size=N), k=3, pose_components=3,
+                 classifier_views=0, verifier_views=1)
+    assert b.verifier is not None and b.training['verifier_views'] == 1
+    for bad, msg in ((-1, 'verifier_views'), (1.5, 'verifier_views')):
+        with pytest.raises(ValueError, match=msg):
+            fit_bank(X, y, ['ell', 'step'], GridSpec(size=N), k=3, verifier_views=bad)
+    with pytest.raises(ValueError, match='multiple of 8'):
+        fit_bank(X[:, :12 ** 3], y, ['ell', 'step'], GridSpec(size=12), k=3, verifier_views=1)
