@@ -181,6 +181,11 @@ def main(argv=None):
     ap.add_argument('--seed', type=int, default=0)
     ap.add_argument('--out', default='beo_eval_out', help='directory for JSON and PNG')
     ap.add_argument('--scans', nargs='+', help='tabletop PCD scans: leave-one-scene-out CV')
+    ap.add_argument('--verifier-views', type=int, default=6, metavar='N',
+                    help='--cv: random views per object for the orientation verifier of each '
+                         "fold's bank, as beo-train makes it (0: none; default: %(default)s)")
+    ap.add_argument('--jobs', type=int, default=1,
+                    help="--cv: processes that make the verifier's views")
     ap.add_argument('--class-prior', default='', metavar='PRIOR',
                     help="prior over the classes: train, uniform or name=weight,... with every "
                          "class; default: the model's own (--cv: train)")
@@ -194,6 +199,8 @@ def main(argv=None):
         ap.error(f'unrecognized arguments: {" ".join(rest)}')
     if not args.data:
         ap.error('--data is required (or --scans)')
+    if args.verifier_views < 0 or args.jobs < 1:
+        ap.error('--verifier-views must be >= 0 and --jobs >= 1')
     try:
         class_prior = parse_class_prior(args.class_prior)
     except ValueError as e:
@@ -213,7 +220,8 @@ def main(argv=None):
                 t0 = time.time()
                 bank = fit_bank(X[tr], y[tr], names, GridSpec(size=n), k=args.k,
                                 classifier_views=args.train_views, seed=args.seed + f,
-                                verbose=True, class_prior=class_prior or 'train')
+                                verbose=True, class_prior=class_prior or 'train',
+                                verifier_views=args.verifier_views, processes=args.jobs)
                 info.append(dict(fold=f, train=int(len(tr)), test=int(len(te)),
                                  train_seconds=round(time.time() - t0, 1)))
                 s, r, ex = evaluate_bank(bank, X[te], y[te], names, rng, args.views)

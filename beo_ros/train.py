@@ -61,6 +61,12 @@ def main(argv=None):
                     help="also give the classifier 12 yaw-invariant shape descriptors of the "
                          "grid's occupied voxels; auto: per mode, whichever cross-validates "
                          'better')
+    ap.add_argument('--verifier-views', type=int, default=None, metavar='N',
+                    help='random views per object for the orientation verifier, which picks '
+                         'among a yaw and its quarter turns (default 6; 0: none; not with '
+                         '--scans, whose objects have no known yaw)')
+    ap.add_argument('--jobs', type=int, default=1,
+                    help="processes that make the verifier's views (default: %(default)s)")
     ap.add_argument('--class-prior', default='train', metavar='PRIOR',
                     help="prior over the classes the model assumes (recorded in its manifest; "
                          "the node's class_prior parameter overrides it): train (the training "
@@ -72,6 +78,12 @@ def main(argv=None):
         class_prior = parse_class_prior(args.class_prior) or 'train'
     except ValueError as e:
         ap.error(str(e))
+    if args.verifier_views is None:
+        args.verifier_views = 0 if args.scans else 6
+    if args.verifier_views < 0 or args.jobs < 1:
+        ap.error('--verifier-views must be >= 0 and --jobs >= 1')
+    if args.scans and args.verifier_views:
+        ap.error('--verifier-views needs objects in their canonical pose, not --scans')
     if args.mirror and not (args.scans and args.views == 0):
         ap.error('--mirror is for --scans with --views 0 (maximum-likelihood rule)')
     if args.point_classifier and not args.mirror:
@@ -128,7 +140,8 @@ def main(argv=None):
                         training=dict(inputs=[str(p) for p in args.inputs], congeal=args.congeal),
                         grids=grids, oof_path=args.oof_out,
                         row_standardize=AUTO_ON_OFF[args.row_standardize],
-                        descriptors=AUTO_ON_OFF[args.descriptors], class_prior=class_prior)
+                        descriptors=AUTO_ON_OFF[args.descriptors], class_prior=class_prior,
+                        verifier_views=args.verifier_views, processes=args.jobs)
         bank.save(args.out)
     except (ValueError, OSError) as e:
         print(f'beo-train: error: {e}', file=sys.stderr)

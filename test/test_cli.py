@@ -34,7 +34,8 @@ def trained(tmp_path_factory):
     write_npz(tmp / 'train.npz', count=8, seed=0)
     write_npz(tmp / 'test.npz', count=4, seed=1)
     rc = train.main([str(tmp / 'train.npz'), '-o', str(tmp / 'model'), '--k', '3',
-                     '--folds', '2', '--views', '1', '--pose-components', '3'])
+                     '--folds', '2', '--views', '1', '--pose-components', '3',
+                     '--verifier-views', '0'])
     return tmp, rc
 
 
@@ -159,9 +160,11 @@ def test_class_prior_flags(trained, tmp_path, capsys):
     # beo-train records the prior in the manifest and picks the classifier under it
     rc = train.main([str(tmp / 'train.npz'), '-o', str(tmp_path / 'm'), '--k', '3',
                      '--folds', '2', '--views', '1', '--pose-components', '3',
-                     '--class-prior', 'uniform'])
+                     '--class-prior', 'uniform', '--verifier-views', '1', '--jobs', '2'])
     assert rc == 0
     bank = ModelBank.load(tmp_path / 'm')
     assert bank.class_prior == 'uniform'
+    assert bank.verifier is not None and bank.training['verifier_views'] == 1
+    assert ModelBank.load(tmp / 'model').verifier is None
     cv = bank.training['cross_validation']['partial']
     assert cv['class_prior'] == 'uniform' and cv['prior_accuracy'] == cv['balanced_accuracy']

@@ -29,7 +29,7 @@ from .estimate import UNKNOWN_LABEL, Estimate, Hypothesis
 from .grid import GridSpec, yaw_matrix
 from .inference import FEATURE_NAMES, InferenceEngine, observed_edt, top_modes
 from .shape import DESCRIPTOR_NAMES as SHAPE_DESCRIPTORS, shape_descriptors
-from .verifier import TURNS, OrientationVerifier, check_arrays, turned_features
+from .verifier import TURNS, OrientationVerifier, check_arrays, quarter_turned_features
 
 FORMAT = 'beo_ros.models'
 VERSION = 1
@@ -729,7 +729,7 @@ class ModelBank:
         ll = [per_c['exact']['loglik']] + [
             self.engine.exact(grid, c, float(y), with_prediction=False)['loglik']
             for y in yaws[1:]]
-        logp = self.verifier.predict_log_proba(c, turned_features(grid, yaws))[:, 0]
+        logp = self.verifier.predict_log_proba(c, quarter_turned_features(grid, y0))[:, 0]
         score = np.asarray(ll) + float(self.verifier.weight) * logp
         k = int(np.argmax(score))
         if k == 0:
