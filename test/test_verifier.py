@@ -177,6 +177,13 @@ def test_bad_verifier_files_are_refused(bank, tmp_path, change, msg):
         ModelBank.load(path)
 
 
+def test_bank_refuses_an_unfitted_or_mismatched_verifier(bank):
+    with pytest.raises(ModelError, match='not fitted'):
+        ModelBank(bank.models, bank.spec, verifier=OrientationVerifier())
+    with pytest.raises(ModelError, match='distinct indices below 1'):
+        ModelBank(bank.models[:1], bank.spec, verifier=bank.verifier)
+
+
 def test_fit_bank_fits_a_verifier_when_asked():
     X, y = asymmetric_shapes(6, np.random.default_rng(0))
     b = fit_bank(X, y, ['ell', 'step'], GridSpec(size=N), k=3, pose_components=3,

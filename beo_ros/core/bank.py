@@ -334,6 +334,8 @@ class ModelBank:
         self.classifier = classifier
         self.class_prior = class_prior
         if verifier is not None:
+            if not hasattr(verifier, 'arrays_'):
+                raise ModelError('the orientation verifier is not fitted')
             reason = check_arrays(verifier.arrays_, len(models), spec.size)
             if reason:
                 raise ModelError(reason)
