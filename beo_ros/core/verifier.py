@@ -130,6 +130,19 @@ class OrientationVerifier:
         v.n_features_in_ = 3 * 512
         return v
 
+    def _walk_arrays(self):
+        """(feature, threshold, left, right) with every leaf pointing at itself (threshold
+        +max: 'go left' = stay), so a fixed number of steps needs no leaf test."""
+        if getattr(self, '_walk', None) is None or self._walk[0] is not self.arrays_:
+            a = self.arrays_
+            leaf = a['is_leaf'].astype(bool)
+            own = np.arange(len(leaf), dtype=np.int32)
+            self._walk = (a, np.where(leaf, 0, a['feature']).astype(np.intp),
+                          np.where(leaf, np.finfo(np.float32).max, a['threshold']),
+                          np.where(leaf, own, a['left']).astype(np.intp),
+                          np.where(leaf, own, a['right']).astype(np.intp))
+        return self._walk[1:]
+
     def has_class(self, c):
         return int(c) in self.classes_
 
@@ -137,15 +150,16 @@ class OrientationVerifier:
         """(m, 4) log-probabilities of the quarter turns for rows X (m, 1536) under class c's
         verifier."""
         a = self.arrays_
+        feature, threshold, left, right = self._walk_arrays()
         j = self.classes_.index(int(c))
         X = np.atleast_2d(np.asarray(X, dtype=np.float32))
         roots = a['roots'][j]                           # (iterations, 4) node indices
-        node = np.broadcast_to(roots.ravel(), (len(X), roots.size)).copy()
-        rows = np.arange(len(X))[:, None]
+        node = np.broadcast_to(roots.ravel(), (len(X), roots.size)).astype(np.intp)
+        flat = X.ravel()
+        base = (np.arange(len(X)) * X.shape[1])[:, None]
         for _ in range(int(a['depth'][j])):
-            leaf = a['is_leaf'][node]
-            left = X[rows, a['feature'][node]] <= a['threshold'][node]
-            node = np.where(leaf, node, np.where(left, a['left'][node], a['right'][node]))
+            go_left = flat[base + feature[node]] <= threshold[node]
+            node = np.where(go_left, left[node], right[node])
         raw = a['value'][node].reshape(len(X), *roots.shape).sum(axis=1, dtype=np.float64)
         raw += a['baseline'][j]
         raw -= raw.max(axis=1, keepdims=True)
