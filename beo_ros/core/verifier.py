@@ -6,8 +6,9 @@ likelihood of a linear Gaussian model weighs little. The verifier learns them di
 class, gradient-boosted trees (scikit-learn's ``HistGradientBoostingClassifier``) on the view
 turned into the model's frame (occupied, free and unknown fractions, pooled to 8^3) predict
 which of the turns 0, 90, 180 or 270° maps it onto the class's orientation. At query time the
-refined yaw and its three turns are each scored by exact log-likelihood + ``weight`` x log
-P(turn 0) (``ModelBank._verify_turns``).
+refined yaw and its three turns are scored by exact log-likelihood + ``weight`` x log
+P(turn 0) (``ModelBank._verify_turns``; a turn is solved only when the verifier prefers it to
+the refined yaw, the likelihood's own choice).
 
 The fitted trees are exported to flat arrays (no pickles in model directories) and evaluated
 in numpy; ``predict_log_proba`` equals scikit-learn's ``predict_proba`` (tested).
