@@ -175,11 +175,12 @@ def beo_predict(bank, yaw_step_deg=1.0):
     return predict
 
 
-def fit_beo(X, y, names, n, k, classifier_views, seed, folds=5):
+def fit_beo(X, y, names, n, k, classifier_views, seed, folds=5, verifier_views=0, processes=1):
     from beo_ros.core.grid import GridSpec
     from beo_ros.core.training import fit_bank
     return fit_bank(X, y, names, GridSpec(size=n), k=k, classifier_views=classifier_views,
-                    folds=folds, seed=seed, pose_components=min(8, k))
+                    folds=folds, seed=seed, pose_components=min(8, k),
+                    verifier_views=verifier_views, processes=processes)
 
 
 def fit_class_bank(X, y, names, n, k):
@@ -724,6 +725,9 @@ def parse_args(argv):
     ap.add_argument('--model', default=None,
                     help='use this bank for beo (must not have been trained on the queries)')
     ap.add_argument('--beo-classifier-views', type=int, default=1)
+    ap.add_argument('--beo-verifier-views', type=int, default=6,
+                    help="views per training object for beo's orientation verifier, as "
+                         'beo-train makes it (0: none; --quick: 0)')
     ap.add_argument('--icp-db-per-class', type=int, default=10)
     ap.add_argument('--icp-init-yaws', type=int, default=4)
     ap.add_argument('--paper-yaws', type=int, default=36)
@@ -766,6 +770,7 @@ def parse_args(argv):
         args.queries_per_class = min(args.queries_per_class, 3)
         args.repeats = min(args.repeats, 2)
         args.beo_classifier_views = 0
+        args.beo_verifier_views = 0
         args.icp_db_per_class = min(args.icp_db_per_class, 3)
         args.icp_init_yaws = min(args.icp_init_yaws, 4)
         args.k = min(args.k, 4 if p is None else 8)
@@ -814,9 +819,11 @@ def main(argv=None):
                                      'on the query objects)')
     else:
         log('[beo] fitting the bank on the training split')
-        bank = fit_beo(X[tr], y[tr], names, n, args.k, args.beo_classifier_views, args.seed)
+        bank = fit_beo(X[tr], y[tr], names, n, args.k, args.beo_classifier_views, args.seed,
+                       verifier_views=args.beo_verifier_views, processes=2)
         res['setup']['beo_model'] = (f'trained here on the split, classifier_views='
-                                     f'{args.beo_classifier_views}')
+                                     f'{args.beo_classifier_views}, verifier_views='
+                                     f'{args.beo_verifier_views}')
     fit_s = time.perf_counter() - t0
     log('[beo] queries')
     bank.estimate(queries[0]['grid'])  # warm-up
