@@ -131,6 +131,12 @@ class OrientationVerifier:
         v.n_features_in_ = 3 * 512
         return v
 
+    def __getstate__(self):
+        # the walk arrays are a cache of arrays_ (rebuilt on first use): not pickled
+        state = dict(self.__dict__)
+        state.pop('_walk', None)
+        return state
+
     def _walk_arrays(self):
         """(feature, threshold, left, right) with every leaf pointing at itself (threshold
         +max: 'go left' = stay), so a fixed number of steps needs no leaf test."""
