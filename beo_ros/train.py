@@ -12,8 +12,8 @@ import time
 
 import numpy as np
 
-from .core.grid import GridSpec
 from .core.bank import parse_class_prior
+from .core.grid import GridSpec
 from .core.training import fit_bank, load_meshes, load_voxel_npz
 
 

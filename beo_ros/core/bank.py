@@ -190,11 +190,10 @@ def parse_class_prior(text):
     return prior
 
 
-def prior_offset(clf, prior):
-    """Logit offsets (C,) that move a classifier dict from its training prior (its
-    ``class_counts``) to ``prior`` (C,) (Bayes' rule: p'(c|x) ~ p(c|x) prior_c / train_c),
-    or None when ``prior`` is None or the classifier has no class_counts."""
-    counts = clf.get('class_counts') if clf else None
+def prior_offset(counts, prior):
+    """Logit offsets (C,) that move a classifier from its training prior (its training rows
+    per class, ``counts`` (C,)) to ``prior`` (C,) (Bayes' rule: p'(c|x) ~ p(c|x) prior_c /
+    train_c), or None when ``prior`` or ``counts`` is None."""
     if prior is None or counts is None:
         return None
     counts = np.asarray(counts, dtype=np.float64)
@@ -385,7 +384,7 @@ class ModelBank:
     def _prior_offset(self, clf):
         """Logit offsets (C,) of ``clf`` for the bank's class prior, or None (see
         :func:`prior_offset`)."""
-        return prior_offset(clf, self._prior_weights)
+        return prior_offset(clf.get('class_counts'), self._prior_weights)
 
     def prior_note(self, mode):
         """Why the class prior is not applied to classifier ``mode`` ('' when it is, or when

@@ -175,11 +175,16 @@ def cross_validated_report(F, y, records, C=1.0, folds=5, seed=0, row_standardiz
     n_classes = F.shape[1] // nf
     counts = np.bincount(y, minlength=n_classes).astype(np.float64)
     weights = resolve_class_prior(class_prior, range(n_classes))
-    P0 = P
-    train_pred = classes[np.argmax(P, axis=1)]
-    if weights is not None:
-        P = P * np.exp(prior_offset(dict(class_counts=counts), weights))[classes]
-        P /= P.sum(axis=1, keepdims=True)
+
+    def under(prior):  # the cross-validated probabilities moved to another class prior
+        if prior is None:
+            return P
+        Q = P * np.exp(prior_offset(counts, prior))[classes]
+        return Q / Q.sum(axis=1, keepdims=True)
+
+    uniform = np.full(n_classes, 1.0 / n_classes)
+    train_pred, uniform_pred = (classes[np.argmax(under(w), axis=1)] for w in (None, uniform))
+    P = under(weights)
     pred = classes[np.argmax(P, axis=1)]
     ml = np.argmax(F[:, 0::nf], axis=1)
     recall = np.array([np.mean(pred[y == c] == c) for c in classes])
@@ -192,9 +197,7 @@ def cross_validated_report(F, y, records, C=1.0, folds=5, seed=0, row_standardiz
                log_loss=float(-np.mean(np.log(np.maximum(p_true, 1e-12)))),
                ece=expected_calibration_error(P.max(axis=1), pred == y))
     # the same classifier under the two named priors, whichever was asked for
-    uni = np.exp(prior_offset(dict(class_counts=counts), np.full(n_classes, 1.0 / n_classes)))
-    for name, pr in (('train', train_pred), ('uniform', classes[np.argmax(
-            P0 * uni[classes], axis=1)])):
+    for name, pr in (('train', train_pred), ('uniform', uniform_pred)):
         rep[f'accuracy_{name}_prior'] = float(np.mean(pr == y))
         rep[f'balanced_accuracy_{name}_prior'] = float(np.mean([np.mean(pr[y == c] == c)
                                                                 for c in classes]))

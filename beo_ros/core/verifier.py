@@ -20,6 +20,9 @@ import numpy as np
 from .grid import rotate_grid
 
 TURNS = 4
+# inputs: occupied, free and unknown fractions of the 8^3 pooled cells
+CELLS = 8 ** 3
+N_FEATURES = 3 * CELLS
 # weight of the verifier's log-probability against the exact log-likelihood of the known
 # voxels (a sum over thousands of voxels): chosen on 794 fold-0 views (true class, models and
 # verifier fitted without fold 0) and checked on 794 others; 300 .. 10000 all gave +2.7 to
@@ -41,7 +44,7 @@ def verifier_features(canonical):
     # one pass: every voxel counts in bin (channel, pooled cell); channel 0 occupied, 1 free,
     # 2 unknown (labels 1, 0, -1)
     cell = _cell_index(n)
-    counts = np.bincount((1 - g.ravel().astype(np.int64)) * 512 + cell, minlength=3 * 512)
+    counts = np.bincount((1 - g.ravel().astype(np.int64)) * CELLS + cell, minlength=N_FEATURES)
     return (counts / np.float32(f ** 3)).astype(np.float32)
 
 
@@ -128,7 +131,7 @@ class OrientationVerifier:
         v = cls(weight=float(arrays['weight']))
         v.arrays_ = {k: np.asarray(arrays[k]) for k in ARRAY_KEYS}
         v.classes_ = [int(c) for c in v.arrays_['classes']]
-        v.n_features_in_ = 3 * 512
+        v.n_features_in_ = N_FEATURES
         return v
 
     def __getstate__(self):
@@ -235,8 +238,8 @@ def check_arrays(arrays, n_classes, grid_size, where='verifier'):
     for k in ('left', 'right', 'roots'):
         if n == 0 or a[k].min() < 0 or a[k].max() >= n:
             return f'{where}: {k} indices outside the {n} nodes'
-    if a['feature'].min() < 0 or a['feature'].max() >= 3 * 512:
-        return f'{where}: feature indices outside the 1536 inputs'
+    if a['feature'].min() < 0 or a['feature'].max() >= N_FEATURES:
+        return f'{where}: feature indices outside the {N_FEATURES} inputs'
     if not all(np.isfinite(a[k]).all() for k in ('threshold', 'value', 'baseline', 'weight')) \
             or float(a['weight']) < 0:
         return f'{where}: thresholds, values, baseline and weight must be finite (weight >= 0)'
