@@ -21,7 +21,7 @@ import numpy as np
 from .core.bank import load_models, parse_class_prior
 from .core.grid import GridSpec, yaw_error
 from .core.synthetic import random_partial_view
-from .core.training import fit_bank, load_voxel_npz, progress_bar
+from .core.training import fit_bank, load_voxel_npz, progress_bar, stratified_folds
 
 
 def evaluate_bank(bank, X, y, names, rng, views=1, examples=6, progress=True):
@@ -154,14 +154,6 @@ def write_figure(summary, examples, path):
     fig.tight_layout()
     fig.savefig(path, dpi=80)
     plt.close(fig)
-
-
-def stratified_folds(y, k, rng):
-    fold = np.empty(len(y), dtype=int)
-    for c in np.unique(y):
-        idx = np.flatnonzero(y == c)
-        fold[idx] = rng.permutation(len(idx)) % k
-    return fold
 
 
 def main(argv=None):

@@ -18,10 +18,19 @@ every object that is not its own image under a quarter or half turn (IoU < 0.8),
 nearest objects of the same class (IoU of the aligned grids, the object left out) match it
 better after a turn of 90, 180 or 270 deg than as it is? If so, the class's own labelled
 orientations disagree with the object's, and a model learned from them will turn it.
+
+The third table is a learned bound: the orientation verifier itself
+(``beo_ros.core.verifier.OrientationVerifier``, same features and trees) fitted under k-fold
+cross-validation on *whole* objects at their labelled orientation and turned by 90, 180 and
+270 deg. An object counts as decided when the turn the verifier finds most likely to be the
+labelled orientation gives the labelled grid (so a turn that maps the object onto itself
+counts as right). A partial view shows less than the whole object and its yaw must also be
+found to within 10 deg first, so this is a generous ceiling for the verifier's part of "yaw
+within 10 deg" on partial views (``--folds 0`` skips it).
 Usage (from the repository root):
 
     .venv/bin/python scripts/yaw_ambiguity.py $BEO_DATA_DIR/modelnet10/modelnet10_vox32_train.npz \
-        [--every 5] [--seed 5] [--json out.json]
+        [--every 5] [--seed 5] [--folds 5] [--json out.json]
 """
 import argparse
 import json
@@ -30,7 +39,8 @@ import sys
 import numpy as np
 
 from beo_ros.core.synthetic import partial_view, random_partial_view, rotate_grid
-from beo_ros.core.training import load_voxel_npz, progress_bar
+from beo_ros.core.training import load_voxel_npz, progress_bar, stratified_folds
+from beo_ros.core.verifier import TURNS, OrientationVerifier, verifier_features
 
 THRESHOLDS = (1.0, 0.95, 0.9, 0.8)
 
@@ -69,15 +79,46 @@ def neighbour_turns(X, n, k=3):
     return self_iou, nn
 
 
+def learned_turn_decided(X, y, n, folds=5, seed=0, max_iter=300):
+    """(m,) bool: for objects X (m, n^3) with labels y (m,), is the labelled orientation the
+    quarter turn the orientation verifier, fitted on whole objects of the other folds, finds
+    most likely (or a turn giving the same grid)?"""
+    G = X.reshape(-1, n, n, n) > 0.5
+    turned = [np.rot90(G, t, axes=(1, 2)) for t in range(TURNS)]    # exact turns about z
+    F = np.stack([np.stack([verifier_features(g.astype(np.int8)) for g in T])
+                  for T in turned], axis=1)                          # (m, 4, features)
+    same = np.stack([(T == G).all(axis=(1, 2, 3)) for T in turned], axis=1)
+    fold = stratified_folds(y, folds, np.random.default_rng(seed))
+    decided = np.zeros(len(X), dtype=bool)
+    for f in progress_bar(range(folds), 'learned bound folds'):
+        tr, te = np.flatnonzero(fold != f), np.flatnonzero(fold == f)
+        ver = OrientationVerifier(max_iter=max_iter).fit(
+            F[tr].reshape(-1, F.shape[2]), np.tile(np.arange(TURNS), len(tr)),
+            np.repeat(y[tr], TURNS), n)
+        for c in np.unique(y[te]):
+            rows = te[y[te] == c]
+            if not ver.has_class(int(c)):
+                continue
+            # log P(this grid is the labelled orientation) of each of the four turned grids
+            logp0 = ver.predict_log_proba(int(c), F[rows].reshape(-1, F.shape[2]))[:, 0]
+            pick = logp0.reshape(-1, TURNS).argmax(axis=1)
+            decided[rows] = same[rows, pick]
+    return decided
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('data', help='voxel npz (keys voxels, labels, classes)')
     ap.add_argument('--every', type=int, default=5, help='use every n-th object (default 5)')
     ap.add_argument('--seed', type=int, default=5)
+    ap.add_argument('--folds', type=int, default=5,
+                    help='folds of the learned bound on whole objects (0: skip it)')
     ap.add_argument('--json', help='also write the numbers here')
     args = ap.parse_args(argv)
     if args.every < 1:
         ap.error('--every must be >= 1')
+    if args.folds == 1 or args.folds < 0:
+        ap.error('--folds must be 0 (skip) or >= 2')
     X, y, names, n = load_voxel_npz(args.data)
     idx = np.arange(0, len(X), args.every)
     rng = np.random.default_rng(args.seed)
@@ -110,6 +151,15 @@ def main(argv=None):
             prefer_half_turn=round(flip, 3))
         print(f'  {names[c]:12s} {int(asym.sum()):4d} of {int((y == c).sum()):4d} asymmetric; '
               f'neighbours prefer a turn {frac:.2f} (the half turn {flip:.2f})')
+    if args.folds:
+        decided = learned_turn_decided(X, y, n, args.folds, args.seed)
+        out['learned_turn_decided'] = dict(
+            folds=args.folds, all=round(float(decided.mean()), 4),
+            per_class={names[c]: round(float(decided[y == c].mean()), 3) for c in np.unique(y)})
+        print(f'\nwhole objects, learned ({args.folds}-fold; the orientation verifier fitted on '
+              f'whole objects): labelled quarter turn found for {decided.mean():.3f}')
+        print('  ' + ' '.join(f'{k} {v:.2f}'
+                              for k, v in out['learned_turn_decided']['per_class'].items()))
     if args.json:
         with open(args.json, 'w') as f:
             json.dump(out, f, indent=1)

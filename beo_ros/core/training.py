@@ -45,6 +45,16 @@ def fit_class_models(X, y, names, spec, k=20, masks=None, max_iter=200, tol=1e-5
     return models
 
 
+def stratified_folds(y, k, rng):
+    """(m,) fold index in 0..k-1 of labels y (m,): every class dealt round-robin over the
+    folds in a random order drawn from ``rng``."""
+    fold = np.empty(len(y), dtype=int)
+    for c in np.unique(y):
+        idx = np.flatnonzero(y == c)
+        fold[idx] = rng.permutation(len(idx)) % k
+    return fold
+
+
 # objects per chunk of the verifier's training views: every chunk has its own random stream,
 # so the views do not depend on how many processes make them
 VERIFIER_CHUNK = 64
@@ -386,10 +396,7 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
     classifier = None
     if classifier_views > 0:
         rng = np.random.default_rng(seed)
-        fold = np.empty(len(X), dtype=int)
-        for c in range(len(names)):
-            idx = np.flatnonzero(y == c)
-            fold[idx] = rng.permutation(len(idx)) % folds
+        fold = stratified_folds(y, folds, rng)
         feats = {'complete': [], 'partial': []}
         labels = {'complete': [], 'partial': []}
         records = {'complete': [], 'partial': []}
