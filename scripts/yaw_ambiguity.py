@@ -27,6 +27,7 @@ labelled orientation gives the labelled grid (so a turn that maps the object ont
 counts as right). A partial view shows less than the whole object and its yaw must also be
 found to within 10 deg first, so this is a generous ceiling for the verifier's part of "yaw
 within 10 deg" on partial views (``--folds 0`` skips it).
+
 Usage (from the repository root):
 
     .venv/bin/python scripts/yaw_ambiguity.py $BEO_DATA_DIR/modelnet10/modelnet10_vox32_train.npz \
