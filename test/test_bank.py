@@ -1128,3 +1128,16 @@ def test_cross_validated_report_under_both_priors():
     # the rare classes gain recall under the uniform prior, the common one loses accuracy
     assert un['balanced_accuracy'] > tr['balanced_accuracy']
     assert tr['accuracy'] >= un['accuracy']
+
+
+def test_stratified_folds_deal_every_class_evenly_and_repeat_with_the_seed():
+    from beo_ros.core.training import stratified_folds
+    y = np.repeat([0, 1, 2], [10, 7, 3])
+    fold = stratified_folds(y, 3, np.random.default_rng(4))
+    assert fold.shape == y.shape and set(fold) == {0, 1, 2}
+    for c, n in ((0, 10), (1, 7), (2, 3)):
+        counts = np.bincount(fold[y == c], minlength=3)
+        assert counts.max() - counts.min() <= 1 and counts.sum() == n
+    assert np.array_equal(fold, stratified_folds(y, 3, np.random.default_rng(4)))
+    assert not all(np.array_equal(fold, stratified_folds(y, 3, np.random.default_rng(s)))
+                   for s in range(5, 10))
