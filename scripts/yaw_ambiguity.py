@@ -41,7 +41,7 @@ import numpy as np
 
 from beo_ros.core.synthetic import partial_view, random_partial_view, rotate_grid
 from beo_ros.core.training import load_voxel_npz, progress_bar, stratified_folds
-from beo_ros.core.verifier import TURNS, OrientationVerifier, verifier_features
+from beo_ros.core.verifier import TURNS, OrientationVerifier, quarter_turned_features
 
 THRESHOLDS = (1.0, 0.95, 0.9, 0.8)
 
@@ -85,10 +85,11 @@ def learned_turn_decided(X, y, n, folds=5, seed=0, max_iter=300):
     quarter turn the orientation verifier, fitted on whole objects of the other folds, finds
     most likely (or a turn giving the same grid)?"""
     G = X.reshape(-1, n, n, n) > 0.5
-    turned = [np.rot90(G, t, axes=(1, 2)) for t in range(TURNS)]    # exact turns about z
-    F = np.stack([np.stack([verifier_features(g.astype(np.int8)) for g in T])
-                  for T in turned], axis=1)                          # (m, 4, features)
-    same = np.stack([(T == G).all(axis=(1, 2, 3)) for T in turned], axis=1)
+    # (m, 4, features): each object turned by exact quarter turns t (the pooled fractions
+    # turned, as at query time); same[i, t]: the turn leaves the object as it is
+    F = np.stack([quarter_turned_features(g.astype(np.int8), 0.0) for g in G])
+    same = np.stack([(np.rot90(G, t, axes=(2, 1)) == G).all(axis=(1, 2, 3))
+                     for t in range(TURNS)], axis=1)
     fold = stratified_folds(y, folds, np.random.default_rng(seed))
     decided = np.zeros(len(X), dtype=bool)
     for f in progress_bar(range(folds), 'learned bound folds'):

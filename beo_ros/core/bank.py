@@ -743,9 +743,8 @@ class ModelBank:
                 best_k, best_score = k, ll + w * logp[k]
         if best_k == 0:
             return per_c
-        k = best_k
-        y = float(yaws[k])
-        return dict(per_c, yaw=y, exact=self.engine.exact(grid, c, y), turned=k)
+        y = float(yaws[best_k])
+        return dict(per_c, yaw=y, exact=self.engine.exact(grid, c, y), turned=best_k)
 
     def estimate(self, grid, yaw=None, yaw_step_deg=1.0, n_hypotheses=5, exhaustive=True,
                  refine_deg=3.0, stage2_modes=6, stage2_window_deg=15.0, search_step_deg=None,
