@@ -1141,3 +1141,17 @@ def test_stratified_folds_deal_every_class_evenly_and_repeat_with_the_seed():
     assert np.array_equal(fold, stratified_folds(y, 3, np.random.default_rng(4)))
     assert not all(np.array_equal(fold, stratified_folds(y, 3, np.random.default_rng(s)))
                    for s in range(5, 10))
+
+
+def test_cholesky_terms_match_numpy_and_refuse_an_indefinite_matrix():
+    from beo_ros.core.inference import cholesky_terms
+    rng = np.random.default_rng(4)
+    A = rng.standard_normal((6, 9))
+    G = np.eye(6) + A @ A.T
+    b = rng.standard_normal(6)
+    quad, logdet, x = cholesky_terms(G, b)
+    np.testing.assert_allclose(x, np.linalg.solve(G, b), rtol=1e-10)
+    np.testing.assert_allclose(quad, b @ np.linalg.solve(G, b), rtol=1e-10)
+    np.testing.assert_allclose(logdet, np.linalg.slogdet(G)[1], rtol=1e-10)
+    with pytest.raises(np.linalg.LinAlgError):
+        cholesky_terms(-G, b)

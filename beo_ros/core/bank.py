@@ -569,13 +569,15 @@ class ModelBank:
         features for a labelled grid.
 
         Returns (features (C, F), list of per-class dicts: yaw, exact, hypotheses, searched,
-        search_step_deg, pooled (the grid's pooled weights, shared)).
+        search_step_deg, pooled and observed (the grid's pooled weights and its
+        ``InferenceEngine.observe`` arrays, shared)).
         """
         grid = self.check_grid(grid)
         if not 0.05 <= yaw_step_deg <= 90:
             raise ValueError(f'yaw_step_deg must be in [0.05, 90], got {yaw_step_deg}')
         eng = self.engine
         pooled = eng.pooled(grid)
+        obs = eng.observe(grid)
         if yaw is None:
             best_yaw, best_ll, searched = eng.search(grid, yaw_step_deg, exhaustive=exhaustive,
                                                      pooled=pooled)
@@ -587,12 +589,12 @@ class ModelBank:
         n_pooled = grid.size / 8.0
         feats, per = [], []
         for c in range(eng.C):
-            ex = eng.exact(grid, c, float(best_yaw[c]))
+            ex = eng.exact(obs, c, float(best_yaw[c]))
             feats.append(eng.features(ex, c, best_ll[c] / n_pooled, edt_pad[ex['idx']]))
             yaws_c, ll_c = searched[c]
             modes = top_modes(ll_c, 3, max(1, int(round(20.0 / yaw_step_deg))))
             per.append(dict(yaw=float(best_yaw[c]), exact=ex, searched=searched[c],
-                            search_step_deg=float(yaw_step_deg), pooled=pooled,
+                            search_step_deg=float(yaw_step_deg), pooled=pooled, observed=obs,
                             hypotheses=[(float(yaws_c[i]), float(ll_c[i])) for i in modes]))
         return np.array(feats), per
 
@@ -663,6 +665,10 @@ class ModelBank:
         degrees apart, and its optimum is sometimes 10-20 degrees off the full-resolution one).
         ``window_deg`` 0 skips the probes and the climb."""
         best = per_c
+        eng = self.engine
+        obs = per_c.get('observed')
+        if obs is None:
+            obs = eng.observe(grid)
         if stage2_step_deg:
             step = np.deg2rad(stage2_step_deg)
             yaws = np.arange(int(round(2 * np.pi / step))) * step
@@ -685,7 +691,7 @@ class ModelBank:
             modes = top_modes(ll, 3, max(1, int(round(20.0 / stage2_step_deg))))
             modes = [i for i in modes if np.isfinite(ll[i])]
             y0 = float(yaws[modes[0]])
-            best = dict(per_c, yaw=y0, exact=self.engine.exact(grid, c, y0),
+            best = dict(per_c, yaw=y0, exact=eng.exact(obs, c, y0, with_prediction=False),
                         hypotheses=[(float(yaws[i]), float(ll[i])) for i in modes])
         if window_deg > 0 and probe_deg:
             # exact solves a little further out: on 794 partial views of fold 0 (true class)
@@ -693,15 +699,12 @@ class ModelBank:
             # flips from 0.902 to 0.918 for about 5 ms; probes at the other pooled modes or at the
             # 90 and 180 deg turns did not help (the pooled ranking of distant modes is better)
             y0, top = best['yaw'], best['exact']['loglik']
-            win = None
             for off in probe_deg:
                 for sign in (1, -1):
                     y = float(y0 + sign * np.deg2rad(off))
-                    ll = self.engine.exact(grid, c, y, with_prediction=False)['loglik']
-                    if ll > top:
-                        top, win = ll, y
-            if win is not None:
-                best = dict(best, yaw=win, exact=self.engine.exact(grid, c, win))
+                    ex = eng.exact(obs, c, y, with_prediction=False)
+                    if ex['loglik'] > top:
+                        top, best = ex['loglik'], dict(best, yaw=y, exact=ex)
         # hill climbing in step_deg steps up to +-window_deg (the full-resolution likelihood is
         # smooth at this scale, up to the plateaus of the nearest-neighbour rotation, which the
         # climb walks across): 2-4 exact solves instead of a scan of the whole window
@@ -710,7 +713,7 @@ class ModelBank:
             top = best['exact']['loglik']
             for i in range(1, int(round(window_deg / step_deg)) + 1):
                 y = float(y0 + direction * i * step)
-                ex = self.engine.exact(grid, c, y)
+                ex = eng.exact(obs, c, y, with_prediction=False)
                 if ex['loglik'] < top:
                     break
                 top = ex['loglik']
@@ -718,6 +721,7 @@ class ModelBank:
                     best = dict(best, yaw=y, exact=ex)
             if best['yaw'] != y0:
                 break
+        eng.add_prediction(best['exact'], obs, c)
         return best
 
     def _verify_turns(self, grid, c, per_c):
@@ -734,17 +738,21 @@ class ModelBank:
         # fold 0); skipping them changed 0.5 % of the choices and none of the accuracy, and
         # saves 3 exact solves on most views (0.26 per view instead of 3)
         w = float(self.verifier.weight)
-        best_k, best_score = 0, per_c['exact']['loglik'] + w * logp[0]
+        eng = self.engine
+        obs = per_c.get('observed')
+        if obs is None:
+            obs = eng.observe(grid)
+        best_k, best_score, best_ex = 0, per_c['exact']['loglik'] + w * logp[0], None
         for k in range(1, TURNS):
             if logp[k] <= logp[0]:
                 continue
-            ll = self.engine.exact(grid, c, float(yaws[k]), with_prediction=False)['loglik']
-            if ll + w * logp[k] > best_score:
-                best_k, best_score = k, ll + w * logp[k]
+            ex = eng.exact(obs, c, float(yaws[k]), with_prediction=False)
+            if ex['loglik'] + w * logp[k] > best_score:
+                best_k, best_score, best_ex = k, ex['loglik'] + w * logp[k], ex
         if best_k == 0:
             return per_c
-        y = float(yaws[best_k])
-        return dict(per_c, yaw=y, exact=self.engine.exact(grid, c, y), turned=best_k)
+        return dict(per_c, yaw=float(yaws[best_k]), exact=eng.add_prediction(best_ex, obs, c),
+                    turned=best_k)
 
     def estimate(self, grid, yaw=None, yaw_step_deg=1.0, n_hypotheses=5, exhaustive=True,
                  refine_deg=3.0, stage2_modes=6, stage2_window_deg=15.0, search_step_deg=None,

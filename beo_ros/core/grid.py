@@ -73,13 +73,10 @@ def yaw_error(a, b):
     return np.abs((np.asarray(a) - np.asarray(b) + np.pi) % (2 * np.pi) - np.pi)
 
 
-def yaw_source_index(n: int, yaws: np.ndarray) -> np.ndarray:
-    """Nearest-neighbour gather maps for rotating an (n, n, n) grid by each yaw about +z.
-
-    Returns int32 (len(yaws), n**3): flat index into the *source* grid for every voxel of the
-    rotated grid, or ``n**3`` (one past the end) where the source lies outside the grid. The
-    rotated grid is ``src_padded[idx]`` with ``src_padded = append(src.ravel(), fill)``.
-    """
+def yaw_column_index(n: int, yaws: np.ndarray) -> np.ndarray:
+    """Nearest-neighbour gather maps of the grid columns (x, y) for rotating an (n, n, n) grid
+    by each yaw about +z: int64 (len(yaws), n**2), the source column x * n + y of every column
+    of the rotated grid, or ``n**2`` where the source lies outside the grid."""
     yaws = np.atleast_1d(np.asarray(yaws, dtype=np.float64))
     c = (n - 1) / 2.0
     ii, jj = np.meshgrid(np.arange(n) - c, np.arange(n) - c, indexing='ij')
@@ -88,10 +85,19 @@ def yaw_source_index(n: int, yaws: np.ndarray) -> np.ndarray:
     sx = np.rint(ct * ii + st * jj + c).astype(np.int64)
     sy = np.rint(-st * ii + ct * jj + c).astype(np.int64)
     inside = (sx >= 0) & (sx < n) & (sy >= 0) & (sy < n)
-    col = np.where(inside, sx * n * n + sy * n, -1)  # (Y, n, n) base index of each column
-    k = np.arange(n)
-    idx = np.where(col[..., None] >= 0, col[..., None] + k, n ** 3)
-    return idx.reshape(len(yaws), n ** 3).astype(np.int32)
+    return np.where(inside, sx * n + sy, n * n).reshape(len(yaws), n * n)
+
+
+def yaw_source_index(n: int, yaws: np.ndarray) -> np.ndarray:
+    """Nearest-neighbour gather maps for rotating an (n, n, n) grid by each yaw about +z.
+
+    Returns int32 (len(yaws), n**3): flat index into the *source* grid for every voxel of the
+    rotated grid, or ``n**3`` (one past the end) where the source lies outside the grid. The
+    rotated grid is ``src_padded[idx]`` with ``src_padded = append(src.ravel(), fill)``.
+    """
+    col = yaw_column_index(n, yaws)
+    idx = np.where(col[..., None] < n * n, col[..., None] * n + np.arange(n), n ** 3)
+    return idx.reshape(len(col), n ** 3).astype(np.int32)
 
 
 def rotate_grid(grid: np.ndarray, yaw: float, fill=0) -> np.ndarray:

@@ -22,10 +22,10 @@ import threading
 
 import numpy as np
 from scipy import ndimage
-from scipy.linalg import solve_triangular
+from scipy.linalg import lapack
 from scipy.special import ndtr
 
-from .grid import yaw_source_index
+from .grid import yaw_column_index, yaw_source_index
 
 LOG2PI = float(np.log(2 * np.pi))
 FEATURE_NAMES = ('loglik', 'coarse_loglik', 'rmse', 'recall', 'false_occupied', 'dt_error')
@@ -41,11 +41,9 @@ def batched_cholesky_terms(G, b, lapack_below=0):
     """
     B, k, _ = G.shape
     if B < lapack_below:
-        L = np.linalg.cholesky(G)
-        z = np.stack([solve_triangular(L[i], b[i], lower=True) for i in range(B)])
-        x = np.stack([solve_triangular(L[i], z[i], lower=True, trans='T') for i in range(B)])
-        logdet = 2 * np.log(np.diagonal(L, axis1=1, axis2=2)).sum(axis=1)
-        return (z ** 2).sum(axis=1), logdet, x
+        out = [cholesky_terms(G[i], b[i]) for i in range(B)]
+        return (np.array([o[0] for o in out]), np.array([o[1] for o in out]),
+                np.stack([o[2] for o in out]) if B else np.zeros_like(b))
     L = np.zeros_like(G)
     for j in range(k):
         d = G[:, j, j] - np.einsum('bi,bi->b', L[:, j, :j], L[:, j, :j])
@@ -62,6 +60,19 @@ def batched_cholesky_terms(G, b, lapack_below=0):
         x[:, j] = (z[:, j] - np.einsum('bi,bi->b', L[:, j + 1:, j], x[:, j + 1:])) / L[:, j, j]
     logdet = 2 * np.log(np.diagonal(L, axis1=1, axis2=2)).sum(axis=1)
     return (z ** 2).sum(axis=1), logdet, x
+
+
+def cholesky_terms(G, b):
+    """For one SPD G (k, k) float64 and b (k,): (b^T G^-1 b, log|G|, G^-1 b (k,)) by LAPACK
+    (called directly: the wrappers of numpy and scipy cost more than the solve at k ~ 20).
+
+    Raises numpy.linalg.LinAlgError when G is not positive definite."""
+    L, info = lapack.dpotrf(G, lower=1)
+    if info != 0:
+        raise np.linalg.LinAlgError(f'matrix is not positive definite (LAPACK potrf info {info})')
+    z, _ = lapack.dtrtrs(L, b, lower=1)
+    x, _ = lapack.dpotrs(L, b, lower=1)
+    return float(z @ z), float(2 * np.log(np.diagonal(L)).sum()), x
 
 
 def pool2(a):
@@ -89,9 +100,6 @@ class InferenceEngine:
         self.mu = np.ascontiguousarray(mu, dtype=np.float32)
         self.v = np.asarray(v, dtype=np.float64)
         self.v_coarse = np.asarray(v_coarse, dtype=np.float64)
-        self.gram = np.einsum('cda,cdb->cab', self.W, self.W, dtype=np.float64)   # (C, k, k)
-        self.wmu = np.einsum('cda,cd->ca', self.W, self.mu, dtype=np.float64)     # (C, k)
-        self.mu2 = (self.mu.astype(np.float64) ** 2).sum(axis=1)                   # (C,)
         # voxels where a class model is not exactly zero (never-occupied voxels have W = 0 and
         # mu = 0): the exact posterior only needs these rows
         self.support = np.any(self.W != 0, axis=2) | (self.mu != 0)               # (C, d)
@@ -105,9 +113,69 @@ class InferenceEngine:
         # built here, not on first use: no slow first queries
         self._full_terms = [self._full_class_terms(c, noise) for c, noise in
                             enumerate(coarse_noise_maps or [None] * self.C)]
+        # [W | mu] per class (C, d, k + 1): the exact posterior's weighted sums over voxels are
+        # the blocks of one augmented gram A^T diag(w) A (see ``exact``)
+        self._Wmu = np.ascontiguousarray(np.concatenate([self.W, self.mu[:, :, None]], axis=2))
+        # per class and grid column (x, y): the sums over z of the upper triangle of A A^T
+        # (float64), so the sums over all voxels for a yaw are one (n^2,) product: the
+        # nearest-neighbour rotation moves whole columns, each canonical column showing in
+        # 0, 1, 2 or 3 observed ones
+        self._tri = np.triu_indices(self.k + 1)
+        self._col_terms = [self._column_terms(c) for c in range(self.C)]
+        self._supp_cols = self.support.reshape(self.C, n * n, n).sum(axis=2).astype(np.float64)
         self._maps = {}
         self._full_maps = {}
+        self._col_counts = {}
+        self._yaw_terms = {}
         self._local = threading.local()
+        # the yaw terms of every whole degree (what searches and refinements ask for), also
+        # built here rather than on first use
+        self._fill_yaw_terms(np.deg2rad(np.arange(360.0)))
+
+    def _column_terms(self, c):
+        """(n^2, (k+1)(k+2)/2) float64: per grid column of class c the sums over z of the upper
+        triangle of a a^T, a = [W | mu] of the column's voxels."""
+        n = self.n
+        A = self._Wmu[c].astype(np.float64).reshape(n * n, n, self.k + 1)
+        return np.einsum('rza,rzb->rab', A, A)[:, self._tri[0], self._tri[1]]
+
+    def _fill_yaw_terms(self, yaws):
+        """Cache ``_column_counts`` and ``_class_yaw_terms`` of ``yaws`` for every class."""
+        n2 = self.n ** 2
+        cols = yaw_column_index(self.n, yaws)
+        Y = len(yaws)
+        counts = np.bincount((cols + (np.arange(Y) * (n2 + 1))[:, None]).ravel(),
+                             minlength=Y * (n2 + 1)).reshape(Y, n2 + 1)[:, :n2]
+        counts = counts.astype(np.float64)
+        keys = [round(float(np.mod(y, 2 * np.pi)), 9) for y in yaws]
+        for key, cnt in zip(keys, counts):
+            self._col_counts[key] = cnt
+        for c in range(self.C):
+            tot = counts @ self._col_terms[c]
+            shown = (counts > 0) @ self._supp_cols[c]
+            for key, t, sh, cnt in zip(keys, tot, shown, counts):
+                self._yaw_terms[(key, c)] = self._yaw_terms_entry(t, sh, cnt)
+
+    def _yaw_terms_entry(self, tot, shown, counts):
+        aug = np.zeros((self.k + 1, self.k + 1))
+        aug[self._tri] = tot
+        aug = aug + np.triu(aug, 1).T
+        return aug, int(round(float(shown))), counts.astype(np.int64)
+
+    def _class_yaw_terms(self, c, yaw):
+        """For class c rotated by ``yaw`` into the observed frame: (k+1, k+1) float64
+        sum_p cM[p] a_p a_p^T over canonical voxels p, a = [W | mu], cM[p] the number of
+        observed voxels showing p; the count of support voxels shown at least once; and cM per
+        grid column (n^2,) int64. Cached per (yaw, class)."""
+        key = (round(float(np.mod(yaw, 2 * np.pi)), 9), c)
+        out = self._yaw_terms.get(key)
+        if out is None:
+            counts = self._column_counts(yaw)
+            out = self._yaw_terms_entry(counts @ self._col_terms[c],
+                                        (counts > 0) @ self._supp_cols[c], counts)
+            if len(self._yaw_terms) < 2 * 360 * self.C:
+                self._yaw_terms[key] = out
+        return out
 
     def _pooled_terms(self, classes, kp, noise=None):
         """Per pooled voxel and class: [pairs | mu*W | mu^2] (dc, C', m) to be weighted by D and
@@ -190,6 +258,19 @@ class InferenceEngine:
             if len(self._full_maps) < 720:
                 self._full_maps[key] = idx
         return idx
+
+    def _column_counts(self, yaw):
+        """(n^2,) float64: how many observed grid columns show each canonical column when the
+        model is rotated by ``yaw`` into the observed frame (cached per yaw)."""
+        key = round(float(np.mod(yaw, 2 * np.pi)), 9)
+        counts = self._col_counts.get(key)
+        if counts is None:
+            n2 = self.n ** 2
+            counts = np.bincount(yaw_column_index(self.n, [yaw])[0],
+                                 minlength=n2 + 1)[:n2].astype(np.float64)
+            if len(self._col_counts) < 720:
+                self._col_counts[key] = counts
+        return counts
 
     def to_observed(self, values, yaw, fill=0.0):
         """Rotate canonical-frame voxel values (d,) by ``yaw`` into the observed frame (d,)."""
@@ -320,59 +401,81 @@ class InferenceEngine:
                 np.array([llc[i] for (_, llc), i in zip(per, best)]), per)
 
     # ------------------------------------------------------------------ exact posterior
+    def observe(self, grid):
+        """The per-grid arrays that every ``exact`` call on ``grid`` (N, N, N) int8 needs."""
+        if isinstance(grid, Observation):
+            return grid
+        g = np.ascontiguousarray(grid, dtype=np.int8).ravel()
+        if g.size != self.d:
+            raise ValueError(f'grid must have {self.d} voxels, got {g.size}')
+        return Observation(g)
+
     def exact(self, grid, c, yaw, with_prediction=True):
         """Exact full-resolution posterior of class ``c`` at ``yaw``.
 
-        Returns a dict: loglik, n_known, m (k,), G (k, k), rr, and (with_prediction) the rotated
-        canonical labels ``canon`` (d,) int8 and prediction ``pred`` (d,) in the canonical frame.
+        ``grid``: (N, N, N) int8 labels or ``self.observe(grid)`` (faster for repeated calls).
+        Returns a dict: loglik, n_known, m (k,), G (k, k), rr, b, idx, and (with_prediction) the
+        rotated canonical labels ``canon`` (d,) int8 and prediction ``pred`` (d,) in the
+        canonical frame (``add_prediction`` adds them later).
         """
-        idx = self._full_map(yaw)
-        canon = np.take(np.append(grid.ravel(), np.int8(0)), idx)  # outside the grid: free
-        W, mu, v = self.W[c], self.mu[c], self.v[c]
+        obs = self.observe(grid)
+        k, n, d, v = self.k, self.n, self.d, self.v[c]
+        A = self._Wmu[c]
         # the likelihood is of the observation as it is: observed voxel q is explained by
-        # canonical voxel inv[q] (the model rotated by yaw; d: outside, explained as empty)
-        g = grid.ravel()
+        # canonical voxel inv[q] (the model rotated by yaw; d: outside, explained as empty).
+        # Canonical voxel p explains cK[p] = cM[p] - cU[p] known voxels: cM[p] observed voxels
+        # show it (0-3, the same along a grid column), cU[p] of them are unknown
         inv = self._full_map(-yaw)
-        d = self.d
-        cK = np.bincount(inv[g >= 0], minlength=d + 1)[:d]
-        cO = np.bincount(inv[g == 1], minlength=d + 1)[:d]
-        nk = int(np.count_nonzero(g >= 0))
-        n_occ = int(np.count_nonzero(g == 1))
-        # the gram, W^T mu and |mu|^2 weighted by cK: from the precomputed float64 totals
-        # corrected where cK != 1, or directly, whichever touches fewer rows. Long sums over
-        # rows run in float32 (BLAS) and are added to float64; with few known voxels and a
-        # small v a float32 *difference* of grams made G indefinite, but then the direct sum
-        # over the few known rows is taken, in float64
+        aug_M, n_shown, col_M = self._class_yaw_terms(c, yaw)
+        cU = np.bincount(np.take(inv, obs.unknown), minlength=d + 1)[:d]
         supp = self.support[c]
-        N = np.flatnonzero((cK != 1) & supp)
-        P = np.flatnonzero(cK * supp)
-        rows, base = (N, 1.0) if len(N) < len(P) else (P, 0.0)
-        w = cK[rows].astype(np.float32) - np.float32(base)
-        WR = np.take(W, rows, axis=0)
-        muR = np.take(mu, rows)
-        if len(rows) < 4096:   # cheap anyway: float64 where a few rows carry all the evidence
-            w, WR, muR = w.astype(np.float64), WR.astype(np.float64), muR.astype(np.float64)
-        wmuR = w * muR
-        gram = (WR * w[:, None]).T @ WR
-        wmu = wmuR @ WR
-        mu2 = float(wmuR.astype(np.float64) @ muR)
-        if base:
-            gram, wmu, mu2 = self.gram[c] + gram, self.wmu[c] + wmu, self.mu2[c] + mu2
+        U = np.flatnonzero(cU)
+        U = U[supp[U]]
+        wU = cU[U]
+        n_known_rows = n_shown - int(np.count_nonzero(wU == col_M[U // n]))
+        # the augmented gram of the known voxels, sum_p cK[p] a_p a_p^T: the cM-weighted one
+        # (column sums, float64) minus the unknown rows, or directly over the known rows,
+        # whichever touches fewer rows. Long sums run in float32 (BLAS) and are added to
+        # float64; with few known voxels and a small v a float32 *difference* made G
+        # indefinite, but then the direct sum over the few known rows is taken, in float64
+        if len(U) <= n_known_rows:
+            rows, w, sign = U, wU, -1.0
         else:
-            gram, wmu = gram.astype(np.float64), wmu.astype(np.float64)
-        O = np.flatnonzero(cO)
-        wO = cO[O].astype(np.float64)
-        b = (wO @ np.take(W, O, axis=0).astype(np.float64) - wmu) / v
-        rr = n_occ - 2 * wO @ np.take(mu, O).astype(np.float64) + mu2
-        G = np.eye(self.k) + gram / v
-        quad, logdet, m = batched_cholesky_terms(G[None], b[None], lapack_below=2)
-        ll = -0.5 * (nk * np.log(2 * np.pi * v) + rr / v - quad[0] + logdet[0])
-        out = dict(loglik=float(ll), n_known=int(nk), m=m[0], G=G, rr=float(rr), b=b,
-                   idx=idx)
+            cK = np.repeat(col_M, n) - cU
+            rows = np.flatnonzero(cK * supp)
+            w, sign = cK[rows], 1.0
+        AR = np.take(A, rows, axis=0)
+        if len(rows) < 4096:   # cheap anyway: float64 where a few rows carry all the evidence
+            AR = AR.astype(np.float64)
+        AR *= np.sqrt(w, dtype=AR.dtype)[:, None]
+        aug = (AR.T @ AR).astype(np.float64)
+        if sign < 0:
+            aug = aug_M - aug
+        gram, wmu, mu2 = aug[:k, :k], aug[:k, k], aug[k, k]
+        O, wO = np.unique(np.take(inv, obs.occupied), return_counts=True)
+        if len(O) and O[-1] == d:
+            O, wO = O[:-1], wO[:-1]
+        occ = wO.astype(np.float64) @ np.take(A, O, axis=0).astype(np.float64)
+        b = (occ[:k] - wmu) / v
+        rr = obs.n_occupied - 2 * occ[k] + mu2
+        G = np.eye(k) + gram / v
+        quad, logdet, m = cholesky_terms(G, b)
+        nk = obs.n_known
+        ll = -0.5 * (nk * np.log(2 * np.pi * v) + rr / v - quad + logdet)
+        out = dict(loglik=float(ll), n_known=int(nk), m=m, G=G, rr=float(rr), b=b,
+                   idx=self._full_map(yaw))
         if with_prediction:
-            out['canon'] = canon
-            out['pred'] = W @ m[0].astype(np.float32) + mu
+            self.add_prediction(out, obs, c)
         return out
+
+    def add_prediction(self, ex, grid, c):
+        """Add ``canon`` (the observation rotated into the canonical frame, free outside) and
+        ``pred`` (W m + mu) (d,) to the result ``ex`` of ``exact(grid, c, ...)``; returns it."""
+        if 'pred' not in ex:
+            obs = self.observe(grid)
+            ex['canon'] = np.take(obs.padded, ex['idx'])
+            ex['pred'] = self.W[c] @ ex['m'].astype(np.float32) + self.mu[c]
+        return ex
 
     def features(self, ex, c, coarse_ll, edt_obs_canon):
         """Classification features of one exact posterior (see FEATURE_NAMES)."""
@@ -412,6 +515,22 @@ class InferenceEngine:
             var += mu_var
         prob = ndtr((mean - 0.5) / np.sqrt(var))
         return prob.astype(np.float32), mean.astype(np.float32), var.astype(np.float32)
+
+
+class Observation:
+    """A labelled grid flattened (d,) int8, with what ``InferenceEngine.exact`` needs of it:
+    the flat indices of its unknown and occupied voxels, the counts of known and occupied
+    voxels, and the labels padded with a free voxel (the gathers' outside)."""
+
+    __slots__ = ('labels', 'padded', 'unknown', 'occupied', 'n_known', 'n_occupied')
+
+    def __init__(self, labels):
+        self.labels = labels
+        self.padded = np.append(labels, np.int8(0))
+        self.unknown = np.flatnonzero(labels < 0)
+        self.occupied = np.flatnonzero(labels == 1)
+        self.n_known = labels.size - len(self.unknown)
+        self.n_occupied = len(self.occupied)
 
 
 def observed_edt(grid):
