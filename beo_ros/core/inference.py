@@ -25,7 +25,7 @@ from scipy import ndimage
 from scipy.linalg import lapack
 from scipy.special import ndtr
 
-from .grid import yaw_column_index, yaw_source_index
+from .grid import yaw_source_index
 
 LOG2PI = float(np.log(2 * np.pi))
 FEATURE_NAMES = ('loglik', 'coarse_loglik', 'rmse', 'recall', 'false_occupied', 'dt_error')
@@ -60,6 +60,11 @@ def batched_cholesky_terms(G, b, lapack_below=0):
         x[:, j] = (z[:, j] - np.einsum('bi,bi->b', L[:, j + 1:, j], x[:, j + 1:])) / L[:, j, j]
     logdet = 2 * np.log(np.diagonal(L, axis1=1, axis2=2)).sum(axis=1)
     return (z ** 2).sum(axis=1), logdet, x
+
+
+def yaw_key(yaw):
+    """The cache key of a yaw (radians): its value in [0, 2 pi) rounded to 1e-9."""
+    return round(float(np.mod(yaw, 2 * np.pi)), 9) % round(2 * np.pi, 9)
 
 
 def cholesky_terms(G, b):
@@ -130,7 +135,7 @@ class InferenceEngine:
         self._local = threading.local()
         # the yaw terms of every whole degree (what searches and refinements ask for), also
         # built here rather than on first use
-        self._fill_yaw_terms(np.deg2rad(np.arange(360.0)))
+        self._fill_yaw_terms(-np.deg2rad(np.arange(360.0)))
 
     def _column_terms(self, c):
         """(n^2, (k+1)(k+2)/2) float64: per grid column of class c the sums over z of the upper
@@ -140,16 +145,9 @@ class InferenceEngine:
         return np.einsum('rza,rzb->rab', A, A)[:, self._tri[0], self._tri[1]]
 
     def _fill_yaw_terms(self, yaws):
-        """Cache ``_column_counts`` and ``_class_yaw_terms`` of ``yaws`` for every class."""
-        n2 = self.n ** 2
-        cols = yaw_column_index(self.n, yaws)
-        Y = len(yaws)
-        counts = np.bincount((cols + (np.arange(Y) * (n2 + 1))[:, None]).ravel(),
-                             minlength=Y * (n2 + 1)).reshape(Y, n2 + 1)[:, :n2]
-        counts = counts.astype(np.float64)
-        keys = [round(float(np.mod(y, 2 * np.pi)), 9) for y in yaws]
-        for key, cnt in zip(keys, counts):
-            self._col_counts[key] = cnt
+        """Cache the column counts and ``_class_yaw_terms`` of ``yaws`` for every class."""
+        keys = [yaw_key(y) for y in yaws]
+        counts = np.stack([self._column_counts(k) for k in keys])     # (Y, n^2)
         for c in range(self.C):
             tot = counts @ self._col_terms[c]
             shown = (counts > 0) @ self._supp_cols[c]
@@ -162,19 +160,18 @@ class InferenceEngine:
         aug = aug + np.triu(aug, 1).T
         return aug, int(round(float(shown))), counts.astype(np.int64)
 
-    def _class_yaw_terms(self, c, yaw):
-        """For class c rotated by ``yaw`` into the observed frame: (k+1, k+1) float64
-        sum_p cM[p] a_p a_p^T over canonical voxels p, a = [W | mu], cM[p] the number of
-        observed voxels showing p; the count of support voxels shown at least once; and cM per
-        grid column (n^2,) int64. Cached per (yaw, class)."""
-        key = (round(float(np.mod(yaw, 2 * np.pi)), 9), c)
-        out = self._yaw_terms.get(key)
+    def _class_yaw_terms(self, c, key):
+        """For class c rotated into the observed frame by the yaw of ``key`` (``yaw_key``):
+        (k+1, k+1) float64 sum_p cM[p] a_p a_p^T over canonical voxels p, a = [W | mu],
+        cM[p] the number of observed voxels showing p; the count of support voxels shown at
+        least once; and cM per grid column (n^2,) int64. Cached per (key, class)."""
+        out = self._yaw_terms.get((key, c))
         if out is None:
-            counts = self._column_counts(yaw)
+            counts = self._column_counts(key)
             out = self._yaw_terms_entry(counts @ self._col_terms[c],
                                         (counts > 0) @ self._supp_cols[c], counts)
             if len(self._yaw_terms) < 2 * 360 * self.C:
-                self._yaw_terms[key] = out
+                self._yaw_terms[(key, c)] = out
         return out
 
     def _pooled_terms(self, classes, kp, noise=None):
@@ -250,24 +247,26 @@ class InferenceEngine:
         return out
 
     def _full_map(self, yaw):
-        """Full-resolution gather map rotating the observation by -yaw (cached per yaw)."""
-        key = round(float(np.mod(yaw, 2 * np.pi)), 9)
+        """Full-resolution gather map (d,) int32 rotating the observation by -yaw, or the
+        canonical frame into the observed one for -yaw (cached per ``yaw_key``: every map,
+        count and term of a key is made from the key's yaw, so they always agree)."""
+        key = yaw_key(yaw)
         idx = self._full_maps.get(key)
         if idx is None:
-            idx = yaw_source_index(self.n, [-yaw])[0]   # int32: 720 cached maps take 94 MB
+            idx = yaw_source_index(self.n, [-key])[0]   # int32: 720 cached maps take 94 MB
             if len(self._full_maps) < 720:
                 self._full_maps[key] = idx
         return idx
 
-    def _column_counts(self, yaw):
-        """(n^2,) float64: how many observed grid columns show each canonical column when the
-        model is rotated by ``yaw`` into the observed frame (cached per yaw)."""
-        key = round(float(np.mod(yaw, 2 * np.pi)), 9)
+    def _column_counts(self, key):
+        """(n^2,) float64: for the model rotated by -yaw of ``key`` into the observed frame,
+        how many observed grid columns show each canonical column (cached)."""
         counts = self._col_counts.get(key)
         if counts is None:
-            n2 = self.n ** 2
-            counts = np.bincount(yaw_column_index(self.n, [yaw])[0],
-                                 minlength=n2 + 1)[:n2].astype(np.float64)
+            n = self.n
+            # z = 0 of every observed column; index // n is the canonical column (n^2: outside)
+            counts = np.bincount(self._full_map(key)[::n] // n,
+                                 minlength=n * n + 1)[:n * n].astype(np.float64)
             if len(self._col_counts) < 720:
                 self._col_counts[key] = counts
         return counts
@@ -425,8 +424,9 @@ class InferenceEngine:
         # canonical voxel inv[q] (the model rotated by yaw; d: outside, explained as empty).
         # Canonical voxel p explains cK[p] = cM[p] - cU[p] known voxels: cM[p] observed voxels
         # show it (0-3, the same along a grid column), cU[p] of them are unknown
-        inv = self._full_map(-yaw)
-        aug_M, n_shown, col_M = self._class_yaw_terms(c, yaw)
+        key = yaw_key(-yaw)
+        inv = self._full_map(key)
+        aug_M, n_shown, col_M = self._class_yaw_terms(c, key)
         cU = np.bincount(np.take(inv, obs.unknown), minlength=d + 1)[:d]
         supp = self.support[c]
         U = np.flatnonzero(cU)
