@@ -155,6 +155,7 @@ class InferenceEngine:
                 self._yaw_terms[(key, c)] = self._yaw_terms_entry(t, sh, cnt)
 
     def _yaw_terms_entry(self, tot, shown, counts):
+        """The cached tuple of ``_class_yaw_terms`` from the column-summed upper triangle."""
         aug = np.zeros((self.k + 1, self.k + 1))
         aug[self._tri] = tot
         aug = aug + np.triu(aug, 1).T
@@ -438,18 +439,19 @@ class InferenceEngine:
         # whichever touches fewer rows. Long sums run in float32 (BLAS) and are added to
         # float64; with few known voxels and a small v a float32 *difference* made G
         # indefinite, but then the direct sum over the few known rows is taken, in float64
-        if len(U) <= n_known_rows:
-            rows, w, sign = U, wU, -1.0
+        from_total = len(U) <= n_known_rows
+        if from_total:
+            rows, w = U, wU
         else:
             cK = np.repeat(col_M, n) - cU
             rows = np.flatnonzero(cK * supp)
-            w, sign = cK[rows], 1.0
+            w = cK[rows]
         AR = np.take(A, rows, axis=0)
         if len(rows) < 4096:   # cheap anyway: float64 where a few rows carry all the evidence
             AR = AR.astype(np.float64)
         AR *= np.sqrt(w, dtype=AR.dtype)[:, None]
         aug = (AR.T @ AR).astype(np.float64)
-        if sign < 0:
+        if from_total:
             aug = aug_M - aug
         gram, wmu, mu2 = aug[:k, :k], aug[:k, k], aug[k, k]
         O, wO = np.unique(np.take(inv, obs.occupied), return_counts=True)
