@@ -25,7 +25,7 @@ from scipy import ndimage
 from scipy.linalg import lapack
 from scipy.special import ndtr
 
-from .grid import yaw_source_index
+from .grid import yaw_column_index, yaw_source_index
 
 LOG2PI = float(np.log(2 * np.pi))
 FEATURE_NAMES = ('loglik', 'coarse_loglik', 'rmse', 'recall', 'false_occupied', 'dt_error')
@@ -147,7 +147,14 @@ class InferenceEngine:
     def _fill_yaw_terms(self, yaws):
         """Cache the column counts and ``_class_yaw_terms`` of ``yaws`` for every class."""
         keys = [yaw_key(y) for y in yaws]
-        counts = np.stack([self._column_counts(k) for k in keys])     # (Y, n^2)
+        n2 = self.n ** 2
+        cols = yaw_column_index(self.n, -np.array(keys))              # (Y, n^2)
+        Y = len(keys)
+        counts = np.bincount((cols + (np.arange(Y) * (n2 + 1))[:, None]).ravel(),
+                             minlength=Y * (n2 + 1)).reshape(Y, n2 + 1)[:, :n2]
+        counts = counts.astype(np.float64)
+        for key, cnt in zip(keys, counts):
+            self._col_counts[key] = cnt
         for c in range(self.C):
             tot = counts @ self._col_terms[c]
             shown = (counts > 0) @ self._supp_cols[c]
@@ -264,10 +271,10 @@ class InferenceEngine:
         how many observed grid columns show each canonical column (cached)."""
         counts = self._col_counts.get(key)
         if counts is None:
-            n = self.n
-            # z = 0 of every observed column; index // n is the canonical column (n^2: outside)
-            counts = np.bincount(self._full_map(key)[::n] // n,
-                                 minlength=n * n + 1)[:n * n].astype(np.float64)
+            # the columns of the map _full_map(key) (n^2: outside), without making it
+            n2 = self.n ** 2
+            counts = np.bincount(yaw_column_index(self.n, [-key])[0],
+                                 minlength=n2 + 1)[:n2].astype(np.float64)
             if len(self._col_counts) < 720:
                 self._col_counts[key] = counts
         return counts
