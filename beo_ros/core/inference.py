@@ -152,32 +152,32 @@ class InferenceEngine:
         Y = len(keys)
         counts = np.bincount((cols + (np.arange(Y) * (n2 + 1))[:, None]).ravel(),
                              minlength=Y * (n2 + 1)).reshape(Y, n2 + 1)[:, :n2]
-        counts = counts.astype(np.float64)
         for key, cnt in zip(keys, counts):
             self._col_counts[key] = cnt
+        counts = counts.astype(np.float64)
         for c in range(self.C):
             tot = counts @ self._col_terms[c]
             shown = (counts > 0) @ self._supp_cols[c]
-            for key, t, sh, cnt in zip(keys, tot, shown, counts):
-                self._yaw_terms[(key, c)] = self._yaw_terms_entry(t, sh, cnt)
+            for key, t, sh in zip(keys, tot, shown):
+                self._yaw_terms[(key, c)] = self._yaw_terms_entry(t, sh)
 
-    def _yaw_terms_entry(self, tot, shown, counts):
-        """The cached tuple of ``_class_yaw_terms`` from the column-summed upper triangle."""
+    def _yaw_terms_entry(self, tot, shown):
+        """The cached pair of ``_class_yaw_terms`` from the column-summed upper triangle."""
         aug = np.zeros((self.k + 1, self.k + 1))
         aug[self._tri] = tot
         aug = aug + np.triu(aug, 1).T
-        return aug, int(round(float(shown))), counts.astype(np.int64)
+        return aug, int(round(float(shown)))
 
     def _class_yaw_terms(self, c, key):
         """For class c rotated into the observed frame by the yaw of ``key`` (``yaw_key``):
         (k+1, k+1) float64 sum_p cM[p] a_p a_p^T over canonical voxels p, a = [W | mu],
-        cM[p] the number of observed voxels showing p; the count of support voxels shown at
-        least once; and cM per grid column (n^2,) int64. Cached per (key, class)."""
+        cM[p] the number of observed voxels showing p; and the count of support voxels shown
+        at least once. Cached per (key, class)."""
         out = self._yaw_terms.get((key, c))
         if out is None:
-            counts = self._column_counts(key)
+            counts = self._column_counts(key).astype(np.float64)
             out = self._yaw_terms_entry(counts @ self._col_terms[c],
-                                        (counts > 0) @ self._supp_cols[c], counts)
+                                        (counts > 0) @ self._supp_cols[c])
             if len(self._yaw_terms) < 2 * 360 * self.C:
                 self._yaw_terms[(key, c)] = out
         return out
@@ -267,14 +267,13 @@ class InferenceEngine:
         return idx
 
     def _column_counts(self, key):
-        """(n^2,) float64: for the model rotated by -yaw of ``key`` into the observed frame,
-        how many observed grid columns show each canonical column (cached)."""
+        """(n^2,) int64: for the model rotated by -yaw of ``key`` into the observed frame, how
+        many observed grid columns show each canonical column (cached)."""
         counts = self._col_counts.get(key)
         if counts is None:
             # the columns of the map _full_map(key) (n^2: outside), without making it
             n2 = self.n ** 2
-            counts = np.bincount(yaw_column_index(self.n, [-key])[0],
-                                 minlength=n2 + 1)[:n2].astype(np.float64)
+            counts = np.bincount(yaw_column_index(self.n, [-key])[0], minlength=n2 + 1)[:n2]
             if len(self._col_counts) < 720:
                 self._col_counts[key] = counts
         return counts
@@ -434,7 +433,8 @@ class InferenceEngine:
         # show it (0-3, the same along a grid column), cU[p] of them are unknown
         key = yaw_key(-yaw)
         inv = self._full_map(key)
-        aug_M, n_shown, col_M = self._class_yaw_terms(c, key)
+        aug_M, n_shown = self._class_yaw_terms(c, key)
+        col_M = self._column_counts(key)
         cU = np.bincount(np.take(inv, obs.unknown), minlength=d + 1)[:d]
         supp = self.support[c]
         U = np.flatnonzero(cU)
