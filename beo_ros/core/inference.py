@@ -101,7 +101,13 @@ class InferenceEngine:
     def __init__(self, W, mu, v, v_coarse, n, pose_components=8, coarse_noise_maps=None):
         self.C, self.d, self.k = W.shape
         self.n = n
-        self.W = np.ascontiguousarray(W, dtype=np.float32)
+        # W is a view of [W | mu] (C, d, k + 1): the exact posterior's weighted sums over voxels
+        # are the blocks of one augmented gram A^T diag(w) A (see ``exact``)
+        W = np.asarray(W)
+        self._Wmu = np.empty(W.shape[:2] + (W.shape[2] + 1,), dtype=np.float32)
+        self._Wmu[:, :, :-1] = W
+        self._Wmu[:, :, -1] = mu
+        self.W = self._Wmu[:, :, :-1]
         self.mu = np.ascontiguousarray(mu, dtype=np.float32)
         self.v = np.asarray(v, dtype=np.float64)
         self.v_coarse = np.asarray(v_coarse, dtype=np.float64)
@@ -118,9 +124,6 @@ class InferenceEngine:
         # built here, not on first use: no slow first queries
         self._full_terms = [self._full_class_terms(c, noise) for c, noise in
                             enumerate(coarse_noise_maps or [None] * self.C)]
-        # [W | mu] per class (C, d, k + 1): the exact posterior's weighted sums over voxels are
-        # the blocks of one augmented gram A^T diag(w) A (see ``exact``)
-        self._Wmu = np.ascontiguousarray(np.concatenate([self.W, self.mu[:, :, None]], axis=2))
         # per class and grid column (x, y): the sums over z of the upper triangle of A A^T
         # (float64), so the sums over all voxels for a yaw are one (n^2,) product: the
         # nearest-neighbour rotation moves whole columns, each canonical column showing in
