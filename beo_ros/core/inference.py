@@ -31,19 +31,14 @@ LOG2PI = float(np.log(2 * np.pi))
 FEATURE_NAMES = ('loglik', 'coarse_loglik', 'rmse', 'recall', 'false_occupied', 'dt_error')
 
 
-def batched_cholesky_terms(G, b, lapack_below=0):
+def batched_cholesky_terms(G, b):
     """For SPD G (B, k, k) and b (B, k): returns (b^T G^-1 b (B,), log|G| (B,), G^-1 b (B, k)).
 
-    A column loop over k with the batch vectorised: far faster than B LAPACK calls for k ~ 10.
-    Batches smaller than ``lapack_below`` go through LAPACK instead (faster for one system; the
-    two agree to rounding, which matters where G is ill-conditioned, so each caller sticks to
-    one path).
+    A column loop over k with the batch vectorised: far faster than B LAPACK calls for k ~ 10
+    (one system: ``cholesky_terms``; the two agree to rounding, which matters where G is
+    ill-conditioned, so each caller sticks to one).
     """
     B, k, _ = G.shape
-    if B < lapack_below:
-        out = [cholesky_terms(G[i], b[i]) for i in range(B)]
-        return (np.array([o[0] for o in out]), np.array([o[1] for o in out]),
-                np.stack([o[2] for o in out]) if B else np.zeros_like(b))
     L = np.zeros_like(G)
     for j in range(k):
         d = G[:, j, j] - np.einsum('bi,bi->b', L[:, j, :j], L[:, j, :j])
