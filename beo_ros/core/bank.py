@@ -696,8 +696,9 @@ class ModelBank:
         if window_deg > 0 and probe_deg:
             # exact solves a little further out: on 794 partial views of fold 0 (true class)
             # the probes at +-10, +-20 deg raised yaw <= 10 deg from 0.783 to 0.795 and with
-            # flips from 0.902 to 0.918 for about 5 ms; probes at the other pooled modes or at the
-            # 90 and 180 deg turns did not help (the pooled ranking of distant modes is better)
+            # flips from 0.902 to 0.918 for about 5 ms (2 ms since the exact posterior is
+            # faster); probes at the other pooled modes, at the 90 and 180 deg turns or also at
+            # +-30, +-45 deg did not help (the pooled ranking of distant modes is better)
             y0, top = best['yaw'], best['exact']['loglik']
             for off in probe_deg:
                 for sign in (1, -1):
