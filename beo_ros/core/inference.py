@@ -167,10 +167,10 @@ class InferenceEngine:
         return aug, int(round(float(shown)))
 
     def _class_yaw_terms(self, c, key):
-        """For class c rotated into the observed frame by the yaw of ``key`` (``yaw_key``):
-        (k+1, k+1) float64 sum_p cM[p] a_p a_p^T over canonical voxels p, a = [W | mu],
-        cM[p] the number of observed voxels showing p; and the count of support voxels shown
-        at least once. Cached per (key, class)."""
+        """For class c rotated into the observed frame by minus the yaw of ``key``
+        (``yaw_key``; the map ``_full_map(key)``): (k+1, k+1) float64 sum_p cM[p] a_p a_p^T
+        over canonical voxels p, a = [W | mu], cM[p] the number of observed voxels showing p;
+        and the count of support voxels shown at least once. Cached per (key, class)."""
         out = self._yaw_terms.get((key, c))
         if out is None:
             counts = self._column_counts(key).astype(np.float64)
@@ -265,8 +265,9 @@ class InferenceEngine:
         return idx
 
     def _column_counts(self, key):
-        """(n^2,) int64: for the model rotated by -yaw of ``key`` into the observed frame, how
-        many observed grid columns show each canonical column (cached)."""
+        """(n^2,) int64: for the model rotated into the observed frame by minus the yaw of
+        ``key`` (the map ``_full_map(key)``), how many observed grid columns show each
+        canonical column (cached)."""
         counts = self._col_counts.get(key)
         if counts is None:
             # the columns of the map _full_map(key) (n^2: outside), without making it
