@@ -1,10 +1,10 @@
 #!/usr/bin/env python
 """Measurement: latency of ``bank.estimate`` (or ``bank.estimate_points``) per stage.
 
-Not imported by the package or the tests. Views are made by the evaluation protocol from every
-``--every``-th object of a voxel npz (the shared format): ``random_partial_view`` for grids, or
-``render_view_points`` (a rendered cloud, voxelized and ray cast by ``estimate_points``) with
-``--points``. A few warm-up calls run first; then every view is estimated once and the p50 /
+Not imported by the package (``test/test_scripts.py`` runs it on a tiny bank). Views are made
+by the evaluation protocol from every ``--every``-th object of a voxel npz (the shared format):
+``random_partial_view`` for grids, or ``render_view_points`` (a rendered cloud, voxelized and
+ray cast by ``estimate_points``) with ``--points``. A few warm-up calls run first; then every view is estimated once and the p50 /
 p95 of the total and the median of each stage in ``Estimate.timings`` are printed.
 ``--between render`` renders another view before each timed call (as ``beo-eval`` does, so
 the caches are colder); ``--between none`` times the calls back to back.
