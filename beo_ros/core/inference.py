@@ -83,7 +83,8 @@ def pool2(a):
 
 
 class InferenceEngine:
-    """Precomputed arrays for the batched pose search over a set of class models.
+    """Precomputed arrays for the batched pose search and the exact posteriors over a set of
+    class models (caches per yaw: rotation maps and the yaw's model sums; thread-safe to use).
 
     Args:
         W: (C, d, k) loadings, zero-padded to a common k; mu: (C, d); v: (C,) noise variances;
