@@ -1187,3 +1187,18 @@ def test_exact_is_consistent_at_yaws_whose_rotation_has_ties():
                             + r @ np.linalg.solve(Cov, r))
             np.testing.assert_allclose(lls[-1], dense, rtol=1e-6)
         assert len(set(lls)) == 1
+
+
+@pytest.mark.parametrize('yaw', [float('nan'), float('inf'), -np.inf, '0.5', True, [0.1],
+                                 1j])
+def test_estimate_refuses_a_yaw_that_is_not_a_finite_number(tiny, yaw):
+    bank = tiny
+    n = bank.spec.size
+    grid = np.zeros((n,) * 3, dtype=np.int8)
+    grid[5:10, 5:10, 3:8] = 1
+    with pytest.raises(ValueError, match='yaw must be'):
+        bank.estimate(grid, yaw=yaw)
+    with pytest.raises(ValueError, match='yaw must be'):
+        bank.features(grid, yaw=yaw)
+    for ok in (np.float32(0.5), np.array(0.5), 0):
+        assert bank.estimate(grid, yaw=ok).yaw == pytest.approx(float(ok), abs=1e-6)

@@ -575,6 +575,7 @@ class ModelBank:
         grid = self.check_grid(grid)
         if not 0.05 <= yaw_step_deg <= 90:
             raise ValueError(f'yaw_step_deg must be in [0.05, 90], got {yaw_step_deg}')
+        check_yaw(yaw)
         eng = self.engine
         pooled = eng.pooled(grid)
         obs = eng.observe(grid)
@@ -789,6 +790,7 @@ class ModelBank:
         grid = self.check_grid(grid)
         if not 0.05 <= yaw_step_deg <= 90:
             raise ValueError(f'yaw_step_deg must be in [0.05, 90], got {yaw_step_deg}')
+        check_yaw(yaw)
         probe_deg = tuple(probe_deg or ())
         if not all(isinstance(p, (int, float, np.floating, np.integer))
                    and not isinstance(p, bool) and 0 < p <= 180 for p in probe_deg):
@@ -887,6 +889,18 @@ class ModelBank:
             est.timings['point_descriptors'] = t2 - t1
         est.timings['total'] = time.perf_counter() - t0
         return est
+
+
+def check_yaw(yaw):
+    """Raise ValueError unless ``yaw`` is None (search it) or a finite real number (radians)."""
+    if yaw is None:
+        return
+    a = np.asarray(yaw) if not isinstance(yaw, (str, bytes)) else None
+    if a is None or a.ndim != 0 or a.dtype == bool or not np.issubdtype(a.dtype, np.number) \
+            or np.iscomplexobj(a):
+        raise ValueError(f'yaw must be None or a number of radians, got {yaw!r}')
+    if not np.isfinite(a):
+        raise ValueError(f'yaw must be finite, got {yaw}')
 
 
 def load_models(path=None, class_prior=None):
