@@ -1202,3 +1202,16 @@ def test_estimate_refuses_a_yaw_that_is_not_a_finite_number(tiny, yaw):
         bank.features(grid, yaw=yaw)
     for ok in (np.float32(0.5), np.array(0.5), 0):
         assert bank.estimate(grid, yaw=ok).yaw == pytest.approx(float(ok), abs=1e-6)
+
+
+@pytest.mark.parametrize('kw', [dict(refine_deg=float('nan')), dict(refine_deg=-1),
+                                dict(refine_deg=1e9), dict(stage2_window_deg=float('nan')),
+                                dict(stage2_window_deg=-5), dict(n_hypotheses=-1),
+                                dict(n_hypotheses=2.5), dict(stage2_modes=-2),
+                                dict(stage2_modes=True)])
+def test_estimate_refuses_bad_search_settings(tiny, kw):
+    n = tiny.spec.size
+    grid = np.zeros((n,) * 3, dtype=np.int8)
+    grid[5:10, 5:10, 3:8] = 1
+    with pytest.raises(ValueError, match=next(iter(kw))):
+        tiny.estimate(grid, **kw)

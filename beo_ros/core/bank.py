@@ -772,7 +772,7 @@ class ModelBank:
             stage2_modes, stage2_window_deg: the chosen class is re-scored on the pooled grid
                 with all its components (not only the leading ``pose_components``) every
                 yaw_step_deg within +-stage2_window_deg of its ``stage2_modes`` best stage-1
-                modes (None: all yaws);
+                modes (None or 0: all yaws);
             probe_deg: then it is solved exactly at full resolution at the pooled optimum
                 and at +- each of these offsets (degrees; () or None: no probes), and
             refine_deg: climbs from the best of those within +-refine_deg
@@ -795,6 +795,16 @@ class ModelBank:
         if not all(isinstance(p, (int, float, np.floating, np.integer))
                    and not isinstance(p, bool) and 0 < p <= 180 for p in probe_deg):
             raise ValueError(f'probe_deg must be offsets in (0, 180] degrees, got {probe_deg}')
+        for name, value in (('refine_deg', refine_deg), ('stage2_window_deg', stage2_window_deg)):
+            if not 0 <= value <= 180:   # also refuses NaN
+                raise ValueError(f'{name} must be in [0, 180] degrees, got {value}')
+        if isinstance(n_hypotheses, bool) or not isinstance(n_hypotheses, (int, np.integer)) \
+                or n_hypotheses < 0:
+            raise ValueError(f'n_hypotheses must be an integer >= 0, got {n_hypotheses!r}')
+        if stage2_modes is not None and (isinstance(stage2_modes, bool) or not isinstance(
+                stage2_modes, (int, np.integer)) or stage2_modes < 0):
+            raise ValueError(f'stage2_modes must be None or an integer >= 0, got '
+                             f'{stage2_modes!r}')
         if search_step_deg is None:
             search_step_deg = max(SEARCH_STEP_DEG, yaw_step_deg)
         feats, per = self.features(grid, yaw, search_step_deg, exhaustive)
