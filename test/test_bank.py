@@ -524,6 +524,14 @@ def test_estimate_points_pose_and_points(tiny):
     assert 'voxelize' in e.timings and e.label in tiny.classes + ['unknown']
 
 
+@pytest.mark.parametrize('threshold', [float('nan'), 0.0, -1.0, 1.5])
+def test_estimate_points_refuses_a_threshold_that_is_no_probability(tiny, threshold):
+    occ = tiny.models[0].mean.reshape((N,) * 3) > 0.5
+    pts, origin = render_view_points(occ, 0.5, 0.3, np.deg2rad(30), distance=2.0, size=0.4)
+    with pytest.raises(ValueError, match='threshold must be'):
+        tiny.estimate_points(pts, sensor_origin=origin, threshold=threshold)
+
+
 # ---------------------------------------------------------------------- pose on asymmetric shapes
 def asymmetric_shapes(count, rng):
     """Two classes whose shapes have no yaw symmetry: 'ell' (a bar with an arm at one end) and

@@ -869,6 +869,9 @@ class ModelBank:
         computed too (``timings['point_descriptors']``) and passed to :meth:`estimate`.
         """
         from .voxelize import grid_to_points, voxelize_view
+        if not 0 < threshold <= 1:   # also refuses NaN
+            raise ValueError(f'threshold must be an occupancy probability in (0, 1], got '
+                             f'{threshold}')
         t0 = time.perf_counter()
         view = voxelize_view(np.asarray(points, dtype=np.float64), np.asarray(sensor_origin,
                              dtype=np.float64), np.asarray(up, dtype=np.float64), self.spec,
