@@ -26,14 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from beo_ros import load_models  # noqa: E402
 from beo_ros.core.synthetic import random_partial_view, render_view_points  # noqa: E402
-
-
-def load_objects(path, every, count):
-    """(count, N, N, N) bool objects: every ``every``-th of the npz, in file order."""
-    with np.load(path) as z:
-        packed = z['voxels'][::every][:count]
-    n = round((packed.shape[1] * 8) ** (1 / 3))
-    return np.unpackbits(packed, axis=1)[:, :n ** 3].reshape(-1, n, n, n).astype(bool)
+from beo_ros.core.training import load_voxel_npz  # noqa: E402
 
 
 def make_views(objects, rng, points):
@@ -61,7 +54,8 @@ def main(argv=None):
         ap.error('--views, --every and --repeats must be >= 1')
 
     bank = load_models(args.model)
-    objects = load_objects(args.data, args.every, args.views)
+    X, _, _, n = load_voxel_npz(args.data)
+    objects = X[::args.every][:args.views].reshape(-1, n, n, n) > 0.5
     rng = np.random.default_rng(args.seed)
     views = make_views(objects, rng, args.points)
 

@@ -25,7 +25,8 @@ def tiny(tmp_path_factory):
     make_tiny_bank(bank)
     X, y, classes = primitive_shapes(n=16, count=3, rng=np.random.default_rng(1))
     data = root / 'shapes.npz'
-    np.savez(data, voxels=np.packbits(X > 0, axis=1), labels=y, classes=np.array(classes))
+    np.savez(data, voxels=np.packbits(X > 0, axis=1), labels=y, classes=np.array(classes),
+             shape=np.array([16, 16, 16]))
     return bank, data
 
 

@@ -667,9 +667,7 @@ class ModelBank:
         ``window_deg`` 0 skips the probes and the climb."""
         best = per_c
         eng = self.engine
-        obs = per_c.get('observed')
-        if obs is None:
-            obs = eng.observe(grid)
+        obs = eng.observe(per_c.get('observed', grid))
         if stage2_step_deg:
             step = np.deg2rad(stage2_step_deg)
             yaws = np.arange(int(round(2 * np.pi / step))) * step
@@ -741,9 +739,7 @@ class ModelBank:
         # saves 3 exact solves on most views (0.26 per view instead of 3)
         w = float(self.verifier.weight)
         eng = self.engine
-        obs = per_c.get('observed')
-        if obs is None:
-            obs = eng.observe(grid)
+        obs = eng.observe(per_c.get('observed', grid))
         best_k, best_score, best_ex = 0, per_c['exact']['loglik'] + w * logp[0], None
         for k in range(1, TURNS):
             if logp[k] <= logp[0]:
@@ -793,7 +789,6 @@ class ModelBank:
         grid = self.check_grid(grid)
         if not 0.05 <= yaw_step_deg <= 90:
             raise ValueError(f'yaw_step_deg must be in [0.05, 90], got {yaw_step_deg}')
-        check_yaw(yaw)
         probe_deg = tuple(probe_deg or ())
         if not all(isinstance(p, (int, float, np.floating, np.integer))
                    and not isinstance(p, bool) and 0 < p <= 180 for p in probe_deg):
@@ -801,13 +796,9 @@ class ModelBank:
         for name, value in (('refine_deg', refine_deg), ('stage2_window_deg', stage2_window_deg)):
             if not 0 <= value <= 180:   # also refuses NaN
                 raise ValueError(f'{name} must be in [0, 180] degrees, got {value}')
-        if isinstance(n_hypotheses, bool) or not isinstance(n_hypotheses, (int, np.integer)) \
-                or n_hypotheses < 0:
-            raise ValueError(f'n_hypotheses must be an integer >= 0, got {n_hypotheses!r}')
-        if stage2_modes is not None and (isinstance(stage2_modes, bool) or not isinstance(
-                stage2_modes, (int, np.integer)) or stage2_modes < 0):
-            raise ValueError(f'stage2_modes must be None or an integer >= 0, got '
-                             f'{stage2_modes!r}')
+        check_count('n_hypotheses', n_hypotheses)
+        if stage2_modes is not None:
+            check_count('stage2_modes', stage2_modes)
         if search_step_deg is None:
             search_step_deg = max(SEARCH_STEP_DEG, yaw_step_deg)
         feats, per = self.features(grid, yaw, search_step_deg, exhaustive)
@@ -917,6 +908,13 @@ def check_yaw(yaw):
         raise ValueError(f'yaw must be None or a number of radians, got {yaw!r}')
     if not np.isfinite(a):
         raise ValueError(f'yaw must be finite, got {yaw}')
+
+
+def check_count(name, value):
+    """Raise ValueError unless ``value`` is an integer >= 0 (bool is not one)."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) \
+            or value < 0:
+        raise ValueError(f'{name} must be an integer >= 0, got {value!r}')
 
 
 def load_models(path=None, class_prior=None):

@@ -144,28 +144,33 @@ class InferenceEngine:
         return np.einsum('rza,rzb->rab', A, A)[:, self._tri[0], self._tri[1]]
 
     def _fill_yaw_terms(self, yaws):
-        """Cache the column counts and ``_class_yaw_terms`` of ``yaws`` for every class."""
+        """Cache the column counts and ``_class_yaw_terms`` of the yaws' keys for every class."""
         keys = [yaw_key(y) for y in yaws]
-        n2 = self.n ** 2
-        cols = yaw_column_index(self.n, -np.array(keys))              # (Y, n^2)
-        Y = len(keys)
-        counts = np.bincount((cols + (np.arange(Y) * (n2 + 1))[:, None]).ravel(),
-                             minlength=Y * (n2 + 1)).reshape(Y, n2 + 1)[:, :n2]
-        for key, cnt in zip(keys, counts):
-            self._col_counts[key] = cnt
-        counts = counts.astype(np.float64)
+        counts = self._counts_of(keys)
+        self._col_counts.update(zip(keys, counts))
         for c in range(self.C):
-            tot = counts @ self._col_terms[c]
-            shown = (counts > 0) @ self._supp_cols[c]
-            for key, t, sh in zip(keys, tot, shown):
-                self._yaw_terms[(key, c)] = self._yaw_terms_entry(t, sh)
+            self._yaw_terms.update(zip(((key, c) for key in keys),
+                                       self._terms_of(c, counts)))
 
-    def _yaw_terms_entry(self, tot, shown):
-        """The cached pair of ``_class_yaw_terms`` from the column-summed upper triangle."""
-        aug = np.zeros((self.k + 1, self.k + 1))
-        aug[self._tri] = tot
-        aug = aug + np.triu(aug, 1).T
-        return aug, int(round(float(shown)))
+    def _counts_of(self, keys):
+        """(Y, n^2) int64: for the model rotated into the observed frame by minus the yaw of
+        each key (the map ``_full_map(key)``, not made here), how many observed grid columns
+        show each canonical column."""
+        n2 = self.n ** 2
+        cols = yaw_column_index(self.n, -np.asarray(keys, dtype=np.float64))   # n^2: outside
+        Y = len(cols)
+        return np.bincount((cols + (np.arange(Y) * (n2 + 1))[:, None]).ravel(),
+                           minlength=Y * (n2 + 1)).reshape(Y, n2 + 1)[:, :n2]
+
+    def _terms_of(self, c, counts):
+        """``_class_yaw_terms`` of class c for column counts (Y, n^2): a list of Y pairs."""
+        counts = np.asarray(counts, dtype=np.float64)
+        out = []
+        for tot, shown in zip(counts @ self._col_terms[c], (counts > 0) @ self._supp_cols[c]):
+            aug = np.zeros((self.k + 1, self.k + 1))
+            aug[self._tri] = tot
+            out.append((aug + np.triu(aug, 1).T, int(round(float(shown)))))
+        return out
 
     def _class_yaw_terms(self, c, key):
         """For class c rotated into the observed frame by minus the yaw of ``key``
@@ -174,9 +179,7 @@ class InferenceEngine:
         and the count of support voxels shown at least once. Cached per (key, class)."""
         out = self._yaw_terms.get((key, c))
         if out is None:
-            counts = self._column_counts(key).astype(np.float64)
-            out = self._yaw_terms_entry(counts @ self._col_terms[c],
-                                        (counts > 0) @ self._supp_cols[c])
+            out = self._terms_of(c, self._column_counts(key)[None])[0]
             if len(self._yaw_terms) < 2 * 360 * self.C:
                 self._yaw_terms[(key, c)] = out
         return out
@@ -271,9 +274,7 @@ class InferenceEngine:
         canonical column (cached)."""
         counts = self._col_counts.get(key)
         if counts is None:
-            # the columns of the map _full_map(key) (n^2: outside), without making it
-            n2 = self.n ** 2
-            counts = np.bincount(yaw_column_index(self.n, [-key])[0], minlength=n2 + 1)[:n2]
+            counts = self._counts_of([key])[0]
             if len(self._col_counts) < 720:
                 self._col_counts[key] = counts
         return counts
@@ -527,14 +528,13 @@ class InferenceEngine:
 
 
 class Observation:
-    """A labelled grid flattened (d,) int8, with what ``InferenceEngine.exact`` needs of it:
-    the flat indices of its unknown and occupied voxels, the counts of known and occupied
-    voxels, and the labels padded with a free voxel (the gathers' outside)."""
+    """What ``InferenceEngine.exact`` needs of a labelled grid, flattened (d,) int8: the flat
+    indices of its unknown and occupied voxels, the counts of known and occupied voxels, and
+    the labels padded with a free voxel (the gathers' outside)."""
 
-    __slots__ = ('labels', 'padded', 'unknown', 'occupied', 'n_known', 'n_occupied')
+    __slots__ = ('padded', 'unknown', 'occupied', 'n_known', 'n_occupied')
 
     def __init__(self, labels):
-        self.labels = labels
         self.padded = np.append(labels, np.int8(0))
         self.unknown = np.flatnonzero(labels < 0)
         self.occupied = np.flatnonzero(labels == 1)
