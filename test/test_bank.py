@@ -303,6 +303,20 @@ def test_rotation_map_cache_does_not_confuse_yaw_sets():
 
 
 # ---------------------------------------------------------------------- the exact posterior
+def dense_marginal(grid, W, mu, v, src):
+    """Log marginal likelihood of the known voxels of ``grid`` under N(mu, W W^T + v I) with
+    observed voxel q explained by model voxel src[q] (n^3: beyond the grid, empty), by dense
+    linear algebra; also the known rows of W (K, k) and residuals y - mu (K,) in float64."""
+    K = np.flatnonzero(grid.ravel() >= 0)
+    y = (grid.ravel()[K] == 1).astype(np.float64)
+    WK = np.vstack([W, np.zeros((1, W.shape[1]))])[src[K]].astype(np.float64)
+    r = y - np.append(mu, 0)[src[K]].astype(np.float64)
+    Cov = WK @ WK.T + v * np.eye(len(K))
+    ll = -0.5 * (len(K) * np.log(2 * np.pi) + np.linalg.slogdet(Cov)[1]
+                 + r @ np.linalg.solve(Cov, r))
+    return ll, WK, r
+
+
 def test_exact_loglik_equals_dense_gaussian_marginal():
     n, k, C = 8, 3, 2
     d = n ** 3
@@ -322,14 +336,8 @@ def test_exact_loglik_equals_dense_gaussian_marginal():
             # the likelihood: of the known observed voxels as they are, each explained by the
             # canonical voxel the model rotated by yaw puts there (empty beyond its grid)
             src = yaw_source_index(n, [yaw])[0]
-            K = np.flatnonzero(grid.ravel() >= 0)
-            y = (grid.ravel()[K] == 1).astype(np.float64)
-            WK = np.vstack([W[c], np.zeros((1, k))])[src[K]].astype(np.float64)
-            Cov = WK @ WK.T + v[c] * np.eye(len(K))
-            r = y - np.append(mu[c], 0)[src[K]].astype(np.float64)
-            _, ld = np.linalg.slogdet(Cov)
-            dense = -0.5 * (len(K) * np.log(2 * np.pi) + ld + r @ np.linalg.solve(Cov, r))
-            assert ex['n_known'] == len(K)
+            dense, WK, r = dense_marginal(grid, W[c], mu[c], v[c], src)
+            assert ex['n_known'] == np.count_nonzero(grid >= 0)
             np.testing.assert_allclose(ex['loglik'], dense, rtol=1e-6)
             # posterior mean of the coefficients: S W_K^T r / v
             G = np.eye(k) + WK.T @ WK / v[c]
@@ -1186,13 +1194,7 @@ def test_exact_is_consistent_at_yaws_whose_rotation_has_ties():
             lls.append(eng.exact(grid, 0, yaw)['loglik'])
             # the dense marginal under the map of the yaw's cache key
             src = yaw_source_index(n, [-yaw_key(-yaw)])[0]
-            K = np.flatnonzero(grid.ravel() >= 0)
-            y = (grid.ravel()[K] == 1).astype(np.float64)
-            WK = np.vstack([W[0], np.zeros((1, k))])[src[K]].astype(np.float64)
-            r = y - np.append(mu[0], 0)[src[K]].astype(np.float64)
-            Cov = WK @ WK.T + 0.05 * np.eye(len(K))
-            dense = -0.5 * (len(K) * np.log(2 * np.pi) + np.linalg.slogdet(Cov)[1]
-                            + r @ np.linalg.solve(Cov, r))
+            dense = dense_marginal(grid, W[0], mu[0], 0.05, src)[0]
             np.testing.assert_allclose(lls[-1], dense, rtol=1e-6)
         assert len(set(lls)) == 1
 
