@@ -135,6 +135,23 @@ def test_check_grid(tiny):
     assert np.isfinite(tiny.estimate(g, probe_deg=None).yaw)
 
 
+def test_fine_yaw_steps_refine_exactly_without_fine_pooled_maps(tiny):
+    # below 1 deg only the last exact climb runs at the finer step: the pooled maps of every
+    # 0.1 deg (3600 yaws: 5 s and 1.4 GB at 32^3) must not be built, and the finer yaw is the
+    # 1 deg one or a better one by the exact likelihood, within 1 deg of it
+    g = views()[1]
+    eng = tiny.engine
+    coarse = tiny.estimate(g, verify=False)
+    fine = tiny.estimate(g, yaw_step_deg=0.1, verify=False)
+    assert fine.label == coarse.label
+    assert max(first.shape[0] for first, _ in eng._maps.values()) <= 360
+    c = tiny.classes.index(fine.label)
+    obs = eng.observe(g)
+    ll = [eng.exact(obs, c, e.yaw, with_prediction=False)['loglik'] for e in (coarse, fine)]
+    assert ll[1] >= ll[0]
+    assert abs(np.rad2deg(wrap(fine.yaw - coarse.yaw))) <= 1.0 + 1e-9
+
+
 # ---------------------------------------------------------------------- the batched search
 def test_batched_scores_equal_per_yaw_and_per_class_loop(tiny):
     eng = tiny.engine

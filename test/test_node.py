@@ -312,7 +312,7 @@ def test_parameters_validated_and_runtime_changeable(harness, tmp_path):
     def set_(name, value):
         return node.set_parameters([Parameter(name, value=value)])[0]
 
-    for name, value, why in (('yaw_step_deg', 100.0, ''), ('yaw_step_deg', 0.1, ''),
+    for name, value, why in (('yaw_step_deg', 100.0, ''), ('yaw_step_deg', 0.01, ''),
                              ('completion_threshold', 1.5, ''),
                              ('up_vector', [0.0, 0.0, 0.0], 'non-zero'),
                              ('up_vector', [0.0, 1.0], '3 elements'),

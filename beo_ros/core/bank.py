@@ -50,6 +50,10 @@ CLASS_PRIORS = ('train', 'uniform')
 SEARCH_STEP_DEG = 2.0
 # the refinement's exact probes either side of the pooled optimum (see ModelBank._refine)
 PROBE_DEG = (10.0, 20.0)
+# the finest step of the pooled re-scoring and of the first climb: the pooled grid does not
+# resolve finer yaws, and its rotation maps of every multiple of a finer step cost seconds and
+# gigabytes (0.1 deg: 5 s, 1.4 GB); finer returned yaws come from a second, exact climb
+STAGE2_MIN_STEP_DEG = 1.0
 
 
 class ModelError(ValueError):
@@ -705,15 +709,26 @@ class ModelBank:
                     ex = eng.exact(obs, c, y, with_prediction=False)
                     if ex['loglik'] > top:
                         top, best = ex['loglik'], dict(best, yaw=y, exact=ex)
-        # hill climbing in step_deg steps up to +-window_deg (the full-resolution likelihood is
-        # smooth at this scale, up to the plateaus of the nearest-neighbour rotation, which the
-        # climb walks across): 2-4 exact solves instead of a scan of the whole window
+        # hill climbing up to +-window_deg in steps of max(step_deg, 1 deg), then below 1 deg
+        # in step_deg steps within +-1 deg: 2-4 exact solves per level instead of a scan
+        coarse = max(step_deg, STAGE2_MIN_STEP_DEG)
+        best = self._climb(obs, c, best, coarse, window_deg)
+        if step_deg < coarse and window_deg > 0:
+            best = self._climb(obs, c, best, step_deg, min(window_deg, coarse))
+        eng.add_prediction(best['exact'], obs, c)
+        return best
+
+    def _climb(self, obs, c, best, step_deg, window_deg):
+        """Hill climbing of the exact log-likelihood from best['yaw'] in step_deg steps, up
+        to +-window_deg, first upward, then downward if that found nothing better (the
+        full-resolution likelihood is smooth at this scale, up to the plateaus of the
+        nearest-neighbour rotation, which the climb walks across)."""
         step, y0 = np.deg2rad(step_deg), best['yaw']
         for direction in (1, -1):
             top = best['exact']['loglik']
             for i in range(1, int(round(window_deg / step_deg)) + 1):
                 y = float(y0 + direction * i * step)
-                ex = eng.exact(obs, c, y, with_prediction=False)
+                ex = self.engine.exact(obs, c, y, with_prediction=False)
                 if ex['loglik'] < top:
                     break
                 top = ex['loglik']
@@ -721,7 +736,6 @@ class ModelBank:
                     best = dict(best, yaw=y, exact=ex)
             if best['yaw'] != y0:
                 break
-        eng.add_prediction(best['exact'], obs, c)
         return best
 
     def _verify_turns(self, grid, c, per_c):
@@ -760,10 +774,9 @@ class ModelBank:
         Args:
             grid: int8 (N, N, N), 1 occupied, 0 free, -1 unknown, axes x, y, z, z up.
             yaw: if given (radians), no pose search is done.
-            yaw_step_deg: resolution of the returned yaw, in [0.05, 90]. The refinement
-                builds (and keeps) pooled rotation maps of every multiple of it on first use:
-                at 1° 0.2 s, at 0.5° 0.6 s and +150 MB, at 0.1° 5 s and +1.4 GB (the node
-                allows 0.25-45°).
+            yaw_step_deg: resolution of the returned yaw, in [0.05, 90]. Below 1° the pooled
+                re-scoring stays at 1° and a last exact climb within +-1° gives the finer
+                yaw (at 32^3 the nearest-neighbour rotation hardly resolves it).
             search_step_deg: step of the stage-1 search over all classes (default
                 max(SEARCH_STEP_DEG, yaw_step_deg)); its features feed the classifier.
             exhaustive: stage 1 scores all 360 / search_step_deg yaws at once (default); False
@@ -825,7 +838,8 @@ class ModelBank:
         t_cls = time.perf_counter()
         if yaw is None and refine_deg > 0:
             per[best] = self._refine(grid, best, per[best], yaw_step_deg, refine_deg,
-                                     yaw_step_deg, stage2_modes, stage2_window_deg, probe_deg)
+                                     max(yaw_step_deg, STAGE2_MIN_STEP_DEG), stage2_modes,
+                                     stage2_window_deg, probe_deg)
         t_ref = time.perf_counter()
         if yaw is None and refine_deg > 0 and verify and self.verifier is not None \
                 and self.verifier.has_class(best):

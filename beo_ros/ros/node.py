@@ -323,7 +323,7 @@ class BeoNode(Node):
             description='Gravity-up direction in the cloud frame (e.g. [0, -1, 0] for a camera '
                         'optical frame held level)', type=ParameterType.PARAMETER_DOUBLE_ARRAY))
         d('yaw_step_deg', 1.0, _fdesc('Resolution of the returned yaw (degrees); the search '
-                                      'over all classes runs at max(2, this)', 0.25, 45.0))
+                                      'over all classes runs at max(2, this)', 0.05, 45.0))
         d('min_points', 30, _idesc('Fewer finite points than this: the cloud is rejected',
                                    1, 1_000_000))
         d('max_points', 50000, _idesc('More points than this: random downsampling (fixed seed)',
