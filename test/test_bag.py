@@ -421,6 +421,27 @@ def test_cli_replay_errors(tmp_path, capsys):
         bag.replay_main([str(tmp_path), '--rate', '-1'])
 
 
+def test_cli_replay_of_what_is_not_a_bag_exits_2_with_a_message(tmp_path, capsys):
+    (tmp_path / 'empty').mkdir()
+    (tmp_path / 'x.db3').write_text('garbage')
+    (tmp_path / 'x.mcap').write_text('garbage')
+    (tmp_path / 'meta').mkdir()
+    (tmp_path / 'meta' / 'metadata.yaml').write_text('rosbag2_bagfile_information:\n  version: [\n')
+    for name, why in (('empty', 'not a rosbag2 bag'), ('x.db3', 'database'), ('x.mcap', ''),
+                      ('meta', 'storage_identifier')):
+        assert bag.replay_main([str(tmp_path / name)]) == 2, name
+        err = capsys.readouterr().err
+        assert 'beo-replay: cannot read' in err and why in err and 'Traceback' not in err, err
+
+
+def test_cli_pcd2bag_of_a_corrupt_scene_writes_no_bag(tmp_path, capsys):
+    bad = tmp_path / 'bad.pcd'
+    bad.write_bytes(b'# .PCD v0.7\nFIELDS x y z\nDATA ascii\n')
+    assert bag.pcd2bag_main([str(bad), '-o', str(tmp_path / 'out')]) == 2
+    assert 'beo-pcd2bag:' in capsys.readouterr().err
+    assert not (tmp_path / 'out').exists()
+
+
 # ------------------------------------------------------------------------------------------
 # pcd2bag on the real OSD scans
 # ------------------------------------------------------------------------------------------

@@ -137,6 +137,13 @@ def test_unorganized_zero_row_step_tolerated(pts):
     np.testing.assert_allclose(cloud_to_xyz(msg)[0], pts, atol=1e-6)
 
 
+def test_duplicate_fields_other_than_xyz_are_ignored(pts):
+    # PCD writers pad with fields named '_'; only the x, y, z names must be unique
+    msg = hand_cloud(pts, [('x', 0, F32), ('y', 4, F32), ('z', 8, F32)], 20)
+    msg.fields += [PointField(name='_', offset=o, datatype=F32, count=1) for o in (12, 16)]
+    np.testing.assert_allclose(cloud_to_xyz(msg)[0], pts, atol=1e-6)
+
+
 def _good(pts):
     return hand_cloud(pts, [('x', 0, F32), ('y', 4, F32), ('z', 8, F32)], 12, height=2)
 
@@ -156,6 +163,10 @@ def _good(pts):
     (lambda m: setattr(m, 'data', array.array('B')), 'needs'),              # no data at all
     (lambda m: setattr(m, 'width', m.width * 2), 'row_step'),                # header lies
     (lambda m: setattr(m, 'row_step', 11), 'row_step'),                     # organized, too small
+    (lambda m: setattr(m, 'data', m.data + array.array('B', [0] * 12)), 'needs'),  # data too long
+    (lambda m: setattr(m, 'height', 1), 'needs'),                            # 2nd row ignored
+    (lambda m: setattr(m.fields[1], 'offset', 2), 'overlap'),
+    (lambda m: [setattr(f, 'offset', 0) for f in m.fields], 'overlap'),
 ])
 def test_malformed_clouds_raise_named_error(pts, breaker, match):
     msg = _good(pts)

@@ -270,9 +270,14 @@ def _bad_clouds():
     few = cloud(box_view()[:5])
     no_data = PointCloud2(header=good.header, height=1, width=100, fields=good.fields,
                           point_step=12, row_step=1200, data=array.array('B'))
+    long_data = cloud(box_view())   # 990 points more than the header says
+    long_data.width = 10
+    long_data.row_step = 120
+    one_place = cloud(np.ones((100, 3)))
     return {'missing z': no_z, 'truncated': truncated, 'point_step too small': small_step,
             'integer x': int_x, 'empty': empty, 'all NaN': all_nan, 'too few points': few,
-            'no data': no_data}
+            'no data': no_data, 'data longer than the header': long_data,
+            'every point at one place': one_place}
 
 
 def test_bad_inputs_are_rejected_and_node_keeps_answering(harness):
@@ -295,10 +300,17 @@ def test_bad_inputs_are_rejected_and_node_keeps_answering(harness):
     req.has_sensor_origin, req.sensor_origin.x = True, float('nan')
     r = harness.call(harness.classify, req)
     assert not r.success and 'sensor_origin' in r.message
-    req = harness.good_request(complete=True)
-    req.threshold = 2.0
-    r = harness.call(harness.complete, req)
-    assert not r.success and 'threshold' in r.message
+    for vec in ('up', 'sensor_origin'):   # finite, but overflowing the grid maths
+        req = harness.good_request()
+        setattr(req, f'has_{vec}', True)
+        getattr(req, vec).x = 1e200
+        r = harness.call(harness.classify, req)
+        assert not r.success and vec in r.message and 'within' in r.message, r.message
+    for bad in (2.0, float('nan')):
+        req = harness.good_request(complete=True)
+        req.threshold = bad
+        r = harness.call(harness.complete, req)
+        assert not r.success and 'threshold' in r.message, bad
     assert harness.call(harness.complete, harness.good_request(complete=True)).success
     c = harness.node.counters()
     assert c['rejected_format'] >= 10 and c['rejected_too_few_points'] >= 6
@@ -317,6 +329,9 @@ def test_parameters_validated_and_runtime_changeable(harness, tmp_path):
                              ('up_vector', [0.0, 0.0, 0.0], 'non-zero'),
                              ('up_vector', [0.0, 1.0], '3 elements'),
                              ('sensor_origin', [0.0, float('inf'), 0.0], 'finite'),
+                             ('sensor_origin', [1e300, 0.0, 0.0], 'within'),
+                             ('up_vector', [1e200, 0.0, 0.0], 'within'),
+                             ('completion_threshold', 0.0, '(0, 1]'),
                              ('min_points', 10 ** 9, ''),
                              ('min_points', 60000, 'max_points'),
                              ('model_dir', str(tmp_path / 'nope'), 'nope'),
@@ -584,10 +599,25 @@ def test_bad_parameter_override_refuses_to_start(ros_context, ros_bank_source):
               Parameter('min_points', value=100), Parameter('workers', value=0),
               Parameter('workers', value=65), Parameter('blas_threads', value=-1),
               Parameter('worker_processes', value=-1), Parameter('worker_processes', value=65),
-              Parameter('class_prior', value='flat')):
+              Parameter('class_prior', value='flat'),
+              Parameter('completion_threshold', value=0.0),
+              Parameter('input_topics', value=['/bad topic'])):
         extra = [Parameter('max_points', value=50)] if p.name == 'min_points' else []
         with pytest.raises(StartupError, match=p.name):
             BeoNode(context=ros_context, bank=bank, parameter_overrides=base + [p] + extra)
+
+
+def test_duplicate_input_topics_are_subscribed_once(ros_context, ros_bank_source):
+    from beo_ros.ros.node import BeoNode
+    model_dir, bank = ros_bank_source
+    base = [Parameter('model_dir', value=model_dir)] if model_dir else []
+    node = BeoNode(context=ros_context, bank=bank, parameter_overrides=base + [
+        Parameter('input_topics', value=['/beo/a', '/beo/b', '/beo/a'])])
+    try:
+        assert node._topics == ['/beo/a', '/beo/b']
+        assert len(list(node.subscriptions)) == 2
+    finally:
+        node.destroy_node()
 
 
 @pytest.fixture

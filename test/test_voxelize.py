@@ -199,6 +199,8 @@ def test_label_free_unknown_single_voxel_and_hole_closing():
     (dict(sensor_origin=[np.inf, 0, 0]), 'sensor_origin'),
     (dict(center=[0, 0]), 'center'),
     (dict(floor=np.nan), 'floor'),
+    (dict(points=np.ones((100, 3))), 'not an object'),                  # all at one place
+    (dict(points=np.ones((100, 3)), floor=-1.0), 'not an object'),      # floor adds no extent
 ])
 def test_validation(kwargs, match):
     args = dict(points=box_front(100), sensor_origin=np.zeros(3), up=[0, 0, 1], spec=GridSpec(8))

@@ -20,6 +20,7 @@ from scipy import ndimage
 from .grid import FREE, OCCUPIED, UNKNOWN, GridSpec
 
 MIN_POINTS = 10
+MIN_EXTENT = 1e-6  # input units (m): points spanning no more than this are refused
 _RAY_MARGIN = 0.25  # voxels: a ray stops this short of the voxel centre it is cast at
 
 
@@ -255,6 +256,9 @@ def voxelize_view(points, sensor_origin, up, spec: GridSpec, center=None, floor=
     rot = aligned_frame(upv, origin, pts.mean(axis=0))
     q = pts @ rot  # aligned-frame coordinates (same origin as the input frame)
     lo, hi = q.min(axis=0), q.max(axis=0)
+    if not (hi - lo).max() > MIN_EXTENT:   # e.g. every point at one place
+        raise ValueError(f'the points span {(hi - lo).max():g} (input units), not more than '
+                         f'{MIN_EXTENT:g}: not an object to voxelize')
     if floor is not None and spec.anchor == 'bottom':
         lo[2] = min(lo[2], float(floor))
     ext = hi - lo
@@ -263,7 +267,7 @@ def voxelize_view(points, sensor_origin, up, spec: GridSpec, center=None, floor=
     box_hi = np.array([lo[0] + depth, hi[1], hi[2]])
     if spec.units == 'normalized':
         largest = float(max(depth, ext[1], ext[2]))
-        voxel = largest / (spec.fill * n) if largest > 0 else 1e-3
+        voxel = largest / (spec.fill * n)
     else:
         voxel = float(spec.voxel_size)
     c = (n - 1) / 2.0

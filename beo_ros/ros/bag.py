@@ -185,9 +185,10 @@ def detect_storage(bag_path) -> str:
     p = Path(bag_path)
     meta = p / 'metadata.yaml'
     if meta.is_file():
-        m = re.search(r'storage_identifier:\s*(\S+)', meta.read_text())
-        if m:
-            return m.group(1).strip('\'"')
+        m = re.search(r'storage_identifier:\s*(\S+)', meta.read_text(errors='replace'))
+        if not m:
+            raise ValueError(f'{meta}: no storage_identifier (not a rosbag2 metadata.yaml?)')
+        return m.group(1).strip('\'"')
     files = [p] if p.is_file() else list(p.glob('*'))
     for f in files:
         if f.suffix == '.mcap':
@@ -733,12 +734,13 @@ def pcd_to_bag(scenes, bag_path, *, storage: str = 'sqlite3', topic: str = DEFAU
     summary = {'bag': str(bag_path), 'storage': storage, 'scenes': [], 'topics': {}}
     step = int(round(object_period * 1e9))
     last = None
+    # every scene is read before the bag is opened: a bad one leaves no half-written bag
+    read = [scene_messages(scene, min_points=min_points) for scene in scenes]
     with BagWriter(bag_path, storage) as w:
         w.add_topic(topic, CLOUD_TYPE)
         w.add_topic(UP_TOPIC, 'geometry_msgs/msg/Vector3Stamped')
         w.add_topic(PLANE_TOPIC, 'std_msgs/msg/Float64MultiArray')
-        for i, scene in enumerate(scenes):
-            objects, up, plane = scene_messages(scene, min_points=min_points)
+        for i, (scene, (objects, up, plane)) in enumerate(zip(scenes, read)):
             ns = int(t0_ns + round(i * period * 1e9))
             if last is not None:
                 ns = max(ns, last + max(step, 1))
@@ -830,6 +832,7 @@ def replay_main(argv=None) -> int:
         p.error(str(e))
     if not Path(args.bag).exists():
         p.error(f'no such bag: {args.bag}')
+    from rosbags.rosbag2 import ReaderError
     code = 0
     with _cli_node(args.node_name) as (node, stop):
         try:
@@ -847,6 +850,9 @@ def replay_main(argv=None) -> int:
             code = 3
         except KeyError as e:
             print(f'beo-replay: {e.args[0]}', file=sys.stderr)
+            code = 2
+        except (ValueError, OSError, ReaderError) as e:   # not a bag, or a corrupt one
+            print(f'beo-replay: cannot read {args.bag}: {e}', file=sys.stderr)
             code = 2
     return code
 
@@ -910,9 +916,13 @@ def pcd2bag_main(argv=None) -> int:
         p.error(f'no such file: {", ".join(missing)}')
     if Path(args.output).exists():
         p.error(f'{args.output} exists already')
-    summary = pcd_to_bag(args.scenes, args.output, storage=args.storage, topic=args.topic,
-                         frame_id=args.frame, period=args.period,
-                         object_period=args.object_period, min_points=args.min_points)
+    try:
+        summary = pcd_to_bag(args.scenes, args.output, storage=args.storage, topic=args.topic,
+                             frame_id=args.frame, period=args.period,
+                             object_period=args.object_period, min_points=args.min_points)
+    except ValueError as e:   # PCDError and bad scenes (no table plane, ...) are ValueErrors
+        print(f'beo-pcd2bag: {e}', file=sys.stderr)
+        return 2
     if args.json:
         print(json.dumps(summary, indent=2))
     else:

@@ -52,17 +52,18 @@ def cloud_to_xyz(msg: PointCloud2):
         the number of points removed as non-finite. An empty cloud gives ``(zeros((0, 3)), 0)``.
 
     Raises:
-        CloudFormatError: missing or non-float x/y/z, a field overrunning ``point_step``,
-        ``row_step < width * point_step``, data shorter than the layout needs.
+        CloudFormatError: missing, duplicate, overlapping or non-float x/y/z, a field
+        overrunning ``point_step``, ``row_step < width * point_step``, data shorter or longer
+        than the layout (longer than ``height * row_step``).
     """
     height, width = int(msg.height), int(msg.width)
     point_step, row_step = int(msg.point_step), int(msg.row_step)
     n_points = height * width
     fields = {}
     for f in msg.fields:
-        if f.name in fields:
+        if f.name in fields and f.name in 'xyz':   # others are ignored (PCD pads with '_')
             raise CloudFormatError(f'PointCloud2 has duplicate field {f.name!r}')
-        fields[f.name] = f
+        fields.setdefault(f.name, f)
     missing = [k for k in 'xyz' if k not in fields]
     if missing:
         raise CloudFormatError(
@@ -82,6 +83,12 @@ def cloud_to_xyz(msg: PointCloud2):
             raise CloudFormatError(
                 f'PointCloud2 field {f.name!r} (offset {f.offset}, {_field_size(f)} bytes) '
                 f'overruns point_step {point_step}')
+    spans = sorted((int(fields[k].offset), int(fields[k].offset) + _field_size(fields[k]), k)
+                   for k in 'xyz')
+    for (_, end, a), (start, _, b) in zip(spans, spans[1:]):
+        if start < end:
+            raise CloudFormatError(f'PointCloud2 fields {a!r} and {b!r} overlap (bytes '
+                                   f'{fields[a].offset}.., {fields[b].offset}..)')
     if height > 1 and row_step < width * point_step:
         raise CloudFormatError(
             f'PointCloud2 row_step {row_step} < width*point_step {width * point_step}')
@@ -89,10 +96,10 @@ def cloud_to_xyz(msg: PointCloud2):
         row_step = width * point_step  # unorganized clouds: tolerate a zero/wrong row_step
     data = memoryview(msg.data).cast('B') if not isinstance(msg.data, bytes) else msg.data
     need = (height - 1) * row_step + width * point_step
-    if len(data) < need:
+    if not need <= len(data) <= height * row_step:   # the last row's padding may be missing
         raise CloudFormatError(
             f'PointCloud2 data has {len(data)} bytes, layout {height}x{width} (point_step '
-            f'{point_step}, row_step {row_step}) needs {need}')
+            f'{point_step}, row_step {row_step}) needs {need} to {height * row_step}')
     order = '>' if msg.is_bigendian else '<'
     dtype = np.dtype({
         'names': ['x', 'y', 'z'],

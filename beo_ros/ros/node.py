@@ -112,13 +112,19 @@ def load_bank(model_dir: str):
         raise StartupError(f"cannot load models from '{path}': {type(e).__name__}: {e}") from e
 
 
+# no sensor or direction is this far out (m): larger values overflow the grid maths
+MAX_COORDINATE = 1e6
+
+
 def _vector_reason(name, value, nonzero=False):
     v = list(value)
     if len(v) != 3:
         return f'{name} must have 3 elements, got {len(v)}'
     if not all(math.isfinite(x) for x in v):
         return f'{name} must be finite, got {v}'
-    if nonzero and math.sqrt(sum(x * x for x in v)) < 1e-9:
+    if max(abs(x) for x in v) > MAX_COORDINATE:
+        return f'{name} components must be within +-{MAX_COORDINATE:g}, got {v}'
+    if nonzero and math.hypot(*v) < 1e-9:
         return f'{name} must be non-zero'
     return None
 
@@ -180,10 +186,21 @@ class BeoNode(Node):
         except Exception as e:  # out-of-range / wrong-type overrides
             raise StartupError(f'invalid parameter: {type(e).__name__}: {e}') from e
         for name in ('sensor_origin', 'up_vector', 'min_points', 'max_points', 'workers',
-                     'worker_processes'):
+                     'worker_processes', 'completion_threshold'):
             reason = self._check(name, self.get_parameter(name).value, self._params())
             if reason:
                 raise StartupError(f'invalid parameter: {reason}')
+        topics = []   # resolved before the models load: a bad name fails fast
+        for topic in self.get_parameter('input_topics').value:
+            try:
+                resolved = self.resolve_topic_name(topic)
+            except Exception as e:  # rclpy raises RCLError / ValueError types of its own
+                raise StartupError(f'invalid parameter: input_topics entry {topic!r}: {e}') from e
+            if resolved in topics:
+                self.get_logger().warning(f"input_topics lists '{resolved}' twice: one "
+                                          'subscription')
+                continue
+            topics.append(resolved)
 
         self._bank_lock = threading.Lock()  # serialises model reloads (the swap itself is atomic)
         self._n_procs = int(self.get_parameter('worker_processes').value)
@@ -252,8 +269,7 @@ class BeoNode(Node):
         self._in_flight = 0
         self._warm = threading.Event()
         self._topics = []
-        for topic in self.get_parameter('input_topics').value:
-            topic = self.resolve_topic_name(topic)
+        for topic in topics:
             self.create_subscription(
                 PointCloud2, topic, lambda msg, t=topic: self._on_cloud(msg, t),
                 qos_profile_sensor_data, callback_group=sub_group)
@@ -329,7 +345,8 @@ class BeoNode(Node):
         d('max_points', 50000, _idesc('More points than this: random downsampling (fixed seed)',
                                       10, 100_000_000))
         d('completion_threshold', 0.5, _fdesc(
-            'Occupancy probability for a voxel to be in the completed cloud', 0.0, 1.0))
+            'Occupancy probability for a voxel to be in the completed cloud (0 refused)',
+            0.0, 1.0))
         d('publish_completed', True, ParameterDescriptor(
             description='Publish ~/completed (x y z probability)',
             type=ParameterType.PARAMETER_BOOL))
@@ -367,6 +384,8 @@ class BeoNode(Node):
         if name in ('min_points', 'max_points') and merged['min_points'] > merged['max_points']:
             return (f"min_points ({merged['min_points']}) must not exceed max_points "
                     f"({merged['max_points']})")
+        if name == 'completion_threshold' and not 0 < value <= 1:
+            return f'completion_threshold must be in (0, 1], got {value!r}'
         if name == 'workers' and not (isinstance(value, int) and 1 <= value <= 64):
             return f'workers must be an integer in 1 .. 64, got {value!r}'
         if name == 'worker_processes' and not (isinstance(value, int) and 0 <= value <= 64):
@@ -708,7 +727,7 @@ class BeoNode(Node):
         p = self._params()
         try:
             threshold = p['completion_threshold']
-            if complete and request.threshold > 0:
+            if complete and not request.threshold <= 0:   # NaN is refused below, not ignored
                 threshold = float(request.threshold)
                 if not threshold <= 1.0:
                     raise InputRejected(f'threshold must be in (0, 1], got {threshold}')
