@@ -127,12 +127,20 @@ def test_check_grid(tiny):
         b[3, 3, 3] = bad
         with pytest.raises(ValueError, match='values'):
             tiny.check_grid(b)
-    with pytest.raises(ValueError, match='yaw_step_deg'):
-        tiny.estimate(g, yaw_step_deg=0.0)
+    for kw in (dict(yaw_step_deg=0.0), dict(yaw_step_deg='1'), dict(yaw_step_deg=np.nan),
+               dict(search_step_deg=0), dict(search_step_deg=True)):
+        with pytest.raises(ValueError, match=next(iter(kw))):
+            tiny.estimate(views()[1], **kw)
     for bad in ((float('nan'),), (-10.0,), (0.0,), ('10',)):
         with pytest.raises(ValueError, match='probe_deg'):
             tiny.estimate(g, probe_deg=bad)
-    assert np.isfinite(tiny.estimate(g, probe_deg=None).yaw)
+    assert np.isfinite(tiny.estimate(views()[1], probe_deg=None).yaw)
+    # nothing occupied (all free, all unknown): no object, not a class
+    for empty in (g, np.full_like(g, -1)):
+        with pytest.raises(ValueError, match='no occupied voxel'):
+            tiny.estimate(empty)
+        with pytest.raises(ValueError, match='no occupied voxel'):
+            tiny.features(empty)
 
 
 def test_fine_yaw_steps_refine_exactly_without_fine_pooled_maps(tiny):
@@ -1142,6 +1150,79 @@ def test_bad_class_counts_are_refused_on_load(tmp_path):
     path = bank.save(tmp_path / 'bad')
     with pytest.raises(ModelError, match=r"classifier.npz: classifier 'complete': class_counts"):
         ModelBank.load(path)
+
+
+def _rewrite_npz(path, fn, **change):
+    """Change (value) or drop (None) arrays of ``path / fn`` and keep the manifest consistent."""
+    from beo_ros.core.bank import _sha256
+    with np.load(path / fn) as z:
+        arrays = {k: z[k] for k in z.files}
+    for k, v in change.items():
+        if v is None:
+            arrays.pop(k)
+        else:
+            arrays[k] = v
+    np.savez(path / fn, **arrays)
+    m = _manifest(path)
+    m['files'][fn] = _sha256(path / fn)
+    _write_manifest(path, m)
+
+
+@pytest.mark.parametrize('change, msg', [
+    (dict(complete__intercept=np.array([0.0, np.nan, 0.0])), "'intercept' contains NaN"),
+    (dict(complete__scale=np.ones(5)), "'scale' has shape"),                # wrong length
+    ('zero_scale', "'scale' must be positive"),
+    (dict(complete__mean=None), "no 'mean'"),
+    (dict(complete__unknown_threshold=None), "no 'unknown_threshold'"),
+    (dict(complete__coef=np.zeros((3, 2))), "'coef' has shape"),
+    (dict(other__coef=np.zeros((3, 2))), "unknown classifier 'other'"),
+])
+def test_bad_grid_classifier_arrays_are_refused_on_load(tmp_path, change, msg):
+    bank, _ = _prior_bank()
+    path = bank.save(tmp_path / 'm')
+    if change == 'zero_scale':
+        with np.load(path / 'classifier.npz') as z:
+            change = dict(complete__scale=np.where(np.arange(z['complete__scale'].size) == 1,
+                                                   0.0, z['complete__scale']))
+    _rewrite_npz(path, 'classifier.npz', **change)
+    with pytest.raises(ModelError, match=msg):
+        ModelBank.load(path)
+
+
+@pytest.mark.parametrize('key, value, msg', [
+    ('mean_variance', lambda a: -np.ones_like(a), 'must be >= 0'),
+    ('component_variance', lambda a: -np.ones_like(a), 'must be >= 0'),
+    ('loading_covariance', lambda a: -100 * np.eye(len(a), dtype=a.dtype), 'semi-definite'),
+    ('loading_covariance', lambda a: a + np.triu(np.ones_like(a), 1), 'semi-definite'),
+    ('loading_covariance', lambda a: a[:1, :1], 'has shape'),
+    ('mean_variance', lambda a: a[:5], 'has shape'),
+    ('component_variance', lambda a: np.append(a, 1.0), 'has shape'),
+    ('noise_variance', lambda a: np.array([0.1, 0.2]), 'has shape'),
+    ('noise_variance', lambda a: np.array('abc'), 'real numbers'),
+    ('W', lambda a: a.astype(bool), 'real numbers'),
+])
+def test_bad_class_arrays_are_refused_on_load(tmp_path, tiny_dir, key, value, msg):
+    p = _copy(tiny_dir, tmp_path)
+    fn = sorted(p.glob('class_00_*.npz'))[0]
+    with np.load(fn) as z:
+        bad = value(z[key])
+    _rewrite_npz(p, fn.name, **{key: bad})
+    with pytest.raises(ModelError, match=fn.name + '.*' + msg):
+        ModelBank.load(p)
+
+
+@pytest.mark.parametrize('change, msg', [
+    (dict(pose_components=0), 'pose_components'), (dict(pose_components='x'), 'pose_components'),
+    (dict(pose_components=2.5), 'pose_components'), (dict(training=[1, 2]), 'training'),
+])
+def test_bad_bank_settings_are_refused(tmp_path, tiny_dir, change, msg):
+    p = _copy(tiny_dir, tmp_path)
+    _write_manifest(p, dict(_manifest(p), **change))
+    with pytest.raises(ModelError, match='manifest.json: ' + msg):
+        ModelBank.load(p)
+    tiny = make_tiny_bank(n=8, k=2)
+    with pytest.raises(ModelError, match=msg):
+        ModelBank(tiny.models, tiny.spec, **change)
 
 
 def test_cross_validated_report_under_both_priors():

@@ -98,6 +98,9 @@ HEADER = ('VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n'
     (HEADER.encode() + b'DATA ascii\n1 2 3\n', 'ascii data lines'),
     (HEADER.encode() + b'DATA ascii\n1 2 3\n4 5\n', 'numbers each'),
     (HEADER.encode() + b'DATA ascii\n1 2 3\n4 5 x\n', 'numbers each'),
+    # integer fields: no silent wrapping (-1 -> 4294967295), truncation or overflow
+    *[(HEADER.replace('TYPE F F F', 'TYPE F F U').encode() + b'DATA ascii\n1 2 3\n4 5 '
+       + v + b'\n', "'z' .*not integers") for v in (b'-1', b'2.7', b'5e9', b'nan')],
     (HEADER.encode() + b'DATA binary\n' + b'\x00' * 20, 'expected 24'),
     (HEADER.encode() + b'DATA binary_compressed\n\x01', 'size header'),
     (HEADER.encode() + b'DATA binary_compressed\n' + struct.pack('<II', 4, 99) + b'abcd',

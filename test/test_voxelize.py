@@ -199,6 +199,9 @@ def test_label_free_unknown_single_voxel_and_hole_closing():
     (dict(sensor_origin=[np.inf, 0, 0]), 'sensor_origin'),
     (dict(center=[0, 0]), 'center'),
     (dict(floor=np.nan), 'floor'),
+    (dict(points=box_front(100) * 1e7), r'within \+-1e\+06'),
+    (dict(sensor_origin=[-1e300, 0, 0]), 'sensor_origin must lie within'),
+    (dict(center=[0, 0, 1e9]), 'center must lie within'),
     (dict(points=np.ones((100, 3))), 'not an object'),                  # all at one place
     (dict(points=np.ones((100, 3)), floor=-1.0), 'not an object'),      # floor adds no extent
 ])
@@ -207,6 +210,14 @@ def test_validation(kwargs, match):
     args.update(kwargs)
     with pytest.raises(ValueError, match=match):
         voxelize_view(**args)
+
+
+def test_huge_up_vector_is_a_direction():
+    # (0, 0, 1e300) is a valid direction: its norm must not overflow to inf (up -> 0)
+    args = (box_front(100), np.zeros(3))
+    a = voxelize_view(*args, [0, 0, 1e300], GridSpec(8))
+    b = voxelize_view(*args, [0, 0, 1], GridSpec(8))
+    np.testing.assert_array_equal(a.grid, b.grid)
 
 
 def test_non_finite_points_are_dropped():

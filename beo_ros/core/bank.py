@@ -244,29 +244,37 @@ def check_point_classifier(clf, n_classes, where='classifier'):
     mean, scale (C+2,), coef (C, C+2), intercept (C,), unknown_threshold (C,), all finite
     (unknown_threshold may be -inf: never 'unknown'), scale > 0."""
     from .normals import DESCRIPTOR_NAMES as POINT_DESCRIPTORS
-    n_in = n_classes + len(POINT_DESCRIPTORS)
-    shapes = dict(mean=(n_in,), scale=(n_in,), coef=(n_classes, n_in), intercept=(n_classes,),
-                  unknown_threshold=(n_classes,))
-    if not isinstance(clf, dict):
-        raise ModelError(f"{where}: 'points' classifier must be a dict of arrays")
-    for key, shape in shapes.items():
-        if key not in clf:
-            raise ModelError(f"{where}: 'points' classifier has no {key!r} array")
-        a = np.asarray(clf[key])
-        if a.shape != shape or not np.issubdtype(a.dtype, np.number):
-            raise ModelError(f"{where}: 'points' classifier {key!r} has shape {a.shape}, expected "
-                             f"{shape} ({n_classes} classes; inputs: {n_classes} log-likelihoods "
-                             f"+ {', '.join(POINT_DESCRIPTORS)})")
-        ok = (~np.isnan(a) & (a < np.inf)).all() if key == 'unknown_threshold' else \
-            np.isfinite(a).all()
-        if not ok:
-            raise ModelError(f"{where}: 'points' classifier {key!r} contains NaN or Inf")
-    if (np.asarray(clf['scale']) <= 0).any():
-        raise ModelError(f"{where}: 'points' classifier 'scale' must be positive")
-    check_class_counts(clf, n_classes, f"{where}: 'points' classifier")
+    check_classifier_arrays(
+        clf, n_classes, n_classes + len(POINT_DESCRIPTORS), f"{where}: 'points' classifier",
+        f"{n_classes} log-likelihoods + {', '.join(POINT_DESCRIPTORS)}")
     extra = sorted(set(clf) - set(POINT_CLASSIFIER_KEYS) - set(OPTIONAL_CLASSIFIER_KEYS))
     if extra:
         raise ModelError(f"{where}: 'points' classifier has unexpected arrays {extra}")
+
+
+def check_classifier_arrays(clf, n_classes, n_in, where, inputs):
+    """Raise ModelError unless the dict ``clf`` holds mean, scale (n_in,), coef (C, n_in),
+    intercept (C,), unknown_threshold (C,), all numeric and finite (unknown_threshold may be
+    -inf: never 'unknown'), scale > 0, and valid optional class_counts. ``inputs`` describes
+    the n_in inputs for the message."""
+    shapes = dict(mean=(n_in,), scale=(n_in,), coef=(n_classes, n_in), intercept=(n_classes,),
+                  unknown_threshold=(n_classes,))
+    if not isinstance(clf, dict):
+        raise ModelError(f'{where} must be a dict of arrays')
+    for key, shape in shapes.items():
+        if key not in clf:
+            raise ModelError(f'{where} has no {key!r} array')
+        a = np.asarray(clf[key])
+        if a.shape != shape or not np.issubdtype(a.dtype, np.number) or a.dtype == bool:
+            raise ModelError(f'{where} {key!r} has shape {a.shape} ({a.dtype}), expected numbers '
+                             f'of shape {shape} ({n_classes} classes; inputs: {inputs})')
+        ok = (~np.isnan(a) & (a < np.inf)).all() if key == 'unknown_threshold' else \
+            np.isfinite(a).all()
+        if not ok:
+            raise ModelError(f'{where} {key!r} contains NaN or Inf')
+    if (np.asarray(clf['scale']) <= 0).any():
+        raise ModelError(f"{where} 'scale' must be positive")
+    check_class_counts(clf, n_classes, where)
 
 
 def check_class_counts(clf, n_classes, where):
@@ -290,6 +298,48 @@ def apply_point_classifier(clf, loglik, descriptors, offset=None):
     L = np.atleast_2d(np.asarray(loglik, dtype=np.float64))
     D = np.atleast_2d(np.asarray(descriptors, dtype=np.float64))
     return classifier_probabilities(clf, np.hstack([L, D]), L, offset)
+
+
+def check_class_arrays(arr, d, where, size):
+    """Raise ModelError unless the arrays of one class file fit a grid of d voxels: W (d, k),
+    mean and mean_variance (d,), loading_covariance (k, k) symmetric positive semi-definite,
+    component_variance (k,), scalar noise variances; all numeric and finite, variances >= 0
+    and the noise variances > 0. (``coarse_noise_map`` is checked by the caller.)"""
+    for key, a in arr.items():
+        if not np.issubdtype(a.dtype, np.number) or a.dtype == bool or np.iscomplexobj(a):
+            raise ModelError(f'{where}: {key!r} must hold real numbers, got dtype {a.dtype}')
+    W = arr['W']
+    if W.ndim != 2 or W.shape[0] != d or arr['mean'].shape != (d,):
+        raise ModelError(f'{where}: W {W.shape} / mean {arr["mean"].shape} do not fit the '
+                         f'{size}^3 grid of the manifest')
+    k = W.shape[1]
+    shapes = dict(noise_variance=(), coarse_noise_variance=(), loading_covariance=(k, k),
+                  mean_variance=(d,), component_variance=(k,))
+    for key, shape in shapes.items():
+        if arr[key].shape != shape:
+            raise ModelError(f'{where}: {key!r} has shape {arr[key].shape}, expected {shape} '
+                             f'(W has {k} components)')
+    if not all(np.isfinite(a).all() for a in arr.values()):
+        raise ModelError(f'{where}: contains NaN or Inf')
+    if not (arr['noise_variance'] > 0 and arr['coarse_noise_variance'] > 0):
+        raise ModelError(f'{where}: noise variances must be positive')
+    if (arr['mean_variance'] < 0).any() or (arr['component_variance'] < 0).any():
+        raise ModelError(f'{where}: mean_variance and component_variance must be >= 0')
+    C = arr['loading_covariance'].astype(np.float64)
+    scale = max(float(np.abs(C).max(initial=0.0)), np.finfo(np.float32).tiny)
+    if k and (np.abs(C - C.T).max() > 1e-5 * scale
+              or np.linalg.eigvalsh(0.5 * (C + C.T)).min() < -1e-5 * scale):
+        raise ModelError(f'{where}: loading_covariance must be symmetric positive semi-definite')
+
+
+def _settings_reason(pose_components, training):
+    """Why a bank's pose_components / training settings are unusable (None: they are fine)."""
+    if isinstance(pose_components, (bool, np.bool_)) \
+            or not isinstance(pose_components, (int, np.integer)) or pose_components < 1:
+        return f'pose_components must be an integer >= 1, got {pose_components!r}'
+    if training is not None and not isinstance(training, dict):
+        return f'training settings must be a mapping, got {type(training).__name__}'
+    return None
 
 
 class ModelBank:
@@ -343,6 +393,9 @@ class ModelBank:
             if reason:
                 raise ModelError(reason)
         self.verifier = verifier
+        reason = _settings_reason(pose_components, training)
+        if reason:
+            raise ModelError(reason)
         self.training = dict(training or {})
         self.pose_components = int(pose_components)
         self.stage2_noise_map = bool(stage2_noise_map)
@@ -488,14 +541,8 @@ class ModelBank:
                 raise ModelError(f'{fp}: missing array {e}') from None
             except (OSError, ValueError) as e:
                 raise ModelError(f'{fp}: unreadable: {e}') from None
+            check_class_arrays(arr, d, fp, spec.size)
             W = arr['W']
-            if W.ndim != 2 or W.shape[0] != d or arr['mean'].shape != (d,):
-                raise ModelError(f'{fp}: W {W.shape} / mean {arr["mean"].shape} do not fit the '
-                                 f'{spec.size}^3 grid of the manifest')
-            if not all(np.isfinite(a).all() for a in arr.values()):
-                raise ModelError(f'{fp}: contains NaN or Inf')
-            if not (arr['noise_variance'] > 0 and arr['coarse_noise_variance'] > 0):
-                raise ModelError(f'{fp}: noise variances must be positive')
             noise_map = arr.get('coarse_noise_map')
             if noise_map is not None and (noise_map.shape != (d // 8,) or noise_map.min() <= 0):
                 raise ModelError(f'{fp}: coarse_noise_map must be {d // 8} positive values, got '
@@ -523,13 +570,15 @@ class ModelBank:
                 if mode == POINTS_MODE:
                     check_point_classifier(clf, len(classes), str(fp))
                     continue
-                check_class_counts(clf, len(classes), f'{fp}: classifier {mode!r}')
+                if mode not in MODES:
+                    raise ModelError(f'{fp}: unknown classifier {mode!r} (known: '
+                                     f'{", ".join(MODES + (POINTS_MODE,))})')
                 with_d = uses_descriptors(clf)
                 nf = len(FEATURE_NAMES) * len(classes) + with_d * len(SHAPE_DESCRIPTORS)
                 extra = f' + {len(SHAPE_DESCRIPTORS)} shape descriptors' if with_d else ''
-                if mode not in MODES or clf.get('coef', np.zeros(0)).shape != (len(classes), nf):
-                    raise ModelError(f'{fp}: classifier {mode!r} does not fit {len(classes)} '
-                                     f'classes x {len(FEATURE_NAMES)} features{extra}')
+                check_classifier_arrays(clf, len(classes), nf, f'{fp}: classifier {mode!r}',
+                                        f'{len(classes)} classes x {len(FEATURE_NAMES)} '
+                                        f'features{extra}')
                 if bool(clf.get('row_standardize', False)) and len(classes) < 3:
                     raise ModelError(f'{fp}: classifier {mode!r} standardises features across '
                                      f'classes, which needs at least 3 classes')
@@ -551,6 +600,9 @@ class ModelBank:
                 resolve_class_prior(class_prior, classes)
             except ValueError as e:
                 raise ModelError(f'{mf}: {e}') from None
+        reason = _settings_reason(manifest.get('pose_components', 8), manifest.get('training'))
+        if reason:
+            raise ModelError(f'{mf}: {reason}')
         return cls(models, spec, classifier, manifest.get('training'),
                    manifest.get('pose_components', 8), class_prior=class_prior,
                    verifier=verifier)
@@ -577,9 +629,10 @@ class ModelBank:
         ``InferenceEngine.observe`` arrays, shared)).
         """
         grid = self.check_grid(grid)
-        if not 0.05 <= yaw_step_deg <= 90:
-            raise ValueError(f'yaw_step_deg must be in [0.05, 90], got {yaw_step_deg}')
+        check_step('yaw_step_deg', yaw_step_deg)
         check_yaw(yaw)
+        if not (grid == 1).any():   # all free or all unknown: every class would "fit"
+            raise ValueError('grid has no occupied voxel: there is no object to estimate')
         eng = self.engine
         pooled = eng.pooled(grid)
         obs = eng.observe(grid)
@@ -800,8 +853,9 @@ class ModelBank:
         """
         t0 = time.perf_counter()
         grid = self.check_grid(grid)
-        if not 0.05 <= yaw_step_deg <= 90:
-            raise ValueError(f'yaw_step_deg must be in [0.05, 90], got {yaw_step_deg}')
+        check_step('yaw_step_deg', yaw_step_deg)
+        if search_step_deg is not None:
+            check_step('search_step_deg', search_step_deg)
         probe_deg = tuple(probe_deg or ())
         if not all(isinstance(p, (int, float, np.floating, np.integer))
                    and not isinstance(p, bool) and 0 < p <= 180 for p in probe_deg):
@@ -922,6 +976,14 @@ def check_yaw(yaw):
         raise ValueError(f'yaw must be None or a number of radians, got {yaw!r}')
     if not np.isfinite(a):
         raise ValueError(f'yaw must be finite, got {yaw}')
+
+
+def check_step(name, value):
+    """Raise ValueError unless ``value`` is a real number of degrees in [0.05, 90]."""
+    if isinstance(value, (bool, np.bool_)) \
+            or not isinstance(value, (int, float, np.integer, np.floating)) \
+            or not 0.05 <= value <= 90:   # also refuses NaN
+        raise ValueError(f'{name} must be a number of degrees in [0.05, 90], got {value!r}')
 
 
 def check_count(name, value):

@@ -234,7 +234,14 @@ def read_pcd(path) -> PCDData:
             raise PCDError(f'{path}: ascii data rows are not {ncol} numbers each')
         col = 0
         for name, dt, c in zip(names, dtypes, counts):
-            fields[name] = _shape(table[:, col:col + c].astype(dt).ravel(), c)
+            values = table[:, col:col + c]
+            if np.dtype(dt).kind in 'iu':   # astype would wrap or truncate silently
+                info = np.iinfo(dt)
+                if not (np.isfinite(values) & (values == np.round(values))
+                        & (values >= info.min) & (values <= info.max)).all():
+                    raise PCDError(f'{path}: ascii field {name!r} ({np.dtype(dt).name}) has '
+                                   f'values that are not integers in [{info.min}, {info.max}]')
+            fields[name] = _shape(values.astype(dt).ravel(), c)
             col += c
     elif kind == 'binary':
         rec = np.dtype([(f'f{i}', dt, (c,)) for i, (dt, c) in enumerate(zip(dtypes, counts))])

@@ -21,6 +21,7 @@ from .grid import FREE, OCCUPIED, UNKNOWN, GridSpec
 
 MIN_POINTS = 10
 MIN_EXTENT = 1e-6  # input units (m): points spanning no more than this are refused
+MAX_COORDINATE = 1e6  # input units (m): points and positions beyond are refused (overflow)
 _RAY_MARGIN = 0.25  # voxels: a ray stops this short of the voxel centre it is cast at
 
 
@@ -55,6 +56,9 @@ def _check_points(points, min_points: int) -> np.ndarray:
     pts = pts[np.isfinite(pts).all(axis=1)]
     if len(pts) < min_points:
         raise ValueError(f'need at least {min_points} finite points, got {len(pts)}')
+    if np.abs(pts).max() > MAX_COORDINATE:
+        raise ValueError(f'points must lie within +-{MAX_COORDINATE:g} (input units, m), got '
+                         f'a coordinate of {np.abs(pts).max():g}')
     return pts
 
 
@@ -63,10 +67,15 @@ def _check_vec(v, name: str, unit: bool = False) -> np.ndarray:
     if v.shape != (3,) or not np.isfinite(v).all():
         raise ValueError(f'{name} must be a finite 3-vector, got {np.asarray(v)!r}')
     if unit:
-        n = np.linalg.norm(v)
-        if n < 1e-9:
+        big = np.abs(v).max()
+        if big < 1e-9:
             raise ValueError(f'{name} must be non-zero, got {v!r}')
-        v = v / n
+        if big > 1e100:   # the norm would overflow
+            v = v / big
+        v = v / np.linalg.norm(v)
+    elif np.abs(v).max() > MAX_COORDINATE:
+        raise ValueError(f'{name} must lie within +-{MAX_COORDINATE:g} (input units, m), got '
+                         f'{v!r}')
     return v
 
 

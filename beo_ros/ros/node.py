@@ -42,6 +42,7 @@ from std_msgs.msg import Header
 from visualization_msgs.msg import Marker, MarkerArray
 
 from beo_ros.core.bank import parse_class_prior
+from beo_ros.core.voxelize import MAX_COORDINATE
 from beo_ros.ros.conversions import (CloudFormatError, cloud_to_xyz, completed_cloud,
                                      estimate_to_msg, interfaces, object_dimensions)
 from beo_ros.ros.procpool import BrokenProcessPool, EstimatorPool, PoolRetired, warm_up_points
@@ -110,10 +111,6 @@ def load_bank(model_dir: str):
         return load_models(str(path))
     except Exception as e:  # ModelError names the bad file; anything else is wrapped
         raise StartupError(f"cannot load models from '{path}': {type(e).__name__}: {e}") from e
-
-
-# no sensor or direction is this far out (m): larger values overflow the grid maths
-MAX_COORDINATE = 1e6
 
 
 def _vector_reason(name, value, nonzero=False):
