@@ -728,3 +728,15 @@ def test_worker_processes_stop_with_the_node(ros_context, ros_bank_source):
     assert time.monotonic() - t0 < 10
     assert node._pool is None and not _alive(pids[0])
     node.destroy_node()  # idempotent
+
+
+def test_help_prints_usage_without_starting_the_node(capsys, monkeypatch):
+    from beo_ros.ros import node as node_mod
+
+    def no_init(*a, **k):
+        raise AssertionError('--help must not start ROS')
+    monkeypatch.setattr(node_mod.rclpy, 'init', no_init)
+    for argv in (['--help'], ['-h', '--ros-args', '-p', 'workers:=2']):
+        node_mod.main(argv)
+        out = capsys.readouterr().out
+        assert out.startswith('usage: beo-node') and 'config/beo.yaml' in out

@@ -862,8 +862,21 @@ def _drain(executor):
     executor.shutdown(timeout_sec=5.0)
 
 
+USAGE = """usage: beo-node [-h] [--ros-args (-p NAME:=VALUE | --params-file FILE) ...]
+
+Runs the beo node (node name 'beo') until Ctrl-C. Parameters, with their defaults and
+ranges: config/beo.yaml of the package (e.g. beo-node --ros-args --params-file
+config/beo.yaml); arrays of doubles need decimal points (-p up_vector:="[0.0, -1.0, 0.0]").
+"""
+
+
 def main(args=None):
     """Run the node until Ctrl-C / shutdown; exits with status 1 if it cannot start."""
+    argv = sys.argv[1:] if args is None else list(args)
+    own = argv[:argv.index('--ros-args')] if '--ros-args' in argv else argv
+    if '-h' in own or '--help' in own:
+        print(USAGE + '\n' + __doc__)
+        return
     rclpy.init(args=args)
     node = None
     executor = None
