@@ -3,7 +3,8 @@
 All peers answer the same query set: one random partial view (the evaluation protocol of
 :func:`beo_ros.core.synthetic.random_partial_view`) of each held-out object, seeded. The peers
 are trained on a seeded stratified split of the shared ModelNet10 voxel grids (or on generated
-boxes/cylinders when the data is missing or ``--data none``).
+boxes/cylinders with ``--data none``, or when no ``--data`` is given and the default file is
+missing; a given ``--data`` file that does not exist is an error).
 
 Reported per peer: accuracy, yaw error (median; within 10 deg; within 10 deg counting 180 deg
 flips), latency p50/p95 per object (median over ``--repeats`` runs of each query,
@@ -44,6 +45,8 @@ def log(*a):
 
 # ---------------------------------------------------------------------- data
 def data_path(arg):
+    """The voxel npz to use: None for generated shapes ('none', or no ``arg`` and the default
+    file missing), else the given path (checked by ``load_data``) or the default file."""
     if arg == 'none':
         return None
     if arg:
@@ -58,7 +61,10 @@ def load_data(args, rng):
     from beo_ros.core.synthetic import primitive_shapes
     from beo_ros.core.training import load_voxel_npz
     path = data_path(args.data)
-    if path is None or not path.is_file():
+    if path is not None and not path.is_file():
+        # only --data none or a missing default file fall back to generated shapes
+        raise ValueError(f'--data {path}: no such file (--data none: generated boxes/cylinders)')
+    if path is None:
         n = 16
         X, y, names = primitive_shapes(n, max(args.train_per_class or 15, 15) + 8, rng)
         return X, y, names, n, 'generated boxes/cylinders (16^3)'
@@ -710,7 +716,8 @@ def parse_args(argv):
     ap = argparse.ArgumentParser(prog='beo-bench', description=__doc__.split('\n')[0])
     ap.add_argument('--out', default='bench_out', help='output directory (bench.json, PNGs)')
     ap.add_argument('--data', default='', help="voxel npz (default: $BEO_DATA_DIR/"
-                    f"{DEFAULT_DATA}); 'none' = generated boxes/cylinders")
+                    f"{DEFAULT_DATA}, or generated boxes/cylinders when that file is "
+                    "missing); 'none' = generated boxes/cylinders")
     ap.add_argument('--classes', nargs='*', default=None, help='class subset')
     ap.add_argument('--quick', action='store_true', help='tiny run (< ~60 s)')
     ap.add_argument('--seed', type=int, default=0)
@@ -788,6 +795,15 @@ def parse_args(argv):
 
 def main(argv=None):
     args = parse_args(argv)
+    try:
+        return run(args)
+    except (ValueError, OSError) as e:
+        print(f'beo-bench: error: {e}', file=sys.stderr)
+        return 2
+
+
+def run(args):
+    """The bench of parsed ``args``: writes bench.json, bench.md and the PNGs; exit code."""
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(args.seed)
@@ -814,7 +830,7 @@ def main(argv=None):
         from beo_ros.core.bank import load_models
         bank = load_models(args.model)
         if list(bank.classes) != list(names):
-            raise SystemExit(f'--model classes {bank.classes} differ from the data {names}')
+            raise ValueError(f'--model classes {bank.classes} differ from the data {names}')
         res['setup']['beo_model'] = (f'{args.model} (given: valid only if it was not trained '
                                      'on the query objects)')
     else:

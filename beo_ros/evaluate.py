@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -161,14 +162,15 @@ def main(argv=None):
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('--data', help='labelled voxel npz (shared format)')
     ap.add_argument('--model', help='model directory (held-out mode; default: shipped model)')
-    ap.add_argument('--cv', type=int, default=0, help='K-fold cross-validation on --data')
+    ap.add_argument('--cv', type=int, default=0,
+                    help='K-fold cross-validation on --data (K >= 2; 0: held-out mode)')
     ap.add_argument('--folds', type=int, default=0,
                     help='with --cv: evaluate only this many of the K folds (0: all)')
     ap.add_argument('--k', type=int, default=20, help='components per class (--cv)')
     ap.add_argument('--train-views', type=int, default=1,
                     help='partial views per object for the OOF classifier (--cv)')
     ap.add_argument('--max-objects', type=int, default=0,
-                    help='evaluate at most this many objects (per fold), stratified')
+                    help='evaluate at most this many objects (per fold), stratified (0: all)')
     ap.add_argument('--views', type=int, default=1, help='partial views per evaluated object')
     ap.add_argument('--seed', type=int, default=0)
     ap.add_argument('--out', default='beo_eval_out', help='directory for JSON and PNG')
@@ -193,12 +195,26 @@ def main(argv=None):
         ap.error('--data is required (or --scans)')
     if args.verifier_views < 0 or args.jobs < 1:
         ap.error('--verifier-views must be >= 0 and --jobs >= 1')
+    if args.cv < 0 or args.cv == 1:
+        ap.error(f'--cv must be 0 (held-out mode) or a number of folds >= 2, got {args.cv}')
+    if args.cv and not 0 <= args.folds <= args.cv:
+        ap.error(f'--folds must be in [0, --cv] (0: all {args.cv} folds), got {args.folds}')
+    for opt in ('max_objects', 'views', 'train_views'):
+        if getattr(args, opt) < 0:
+            ap.error(f"--{opt.replace('_', '-')} must be >= 0, got {getattr(args, opt)}")
     try:
         class_prior = parse_class_prior(args.class_prior)
     except ValueError as e:
         ap.error(str(e))
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists() and not out.is_dir():
+        ap.error(f'--out {out}: exists and is not a directory')
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        ap.error(f'--out {out}: cannot make the output directory ({e.strerror or e})')
+    if not os.access(out, os.W_OK | os.X_OK):
+        ap.error(f'--out {out}: the output directory is not writable')
     rng = np.random.default_rng(args.seed)
     try:
         X, y, names, n = load_voxel_npz(args.data)
@@ -226,10 +242,13 @@ def main(argv=None):
             summary['protocol'] = f'{args.cv}-fold stratified CV on {args.data}'
         else:
             bank = load_models(args.model, class_prior)
-            if bank.classes != names:
-                missing = set(names) - set(bank.classes)
-                if missing:
-                    raise ValueError(f'data classes {sorted(missing)} are not in the model')
+            # the classes of the objects, not the file's whole class list: a subset file may
+            # still name every class
+            present = {names[c] for c in np.unique(y)}
+            missing = present - set(bank.classes)
+            if missing:
+                raise ValueError(f'data classes {sorted(missing)} (of objects in {args.data}) '
+                                 f'are not in the model (classes {bank.classes})')
             te = np.arange(len(X))
             if args.max_objects:
                 te = np.sort(rng.choice(te, min(args.max_objects, len(te)), replace=False))
@@ -242,8 +261,12 @@ def main(argv=None):
         dict(zip(bank.classes, map(float, bank.class_prior)))
     summary['command'] = 'beo-eval ' + ' '.join(sys.argv[1:] if argv is None else argv)
     print_table(summary)
-    (out / 'eval.json').write_text(json.dumps(summary, indent=2) + '\n')
-    write_figure(summary, examples, out / 'eval.png')
+    try:
+        (out / 'eval.json').write_text(json.dumps(summary, indent=2) + '\n')
+        write_figure(summary, examples, out / 'eval.png')
+    except OSError as e:
+        print(f'beo-eval: error: {e}', file=sys.stderr)
+        return 2
     print(f'wrote {out / "eval.json"} and {out / "eval.png"}')
     return 0
 

@@ -48,9 +48,14 @@ def main(argv=None):
     ap.add_argument('--congeal', action='store_true',
                     help='align the yaw of unaligned training objects within each class')
     ap.add_argument('--views', type=int, default=1,
-                    help='random partial views per object for the OOF classifier (0: none)')
-    ap.add_argument('--folds', type=int, default=5, help='folds for out-of-fold features')
-    ap.add_argument('--pose-components', type=int, default=8)
+                    help='random partial views per object for the OOF classifier (0: none, '
+                         'the maximum-likelihood rule)')
+    ap.add_argument('--folds', type=int, default=5,
+                    help='folds for out-of-fold features (>= 2; not used with --views 0)')
+    ap.add_argument('--pose-components', type=int, default=8,
+                    help='leading components per class used by the coarse pose search (>= 1; '
+                         "at most the class model's components are used; --mirror banks always "
+                         'use 8; default: %(default)s)')
     ap.add_argument('--seed', type=int, default=0)
     ap.add_argument('--oof-out', help='also save the out-of-fold features and records (npz)')
     ap.add_argument('--row-standardize', choices=tuple(AUTO_ON_OFF), default='auto',
@@ -82,6 +87,13 @@ def main(argv=None):
         args.verifier_views = 0 if args.scans else 6
     if args.verifier_views < 0 or args.jobs < 1:
         ap.error('--verifier-views must be >= 0 and --jobs >= 1')
+    if args.pose_components < 1:
+        ap.error(f'--pose-components must be >= 1, got {args.pose_components}')
+    if args.views < 0:
+        ap.error(f'--views must be >= 0 (0: no classifier), got {args.views}')
+    if args.views > 0 and args.folds < 2:
+        ap.error(f'--folds must be >= 2 for the out-of-fold classifier features, got '
+                 f'{args.folds} (--views 0 trains no classifier)')
     if args.scans and args.verifier_views:
         ap.error('--verifier-views needs objects in their canonical pose, not --scans')
     if args.mirror and not (args.scans and args.views == 0):

@@ -125,3 +125,68 @@ def test_quick_bench_smoke(tmp_path, capsys):
     for png in ('latency.png', 'accuracy.png', 'scaling.png'):
         assert (out / png).stat().st_size > 1000
     assert 'speedup vs icp' in capsys.readouterr().out
+
+
+# ---------------------------------------------------------------------- bad input
+QUICK = ['--quick', '--no-paper', '--no-icp', '--no-scaling', '--no-node', '--no-plots']
+
+
+def _npz(path, names=('box', 'cylinder')):
+    X, y, _ = primitive_shapes(N, 3, np.random.default_rng(0))
+    np.savez(path, voxels=np.packbits(X.astype(np.uint8), axis=1), labels=y,
+             classes=np.array(names), shape=np.array([N, N, N]))
+    return path
+
+
+def test_generated_shapes_only_for_none_or_a_missing_default(tmp_path, monkeypatch):
+    import argparse
+    from beo_ros.bench import load_data
+    args = argparse.Namespace(data='', classes=None, train_per_class=None)
+    monkeypatch.setenv('BEO_DATA_DIR', str(tmp_path / 'no_data_here'))
+    for data in ('', 'none'):  # the default file absent, or asked for
+        args.data = data
+        assert load_data(args, np.random.default_rng(0))[-1].startswith('generated')
+    args.data = str(tmp_path / 'TYPO.npz')  # a given file that does not exist: an error
+    with pytest.raises(ValueError, match='TYPO.npz: no such file'):
+        load_data(args, np.random.default_rng(0))
+    args.data = str(_npz(tmp_path / 'd.npz'))
+    assert load_data(args, np.random.default_rng(0))[-1] == args.data
+
+
+def test_bench_missing_data_file_exit_2(tmp_path, capsys):
+    from beo_ros.bench import main
+    assert main(QUICK + ['--data', str(tmp_path / 'TYPO.npz'), '--out', str(tmp_path / 'b')]) == 2
+    err = capsys.readouterr().err
+    assert 'beo-bench: error: --data' in err and 'TYPO.npz: no such file' in err
+    assert not (tmp_path / 'b' / 'bench.json').exists()
+
+
+def test_bench_missing_model_exit_2(tmp_path, capsys):
+    from beo_ros.bench import main
+    assert main(QUICK + ['--data', 'none', '--model', str(tmp_path / 'no_model'),
+                         '--out', str(tmp_path / 'b')]) == 2
+    err = capsys.readouterr().err
+    assert 'beo-bench: error:' in err and 'no_model' in err and 'Traceback' not in err
+
+
+def test_bench_unknown_class_exit_2(tmp_path, capsys):
+    from beo_ros.bench import main
+    assert main(QUICK + ['--data', str(_npz(tmp_path / 'd.npz')), '--classes', 'sofa',
+                         '--out', str(tmp_path / 'b')]) == 2
+    assert "beo-bench: error: " in capsys.readouterr().err
+
+
+def test_bench_model_classes_differ_exit_2(tmp_path, capsys):
+    from beo_ros.bench import main
+    from beo_ros.core.synthetic import make_tiny_bank
+    make_tiny_bank(tmp_path / 'bank', k=2)
+    assert main(QUICK + ['--data', str(_npz(tmp_path / 'd.npz', ('a', 'b'))), '--classes', 'a',
+                         'b', '--model', str(tmp_path / 'bank'), '--out', str(tmp_path / 'b')]) == 2
+    assert 'beo-bench: error: --model classes' in capsys.readouterr().err
+
+
+def test_bench_out_is_a_file_exit_2(tmp_path, capsys):
+    from beo_ros.bench import main
+    (tmp_path / 'a_file').write_text('x')
+    assert main(QUICK + ['--data', 'none', '--out', str(tmp_path / 'a_file')]) == 2
+    assert 'beo-bench: error:' in capsys.readouterr().err

@@ -168,3 +168,164 @@ def test_class_prior_flags(trained, tmp_path, capsys):
     assert ModelBank.load(tmp / 'model').verifier is None
     cv = bank.training['cross_validation']['partial']
     assert cv['class_prior'] == 'uniform' and cv['prior_accuracy'] == cv['balanced_accuracy']
+
+
+# ---------------------------------------------------------------------- bad input: voxel npz
+def _save(path, X, y, names, shape=(N, N, N), packed=True):
+    vox = np.packbits(X.astype(np.uint8), axis=1) if packed else X
+    keys = dict(voxels=vox, labels=y, classes=np.array(names))
+    if shape is not None:
+        keys['shape'] = np.array(shape)
+    np.savez(path, **keys)
+    return path
+
+
+def test_npz_unpacked_forms_load_like_packed(tmp_path):
+    X, y, names = primitive_shapes(N, 2, np.random.default_rng(0))
+    ref = load_voxel_npz(_save(tmp_path / 'p.npz', X, y, names))
+    for name, vox, shape in (('u2.npz', X.astype(np.uint8), None),
+                             ('u4.npz', X.reshape(-1, N, N, N) > 0.5, None),
+                             ('u4s.npz', X.reshape(-1, N, N, N).astype(np.float32), (N, N, N))):
+        X2, y2, names2, n = load_voxel_npz(_save(tmp_path / name, vox, y, names, shape, False))
+        np.testing.assert_array_equal(X2, ref[0])
+        np.testing.assert_array_equal(y2, ref[1])
+        assert names2 == ref[2] and n == N
+
+
+@pytest.mark.parametrize('bad, message', [
+    (-1, 'labels must be in [0, 2)'),   # would silently become the last class
+    (2, 'labels must be in [0, 2)'),    # == len(classes): an IndexError later
+    (0.5, 'labels must be integers'),   # would be truncated to 0
+])
+def test_npz_label_out_of_range_refused(tmp_path, capsys, bad, message):
+    X, y, names = primitive_shapes(N, 2, np.random.default_rng(0))
+    y = y.astype(float if isinstance(bad, float) else int)
+    y[0] = bad
+    p = _save(tmp_path / 'badlabel.npz', X, y, names)
+    with pytest.raises(ValueError, match='badlabel.npz') as ei:
+        load_voxel_npz(p)
+    assert message in str(ei.value)
+    assert train.main([str(p), '-o', str(tmp_path / 'm'), '--verifier-views', '0']) == 2
+    err = capsys.readouterr().err
+    assert 'beo-train: error' in err and message in err
+    assert not (tmp_path / 'm').exists()
+    assert evaluate.main(['--model', str(tmp_path / 'm'), '--data', str(p),
+                          '--out', str(tmp_path / 'o')]) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_npz_label_count_must_match_objects(tmp_path, capsys):
+    X, y, names = primitive_shapes(N, 2, np.random.default_rng(0))
+    p = _save(tmp_path / 'short.npz', X, y[:2], names)
+    with pytest.raises(ValueError, match='short.npz: 2 labels for 4 objects'):
+        load_voxel_npz(p, ['cylinder'])
+    assert train.main([str(p), '-o', str(tmp_path / 'm'), '--classes', 'box']) == 2
+    assert '2 labels for 4 objects' in capsys.readouterr().err
+
+
+def test_npz_packed_without_shape_refused(tmp_path, capsys):
+    # 16^3 bits packed into 512 bytes per row: without 'shape', not a grid of byte values
+    X, y, names = primitive_shapes(N, 2, np.random.default_rng(0))
+    p = _save(tmp_path / 'noshape.npz', X, y, names, shape=None)
+    with pytest.raises(ValueError, match="noshape.npz: .*'shape' key"):
+        load_voxel_npz(p)
+    # 32^3 packed into 4096 bytes, whose count is itself a cube (16^3): the audit's case
+    X32 = np.zeros((2, 32 ** 3), np.uint8)
+    X32[:, ::3] = 1
+    p = _save(tmp_path / 'noshape32.npz', X32, np.array([0, 1]), ['a', 'b'], shape=None)
+    with pytest.raises(ValueError, match="voxel values must be 0 or 1.*'shape' key"):
+        load_voxel_npz(p)
+    assert train.main([str(p), '-o', str(tmp_path / 'm'), '--views', '0',
+                       '--verifier-views', '0']) == 2
+    assert "'shape' key" in capsys.readouterr().err
+    assert not (tmp_path / 'm').exists()
+
+
+@pytest.mark.parametrize('shape', [(8, 8, 8), (32, 32, 32), (16, 16), (8, 8, 64), (16.5, 16, 16)])
+def test_npz_inconsistent_shape_key_refused(tmp_path, shape):
+    X, y, names = primitive_shapes(N, 2, np.random.default_rng(0))
+    p = _save(tmp_path / 'shape.npz', X, y, names, shape=shape)
+    with pytest.raises(ValueError, match="shape.npz: .*'shape' key"):
+        load_voxel_npz(p)
+
+
+def test_npz_voxel_values_outside_0_1_refused(tmp_path):
+    X, y, names = primitive_shapes(N, 2, np.random.default_rng(0))
+    X = X.astype(np.float32)
+    X[1, 5] = 2
+    p = _save(tmp_path / 'vals.npz', X.reshape(-1, N, N, N), y, names, shape=None, packed=False)
+    with pytest.raises(ValueError, match='vals.npz: voxel values must be 0 or 1, found 2.0'):
+        load_voxel_npz(p)
+
+
+# ---------------------------------------------------------------------- bad input: arguments
+@pytest.mark.parametrize('extra, message', [
+    (['--pose-components', '0'], '--pose-components must be >= 1'),
+    (['--pose-components', '-3'], '--pose-components must be >= 1'),
+    (['--folds', '1'], '--folds must be >= 2'),
+    (['--folds', '0'], '--folds must be >= 2'),
+    (['--views', '-1'], '--views must be >= 0'),
+])
+def test_train_bad_arguments_refused(tmp_path, capsys, extra, message):
+    write_npz(tmp_path / 'd.npz', count=2)
+    with pytest.raises(SystemExit) as ei:
+        train.main([str(tmp_path / 'd.npz'), '-o', str(tmp_path / 'm'), '--k', '2',
+                    '--verifier-views', '0'] + extra)
+    assert ei.value.code == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / 'm').exists()
+
+
+@pytest.mark.parametrize('extra, message', [
+    (['--cv', '-2'], '--cv must be 0 (held-out mode) or a number of folds >= 2'),
+    (['--cv', '1'], '--cv must be 0 (held-out mode) or a number of folds >= 2'),
+    (['--cv', '2', '--folds', '3'], '--folds must be in [0, --cv]'),
+    (['--cv', '2', '--folds', '-1'], '--folds must be in [0, --cv]'),
+    (['--max-objects', '-2'], '--max-objects must be >= 0'),
+    (['--views', '-1'], '--views must be >= 0'),
+    (['--cv', '2', '--train-views', '-1'], '--train-views must be >= 0'),
+])
+def test_eval_bad_arguments_refused(tmp_path, capsys, extra, message):
+    write_npz(tmp_path / 'd.npz', count=2)
+    with pytest.raises(SystemExit) as ei:
+        evaluate.main(['--data', str(tmp_path / 'd.npz'), '--out', str(tmp_path / 'o'),
+                       '--k', '2', '--verifier-views', '0'] + extra)
+    assert ei.value.code == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / 'o').exists()
+
+
+def test_eval_out_is_a_file_refused(tmp_path, capsys):
+    write_npz(tmp_path / 'd.npz', count=2)
+    (tmp_path / 'a_file').write_text('x')
+    for out, message in ((tmp_path / 'a_file', 'exists and is not a directory'),
+                         (tmp_path / 'a_file' / 'sub', 'cannot make the output directory')):
+        with pytest.raises(SystemExit) as ei:
+            evaluate.main(['--data', str(tmp_path / 'd.npz'), '--out', str(out)])
+        assert ei.value.code == 2
+        err = capsys.readouterr().err
+        assert 'beo-eval: error: --out' in err and message in err
+
+
+def test_eval_compares_the_classes_present(trained, tmp_path, capsys):
+    """A file whose class list names more classes than its objects have (a subset of a
+    larger set) is evaluated; objects of a class the model lacks are refused."""
+    tmp, _ = trained
+    X, y, names = primitive_shapes(N, 2, np.random.default_rng(3))
+    assert names == ['box', 'cylinder']
+    more = ['box', 'cup', 'cylinder']
+    y3 = np.where(y == 1, 2, 0)
+    _save(tmp_path / 'subset.npz', X, y3, more)
+    rc = evaluate.main(['--model', str(tmp / 'model'), '--data', str(tmp_path / 'subset.npz'),
+                        '--views', '0', '--out', str(tmp_path / 'e')])
+    assert rc == 0
+    s = json.loads((tmp_path / 'e' / 'eval.json').read_text())
+    assert s['classes'] == ['box', 'cylinder'] and s['complete']['n'] == 4
+    assert np.array(s['complete']['confusion']).sum(axis=1).tolist() == [2, 2]
+    capsys.readouterr()
+    y3[0] = 1  # one object of 'cup'
+    _save(tmp_path / 'cup.npz', X, y3, more)
+    rc = evaluate.main(['--model', str(tmp / 'model'), '--data', str(tmp_path / 'cup.npz'),
+                        '--views', '0', '--out', str(tmp_path / 'e2')])
+    assert rc == 2
+    assert "data classes ['cup']" in capsys.readouterr().err

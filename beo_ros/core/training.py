@@ -460,28 +460,107 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
 
 
 # ---------------------------------------------------------------------- data loading
+def _decode_voxels(path, vox, shape):
+    """(m, N^3) voxel rows and N from the 'voxels' array (and the 'shape' key, or None) of a
+    voxel npz: bit-packed (m, ceil(N^3 / 8)) uint8 rows when 'shape' says (N, N, N) is more
+    than the row holds; otherwise unpacked (m, N^3) or (m, N, N, N) values in {0, 1}."""
+    if not (vox.dtype == np.bool_ or np.issubdtype(vox.dtype, np.integer)
+            or np.issubdtype(vox.dtype, np.floating)):
+        raise ValueError(f'{path}: voxels must be numbers, got dtype {vox.dtype}')
+    if vox.ndim not in (2, 4):
+        raise ValueError(f'{path}: voxels must be (n, N^3) (bit-packed or not) or (n, N, N, N), '
+                         f'got shape {vox.shape}')
+    if shape is not None:
+        if len(shape) != 3 or len(set(shape)) != 1 or shape[0] < 1:
+            raise ValueError(f"{path}: 'shape' key must be (N, N, N), got {shape}")
+        n = shape[0]
+        packed_len = -(-n ** 3 // 8)
+        if vox.ndim == 2 and vox.dtype == np.uint8 and vox.shape[1] == packed_len and \
+                packed_len != n ** 3:
+            return np.unpackbits(vox, axis=1, count=n ** 3), n
+        if vox.shape[1:] not in ((n ** 3,), (n, n, n)):
+            raise ValueError(f"{path}: 'shape' key {shape} does not match voxels of shape "
+                             f'{vox.shape} (bit-packed: (n, {packed_len}) uint8; unpacked: '
+                             f'(n, {n ** 3}) or (n, {n}, {n}, {n}))')
+    elif vox.ndim == 4:
+        n = vox.shape[1]
+        if vox.shape[2:] != (n, n):
+            raise ValueError(f'{path}: voxel grids of shape {vox.shape[1:]} are not cubes')
+    else:
+        n = int(round(vox.shape[1] ** (1 / 3)))
+        if n ** 3 != vox.shape[1]:
+            hint = ''
+            if vox.dtype == np.uint8:
+                hint = (" (bit-packed voxels need the 'shape' key (N, N, N); this file has "
+                        "no 'shape' key)")
+            raise ValueError(f'{path}: voxel rows of {vox.shape[1]} values are not a cube{hint}')
+    X = vox.reshape(len(vox), -1)
+    bad = (X != 0) & (X != 1)
+    if bad.any():
+        v = X[bad][0].item()
+        hint = ''
+        if vox.dtype == np.uint8 and vox.ndim == 2:
+            hint = (" (bit-packed rows? they need the 'shape' key (N, N, N), which this file "
+                    "does not have)" if shape is None else
+                    f" (bit-packed rows? the 'shape' key {shape} makes rows of "
+                    f'{vox.shape[1]} values unpacked)')
+        raise ValueError(f'{path}: voxel values must be 0 or 1, found {v!r} in '
+                         f'{int(bad.any(axis=1).sum())} of {len(X)} objects{hint}')
+    return X, n
+
+
+def _check_labels(path, labels, names, m):
+    """labels as an int array after checking they index ``names``, one per object (m)."""
+    if labels.ndim != 1:
+        raise ValueError(f'{path}: labels must be a 1-D array, got shape {labels.shape}')
+    if len(labels) != m:
+        raise ValueError(f'{path}: {len(labels)} labels for {m} objects (voxels); need one '
+                         'label per object')
+    if labels.dtype == np.bool_ or np.issubdtype(labels.dtype, np.integer):
+        pass
+    elif np.issubdtype(labels.dtype, np.floating):
+        if not (np.isfinite(labels).all() and (labels == np.round(labels)).all()):
+            raise ValueError(f'{path}: labels must be integers (class indices), got '
+                             'non-integral values')
+    else:
+        raise ValueError(f'{path}: labels must be integers (class indices), got dtype '
+                         f'{labels.dtype}')
+    bad = (labels < 0) | (labels >= len(names))
+    if bad.any():
+        raise ValueError(f'{path}: labels must be in [0, {len(names)}) (indices into its '
+                         f'{len(names)} classes), found {labels[bad][0].item()!r} in '
+                         f'{int(bad.sum())} of {m} objects (first: object '
+                         f'{int(np.flatnonzero(bad)[0])})')
+    return labels.astype(int)
+
+
 def load_voxel_npz(path, classes=None):
-    """(X (m, N^3) float32, labels (m,), class names, N) from a voxel npz in the shared format."""
+    """(X (m, N^3) float32, labels (m,), class names, N) from a voxel npz in the shared format.
+
+    Keys: 'voxels', bit-packed (m, N^3 / 8) uint8 rows with a 'shape' key (N, N, N), or
+    unpacked (m, N^3) or (m, N, N, N) values in {0, 1} ('shape', if given, must match);
+    'labels', m integers in [0, len(classes)); 'classes', the class names. ValueError naming
+    the file for anything else.
+    """
     try:
         with np.load(path, allow_pickle=False) as z:
             for key in ('voxels', 'labels', 'classes'):
                 if key not in z.files:
                     raise ValueError(f'{path}: missing key {key!r} (has {z.files})')
-            vox, labels = z['voxels'], z['labels'].astype(int)
-            names = [str(c) for c in z['classes']]
-            shape = tuple(int(s) for s in z['shape']) if 'shape' in z.files else None
+            vox, labels = z['voxels'], z['labels']
+            names = [str(c) for c in np.atleast_1d(z['classes'])]
+            shape = z['shape'] if 'shape' in z.files else None
     except (zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
         if str(path) in str(e):
             raise
         raise ValueError(f'{path}: not a readable voxel npz ({type(e).__name__}: {e})') from None
-    if vox.ndim == 2 and vox.dtype == np.uint8 and shape is not None and \
-            vox.shape[1] * 8 == int(np.prod(shape)):
-        X = np.unpackbits(vox, axis=1)
-    else:
-        X = vox.reshape(len(vox), -1)
-    n = int(round(X.shape[1] ** (1 / 3)))
-    if n ** 3 != X.shape[1]:
-        raise ValueError(f'{path}: voxel rows of {X.shape[1]} values are not a cube')
+    if shape is not None:
+        if not (np.issubdtype(shape.dtype, np.number) and np.isfinite(shape).all()
+                and (shape == np.round(shape)).all()):
+            raise ValueError(f"{path}: 'shape' key must be integers (N, N, N), got {shape!r}")
+        shape = tuple(int(s) for s in shape.ravel())
+    X, n = _decode_voxels(path, vox, shape)
+    labels = _check_labels(path, labels, names, len(X))
     X = X.astype(np.float32)
     if classes:
         keep = [names.index(c) if c in names else None for c in classes]
