@@ -3,7 +3,9 @@
 Held-out mode:  beo-eval --model DIR --data test.npz --out DIR
 Cross-validation on a training set (a bank is trained per fold, the held-out fold evaluated):
                 beo-eval --cv 3 --data train.npz --out DIR
-Tabletop scans (leave-one-scene-out):  beo-eval --scans learn*.pcd --out DIR
+Tabletop scans (leave-one-scene-out):  beo-eval --scans learn*.pcd --out DIR [--k K]
+                (their own options, e.g. --scan-classes, --no-congeal, --scene-folds,
+                --from-points: python -m beo_ros.scan_eval --help)
 
 Per object: the complete grid at yaw 0 (classification only) and one partial view made by the
 evaluation protocol (random yaw; orthographic view from azimuth U[0, 360), elevation U[10, 50]).
@@ -166,7 +168,8 @@ def main(argv=None):
                     help='K-fold cross-validation on --data (K >= 2; 0: held-out mode)')
     ap.add_argument('--folds', type=int, default=0,
                     help='with --cv: evaluate only this many of the K folds (0: all)')
-    ap.add_argument('--k', type=int, default=20, help='components per class (--cv)')
+    ap.add_argument('--k', type=int, default=None,
+                    help='components per class (--cv: default 20; --scans: default 8)')
     ap.add_argument('--train-views', type=int, default=1,
                     help='partial views per object for the OOF classifier (--cv)')
     ap.add_argument('--max-objects', type=int, default=0,
@@ -187,8 +190,15 @@ def main(argv=None):
     if args.scans:
         if args.class_prior:
             ap.error('--class-prior is not used with --scans')
+        unused = [name for name in ('data', 'model', 'cv', 'folds', 'train_views',
+                                    'max_objects', 'views', 'seed', 'verifier_views', 'jobs')
+                  if getattr(args, name) != ap.get_default(name)]
+        if unused:
+            ap.error('not used with --scans: ' + ', '.join(f"--{n.replace('_', '-')}"
+                                                        for n in unused))
         from . import scan_eval
-        return scan_eval.main(['--scans', *args.scans, '--out', args.out, *rest])
+        k = [] if args.k is None else ['--k', str(args.k)]
+        return scan_eval.main(['--scans', *args.scans, '--out', args.out, *k, *rest])
     if rest:
         ap.error(f'unrecognized arguments: {" ".join(rest)}')
     if not args.data:
@@ -226,7 +236,8 @@ def main(argv=None):
                 if args.max_objects:
                     te = np.sort(rng.choice(te, min(args.max_objects, len(te)), replace=False))
                 t0 = time.time()
-                bank = fit_bank(X[tr], y[tr], names, GridSpec(size=n), k=args.k,
+                bank = fit_bank(X[tr], y[tr], names, GridSpec(size=n),
+                                k=20 if args.k is None else args.k,
                                 classifier_views=args.train_views, seed=args.seed + f,
                                 verbose=True, class_prior=class_prior or 'train',
                                 verifier_views=args.verifier_views, processes=args.jobs)

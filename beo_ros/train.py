@@ -120,20 +120,20 @@ def main(argv=None):
                 verbose=True)
         else:
             masks = None
-            Xs, ys, names, n = [], [], None, None
-            for p in args.inputs:
-                if p.endswith('.npz'):
-                    X1, y1, names1, n1 = load_voxel_npz(p, args.classes)
-                else:
-                    X1, y1, names1 = load_meshes([p], args.grid or 32)
-                    n1 = args.grid or 32
-                if names is None:
-                    names, n = names1, n1
+            parts = [(p, *load_voxel_npz(p, args.classes)) for p in args.inputs
+                     if p.endswith('.npz')]
+            mesh_paths = [p for p in args.inputs if not p.endswith('.npz')]
+            if mesh_paths:   # all at once: one class list for every mesh
+                parts.append(('the meshes', *load_meshes(mesh_paths, args.grid or 32),
+                              args.grid or 32))
+            # one class list over all inputs, in the order the classes first appear
+            Xs, ys, names, n = [], [], [], parts[0][4]
+            for src, X1, y1, names1, n1 in parts:
                 if n1 != n:
-                    raise ValueError(f'{p}: grid {n1} differs from {n}')
-                y1 = np.array([names.index(names1[v]) if names1[v] in names else -1 for v in y1])
+                    raise ValueError(f'{src}: grid {n1} differs from {n}')
+                names += [c for c in names1 if c not in names]
                 Xs.append(X1)
-                ys.append(y1)
+                ys.append(np.array([names.index(names1[v]) for v in y1], dtype=int))
             X, y = np.vstack(Xs), np.concatenate(ys)
             spec = GridSpec(size=n)
         grids = None

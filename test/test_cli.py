@@ -329,3 +329,44 @@ def test_eval_compares_the_classes_present(trained, tmp_path, capsys):
                         '--views', '0', '--out', str(tmp_path / 'e2')])
     assert rc == 2
     assert "data classes ['cup']" in capsys.readouterr().err
+
+
+def _box_off(path, sx, sy, sz):
+    """An axis-aligned box mesh centred at the origin, as an OFF file."""
+    v = [(x * sx, y * sy, z * sz) for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    tris = [t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))]
+    path.write_text('OFF\n8 12 0\n' + ''.join(f'{x} {y} {z}\n' for x, y, z in v)
+                    + ''.join(f'3 {a} {b} {c}\n' for a, b, c in tris))
+
+
+def test_train_on_meshes_of_several_classes(tmp_path, capsys):
+    # every mesh used to be loaded on its own: the class list came from the first file and
+    # the meshes of any other class got label -1 (beo-train failed)
+    paths = []
+    for i in range(3):
+        for name, size in (('cube', (1, 1, 1 + 0.1 * i)), ('slab', (1 + 0.1 * i, 1, 0.2))):
+            paths.append(tmp_path / f'{name}_{i:04d}.off')
+            _box_off(paths[-1], *size)
+    rc = train.main([*map(str, paths), '-o', str(tmp_path / 'm'), '--grid', '16', '--k', '2',
+                     '--views', '0', '--verifier-views', '0'])
+    assert rc == 0, capsys.readouterr().err
+    bank = ModelBank.load(tmp_path / 'm')
+    assert bank.classes == ['cube', 'slab']
+    slab = np.zeros((16,) * 3, dtype=np.int8)
+    slab[2:14, 2:14, 6:9] = 1
+    assert bank.estimate(slab).label == 'slab'
+
+
+def test_eval_scans_forwards_k_and_refuses_what_it_does_not_use(monkeypatch, capsys):
+    from beo_ros import scan_eval
+    seen = []
+    monkeypatch.setattr(scan_eval, 'main', lambda argv: seen.append(argv) or 0)
+    assert evaluate.main(['--scans', 'a.pcd', '--out', 'o', '--k', '4', '--max-iter', '30']) == 0
+    assert seen[-1] == ['--scans', 'a.pcd', '--out', 'o', '--k', '4', '--max-iter', '30']
+    assert evaluate.main(['--scans', 'a.pcd', '--out', 'o']) == 0
+    assert '--k' not in seen[-1]          # scan_eval's own default applies
+    for extra in (['--seed', '3'], ['--views', '2'], ['--cv', '5']):
+        with pytest.raises(SystemExit):
+            evaluate.main(['--scans', 'a.pcd', *extra])
+        assert 'not used with --scans: ' + extra[0] in capsys.readouterr().err
