@@ -222,3 +222,142 @@ def test_mean_does_not_collapse_into_the_loadings():
     est = VBPCA(n_components=5, max_iter=300, tol=1e-9).fit(X)
     np.testing.assert_allclose(est.mean_, X.mean(axis=0), atol=0.02)
     assert np.linalg.norm(est.transform(X).mean(axis=0)) < 0.05
+
+
+# ---------------------------------------------------------------- refused inputs (fit)
+_DTYPE_MSG = 'dtype must be np.float32 or np.float64'
+_PRUNE_MSG = 'prune_tol must be a number with 0 <= prune_tol < 1'
+
+
+@pytest.mark.parametrize('kwargs,msg', [
+    pytest.param(dict(dtype=np.int32), _DTYPE_MSG, id='dtype-int32'),     # truncated X to ints
+    pytest.param(dict(dtype=np.float16), _DTYPE_MSG, id='dtype-float16'),  # overflowed to NaN
+    pytest.param(dict(dtype=np.complex128), _DTYPE_MSG, id='dtype-complex128'),
+    pytest.param(dict(dtype=int), _DTYPE_MSG, id='dtype-int'),
+    pytest.param(dict(dtype='bogus'), _DTYPE_MSG, id='dtype-bogus-string'),
+    pytest.param(dict(prune_tol=2.0), _PRUNE_MSG, id='prune_tol-2'),      # pruned every column
+    pytest.param(dict(prune_tol=1.0), _PRUNE_MSG, id='prune_tol-1'),
+    pytest.param(dict(prune_tol=-0.1), _PRUNE_MSG, id='prune_tol-negative'),
+    pytest.param(dict(prune_tol=float('nan')), _PRUNE_MSG, id='prune_tol-nan'),
+    pytest.param(dict(prune_tol=float('inf')), _PRUNE_MSG, id='prune_tol-inf'),
+    pytest.param(dict(prune_tol='0.1'), _PRUNE_MSG, id='prune_tol-string'),
+    pytest.param(dict(prune_tol=None), _PRUNE_MSG, id='prune_tol-None'),
+    pytest.param(dict(prune_tol=True), _PRUNE_MSG, id='prune_tol-bool'),
+])
+def test_fit_refuses_bad_dtype_and_prune_tol(kwargs, msg):
+    X, _, _ = planted(n=30, d=8)
+    with pytest.raises(ValueError, match=msg):
+        VBPCA(3, **kwargs).fit(X)
+
+
+@pytest.mark.parametrize('kwargs', [dict(dtype='float64'), dict(dtype=np.dtype('float32')),
+                                    dict(prune_tol=0), dict(prune_tol=np.float32(0.5))],
+                         ids=['dtype-str', 'dtype-np.dtype', 'prune_tol-0', 'prune_tol-np.float32'])
+def test_fit_accepts_valid_dtype_and_prune_tol(kwargs):
+    X, _, _ = planted(n=30, d=8)
+    est = VBPCA(3, **kwargs).fit(X)
+    assert est.n_components_ >= 1 and np.isfinite(est.noise_variance_)
+
+
+def test_fit_refuses_numerical_overflow():
+    # finite in float32, but the float32 products overflow: the model used to come back with
+    # noise_variance_ and mean_ of NaN and every component pruned
+    # (the missing-data path runs in float64 and stays finite on this data)
+    X, _, _ = planted(n=30, d=8)
+    X = (X * 1e30).astype(np.float32)
+    for mask in (None, np.ones(X.shape, dtype=bool)):      # an all-True mask: the full path
+        with np.errstate(all='ignore'), pytest.raises(
+                ValueError, match='non-finite.*rescale X or use dtype=np.float64'):
+            VBPCA(3).fit(X, mask=mask)
+
+
+def test_fit_refuses_no_features():
+    with pytest.raises(ValueError, match='at least 1 feature'):
+        VBPCA(2).fit(np.zeros((20, 0)))
+
+
+def test_pure_noise_keeps_at_least_one_component():
+    # pruning is relative to the largest ARD variance (prune_tol < 1), so zero components is not
+    # a legitimate outcome of fit: it only ever came from NaN (refused above)
+    X = np.random.default_rng(0).standard_normal((100, 20))
+    est = fit_quiet(VBPCA(5), X)
+    assert est.n_components_ >= 1 and np.isfinite(est.noise_variance_)
+
+
+# ---------------------------------------------------------------- refused inputs (queries)
+def _fitted_8():
+    X = np.random.default_rng(0).normal(size=(30, 8))
+    return fit_quiet(VBPCA(3), X), X
+
+
+def _nan00(X):
+    X = X.copy()
+    X[0, 0] = np.nan
+    return X
+
+
+def _inf00(X):
+    X = X.copy()
+    X[0, 0] = -np.inf
+    return X
+
+
+_OBS = np.ones((30, 8), dtype=bool)
+_QUERY_CASES = {
+    # id: (X from the training X, mask or None, message)
+    'nan-no-mask': (_nan00, None, 'NaN or Inf; pass a mask'),
+    'inf-no-mask': (_inf00, None, 'NaN or Inf; pass a mask'),
+    'nan-observed': (_nan00, _OBS, 'NaN or Inf in observed entries'),
+    'inf-observed': (_inf00, _OBS.astype(np.uint8), 'NaN or Inf in observed entries'),
+    'too-few-features': (lambda X: X[:, :5], None, 'X has 5 features, model has 8'),
+    'too-many-features': (lambda X: np.hstack([X, X]), None, 'X has 16 features, model has 8'),
+    'mask-wrong-columns': (lambda X: X, np.ones((30, 7), dtype=bool), r'mask shape \(30, 7\)'),
+    'mask-wrong-rows': (lambda X: X, np.ones((29, 8), dtype=bool), r'mask shape \(29, 8\)'),
+    'mask-flat': (lambda X: X, np.ones(240, dtype=bool), r'mask shape \(240,\)'),
+    'mask-ragged': (lambda X: X, [[True] * 8] * 29 + [[True] * 7], 'mask must be a boolean'),
+    'X-3d': (lambda X: X[None], None, r'2-D .*got shape \(1, 30, 8\)'),
+    'X-1d': (lambda X: X[0], None, r'2-D .*got shape \(8,\).*reshape\(1, -1\)'),
+    'X-0d': (lambda X: X[0, 0], None, '2-D'),
+}
+
+
+@pytest.mark.parametrize('method', ['transform', 'posterior', 'score_samples'])
+@pytest.mark.parametrize('case', list(_QUERY_CASES))
+def test_query_refuses_bad_input(method, case):
+    est, X = _fitted_8()
+    make, mask, msg = _QUERY_CASES[case]
+    with pytest.raises(ValueError, match=msg):
+        getattr(est, method)(make(X), mask=mask)
+
+
+@pytest.mark.parametrize('method', ['transform', 'posterior', 'score_samples'])
+def test_query_accepts_nan_where_hidden_and_castable_masks(method):
+    est, X = _fitted_8()
+    M = np.random.default_rng(1).random(X.shape) > 0.3
+    ref = getattr(est, method)(X, mask=M)
+    Xh = np.where(M, X, np.nan)
+    Xh[0, ~M[0]] = np.inf
+    for m in (M, M.astype(np.uint8), M.astype(np.float64), M.tolist()):
+        out = getattr(est, method)(Xh, mask=m)
+        for a, b in zip(np.atleast_1d(ref) if method != 'posterior' else ref,
+                        np.atleast_1d(out) if method != 'posterior' else out):
+            np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize('Z,msg', [
+    pytest.param(np.zeros((4, 2)), r'Z must be \(n_samples, 3\).*\(4, 2\)', id='wrong-columns'),
+    pytest.param(np.zeros((1, 4, 3)), r'Z must be \(n_samples, 3\)', id='3-D'),
+    pytest.param(np.zeros(5), r'Z must be \(n_samples, 3\)', id='1-D-wrong-length'),
+])
+def test_inverse_transform_refuses_bad_scores(Z, msg):
+    est, _ = _fitted_8()
+    with pytest.raises(ValueError, match=msg):
+        est.inverse_transform(Z)
+
+
+@pytest.mark.parametrize('method', ['transform', 'posterior', 'score_samples',
+                                    'inverse_transform'])
+def test_query_requires_fitted_model(method):
+    from sklearn.exceptions import NotFittedError
+    with pytest.raises(NotFittedError, match='not fitted'):
+        getattr(VBPCA(3), method)(np.zeros((2, 8)))

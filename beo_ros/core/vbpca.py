@@ -18,8 +18,7 @@ import warnings
 
 import numpy as np
 from sklearn.base import BaseEstimator, TransformerMixin
-from sklearn.exceptions import ConvergenceWarning
-from sklearn.utils.validation import check_is_fitted
+from sklearn.exceptions import ConvergenceWarning, NotFittedError
 
 _EPS = 1e-10
 
@@ -32,12 +31,14 @@ class VBPCA(TransformerMixin, BaseEstimator):
         max_iter: maximum number of VB iterations.
         tol: stop when the relative change of the bound (or, without the bound, the largest change
             of the principal subspace angle cosine) falls below ``tol``.
-        prune_tol: a column whose ARD variance falls below ``prune_tol * max(alpha)`` is inactive.
+        prune_tol: a column whose ARD variance falls below ``prune_tol * max(alpha)`` is inactive;
+            0 <= prune_tol < 1, so the column of largest variance is always kept.
         init: 'pca' (SVD of the mean-imputed data) or 'random'.
         mean_prior_variance: variance v_mu of the Gaussian prior on mu (fixed).
         random_state: seed for 'random' init.
         verbose: print the bound every iteration.
-        dtype: float dtype for the heavy products (float32 halves memory and time).
+        dtype: np.float32 or np.float64, the dtype of the heavy products (float32 halves memory
+            and time; use float64 for data of large magnitude).
 
     Attributes (after ``fit``):
         components_: (k_eff, d) posterior mean of W^T, columns ordered by decreasing variance.
@@ -75,12 +76,25 @@ class VBPCA(TransformerMixin, BaseEstimator):
             raise ValueError(f'mean_prior_variance must be > 0, got {self.mean_prior_variance!r}')
         if self.init not in ('pca', 'random'):
             raise ValueError(f"init must be 'pca' or 'random', got {self.init!r}")
+        pt = self.prune_tol
+        if (isinstance(pt, (bool, np.bool_)) or not isinstance(pt, (int, float, np.integer,
+                                                                     np.floating))
+                or not 0 <= pt < 1):
+            raise ValueError(f'prune_tol must be a number with 0 <= prune_tol < 1, got {pt!r}')
+        try:
+            dt = np.dtype(self.dtype)
+        except TypeError:
+            dt = None
+        if dt is None or dt.type not in (np.float32, np.float64):
+            raise ValueError(f'dtype must be np.float32 or np.float64, got {self.dtype!r}')
         X = np.asarray(X)
         if X.ndim != 2:
             raise ValueError(f'X must be 2-D (n_samples, n_features), got shape {X.shape}')
         n, d = X.shape
         if n < 2:
             raise ValueError(f'VBPCA needs at least 2 samples, got {n}')
+        if d < 1:
+            raise ValueError(f'X needs at least 1 feature, got shape {X.shape}')
         X = X.astype(self.dtype, copy=False)
         if mask is not None:
             mask = np.asarray(mask, dtype=bool)
@@ -172,6 +186,8 @@ class VBPCA(TransformerMixin, BaseEstimator):
             sq += n * np.trace(WtW @ Sx) + d * np.trace(Sw @ XX)
             sq += n * d * np.trace(Sw @ Sx) + n * d * mu_var
             v = max(sq / (n * d), 1e-8)
+            if not np.isfinite(v):          # overflow: stop early, _finish raises
+                break
             alpha = np.maximum((np.diag(WtW) + d * np.diag(Sw)) / d, _EPS)
             W = W64.astype(self.dtype)
             bound = self._bound_full(n, d, k, v, sq, Sx, Xm, Sw, W64, alpha, mu, mu_var, v_mu)
@@ -242,6 +258,8 @@ class VBPCA(TransformerMixin, BaseEstimator):
             sq += ((M.T @ xs[:, iu[0], iu[1]]) * Sw[:, iu[0], iu[1]] * sym).sum()
             sq += (M * mu_var).sum()
             v = max(sq / n_obs, 1e-8)
+            if not np.isfinite(v):          # overflow: stop early, _finish raises
+                break
             alpha = np.maximum(((W ** 2).sum(axis=0) + Sw[:, range(k), range(k)].sum(axis=0)) / d,
                                _EPS)
             if self.verbose:
@@ -254,6 +272,14 @@ class VBPCA(TransformerMixin, BaseEstimator):
                      mu_var.astype(np.float32), it, converged, np.nan)
 
     def _finish(self, W, mu, v, alpha, Sw, mu_var, n_iter, converged, bound):
+        # overflow (e.g. float32 products of data of large magnitude) turns the whole model into
+        # NaN, and NaN ARD variances would then silently prune every column: refuse it
+        if not (np.isfinite(v) and np.isfinite(mu).all() and np.isfinite(W).all()
+                and np.isfinite(alpha).all() and np.isfinite(Sw).all()):
+            hint = (' or use dtype=np.float64' if np.dtype(self.dtype).type is not np.float64
+                    else '')
+            raise ValueError('VBPCA fit produced non-finite noise variance, mean or loadings '
+                             f'(numerical overflow): rescale X{hint}')
         if not converged:
             warnings.warn(f'VBPCA did not converge in {n_iter} iterations; raise max_iter or tol',
                           ConvergenceWarning)
@@ -280,16 +306,49 @@ class VBPCA(TransformerMixin, BaseEstimator):
         self.n_features_in_ = W64.shape[0]
 
     # ------------------------------------------------------------------ queries
+    def _check_fitted(self):
+        if not hasattr(self, 'components_'):
+            raise NotFittedError(f'This {type(self).__name__} instance is not fitted yet. Call '
+                                 "'fit' with appropriate arguments before using this estimator.")
+
+    def _check_query(self, X, mask):
+        """Validated (X float64 (n, d), mask bool (n, d) or None) for the query methods.
+
+        ``mask`` is True where X is observed; NaN or Inf is allowed only where it is False.
+        Cheap on the hot path: one ``isfinite`` pass over X when X is all finite.
+        """
+        self._check_fitted()
+        X = np.asarray(X, dtype=np.float64)
+        if X.ndim != 2:
+            hint = '; use X.reshape(1, -1) for a single sample' if X.ndim == 1 else ''
+            raise ValueError(f'X must be 2-D (n_samples, n_features), got shape {X.shape}{hint}')
+        if X.shape[1] != self.n_features_in_:
+            raise ValueError(f'X has {X.shape[1]} features, model has {self.n_features_in_}')
+        if mask is not None:
+            try:
+                mask = np.asarray(mask, dtype=bool)
+            except (TypeError, ValueError) as e:
+                raise ValueError(f'mask must be a boolean array of X shape {X.shape}: '
+                                 f'{e}') from None
+            if mask.shape != X.shape:
+                raise ValueError(f'mask shape {mask.shape} differs from X shape {X.shape}')
+        if not np.isfinite(X).all():
+            if mask is None:
+                raise ValueError('X has NaN or Inf; pass a mask (True where observed) to mark '
+                                 'them missing')
+            if (mask & ~np.isfinite(X)).any():
+                raise ValueError('X has NaN or Inf in observed entries; mark them missing in mask')
+        return X, mask
+
     def transform(self, X, mask=None):
         """Posterior mean of the scores (n, k_eff), using only observed entries when masked."""
-        return self.posterior(X, mask)[0]
+        return self._posterior(*self._check_query(X, mask))[0]
 
     def posterior(self, X, mask=None):
         """Posterior of the scores: means (n, k_eff) and covariances (n, k_eff, k_eff)."""
-        check_is_fitted(self, 'components_')
-        X = np.atleast_2d(np.asarray(X, dtype=np.float64))
-        if X.shape[1] != self.n_features_in_:
-            raise ValueError(f'X has {X.shape[1]} features, model has {self.n_features_in_}')
+        return self._posterior(*self._check_query(X, mask))
+
+    def _posterior(self, X, mask):
         W = self.components_.T.astype(np.float64)
         v = self.noise_variance_
         k = W.shape[1]
@@ -299,7 +358,7 @@ class VBPCA(TransformerMixin, BaseEstimator):
             S1 = np.linalg.inv(np.eye(k) + (W.T @ W + X.shape[1] * Sw) / v)
             m = (X - self.mean_) @ W @ S1 / v
             return m, np.broadcast_to(S1, (len(X), k, k))
-        M = np.asarray(mask, dtype=np.float64).reshape(X.shape)
+        M = mask.astype(np.float64)
         R = M * (np.nan_to_num(X) - self.mean_)
         G = np.einsum('nd,da,db->nab', M, W, W) + M.sum(axis=1)[:, None, None] * Sw
         S = np.linalg.inv(np.eye(k) + G / v)
@@ -308,18 +367,21 @@ class VBPCA(TransformerMixin, BaseEstimator):
 
     def inverse_transform(self, Z):
         """Reconstruction W z + mu, (n, d), from scores (n, k_eff)."""
-        check_is_fitted(self, 'components_')
-        return np.asarray(Z) @ self.components_ + self.mean_
+        self._check_fitted()
+        Z = np.asarray(Z)
+        if Z.ndim not in (1, 2) or Z.shape[-1] != self.n_components_:
+            raise ValueError(f'Z must be (n_samples, {self.n_components_}) scores, got shape '
+                             f'{Z.shape}')
+        return Z @ self.components_ + self.mean_
 
     def score_samples(self, X, mask=None):
         """Log-likelihood of each sample's observed entries under the marginal p(y_O) (n,)."""
-        check_is_fitted(self, 'components_')
-        X = np.atleast_2d(np.asarray(X, dtype=np.float64))
+        X, mask = self._check_query(X, mask)
         W = self.components_.T.astype(np.float64)
         v = self.noise_variance_
-        M = np.ones_like(X) if mask is None else np.asarray(mask, dtype=np.float64)
+        M = np.ones_like(X) if mask is None else mask.astype(np.float64)
         R = M * (np.nan_to_num(X) - self.mean_)
-        m, S = self.posterior(X, mask)
+        m, S = self._posterior(X, mask)
         nobs = M.sum(axis=1)
         # Woodbury: r^T C^-1 r = r^T r / v - b^T S b / v^2, log|C| = nobs log v - log|S|
         quad = (R ** 2).sum(axis=1) / v - np.einsum('na,na->n', m, R @ W) / v
