@@ -67,6 +67,14 @@ def load_data(args, rng):
     if path is None:
         n = 16
         X, y, names = primitive_shapes(n, max(args.train_per_class or 15, 15) + 8, rng)
+        if args.classes:   # as load_voxel_npz does for a file
+            missing = sorted(set(args.classes) - set(names))
+            if missing:
+                raise ValueError(f'--classes {missing} are not among the generated classes '
+                                 f'{names}')
+            keep = np.isin(y, [names.index(c) for c in args.classes])
+            order = {names.index(c): i for i, c in enumerate(args.classes)}
+            X, y, names = X[keep], np.array([order[v] for v in y[keep]]), list(args.classes)
         return X, y, names, n, 'generated boxes/cylinders (16^3)'
     X, y, names, n = load_voxel_npz(path, args.classes or None)
     return X, y, names, n, str(path)

@@ -151,6 +151,13 @@ def test_generated_shapes_only_for_none_or_a_missing_default(tmp_path, monkeypat
         load_data(args, np.random.default_rng(0))
     args.data = str(_npz(tmp_path / 'd.npz'))
     assert load_data(args, np.random.default_rng(0))[-1] == args.data
+    # --classes selects among the generated classes too, and refuses the others
+    args.data, args.classes = 'none', ['cylinder']
+    X, y, names = load_data(args, np.random.default_rng(0))[:3]
+    assert names == ['cylinder'] and set(y) == {0} and len(X) == len(y) > 0
+    args.classes = ['chair']
+    with pytest.raises(ValueError, match='not among the generated classes'):
+        load_data(args, np.random.default_rng(0))
 
 
 def test_bench_missing_data_file_exit_2(tmp_path, capsys):
