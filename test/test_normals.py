@@ -90,6 +90,19 @@ def test_undefined_for_tiny_or_sideless_clouds():
     assert np.isnan(side_normal_descriptors(isolated, UP, SENSOR)).all()
 
 
+def test_copies_of_points_and_lines_do_not_make_side_normals():
+    # copies used to fill each neighbourhood (30 nearest rows) with one place and lines have no
+    # normal: both gave an arbitrary but fixed axis at every point, i.e. a perfect "box"
+    cyl = cylinder_front()
+    want = side_normal_descriptors(cyl, UP, SENSOR)
+    np.testing.assert_array_equal(side_normal_descriptors(np.repeat(cyl, 30, axis=0), UP, SENSOR),
+                                  want)
+    line = np.linspace(0, 0.2, 200)[:, None] * [0.0, 0.0, 1.0]      # a vertical line
+    assert np.isnan(side_normal_descriptors(line, UP, SENSOR)).all()
+    _, normals, sv = point_normals(line, SENSOR)
+    assert np.isnan(normals).all() and np.isnan(sv).all()
+
+
 @pytest.mark.parametrize('points, up, origin, msg', [
     (np.zeros((20, 2)), UP, SENSOR, r'\(n, 3\)'),
     (np.r_[box_front()[:20], [[np.nan, 0, 0]]], UP, SENSOR, 'NaN'),

@@ -92,6 +92,16 @@ def test_fit_table_plane_orientation():
     assert n3 @ up < -0.999
     with pytest.raises(ValueError):
         fit_table_plane(np.zeros((2, 3)))
+    # no plane in collinear or identical points (an IndexError inside before)
+    line = np.linspace(0, 1, 200)[:, None] * [1.0, 0.2, 0.1] + [0, 0, 1]
+    for pts in (line, np.ones((100, 3))):
+        with pytest.raises(ValueError, match='no plane'):
+            fit_table_plane(pts)
+    # a plane through the sensor is seen edge-on: not a table it can see
+    u, v = np.meshgrid(np.linspace(-0.5, 0.5, 30), np.linspace(0.5, 1.5, 30))
+    edge_on = np.c_[u.ravel(), np.zeros(u.size), v.ravel()]         # the plane y = 0
+    with pytest.raises(ValueError, match='edge-on'):
+        fit_table_plane(edge_on)
 
 
 def test_object_view_on_table_and_stacked():

@@ -212,6 +212,15 @@ def test_validation(kwargs, match):
         voxelize_view(**args)
 
 
+def test_points_outside_a_metric_grid_are_refused():
+    # millimetres for metres: every point fell outside the grid, which came back empty
+    spec = GridSpec(16, units='metric', voxel_size=0.05)
+    pts = box_front(100)
+    assert voxelize_view(pts, np.zeros(3), [0, 0, 1], spec).n_points > 0
+    with pytest.raises(ValueError, match='not in metres'):
+        voxelize_view(pts * 1000 + [0, 0, 500], np.zeros(3), [0, 0, 1], spec)
+
+
 def test_huge_up_vector_is_a_direction():
     # (0, 0, 1e300) is a valid direction: its norm must not overflow to inf (up -> 0)
     args = (box_front(100), np.zeros(3))

@@ -69,8 +69,9 @@ def point_normals(points, sensor_origin=(0.0, 0.0, 0.0), radius=RADIUS, max_nn=M
             point; the neighbourhoods still come from all n points); None: at all points.
 
     Returns (idx (q,) indices of the query points, normals (q, 3) unit vectors or NaN rows where
-    fewer than 3 neighbours are within ``radius``, surface variation (q,) l0 / (l0 + l1 + l2) of
-    the neighbourhood covariance, NaN likewise).
+    fewer than 3 neighbours are within ``radius`` or they lie on a line, surface variation (q,)
+    l0 / (l0 + l1 + l2) of the neighbourhood covariance, NaN likewise). Duplicate points count
+    as neighbours: pass distinct points (``side_normal_descriptors`` drops the copies).
     """
     from scipy.spatial import cKDTree
     pts, _, origin = _check(points, (0.0, 0.0, 1.0), sensor_origin)
@@ -97,7 +98,9 @@ def point_normals(points, sensor_origin=(0.0, 0.0, 0.0), radius=RADIUS, max_nn=M
     flip = np.einsum('qi,qi->q', normals, origin - pts[idx]) < 0
     normals[flip] *= -1.0
     sv = ev[:, 0] / np.maximum(ev.sum(axis=1), 1e-30)
-    bad = cnt < 3
+    # a line or a single place (rank < 2) has no normal: eigh would return an arbitrary axis,
+    # the same at every such point
+    bad = (cnt < 3) | (ev[:, 1] <= 1e-6 * ev.sum(axis=1))
     normals[bad] = np.nan
     sv[bad] = np.nan
     return idx, normals, sv
@@ -137,10 +140,14 @@ def side_normal_descriptors(points, up, sensor_origin=(0.0, 0.0, 0.0), max_query
             2k-28k points on 2 cores).
 
     Returns float64 (2,) = (r4, frac10), both in [0, 1]; NaN for clouds too small to say
-    anything (fewer than ``MIN_POINTS`` points or ``MIN_SIDE`` side normals). Raises ValueError
+    anything (fewer than ``MIN_POINTS`` distinct points or ``MIN_SIDE`` side normals). Raises ValueError
     for a malformed or non-finite input.
     """
     pts, up, origin = _check(points, up, sensor_origin)
+    # copies of a point would fill its neighbourhood (max_nn rows) with one place
+    _, first = np.unique(pts, axis=0, return_index=True)
+    if len(first) < len(pts):
+        pts = pts[np.sort(first)]   # keeps the order, so the strided query points
     if len(pts) < MIN_POINTS:
         return np.full(2, np.nan)
     _, normals, _ = point_normals(pts, origin, max_query=max_query)

@@ -17,6 +17,7 @@ from .pcd import PCDError, read_pcd
 from .voxelize import MIN_POINTS, ViewGrid, voxelize_view
 
 TABLE_LABELS = (1, 9)  # inclusive range
+MIN_VIEW_ANGLE_DEG = 5.0  # a support plane seen at a shallower angle is refused
 FIRST_OBJECT_LABEL = 20
 TABLETOP_SPEC = GridSpec(size=32, units='metric', voxel_size=0.5 / 32, anchor='bottom')
 
@@ -91,7 +92,8 @@ def fit_table_plane(scene_or_points, labels=None, distance_threshold: float = 0.
 
     Returns (up float64 (3,), d float): unit plane normal oriented toward the sensor side and
     offset with ``up . p + d = 0`` on the plane; ``up . sensor_origin + d > 0`` is the sensor's
-    height above the table.
+    height above the table. Raises ValueError when the points hold no plane or the sensor sees
+    the plane at less than ``MIN_VIEW_ANGLE_DEG`` (edge-on) from its centre.
     """
     if isinstance(scene_or_points, Scene):
         pts, labels = scene_or_points.points, scene_or_points.labels
@@ -112,11 +114,26 @@ def fit_table_plane(scene_or_points, labels=None, distance_threshold: float = 0.
     o3d.utility.random.seed(0)
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sel))
     _, inliers = cloud.segment_plane(distance_threshold, 3, iterations)
+    if len(inliers) < 3:   # open3d finds no plane in collinear or identical points
+        raise ValueError(f'no plane among the {len(sel)} support points (collinear or all at '
+                         'one place?)')
     inl = sel[np.asarray(inliers)]
     centroid = inl.mean(axis=0)
-    normal = np.linalg.svd(inl - centroid, full_matrices=False)[2][2]
+    _, sv, vt = np.linalg.svd(inl - centroid, full_matrices=False)
+    if len(sv) < 3 or sv[1] <= 1e-6 * sv[0]:   # a line: any normal across it would do
+        raise ValueError(f'no plane among the {len(sel)} support points (they lie on a line)')
+    normal = vt[2]
     d = -float(normal @ centroid)
-    if normal @ np.asarray(sensor_origin, float) + d < 0:
+    origin = np.asarray(sensor_origin, float)
+    height = normal @ origin + d
+    seen_deg = np.degrees(np.arcsin(min(1.0, abs(height) / max(
+        float(np.linalg.norm(centroid - origin)), 1e-12))))
+    if seen_deg < MIN_VIEW_ANGLE_DEG:
+        # a few image rows of the table lie close to the plane of their own rays: RANSAC finds
+        # that plane, which passes (nearly) through the sensor and is not the table
+        raise ValueError(f'the fitted support plane is seen edge-on ({seen_deg:.1f} deg from '
+                         'the sensor, too few table rows to fit it?)')
+    if height < 0:
         normal, d = -normal, -d
     return normal, d
 

@@ -295,6 +295,10 @@ def voxelize_view(points, sensor_origin, up, spec: GridSpec, center=None, floor=
     g = (pts - g2i[:3, 3]) @ rot / voxel
     tol = 1e-6
     inside = np.all((g >= -0.5 - tol) & (g <= n - 0.5 + tol), axis=1)
+    if not inside.any():   # e.g. a metric grid and points in millimetres
+        raise ValueError(f'none of the {len(pts)} points fall inside the {n}^3 grid of '
+                         f'{n * voxel:g} m; they span {float((hi - lo).max()):g} (input units): '
+                         'an object much larger than the grid, or points not in metres')
     idx = np.clip(np.floor(g[inside] + 0.5), 0, n - 1).astype(np.intp)
     occ = np.zeros(spec.shape, dtype=bool)
     occ[idx[:, 0], idx[:, 1], idx[:, 2]] = True
