@@ -56,8 +56,9 @@ def test_node_process_streams_and_stops_on_sigint(ros_tiny_model_dir, ros_domain
     from sensor_msgs.msg import PointCloud2
     from test_node import box_view
 
+    # in a namespace: the parameter file must still apply (its key is /**/beo)
     proc = subprocess.Popen(
-        node_command() + ['--ros-args', '--params-file', str(CONFIG),
+        node_command() + ['--ros-args', '--params-file', str(CONFIG), '-r', '__ns:=/robot1',
                           '-p', f'model_dir:={ros_tiny_model_dir}'],
         env=node_env(ros_domain_id), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
         text=True)
@@ -73,7 +74,7 @@ def test_node_process_streams_and_stops_on_sigint(ros_tiny_model_dir, ros_domain
         got.set()
 
     try:
-        node.create_subscription(ObjectEstimate, '/beo/estimates', on_estimate, 10)
+        node.create_subscription(ObjectEstimate, '/robot1/beo/estimates', on_estimate, 10)
         pub = node.create_publisher(PointCloud2, '/beo/input', qos_profile_sensor_data)
         cloud = xyz_to_cloud(box_view(), Header(frame_id='camera'))
         executor = SingleThreadedExecutor(context=ctx)
@@ -107,10 +108,11 @@ def test_node_process_streams_and_stops_on_sigint(ros_tiny_model_dir, ros_domain
             pytest.fail(f'node did not exit on SIGINT:\n{err}')
     assert proc.returncode == 0, err
     assert 'Traceback' not in err and 'never retrieved' not in err, err
+    assert '2 worker process(es)' in err, err     # config/beo.yaml's workers, namespaced
 
 
 def test_config_lists_every_parameter_with_its_default():
-    cfg = yaml.safe_load(CONFIG.read_text())['beo']['ros__parameters']
+    cfg = yaml.safe_load(CONFIG.read_text())['/**/beo']['ros__parameters']
     src = (ROOT / 'beo_ros' / 'ros' / 'node.py').read_text()
     declared = {}
     for call in ast.walk(ast.parse(src)):
