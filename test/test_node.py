@@ -670,20 +670,29 @@ def test_worker_processes_estimate_like_in_process(harness_procs, tmp_path):
         old = list(node._pool.pids)
         copy = tmp_path / 'models_copy'
         shutil.copytree(model_dir, copy)
+        # the new processes start in the background (the old ones answer meanwhile)
         assert node.set_parameters([Parameter('model_dir', value=str(copy))])[0].successful
+        assert harness.call(harness.classify, harness.good_request()).success
+        end = time.monotonic() + TIMEOUT
+        while not set(node._pool.pids).isdisjoint(old) and time.monotonic() < end:
+            time.sleep(0.05)
         assert set(node._pool.pids).isdisjoint(old)
         assert harness.call(harness.classify, harness.good_request()).success
         end = time.monotonic() + 10
         while any(map(_alive, old)) and time.monotonic() < end:
             time.sleep(0.05)
         assert not any(map(_alive, old))
-        # a new class prior reaches the processes (they get the bank with it)
+        # a new class prior reaches the processes with each estimate: no new processes
         classes = node._bank.classes
         assert harness.call(harness.classify, harness.good_request()).estimate.label == classes[0]
+        pids = list(node._pool.pids)
         weights = ','.join(f'{c}={0 if i == 0 else 1}' for i, c in enumerate(classes))
         assert node.set_parameters([Parameter('class_prior', value=weights)])[0].successful
         r = harness.call(harness.classify, harness.good_request())
         assert r.success and r.estimate.label != classes[0], r.message
+        assert list(node._pool.pids) == pids
+        assert node.set_parameters([Parameter('class_prior', value='train')])[0].successful
+        assert harness.call(harness.classify, harness.good_request()).estimate.label == classes[0]
     assert node.counters()['errors'] == 0
 
 

@@ -158,7 +158,8 @@ class BeoNode(Node):
         self._workers = []
         self._blas_limits = None
         self._pool = None
-        self._pool_lock = threading.Lock()  # pool creation, replacement and shutdown
+        self._pool_lock = threading.Lock()  # the pool and the bank it serves; shutdown
+        self._reload_gen = 0   # the latest model_dir reload (a newer one wins)
         self._pool_closed = False
         self._destroyed = False
         try:
@@ -213,6 +214,7 @@ class BeoNode(Node):
             bank = load_bank(model_dir)
             self.get_logger().info(f"loaded models from '{model_dir}': classes {bank.classes}")
         self._base_bank = bank  # as loaded: the class_prior parameter is applied to a copy
+        self._serving_base = bank   # the models the estimates use now (a reload may be pending)
         try:
             bank = with_class_prior(bank, self.get_parameter('class_prior').value)
         except ValueError as e:
@@ -407,17 +409,23 @@ class BeoNode(Node):
             except (StartupError, ValueError) as e:
                 return SetParametersResult(successful=False, reason=str(e))
             with self._bank_lock:
-                if self._n_procs:
-                    try:
-                        self._swap_pool(bank)
-                    except Exception as e:
-                        return SetParametersResult(
-                            successful=False, reason=f'worker processes cannot load the models '
-                                                     f'of {merged["model_dir"]!r}: {e}')
-                else:
-                    self._bank = bank
-            self._base_bank = base
-            if reload:
+                self._base_bank = base
+                if reload and self._n_procs:
+                    # new processes take seconds to start: not on the executor thread (clouds
+                    # and service calls would wait, and the middleware drop clouds uncounted);
+                    # the old ones serve until the new ones are ready
+                    self._reload_gen += 1
+                    threading.Thread(target=self._reload_pool, name='beo_reload', daemon=True,
+                                     args=(base, self._reload_gen, merged['model_dir'])).start()
+                else:   # worker processes get the prior with each estimate: no new ones
+                    serving = self._serving_base if self._n_procs else base
+                    with self._pool_lock:
+                        try:
+                            self._bank = with_class_prior(serving, merged['class_prior'])
+                            self._serving_base = serving
+                        except ValueError:  # names the classes of a reload still starting:
+                            pass            # it applies the prior when it switches
+            if reload and not self._n_procs:
                 self.get_logger().info(f"reloaded models from '{new['model_dir']}'")
             self.get_logger().info(f'class prior: {prior_text(bank)}')
         if 'diagnostics_period' in new:  # re-timing (not re-creating) is safe while spinning
@@ -597,11 +605,12 @@ class BeoNode(Node):
         pool: it is replaced and the cloud tried once more (it may not be the cloud's fault)."""
         retried = False
         for _ in range(8):
-            pool = self._pool
+            with self._pool_lock:   # the pool and the prior of the bank it serves, together
+                pool, prior = self._pool, self._bank.class_prior
             if pool is None:
                 raise RuntimeError('the worker processes are shut down')
             try:
-                return pool.estimate(*args)
+                return pool.estimate(*args, class_prior=prior)
             except PoolRetired as e:  # not sent: the pool broke earlier, or a reload replaced it
                 if pool.broken:
                     self._replace_broken_pool(pool, e)
@@ -625,17 +634,32 @@ class BeoNode(Node):
             broken.shutdown(timeout=1.0)
             self._pool = self._new_pool(self._bank)
 
-    def _swap_pool(self, bank):
-        """Start worker processes for ``bank``, then switch to them and to ``bank``; estimates
-        already sent to the old processes finish there."""
-        new = self._new_pool(bank)
+    def _reload_pool(self, base, gen, model_dir):
+        """Thread: start worker processes for the models ``base``, then switch to them (with the
+        class prior of that moment) unless a newer reload came meanwhile; estimates already sent
+        to the old processes finish there. A failure keeps the old processes (logged, counted
+        in errors)."""
+        t0 = time.monotonic()
+        try:
+            new = self._new_pool(base)
+        except Exception as e:  # noqa: BLE001 - reported, the old processes keep serving
+            self._count('errors')
+            self.get_logger().error(f"worker processes cannot load the models of '{model_dir}' "
+                                    f'({type(e).__name__}: {e}); the previous models still '
+                                    'answer')
+            return
         with self._pool_lock:
-            if self._pool_closed:
-                new.shutdown()
-                raise RuntimeError('the node is shutting down')
-            old, self._pool, self._bank = self._pool, new, bank
+            if self._pool_closed or gen != self._reload_gen:
+                old = new    # shut down, or superseded by a newer reload
+            else:
+                bank = with_class_prior(base, self.get_parameter('class_prior').value)
+                old, self._pool, self._bank, self._serving_base = self._pool, new, bank, base
         if old is not None:
             old.shutdown(timeout=None)
+        if old is not new:
+            self.get_logger().info(f"reloaded models from '{model_dir}' "
+                                   f'({self._n_procs} new worker process(es) in '
+                                   f'{time.monotonic() - t0:.1f} s)')
 
     def _record(self, stage, seconds):
         with self._stats_lock:
