@@ -652,7 +652,10 @@ class BeoNode(Node):
             if self._pool_closed or gen != self._reload_gen:
                 old = new    # shut down, or superseded by a newer reload
             else:
-                bank = with_class_prior(base, self.get_parameter('class_prior').value)
+                try:
+                    bank = with_class_prior(base, self.get_parameter('class_prior').value)
+                except ValueError:   # checked against these models when it was set
+                    bank = base
                 old, self._pool, self._bank, self._serving_base = self._pool, new, bank, base
         if old is not None:
             old.shutdown(timeout=None)
