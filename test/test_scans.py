@@ -203,3 +203,11 @@ def test_mirror_augment_is_the_view_of_the_mirrored_object():
     best = min((flipped != np.roll(b, s, axis=1)).sum() for s in (-1, 0, 1))
     assert best <= 0.01 * (b != 0).sum(), best
     assert v.grid.shape == a.shape
+
+
+def test_table_plane_is_reproducible(osd_scenes):
+    # open3d's seeded RANSAC still varied from call to call (2 planes 0.0007 deg apart, 3 of
+    # 32768 voxels of a training grid); the refit to a stable inlier set does not
+    scene = osd_scenes['learn0']
+    fits = [fit_table_plane(scene) for _ in range(6)]
+    assert len({(tuple(up), d) for up, d in fits}) == 1

@@ -117,12 +117,22 @@ def fit_table_plane(scene_or_points, labels=None, distance_threshold: float = 0.
     if len(inliers) < 3:   # open3d finds no plane in collinear or identical points
         raise ValueError(f'no plane among the {len(sel)} support points (collinear or all at '
                          'one place?)')
-    inl = sel[np.asarray(inliers)]
-    centroid = inl.mean(axis=0)
-    _, sv, vt = np.linalg.svd(inl - centroid, full_matrices=False)
-    if len(sv) < 3 or sv[1] <= 1e-6 * sv[0]:   # a line: any normal across it would do
-        raise ValueError(f'no plane among the {len(sel)} support points (they lie on a line)')
-    normal = vt[2]
+    # least squares on the inliers, re-selected by the refined plane until they stop changing:
+    # open3d's multithreaded RANSAC is not reproducible even when seeded, its refined plane is
+    keep = np.zeros(len(sel), dtype=bool)
+    keep[np.asarray(inliers)] = True
+    for _ in range(20):
+        inl = sel[keep]
+        centroid = inl.mean(axis=0)
+        _, sv, vt = np.linalg.svd(inl - centroid, full_matrices=False)
+        if len(sv) < 3 or sv[1] <= 1e-6 * sv[0]:   # a line: any normal across it would do
+            raise ValueError(f'no plane among the {len(sel)} support points (they lie on a '
+                             'line)')
+        normal = vt[2]
+        again = np.abs((sel - centroid) @ normal) <= distance_threshold
+        if again.sum() < 3 or (again == keep).all():
+            break
+        keep = again
     d = -float(normal @ centroid)
     origin = np.asarray(sensor_origin, float)
     height = normal @ origin + d
