@@ -696,6 +696,27 @@ def test_worker_processes_estimate_like_in_process(harness_procs, tmp_path):
     assert node.counters()['errors'] == 0
 
 
+def test_failed_reload_keeps_the_old_worker_processes(harness_procs, tmp_path, monkeypatch):
+    """New processes that cannot start: logged and counted, the old ones keep answering."""
+    import shutil
+    harness = harness_procs
+    node = harness.node
+    model_dir = node.get_parameter('model_dir').value
+    if not model_dir:
+        pytest.skip('needs a model directory')
+    old = list(node._pool.pids)
+
+    def cannot_start(bank):
+        raise RuntimeError('no processes today')
+    monkeypatch.setattr(node, '_new_pool', cannot_start)
+    shutil.copytree(model_dir, tmp_path / 'copy')
+    assert node.set_parameters([Parameter('model_dir', value=str(tmp_path / 'copy'))])[0] \
+        .successful
+    harness.wait_counter(lambda c: c['errors'] == 1)
+    assert list(node._pool.pids) == old
+    assert harness.call(harness.classify, harness.good_request()).success
+
+
 def test_killed_worker_process_is_replaced(harness_procs):
     """A worker process killed (idle or mid-estimate): logged, counted, processes restarted,
     the stream goes on."""
