@@ -147,10 +147,8 @@ class Harness:
         # callbacks already in the thread pool: stop spinning and drain the pool first
         self.stop.set()
         self.thread.join(timeout=5.0)
-        pool = getattr(self.executor, '_executor', None)
-        if pool is not None:
-            pool.shutdown(wait=True)
-        self.executor.shutdown(timeout_sec=5.0)
+        from beo_ros.ros.node import drain_executor
+        drain_executor(self.executor)
         self.node.destroy_node()
         self.client.destroy_node()
 

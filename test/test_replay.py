@@ -136,6 +136,7 @@ class NodeHarness:
         self.ex = MultiThreadedExecutor(num_threads=4, context=self.ctx)
         self.ex.add_node(self.node)
         self.ex.add_node(self.listener)
+        self.stop = threading.Event()
         self.thread = threading.Thread(target=self._spin, daemon=True)
         self.thread.start()
 
@@ -144,10 +145,8 @@ class NodeHarness:
             store.append(m)
 
     def _spin(self):
-        try:
-            self.ex.spin()
-        except Exception:  # noqa: BLE001 - shutdown races
-            pass
+        while not self.stop.is_set():
+            self.ex.spin_once(timeout_sec=0.05)
 
     def replay(self, path, **kw):
         kw.setdefault('wait_subscribers', 1)
@@ -170,7 +169,11 @@ class NodeHarness:
         raise TimeoutError(f'node not idle after {timeout} s: {self.node.counters()}')
 
     def close(self):
-        self.ex.shutdown()
+        # stop spinning, then let the callbacks in the executor's pool finish before shutdown
+        from beo_ros.ros.node import drain_executor
+        self.stop.set()
+        self.thread.join(timeout=5.0)
+        drain_executor(self.ex)
         self.node.destroy_node()
         self.listener.destroy_node()
         self.player.destroy_node()

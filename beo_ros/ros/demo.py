@@ -112,7 +112,7 @@ def run_node_on_bag(bag_path, model_dir, bank, up, origin, timeout: float = 120.
 
     from beo_ros.ros import bag
     from beo_ros.ros.conversions import interfaces
-    from beo_ros.ros.node import BeoNode
+    from beo_ros.ros.node import BeoNode, drain_executor
     msgs = interfaces()
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
@@ -172,7 +172,7 @@ def run_node_on_bag(bag_path, model_dir, bank, up, origin, timeout: float = 120.
         if spinner is not None:
             spinner.join(10)
         if ex is not None:
-            ex.shutdown()
+            drain_executor(ex)
         for n in (node, listener, player):
             if n is not None:
                 n.destroy_node()

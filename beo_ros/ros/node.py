@@ -878,7 +878,7 @@ def make_executor(context=None):
     return SingleThreadedExecutor(context=context)
 
 
-def _drain(executor):
+def drain_executor(executor):
     """Let callbacks already handed to the executor's thread pool finish, then shut it down.
 
     (rclpy 7.1 ``Executor.shutdown`` destroys its guard condition without waiting for them.)
@@ -920,7 +920,7 @@ def main(args=None):
         failed = True
     finally:
         if executor is not None:
-            _drain(executor)
+            drain_executor(executor)
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
