@@ -59,7 +59,7 @@ def data_path(arg):
 def load_data(args, rng):
     """(X, y, names, n, source) with optional class selection / subsampling."""
     from beo_ros.core.synthetic import primitive_shapes
-    from beo_ros.core.training import load_voxel_npz
+    from beo_ros.core.training import load_voxel_npz, select_classes
     path = data_path(args.data)
     if path is not None and not path.is_file():
         # only --data none or a missing default file fall back to generated shapes
@@ -67,15 +67,10 @@ def load_data(args, rng):
     if path is None:
         n = 16
         X, y, names = primitive_shapes(n, max(args.train_per_class or 15, 15) + 8, rng)
+        source = 'generated boxes/cylinders (16^3)'
         if args.classes:   # as load_voxel_npz does for a file
-            missing = sorted(set(args.classes) - set(names))
-            if missing:
-                raise ValueError(f'--classes {missing} are not among the generated classes '
-                                 f'{names}')
-            keep = np.isin(y, [names.index(c) for c in args.classes])
-            order = {names.index(c): i for i, c in enumerate(args.classes)}
-            X, y, names = X[keep], np.array([order[v] for v in y[keep]]), list(args.classes)
-        return X, y, names, n, 'generated boxes/cylinders (16^3)'
+            X, y, names = select_classes(X, y, names, args.classes, source)
+        return X, y, names, n, source
     X, y, names, n = load_voxel_npz(path, args.classes or None)
     return X, y, names, n, str(path)
 

@@ -563,15 +563,20 @@ def load_voxel_npz(path, classes=None):
     labels = _check_labels(path, labels, names, len(X))
     X = X.astype(np.float32)
     if classes:
-        keep = [names.index(c) if c in names else None for c in classes]
-        missing = [c for c, k in zip(classes, keep) if k is None]
-        if missing:
-            raise ValueError(f'{path}: classes {missing} not in {names}')
-        remap = {old: new for new, old in enumerate(keep)}
-        sel = np.isin(labels, keep)
-        X, labels = X[sel], np.array([remap[v] for v in labels[sel]])
-        names = list(classes)
+        X, labels, names = select_classes(X, labels, names, classes, path)
     return X, labels, names, n
+
+
+def select_classes(X, labels, names, classes, where):
+    """(X, labels, names) of only the objects of ``classes``, labels renumbered in that order;
+    ValueError naming ``where`` for a class not in ``names``."""
+    keep = [names.index(c) if c in names else None for c in classes]
+    missing = [c for c, k in zip(classes, keep) if k is None]
+    if missing:
+        raise ValueError(f'{where}: classes {missing} not in {names}')
+    remap = {old: new for new, old in enumerate(keep)}
+    sel = np.isin(labels, keep)
+    return X[sel], np.array([remap[v] for v in labels[sel]], dtype=int), list(classes)
 
 
 def load_meshes(paths, size):
