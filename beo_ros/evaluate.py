@@ -22,24 +22,29 @@ from pathlib import Path
 import numpy as np
 
 from .core.bank import load_models, parse_class_prior
-from .core.grid import GridSpec, yaw_error
+from .core.grid import GridSpec, symmetric_turns, yaw_error, yaw_error_up_to
 from .core.synthetic import random_partial_view
 from .core.training import fit_bank, load_voxel_npz, progress_bar, stratified_folds
 
 
-def evaluate_bank(bank, X, y, names, rng, views=1, examples=6, progress=True):
+def evaluate_bank(bank, X, y, names, rng, views=1, examples=6, progress=True, index=None):
     """Evaluate ``bank`` on objects X (m, N^3) with labels y indexing ``names``.
 
+    ``index`` (m,): the objects' indices in their file, for the records (default 0..m-1).
     Returns (summary dict, per-view records list, example list for the figure).
     """
     n = bank.spec.size
+    index = np.arange(len(X)) if index is None else np.asarray(index)
     recs, ex = [], []
     for i in progress_bar(range(len(X)), 'evaluating', disable=not progress):
         occ = X[i].reshape(n, n, n) > 0.5
         truth = names[y[i]]
+        # quarter turns that map the whole object onto itself: a yaw off by one of them is
+        # a right answer up to the object's own symmetry (reported beside the plain yaw error)
+        turns = symmetric_turns(occ)
         t0 = time.perf_counter()
         e = bank.estimate(occ.astype(np.int8), yaw=0.0)
-        rec_c = dict(i=int(i), mode='complete', truth=truth, label=e.label,
+        rec_c = dict(i=int(index[i]), mode='complete', truth=truth, label=e.label,
                      latency=time.perf_counter() - t0)
         recs.append(rec_c)
         for _ in range(views):
@@ -51,8 +56,15 @@ def evaluate_bank(bank, X, y, names, rng, views=1, examples=6, progress=True):
             inter = (pred & rotated).sum()
             union = (pred | rotated).sum()
             err = float(yaw_error(e.yaw, yaw))
-            recs.append(dict(i=int(i), mode='partial', truth=truth, label=e.label, latency=dt,
+            recs.append(dict(i=int(index[i]), mode='partial', truth=truth, label=e.label,
+                             latency=dt, yaw_deg=float(np.rad2deg(yaw)),
+                             est_yaw_deg=float(np.rad2deg(e.yaw)),
                              yaw_err_deg=float(np.rad2deg(err)),
+                             self_turns_deg=[round(float(np.rad2deg(t))) for t in turns],
+                             yaw_err_sym_deg=float(np.rad2deg(yaw_error_up_to(e.yaw, yaw,
+                                                                              turns))),
+                             # the rotation lost an object of a few voxels: nothing to see
+                             empty_view=bool(not (grid == 1).any()),
                              iou=float(inter / union) if union else 1.0,
                              prob=float(e.probability)))
             if len(ex) < examples and (not ex or truth not in [x[0] for x in ex]):
@@ -76,8 +88,12 @@ def summarize(recs, classes):
         if mode == 'partial':
             e = np.array([x['yaw_err_deg'] for x in r])
             ok_cls = np.array([x['label'] == x['truth'] for x in r])
+            es = np.array([x['yaw_err_sym_deg'] for x in r])
             s.update(yaw_within_10=float(np.mean(e <= 10)),
                      yaw_within_10_or_flip=float(np.mean((e <= 10) | (e >= 170))),
+                     yaw_within_10_up_to_symmetry=float(np.mean(es <= 10)),
+                     self_symmetric=float(np.mean([bool(x['self_turns_deg']) for x in r])),
+                     empty_views=int(sum(x['empty_view'] for x in r)),
                      yaw_median_deg=float(np.median(e)),
                      yaw_within_10_correct_class=float(np.mean(e[ok_cls] <= 10)) if ok_cls.any()
                      else float('nan'),
@@ -86,8 +102,12 @@ def summarize(recs, classes):
             for c in classes:
                 rc = [x for x in r if x['truth'] == c]
                 if rc:
-                    per[c] = dict(n=len(rc), accuracy=float(np.mean([x['label'] == c for x in rc])),
-                                  yaw_within_10=float(np.mean([x['yaw_err_deg'] <= 10 for x in rc])))
+                    per[c] = dict(
+                        n=len(rc), accuracy=float(np.mean([x['label'] == c for x in rc])),
+                        yaw_within_10=float(np.mean([x['yaw_err_deg'] <= 10 for x in rc])),
+                        yaw_within_10_up_to_symmetry=float(np.mean(
+                            [x['yaw_err_sym_deg'] <= 10 for x in rc])),
+                        self_symmetric=float(np.mean([bool(x['self_turns_deg']) for x in rc])))
             s['per_class'] = per
         out[mode] = s
     # confusion matrices (rows truth, columns prediction; last column 'unknown')
@@ -104,8 +124,8 @@ def summarize(recs, classes):
 
 
 def print_table(summary, file=sys.stdout):
-    print(f"{'mode':10s} {'n':>5s} {'acc':>6s} {'bal':>6s} {'yaw<=10':>8s} {'+flip':>6s} {'IoU':>6s} "
-          f"{'p50 ms':>7s} {'p95 ms':>7s}", file=file)
+    print(f"{'mode':10s} {'n':>5s} {'acc':>6s} {'bal':>6s} {'yaw<=10':>8s} {'+flip':>6s} "
+          f"{'+sym':>6s} {'IoU':>6s} {'p50 ms':>7s} {'p95 ms':>7s}", file=file)
     for mode in ('complete', 'partial'):
         if mode not in summary:
             continue
@@ -113,7 +133,8 @@ def print_table(summary, file=sys.stdout):
         f = (lambda k: f"{s[k]:.3f}" if k in s else '-')
         print(f"{mode:10s} {s['n']:5d} {s['accuracy']:6.3f} {f('balanced_accuracy'):>6s} "
               f"{f('yaw_within_10'):>8s} "
-              f"{f('yaw_within_10_or_flip'):>6s} {f('iou'):>6s} {s['latency_p50_ms']:7.1f} "
+              f"{f('yaw_within_10_or_flip'):>6s} {f('yaw_within_10_up_to_symmetry'):>6s} "
+              f"{f('iou'):>6s} {s['latency_p50_ms']:7.1f} "
               f"{s['latency_p95_ms']:7.1f}", file=file)
 
 
@@ -243,7 +264,7 @@ def main(argv=None):
                                 verifier_views=args.verifier_views, processes=args.jobs)
                 info.append(dict(fold=f, train=int(len(tr)), test=int(len(te)),
                                  train_seconds=round(time.time() - t0, 1)))
-                s, r, ex = evaluate_bank(bank, X[te], y[te], names, rng, args.views)
+                s, r, ex = evaluate_bank(bank, X[te], y[te], names, rng, args.views, index=te)
                 print(f'fold {f}:', file=sys.stderr)
                 print_table(s, file=sys.stderr)
                 recs += r
@@ -263,7 +284,8 @@ def main(argv=None):
             te = np.arange(len(X))
             if args.max_objects:
                 te = np.sort(rng.choice(te, min(args.max_objects, len(te)), replace=False))
-            summary, recs, examples = evaluate_bank(bank, X[te], y[te], names, rng, args.views)
+            summary, recs, examples = evaluate_bank(bank, X[te], y[te], names, rng, args.views,
+                                                     index=te)
             summary['protocol'] = f'held-out: model {args.model or "shipped"} on {args.data}'
     except (ValueError, OSError) as e:
         print(f'beo-eval: error: {e}', file=sys.stderr)
@@ -272,13 +294,18 @@ def main(argv=None):
         dict(zip(bank.classes, map(float, bank.class_prior)))
     summary['command'] = 'beo-eval ' + ' '.join(sys.argv[1:] if argv is None else argv)
     print_table(summary)
+    if summary.get('partial', {}).get('empty_views'):
+        print(f"{summary['partial']['empty_views']} view(s) had no occupied voxel (objects of a "
+              "few voxels lost to the rotation), answered 'unknown', a wrong class")
     try:
         (out / 'eval.json').write_text(json.dumps(summary, indent=2) + '\n')
+        # one line per complete object and per view (i: the object's index in --data)
+        (out / 'records.jsonl').write_text(''.join(json.dumps(r) + '\n' for r in recs))
         write_figure(summary, examples, out / 'eval.png')
     except OSError as e:
         print(f'beo-eval: error: {e}', file=sys.stderr)
         return 2
-    print(f'wrote {out / "eval.json"} and {out / "eval.png"}')
+    print(f'wrote {out / "eval.json"}, {out / "records.jsonl"} and {out / "eval.png"}')
     return 0
 
 

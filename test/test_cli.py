@@ -69,6 +69,26 @@ def test_eval_writes_json_and_png(trained, capsys):
             np.mean(np.diag(cm)[rows] / cm.sum(axis=1)[rows]))
     assert 0 <= s['partial']['iou'] <= 1
     assert 0 <= s['partial']['yaw_within_10'] <= 1
+    # one record per complete object and per view, indexed into --data; the yaw error up to
+    # the object's own quarter turns (cylinders: all three; boxes: at least the half turn)
+    recs = [json.loads(line) for line in (out / 'records.jsonl').read_text().splitlines()]
+    part = [r for r in recs if r['mode'] == 'partial']
+    assert len(recs) == 12 and len(part) == 6
+    X, y, names, n = load_voxel_npz(tmp / 'test.npz')
+    for r in part:
+        assert names[y[r['i']]] == r['truth']
+        occ = X[r['i']].reshape((n,) * 3) > 0.5
+        turns = [k * 90 for k in (1, 2, 3)
+                 if ((occ & np.rot90(occ, k, axes=(0, 1))).sum()
+                     >= 0.9 * (occ | np.rot90(occ, k, axes=(0, 1))).sum())]
+        assert r['self_turns_deg'] == turns
+        assert (turns == [90, 180, 270]) if r['truth'] == 'cylinder' else (180 in turns)
+        err = [abs((r['est_yaw_deg'] - r['yaw_deg'] - t + 180) % 360 - 180) for t in [0] + turns]
+        assert r['yaw_err_deg'] == pytest.approx(err[0])
+        assert r['yaw_err_sym_deg'] == pytest.approx(min(err))
+    assert s['partial']['yaw_within_10_up_to_symmetry'] == pytest.approx(
+        np.mean([r['yaw_err_sym_deg'] <= 10 for r in part]))
+    assert s['partial']['yaw_within_10_up_to_symmetry'] >= s['partial']['yaw_within_10']
     png = (out / 'eval.png').read_bytes()
     assert png[:8] == b'\x89PNG\r\n\x1a\n' and len(png) > 1000
     assert 'wrote' in capsys.readouterr().out

@@ -240,7 +240,7 @@ def test_estimate_to_msg():
                    completion=np.zeros((4, 4, 4), np.float32),
                    variance=np.zeros((4, 4, 4), np.float32),
                    hypotheses=[Hypothesis('chair', 0.5, -1.0), Hypothesis('table', 1.0, -3.0)],
-                   pose=pose, grid_to_input=g2i,
+                   symmetric_yaws=[0.5 - np.pi], pose=pose, grid_to_input=g2i,
                    completed_points=(local @ pose[:3, :3].T + pose[:3, 3]).astype(np.float32),
                    completed_probability=np.array([0.9, 0.8, 0.7], np.float32))
     h = Header(frame_id='cam')
@@ -253,6 +253,7 @@ def test_estimate_to_msg():
     np.testing.assert_allclose([m.dimensions.x, m.dimensions.y, m.dimensions.z],
                                [0.41, 0.21, 0.61], atol=1e-5)
     assert [hh.label for hh in m.hypotheses] == ['chair', 'table']
+    np.testing.assert_allclose(m.symmetric_yaws, [0.5 - np.pi], rtol=1e-7)
     assert m.source_topic == '/in' and abs(m.latency - 0.25) < 1e-6 and m.status == 'ok'
     assert m.completed_cloud.width == 3 and m.completed_cloud.header.frame_id == 'cam'
     m2 = conv.estimate_to_msg(est, h, '/in', 0.0, include_cloud=False)

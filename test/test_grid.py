@@ -1,8 +1,10 @@
-"""Grid conventions: yaw rotation of labelled grids and GridSpec."""
+"""Grid conventions: yaw rotation of labelled grids, the quarter turns that map a shape onto
+itself, and GridSpec."""
 import numpy as np
 import pytest
 
-from beo_ros.core.grid import GridSpec, rotate_grid, yaw_matrix, yaw_source_index
+from beo_ros.core.grid import (GridSpec, rotate_grid, symmetric_turns, yaw_error_up_to, yaw_matrix,
+                                yaw_source_index)
 
 
 def test_rotate_90_moves_x_to_y_odd_grid():
@@ -128,3 +130,56 @@ def test_gridspec_dict_round_trip(spec):
     # unknown keys (as in a manifest) are ignored
     assert GridSpec.from_dict(dict(d, axes='xyz', up='+z')) == spec
     assert spec.shape == (spec.size,) * 3
+
+
+def _shape(n=16):
+    g = np.zeros((n, n, n), bool)
+    g[3:13, 5:11, 0:6] = True     # a 10 x 6 slab: the same after half a turn only
+    return g
+
+
+def test_symmetric_turns_of_slab_square_and_asymmetric_shapes():
+    slab = _shape()
+    assert symmetric_turns(slab) == (np.pi,)
+    square = np.zeros((16, 16, 16), bool)
+    square[4:12, 4:12, 0:5] = True
+    assert symmetric_turns(square) == (np.pi / 2, np.pi, 3 * np.pi / 2)
+    post = slab.copy()
+    post[3:6, 5:8, 6:14] = True   # a post at one corner breaks the half turn
+    assert symmetric_turns(post) == ()
+    assert symmetric_turns(np.zeros((8, 8, 8), bool)) == ()
+    # the IoU threshold decides: the slab with the post still matches at a low threshold
+    half = np.rot90(post, 2, axes=(0, 1))
+    iou = (post & half).sum() / (post | half).sum()
+    assert symmetric_turns(post, min_iou=iou) == (np.pi,)
+    assert symmetric_turns(post, min_iou=iou + 1e-6) == ()
+
+
+def test_symmetric_turns_use_the_rotate_grid_convention():
+    rng = np.random.default_rng(3)
+    g = rng.random((9, 9, 9)) > 0.5
+    for k in (1, 2, 3):
+        np.testing.assert_array_equal(np.rot90(g, k, axes=(0, 1)), rotate_grid(g, k * np.pi / 2))
+
+
+@pytest.mark.parametrize('bad, msg', [(np.zeros((4, 4, 5), bool), r'\(N, N, N\)'),
+                                      (np.zeros((4, 4), bool), r'\(N, N, N\)')])
+def test_symmetric_turns_rejects_non_cubes(bad, msg):
+    with pytest.raises(ValueError, match=msg):
+        symmetric_turns(bad)
+
+
+@pytest.mark.parametrize('min_iou', [0.0, -0.5, 1.5, float('nan')])
+def test_symmetric_turns_rejects_bad_threshold(min_iou):
+    with pytest.raises(ValueError, match='min_iou'):
+        symmetric_turns(_shape(), min_iou=min_iou)
+
+
+def test_yaw_error_up_to_the_shape_turns():
+    a, b = np.deg2rad(183.0), np.deg2rad(2.0)
+    assert np.rad2deg(yaw_error_up_to(a, b)) == pytest.approx(179.0)
+    assert np.rad2deg(yaw_error_up_to(a, b, (np.pi,))) == pytest.approx(1.0)
+    # a quarter turn that is not among the shape's turns does not count
+    assert np.rad2deg(yaw_error_up_to(np.deg2rad(93.0), b, (np.pi,))) == pytest.approx(89.0)
+    turns = (np.pi / 2, np.pi, 3 * np.pi / 2)
+    assert np.rad2deg(yaw_error_up_to(np.deg2rad(-88.0), b, turns)) == pytest.approx(0.0, abs=1e-9)

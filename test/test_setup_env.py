@@ -20,7 +20,7 @@ def test_interfaces_import_and_fields():
 
     est = ObjectEstimate()
     for field in ('header', 'source_topic', 'label', 'probability', 'class_names',
-                  'class_probabilities', 'pose', 'dimensions', 'hypotheses',
+                  'class_probabilities', 'pose', 'dimensions', 'hypotheses', 'symmetric_yaws',
                   'completed_cloud', 'latency', 'status'):
         assert hasattr(est, field), field
     assert ObjectEstimateArray().estimates == []
@@ -53,6 +53,7 @@ def test_object_estimate_serialization_roundtrip():
     est.dimensions.x, est.dimensions.y, est.dimensions.z = 0.1, 0.1, 0.12
     est.hypotheses = [YawHypothesis(label='mug', yaw=0.5, score=-10.0),
                       YawHypothesis(label='bowl', yaw=2.0, score=-12.5)]
+    est.symmetric_yaws = [2.0707963267948966, -1.0707963267948966, -2.641592653589793]
     est.completed_cloud.height = 1
     est.completed_cloud.width = 2
     est.completed_cloud.fields = [PointField(name='x', offset=0, datatype=PointField.FLOAT32,
@@ -68,6 +69,7 @@ def test_object_estimate_serialization_roundtrip():
     back = deserialize_message(raw, ObjectEstimate)
     assert back == est
     assert back.hypotheses[1].label == 'bowl'
+    assert list(back.symmetric_yaws) == est.symmetric_yaws.tolist()
     assert bytes(back.completed_cloud.data) == bytes(range(8))
 
     arr = ObjectEstimateArray(estimates=[est, est])

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from .estimate import UNKNOWN_LABEL, Estimate, Hypothesis
-from .grid import GridSpec, yaw_matrix
+from .grid import GridSpec, symmetric_turns, yaw_matrix
 from .inference import FEATURE_NAMES, InferenceEngine, observed_edt, top_modes
 from .shape import DESCRIPTOR_NAMES as SHAPE_DESCRIPTORS, shape_descriptors
 from .verifier import TURNS, OrientationVerifier, check_arrays, quarter_turned_features
@@ -868,6 +868,9 @@ class ModelBank:
             check_count('stage2_modes', stage2_modes)
         if search_step_deg is None:
             search_step_deg = max(SEARCH_STEP_DEG, yaw_step_deg)
+        check_yaw(yaw)
+        if not (grid == 1).any():
+            return self._no_object(grid, yaw, t0)
         feats, per = self.features(grid, yaw, search_step_deg, exhaustive)
         t1 = time.perf_counter()
         mode = 'complete' if (grid < 0).mean() < 0.01 else 'partial'
@@ -901,6 +904,7 @@ class ModelBank:
         t2 = time.perf_counter()
         completion, variance = self._completion(grid, per, probs, best)
         est_yaw = per[best]['yaw']
+        turns = symmetric_turns(completion >= 0.5)
         t3 = time.perf_counter()
         # the chosen class's yaw modes first (symmetric objects have several), then the others
         hyps = [(self.classes[best], y, ll) for y, ll in per[best]['hypotheses']]
@@ -912,6 +916,7 @@ class ModelBank:
         return Estimate(
             label=label, scores={c: float(p) for c, p in zip(self.classes, probs)},
             yaw=float(np.mod(est_yaw + np.pi, 2 * np.pi) - np.pi),
+            symmetric_yaws=[float(np.mod(est_yaw + t + np.pi, 2 * np.pi) - np.pi) for t in turns],
             completion=completion, variance=variance,
             hypotheses=[Hypothesis(lab, float(np.mod(y + np.pi, 2 * np.pi) - np.pi), float(s))
                         for lab, y, s in hyps[:n_hypotheses]],
@@ -921,6 +926,23 @@ class ModelBank:
                      'total': t3 - t0},
             features=feats, grid=grid, classifier_mode=rule, point_features=point_features,
             classifier_note=note)
+
+    def _no_object(self, grid, yaw, t0):
+        """The estimate of a grid with no occupied voxel (all free or unknown, e.g. the view of
+        a one-voxel object that the rotation lost): no object, so label 'unknown', the class
+        prior as scores, nothing completed, no pose hypotheses."""
+        weights = self._prior_weights
+        if weights is None:   # the 'train' prior: the classifier's training rows per class
+            counts = ((self.classifier or {}).get('partial') or {}).get('class_counts')
+            weights = np.ones(len(self.classes)) if counts is None else \
+                np.asarray(counts, dtype=np.float64)
+        weights = np.asarray(weights, dtype=np.float64) / np.sum(weights)
+        yaw = 0.0 if yaw is None else float(np.mod(float(yaw) + np.pi, 2 * np.pi) - np.pi)
+        zeros = np.zeros(grid.shape, dtype=np.float32)
+        return Estimate(label=UNKNOWN_LABEL, scores=dict(zip(self.classes, map(float, weights))),
+                        yaw=yaw, completion=zeros, variance=zeros.copy(), grid=grid,
+                        timings={'total': time.perf_counter() - t0}, classifier_mode='none',
+                        classifier_note='grid has no occupied voxel: no object to estimate')
 
     def estimate_points(self, points, sensor_origin=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0),
                         yaw_step_deg=1.0, threshold=0.5, center=None):

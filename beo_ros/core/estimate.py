@@ -33,13 +33,19 @@ class Estimate:
         completion: float32 (N,N,N) occupancy probability.
         variance: float32 (N,N,N) predictive variance of the occupancy.
         hypotheses: top (class, yaw) hypotheses, best first.
+        symmetric_yaws: radians, the yaws that the completed shape cannot tell from ``yaw``:
+            ``yaw`` + each quarter turn about +z that maps the completion (p >= 0.5) onto itself
+            with IoU >= 0.9 (about the grid centre; see :func:`beo_ros.core.grid.symmetric_turns`).
+            Empty for a shape with no such turn; [yaw + pi] for a table that looks the same
+            turned round.
         timings: seconds per stage ('pose_and_features', 'classify', 'pose_refinement',
             'completion', 'total'; 'voxelize' and, for a bank with a 'points' classifier,
             'point_descriptors' from ``estimate_points``).
         classifier_mode: the rule that decided the class: 'points' (the bank's classifier on
             the per-class log-likelihood + the raw points' side-normal descriptors),
-            'complete' / 'partial' (the bank's classifier on the grid features) or
-            'max_likelihood' (no classifier for this case).
+            'complete' / 'partial' (the bank's classifier on the grid features),
+            'max_likelihood' (no classifier for this case) or 'none' (the grid has no occupied
+            voxel: label 'unknown', the class prior as scores, nothing completed).
         point_features: float64 (2,) side-normal descriptors (r4, frac10) of the raw points
             (see :mod:`beo_ros.core.normals`), or None (not computed: no points, or the bank
             has no 'points' classifier); NaN when undefined for this cloud.
@@ -60,6 +66,7 @@ class Estimate:
     completion: np.ndarray
     variance: np.ndarray
     hypotheses: list = field(default_factory=list)
+    symmetric_yaws: list = field(default_factory=list)
     timings: dict = field(default_factory=dict)
     features: np.ndarray | None = None
     grid: np.ndarray | None = None

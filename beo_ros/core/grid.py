@@ -112,3 +112,43 @@ def rotate_grid(grid: np.ndarray, yaw: float, fill=0) -> np.ndarray:
     idx = yaw_source_index(n, [yaw])[0]
     src = np.append(grid.ravel(), np.asarray(fill, dtype=grid.dtype))
     return src[idx].reshape(grid.shape)
+
+
+SELF_MATCH_IOU = 0.9
+QUARTER_TURNS = (0.5 * np.pi, np.pi, 1.5 * np.pi)
+
+
+def symmetric_turns(occupied: np.ndarray, min_iou: float = SELF_MATCH_IOU) -> tuple:
+    """Quarter turns about +z that map a shape onto itself.
+
+    ``occupied``: bool (N, N, N), axes x, y, z, turned about the grid centre (N-1)/2 (exact:
+    quarter turns move voxel centres onto voxel centres). Returns the turns, radians, among
+    pi/2, pi and 3 pi/2, whose turned grid has IoU >= ``min_iou`` with ``occupied``; () for a grid
+    with no occupied voxel. The set is closed under inverse (IoU(R x, x) = IoU(x, R^-1 x)).
+    """
+    occ = np.asarray(occupied)
+    if occ.ndim != 3 or len(set(occ.shape)) != 1:
+        raise ValueError(f'occupied must be (N, N, N), got shape {occ.shape}')
+    if not 0 < min_iou <= 1:   # also refuses NaN
+        raise ValueError(f'min_iou must be in (0, 1], got {min_iou}')
+    occ = occ.astype(bool, copy=False)
+    total = np.count_nonzero(occ)
+    if total == 0:
+        return ()
+    out = []
+    for k, turn in enumerate(QUARTER_TURNS, start=1):
+        # np.rot90 over axes (0, 1) is a right-handed turn about +z by k * 90 degrees, the same
+        # map as rotate_grid(occ, k * pi / 2)
+        inter = np.count_nonzero(occ & np.rot90(occ, k, axes=(0, 1)))
+        if inter >= min_iou * (2 * total - inter):   # IoU = inter / union, both grids same count
+            out.append(turn)
+    return tuple(out)
+
+
+def yaw_error_up_to(a, b, turns=()):
+    """:func:`yaw_error` of ``a`` against ``b`` and ``b`` + each of ``turns`` (radians), the
+    smallest: the yaw error of a shape that the turns map onto itself."""
+    err = yaw_error(a, b)
+    for t in turns:
+        err = np.minimum(err, yaw_error(a, np.asarray(b) + t))
+    return err

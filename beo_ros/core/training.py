@@ -111,12 +111,14 @@ def view_features(bank, X, rng, n_views=1, complete=True):
     """Features of objects X (m, N^3) under ``bank``: complete grids at yaw 0 and random partial
     views at unknown yaw (the evaluation protocol).
 
-    Returns dict mode -> (feature rows (r, C*F), object index (r,), records, shape descriptors
-    (r, D)); a partial-view record holds, per class hypothesis, the yaw error (rad) and the
-    completion IoU (C,) each.
+    Returns (dict mode -> (feature rows (r, C*F), object index (r,), records, shape descriptors
+    (r, D)), number of views skipped); a partial-view record holds, per class hypothesis, the
+    yaw error (rad) and the completion IoU (C,) each. A view is skipped when it has no
+    occupied voxel (the rotation can lose an object of a few voxels).
     """
     n = bank.spec.size
     out = {'complete': ([], [], [], []), 'partial': ([], [], [], [])}
+    skipped = 0
     for i in range(len(X)):
         occ = X[i].reshape(n, n, n) > 0.5
         if complete:
@@ -127,6 +129,9 @@ def view_features(bank, X, rng, n_views=1, complete=True):
             out['complete'][3].append(shape_descriptors(occ.astype(np.int8)))
         for _ in range(n_views):
             grid, yaw, _, _, rotated = random_partial_view(occ, rng)
+            if not (grid == 1).any():
+                skipped += 1
+                continue
             f, per = bank.features(grid)
             # the pose refinement estimate() applies to the chosen class, here for the three
             # classes that explain the view best (the classifier is trained later)
@@ -137,7 +142,7 @@ def view_features(bank, X, rng, n_views=1, complete=True):
             out['partial'][2].append(_hypothesis_quality(bank.engine, grid, per, yaw, rotated))
             out['partial'][3].append(shape_descriptors(grid))
     return {m: (np.array(a), np.array(b, dtype=int), r, np.array(d))
-            for m, (a, b, r, d) in out.items() if a}
+            for m, (a, b, r, d) in out.items() if a}, skipped
 
 
 def _hypothesis_quality(engine, grid, per, yaw, rotated):
@@ -402,6 +407,7 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
         records = {'complete': [], 'partial': []}
         objects = {'complete': [], 'partial': []}
         descs = {'complete': [], 'partial': []}
+        skipped = 0
         for f in progress_bar(range(folds), 'out-of-fold features', disable=not verbose):
             tr, te = fold != f, np.flatnonzero(fold == f)
             sub = ModelBank(fit_class_models(X[tr], y[tr], names, spec, k,
@@ -416,7 +422,9 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
                     objects['partial'].append(i)
                     records['partial'].append({})  # no ground-truth yaw for real scans
                     continue
-                out = view_features(sub, X[i:i + 1], rng, classifier_views, complete=masks is None)
+                out, lost = view_features(sub, X[i:i + 1], rng, classifier_views,
+                                          complete=masks is None)
+                skipped += lost
                 for mode, (F, _, recs, D) in out.items():
                     feats[mode].append(F)
                     descs[mode].append(D)
@@ -431,6 +439,10 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
                     np.array(objects[mode]), np.vstack(descs[mode]), len(names), C, seed,
                     row_standardize, descriptors, cv_prior)
         info['cross_validation'] = cv_report
+        info['skipped_views'] = skipped
+        if skipped:
+            print(f'out-of-fold features: {skipped} partial view(s) skipped: no occupied voxel '
+                  '(objects of a few voxels lost to the rotation)', file=sys.stderr)
         if oof_path:
             arrays = {}
             for mode in feats:

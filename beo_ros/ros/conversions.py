@@ -294,6 +294,7 @@ def estimate_to_msg(est, header, source_topic: str = '', latency: float = 0.0,
     out.dimensions = Vector3(x=float(d[0]), y=float(d[1]), z=float(d[2]))
     out.hypotheses = [msgs.YawHypothesis(label=str(h.label), yaw=float(h.yaw), score=float(h.score))
                       for h in (est.hypotheses or [])]
+    out.symmetric_yaws = [float(y) for y in (est.symmetric_yaws or [])]
     if include_cloud and est.completed_points is not None:
         out.completed_cloud = completed_cloud(est, header)
     else:
