@@ -59,6 +59,7 @@ def evaluate_bank(bank, X, y, names, rng, views=1, examples=6, progress=True, in
             recs.append(dict(i=int(index[i]), mode='partial', truth=truth, label=e.label,
                              latency=dt, yaw_deg=float(np.rad2deg(yaw)),
                              est_yaw_deg=float(np.rad2deg(e.yaw)),
+                             symmetric_yaws_deg=[float(np.rad2deg(v)) for v in e.symmetric_yaws],
                              yaw_err_deg=float(np.rad2deg(err)),
                              self_turns_deg=[round(float(np.rad2deg(t))) for t in turns],
                              yaw_err_sym_deg=float(np.rad2deg(yaw_error_up_to(e.yaw, yaw,

@@ -6,6 +6,7 @@ import pytest
 
 from beo_ros import evaluate, train
 from beo_ros.core.bank import ModelBank
+from beo_ros.core.grid import symmetric_turns
 from beo_ros.core.synthetic import primitive_shapes
 from beo_ros.core.training import load_voxel_npz
 
@@ -78,9 +79,7 @@ def test_eval_writes_json_and_png(trained, capsys):
     for r in part:
         assert names[y[r['i']]] == r['truth']
         occ = X[r['i']].reshape((n,) * 3) > 0.5
-        turns = [k * 90 for k in (1, 2, 3)
-                 if ((occ & np.rot90(occ, k, axes=(0, 1))).sum()
-                     >= 0.9 * (occ | np.rot90(occ, k, axes=(0, 1))).sum())]
+        turns = [round(np.rad2deg(t)) for t in symmetric_turns(occ)]
         assert r['self_turns_deg'] == turns
         assert (turns == [90, 180, 270]) if r['truth'] == 'cylinder' else (180 in turns)
         err = [abs((r['est_yaw_deg'] - r['yaw_deg'] - t + 180) % 360 - 180) for t in [0] + turns]

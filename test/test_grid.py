@@ -155,6 +155,20 @@ def test_symmetric_turns_of_slab_square_and_asymmetric_shapes():
     assert symmetric_turns(post, min_iou=iou + 1e-6) == ()
 
 
+def test_symmetric_turns_are_about_the_shape_not_the_grid_centre():
+    # the same shapes placed off-centre (a segmented cloud's grid is centred by a heuristic)
+    slab = np.roll(_shape(), (3, -2), axis=(0, 1))
+    assert symmetric_turns(slab) == (np.pi,)
+    square = np.zeros((16, 16, 16), bool)
+    square[1:9, 6:14, 0:5] = True
+    assert symmetric_turns(square) == (np.pi / 2, np.pi, 3 * np.pi / 2)
+    # a 7 x 6 footprint: the quarter turn is half a voxel off centre, the half turn exact
+    odd = np.zeros((16, 16, 16), bool)
+    odd[2:9, 4:10, 0:6] = True
+    assert symmetric_turns(odd) == (np.pi,)
+    assert symmetric_turns(odd, min_iou=6 / 8) == (np.pi / 2, np.pi, 3 * np.pi / 2)
+
+
 def test_symmetric_turns_use_the_rotate_grid_convention():
     rng = np.random.default_rng(3)
     g = rng.random((9, 9, 9)) > 0.5

@@ -403,6 +403,8 @@ def test_demo_runs_end_to_end(tmp_path, ros_tiny_model_dir):
     res = json.loads((out / 'results.json').read_text())
     assert res['inputs'] == res['estimated'] >= 2
     assert all(r['label'] is not None and r['completed_points'] >= 0 for r in res['results'])
+    # turns (deg) under which the completed shape looks the same: quarter turns only
+    assert all(set(r['symmetric_turns_deg']) <= {90, 180, 270} for r in res['results'])
     png = out / 'beo_demo.png'
     assert png.is_file() and png.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
     print(f'demo on the tiny bank: {time.monotonic() - t:.1f} s')

@@ -49,3 +49,21 @@ def test_latency_script_refuses_bad_counts(tiny):
     with pytest.raises(SystemExit) as exc:
         load_script('latency').main([str(data), '--model', str(bank), '--views', '0'])
     assert exc.value.code == 2
+
+
+def test_symmetric_flag_script_scores_both_flags(capsys, tmp_path):
+    X, y, classes = primitive_shapes(n=16, count=12, rng=np.random.default_rng(2))
+    data = tmp_path / 'shapes.npz'
+    np.savez(data, voxels=np.packbits(X > 0, axis=1), labels=y, classes=np.array(classes),
+             shape=np.array([16, 16, 16]))
+    script = load_script('symmetric_flag')
+    out_json = tmp_path / 'rows.json'
+    assert script.main([str(data), '--folds', '2', '--k', '2', '--json', str(out_json)]) == 0
+    out = capsys.readouterr().out
+    assert 'completion@0.9' in out and 'model@0.9' in out
+    import json
+    rows = json.loads(out_json.read_text())
+    assert len(rows) == 12   # half of the 24 objects
+    # generated boxes and cylinders are symmetric: every truth set has the half turn
+    assert all(180 in r['truth'] for r in rows)
+    assert all(r['symmetric_yaws_turns'] == r['completion@0.9'] for r in rows)

@@ -35,9 +35,10 @@ class Estimate:
         hypotheses: top (class, yaw) hypotheses, best first.
         symmetric_yaws: radians, the yaws that the completed shape cannot tell from ``yaw``:
             ``yaw`` + each quarter turn about +z that maps the completion (p >= 0.5) onto itself
-            with IoU >= 0.9 (about the grid centre; see :func:`beo_ros.core.grid.symmetric_turns`).
-            Empty for a shape with no such turn; [yaw + pi] for a table that looks the same
-            turned round.
+            with IoU >= 0.9, turned about its footprint's centre (see
+            :func:`beo_ros.core.grid.symmetric_turns`). Empty for a shape with no such turn;
+            [yaw + pi] for a table that looks the same turned round. A hint: of the turns it
+            lists on ModelNet10 views, 74 % are turns of the true object (fold 0).
         timings: seconds per stage ('pose_and_features', 'classify', 'pose_refinement',
             'completion', 'total'; 'voxelize' and, for a bank with a 'points' classifier,
             'point_descriptors' from ``estimate_points``).

@@ -121,10 +121,13 @@ QUARTER_TURNS = (0.5 * np.pi, np.pi, 1.5 * np.pi)
 def symmetric_turns(occupied: np.ndarray, min_iou: float = SELF_MATCH_IOU) -> tuple:
     """Quarter turns about +z that map a shape onto itself.
 
-    ``occupied``: bool (N, N, N), axes x, y, z, turned about the grid centre (N-1)/2 (exact:
-    quarter turns move voxel centres onto voxel centres). Returns the turns, radians, among
-    pi/2, pi and 3 pi/2, whose turned grid has IoU >= ``min_iou`` with ``occupied``; () for a grid
-    with no occupied voxel. The set is closed under inverse (IoU(R x, x) = IoU(x, R^-1 x)).
+    ``occupied``: bool (N, N, N), axes x, y, z. The shape is turned about the vertical line
+    through the centre of its x-y bounding box (the grid centre for a centred object), so an
+    object placed off-centre in its grid is judged by its own shape. Returns the turns, radians,
+    among pi/2, pi and 3 pi/2, whose turned shape has IoU >= ``min_iou`` with ``occupied``; ()
+    for a grid with no occupied voxel. The half turn is exact; a quarter turn of a footprint
+    whose x and y extents differ in parity is half a voxel off centre. The set is closed under
+    inverse (IoU(R x, x) = IoU(x, R^-1 x)).
     """
     occ = np.asarray(occupied)
     if occ.ndim != 3 or len(set(occ.shape)) != 1:
@@ -135,12 +138,19 @@ def symmetric_turns(occupied: np.ndarray, min_iou: float = SELF_MATCH_IOU) -> tu
     total = np.count_nonzero(occ)
     if total == 0:
         return ()
+    xs, ys = np.flatnonzero(occ.any(axis=(1, 2))), np.flatnonzero(occ.any(axis=(0, 2)))
+    box = occ[xs[0]:xs[-1] + 1, ys[0]:ys[-1] + 1]
+    # quarter turns need a square footprint: pad the shorter side on both ends
+    side = max(box.shape[:2])
+    pads = [((side - w) // 2, side - w - (side - w) // 2) for w in box.shape[:2]]
+    square = np.pad(box, pads + [(0, 0)])
     out = []
     for k, turn in enumerate(QUARTER_TURNS, start=1):
-        # np.rot90 over axes (0, 1) is a right-handed turn about +z by k * 90 degrees, the same
-        # map as rotate_grid(occ, k * pi / 2)
-        inter = np.count_nonzero(occ & np.rot90(occ, k, axes=(0, 1)))
-        if inter >= min_iou * (2 * total - inter):   # IoU = inter / union, both grids same count
+        # np.rot90 over axes (0, 1) turns right-handed about +z by k * 90 degrees, as
+        # rotate_grid does; the half turn of the unpadded box is exact about its centre
+        base = box if k == 2 else square
+        inter = np.count_nonzero(base & np.rot90(base, k, axes=(0, 1)))
+        if inter >= min_iou * (2 * total - inter):   # IoU = inter / union, both have `total`
             out.append(turn)
     return tuple(out)
 

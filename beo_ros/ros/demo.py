@@ -180,13 +180,15 @@ def run_node_on_bag(bag_path, model_dir, bank, up, origin, timeout: float = 120.
 
 
 def results_table(rows) -> str:
-    head = ('input', 'true class', 'label', 'prob', 'yaw deg', 'true yaw', 'latency ms', 'points')
+    head = ('input', 'true class', 'label', 'prob', 'yaw deg', 'true yaw', 'same turned by',
+            'latency ms', 'points')
     lines = [head]
     for r in rows:
         lines.append((r['input'], r['true_class'], r['label'] or '-',
                       '-' if r['probability'] is None else f"{r['probability']:.2f}",
                       '-' if r['yaw'] is None else f"{math.degrees(r['yaw']):.0f}",
                       f"{math.degrees(r['true_yaw']):.0f}",
+                      '/'.join(map(str, r['symmetric_turns_deg'])) or '-',
                       '-' if r['latency'] is None else f"{r['latency'] * 1e3:.0f}",
                       str(r['points'])))
     widths = [max(len(str(x[i])) for x in lines) for i in range(len(head))]
@@ -292,16 +294,19 @@ def main(argv=None) -> int:
         c = completed.get(inp['stamp_ns'])
         if c is not None:
             completed_pts[inp['stamp_ns']] = cloud_to_xyz(c)[0]
-        yaw = None
+        yaw, turns = None, []
         if e is not None:   # object yaw about +z (the sensor frame's up) from the pose
             o = e.pose.orientation
             r = quaternion_to_rotation([o.x, o.y, o.z, o.w])
             yaw = float(math.atan2(r[1, 0], r[0, 0])) % (2 * math.pi)
+            if len(e.hypotheses):   # the first hypothesis holds the estimate's own yaw
+                turns = sorted(round(math.degrees(s - e.hypotheses[0].yaw)) % 360
+                               for s in e.symmetric_yaws)
         rows.append({'input': inp['name'], 'true_class': inp['true_class'],
                      'true_yaw': inp['true_yaw'], 'points': int(len(inp['points'])),
                      'label': e.label if e is not None else None,
                      'probability': float(e.probability) if e is not None else None,
-                     'yaw': yaw, 'latency': float(e.latency) if e is not None else None,
+                     'yaw': yaw, 'symmetric_turns_deg': turns, 'latency': float(e.latency) if e is not None else None,
                      'status': e.status if e is not None else 'no estimate',
                      'completed_points': int(len(completed_pts.get(inp['stamp_ns'], [])))})
     print(results_table(rows))
