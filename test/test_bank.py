@@ -149,9 +149,23 @@ def test_check_grid(tiny):
     with pytest.raises(ValueError, match='shape'):
         tiny.estimate(np.zeros((8, 8, 8), dtype=np.int8))
     with pytest.raises(ValueError, match='integer'):
-        tiny.check_grid(g.astype(np.float32))
+        tiny.check_grid(g.astype(np.complex64))
     for bad in (2, -2):
         b = g.copy()
+        b[3, 3, 3] = bad
+        with pytest.raises(ValueError, match='values'):
+            tiny.check_grid(b)
+    # whole-valued floats are the same grid; anything a cast to int8 would change is refused
+    part = views()[1]
+    np.testing.assert_array_equal(tiny.check_grid(part.astype(np.float32)), part)
+    assert tiny.check_grid(part.astype(np.float64)).dtype == np.int8
+    for bad in (0.7, np.nan, np.inf):
+        b = part.astype(np.float32)
+        b[3, 3, 3] = bad
+        with pytest.raises(ValueError, match='whole values'):
+            tiny.check_grid(b)
+    for dtype, bad in ((np.int64, 257), (np.uint8, 255), (np.int16, -255)):
+        b = part.astype(dtype)
         b[3, 3, 3] = bad
         with pytest.raises(ValueError, match='values'):
             tiny.check_grid(b)

@@ -612,13 +612,18 @@ class ModelBank:
         grid = np.asarray(grid)
         if grid.shape != self.spec.shape:
             raise ValueError(f'grid must have shape {self.spec.shape}, got {grid.shape}')
-        if not np.issubdtype(grid.dtype, np.integer) and grid.dtype != bool:
+        if np.issubdtype(grid.dtype, np.floating):
+            # whole values only: a cast would truncate 0.7 to free and NaN to anything
+            if not np.isfinite(grid).all() or (grid != np.round(grid)).any():
+                raise ValueError('a float grid must hold the whole values 1 (occupied), 0 (free) '
+                                 'or -1 (unknown)')
+        elif not np.issubdtype(grid.dtype, np.integer) and grid.dtype != bool:
             raise ValueError(f'grid must be an integer array (1 occupied, 0 free, -1 unknown), '
                              f'got dtype {grid.dtype}')
-        grid = grid.astype(np.int8)
+        # checked before the cast to int8, which would wrap 255 to -1 and 257 to 1
         if grid.min() < -1 or grid.max() > 1:
             raise ValueError('grid values must be 1 (occupied), 0 (free) or -1 (unknown)')
-        return grid
+        return grid.astype(np.int8)
 
     def features(self, grid, yaw=None, yaw_step_deg=SEARCH_STEP_DEG, exhaustive=True):
         """Per-class best yaw (stage-1 search every ``yaw_step_deg``), exact posterior and
