@@ -67,7 +67,6 @@ class Estimate:
     completion: np.ndarray
     variance: np.ndarray
     hypotheses: list = field(default_factory=list)
-    symmetric_yaws: list = field(default_factory=list)
     timings: dict = field(default_factory=dict)
     features: np.ndarray | None = None
     grid: np.ndarray | None = None
@@ -78,6 +77,7 @@ class Estimate:
     classifier_mode: str = ''
     point_features: np.ndarray | None = None
     classifier_note: str = ''
+    symmetric_yaws: list = field(default_factory=list)   # last: positional use stays as it was
 
     @property
     def probability(self) -> float:

@@ -306,7 +306,8 @@ def main(argv=None) -> int:
                      'true_yaw': inp['true_yaw'], 'points': int(len(inp['points'])),
                      'label': e.label if e is not None else None,
                      'probability': float(e.probability) if e is not None else None,
-                     'yaw': yaw, 'symmetric_turns_deg': turns, 'latency': float(e.latency) if e is not None else None,
+                     'yaw': yaw, 'symmetric_turns_deg': turns,
+                     'latency': float(e.latency) if e is not None else None,
                      'status': e.status if e is not None else 'no estimate',
                      'completed_points': int(len(completed_pts.get(inp['stamp_ns'], [])))})
     print(results_table(rows))
