@@ -9,6 +9,10 @@ Tabletop scans (leave-one-scene-out):  beo-eval --scans learn*.pcd --out DIR [--
 
 Per object: the complete grid at yaw 0 (classification only) and one partial view made by the
 evaluation protocol (random yaw; orthographic view from azimuth U[0, 360), elevation U[10, 50]).
+Yaw within 10 deg is printed plain, with 180 deg flips counted right (+flip) and up to the
+object's own symmetry (+sym: off by a quarter turn that maps the whole object onto itself).
+--out gets eval.json (summary, per class, confusion), records.jsonl (one line per object and
+view) and eval.png (examples, confusion matrix).
 """
 from __future__ import annotations
 
