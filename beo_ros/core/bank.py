@@ -920,10 +920,10 @@ class ModelBank:
         label = UNKNOWN_LABEL if unknown else self.classes[best]
         return Estimate(
             label=label, scores={c: float(p) for c, p in zip(self.classes, probs)},
-            yaw=float(np.mod(est_yaw + np.pi, 2 * np.pi) - np.pi),
-            symmetric_yaws=[float(np.mod(est_yaw + t + np.pi, 2 * np.pi) - np.pi) for t in turns],
+            yaw=_wrap(est_yaw),
+            symmetric_yaws=[_wrap(est_yaw + t) for t in turns],
             completion=completion, variance=variance,
-            hypotheses=[Hypothesis(lab, float(np.mod(y + np.pi, 2 * np.pi) - np.pi), float(s))
+            hypotheses=[Hypothesis(lab, _wrap(y), float(s))
                         for lab, y, s in hyps[:n_hypotheses]],
             timings={'pose_and_features': t1 - t0, 'classify': t_cls - t1,
                      'pose_refinement': t_ref - t_cls, 'orientation_check': t2 - t_ref,
@@ -942,7 +942,7 @@ class ModelBank:
             weights = np.ones(len(self.classes)) if counts is None else \
                 np.asarray(counts, dtype=np.float64)
         weights = np.asarray(weights, dtype=np.float64) / np.sum(weights)
-        yaw = 0.0 if yaw is None else float(np.mod(float(yaw) + np.pi, 2 * np.pi) - np.pi)
+        yaw = 0.0 if yaw is None else _wrap(float(yaw))
         zeros = np.zeros(grid.shape, dtype=np.float32)
         return Estimate(label=UNKNOWN_LABEL, scores=dict(zip(self.classes, map(float, weights))),
                         yaw=yaw, completion=zeros, variance=zeros.copy(), grid=grid,
@@ -991,6 +991,11 @@ class ModelBank:
             est.timings['point_descriptors'] = t2 - t1
         est.timings['total'] = time.perf_counter() - t0
         return est
+
+
+def _wrap(yaw):
+    """A yaw in radians as a float in [-pi, pi)."""
+    return float(np.mod(yaw + np.pi, 2 * np.pi) - np.pi)
 
 
 def check_yaw(yaw):
