@@ -162,3 +162,58 @@ def yaw_error_up_to(a, b, turns=()):
     for t in turns:
         err = np.minimum(err, yaw_error(a, np.asarray(b) + t))
     return err
+
+
+def _rot_x(quarters):
+    c, s = [(1, 0), (0, 1), (-1, 0), (0, -1)][quarters % 4]
+    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+
+
+def _rot_y(quarters):
+    c, s = [(1, 0), (0, 1), (-1, 0), (0, -1)][quarters % 4]
+    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+
+
+# The six ways an object can rest on a side of its bounding box: int (3, 3) rotations that
+# take the object's up (+z) to +z, -z, +x, -x, +y and -y of the grid (yaw does the rest).
+TILTS = (np.eye(3, dtype=int), _rot_x(2), _rot_y(1), _rot_y(-1), _rot_x(-1), _rot_x(1))
+TILT_NAMES = ('+z', '-z', '+x', '-x', '+y', '-y')
+
+
+def turn_grid(grid: np.ndarray, R) -> np.ndarray:
+    """Rotate an (N, N, N) grid exactly by ``R``, an integer (3, 3) rotation (a signed
+    permutation, e.g. one of ``TILTS``), about the grid centre ``(N - 1) / 2``: voxel ``i``
+    moves to ``R (i - c) + c``. Returns a new array of the same dtype."""
+    grid = np.asarray(grid)
+    if grid.ndim != 3 or len(set(grid.shape)) != 1:
+        raise ValueError(f'grid must be (N, N, N), got shape {grid.shape}')
+    R = np.asarray(R)
+    if R.shape != (3, 3) or not np.array_equal(np.abs(R).sum(axis=0), [1, 1, 1]) \
+            or not np.array_equal(np.abs(R).sum(axis=1), [1, 1, 1]) \
+            or not np.array_equal(R, np.rint(R)) or round(np.linalg.det(R)) != 1:
+        raise ValueError('R must be a (3, 3) rotation that permutes the axes (entries 0, +-1, '
+                         f'det 1), got {R.tolist()}')
+    n = grid.shape[0]
+    c = (n - 1) / 2.0
+    # destination j = R (i - c) + c  =>  source i = R^T (j - c) + c (integers: R permutes axes)
+    j = np.indices(grid.shape).reshape(3, -1) - c
+    src = np.rint(np.asarray(R, dtype=np.float64).T @ j + c).astype(np.intp)
+    return grid[src[0], src[1], src[2]].reshape(grid.shape)
+
+
+def footprint_angle(occupied: np.ndarray) -> float:
+    """Direction (radians, [0, pi)) of the major principal axis of the occupied voxels'
+    x-y positions in an (N, N, N) grid: the long side of an object's footprint. 0 for fewer
+    than two voxels or a footprint with no long side."""
+    xy = np.argwhere(np.asarray(occupied, dtype=bool))[:, :2].astype(np.float64)
+    if len(xy) < 2:
+        return 0.0
+    cov = np.cov(xy.T)
+    # the angle of the major axis of a 2x2 covariance, in closed form
+    return float(np.mod(0.5 * np.arctan2(2 * cov[0, 1], cov[0, 0] - cov[1, 1]), np.pi))
+
+
+def rotation_angle(A, B) -> float:
+    """Geodesic angle (radians, [0, pi]) between (3, 3) rotations ``A`` and ``B``."""
+    cos = (np.trace(np.asarray(A, dtype=np.float64).T @ np.asarray(B, dtype=np.float64)) - 1) / 2
+    return float(np.arccos(np.clip(cos, -1.0, 1.0)))
