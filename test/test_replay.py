@@ -93,18 +93,12 @@ def write_box_bag(path, n, period_ns, storage='sqlite3', spacing=0.01, topic='/b
 
 @pytest.fixture(scope='module')
 def bank(request):
-    """The tiny model bank (conftest: beo_ros.core.synthetic.make_tiny_bank), loaded once.
-
-    BEO_TEST_FAKE_BANK=1 swaps in ``_fake_bank.FakeBank`` (as test_node does).
-    """
+    """The tiny model bank (conftest: beo_ros.core.synthetic.make_tiny_bank), loaded once."""
     try:
         from beo_ros.ros.conversions import interfaces
         interfaces()
     except ImportError as e:
         pytest.skip(f'beo_interfaces not built ({e}); run scripts/setup')
-    if os.environ.get('BEO_TEST_FAKE_BANK') == '1':
-        from _fake_bank import FakeBank
-        return FakeBank()
     import beo_ros
     return beo_ros.load_models(request.getfixturevalue('ros_tiny_model_dir'))
 
