@@ -13,9 +13,6 @@ Yaw within 10 deg is printed plain, with 180 deg flips counted right (+flip) and
 object's own symmetry (+sym: off by a quarter turn that maps the whole object onto itself).
 --out gets eval.json (summary, per class, confusion), records.jsonl (one line per object and
 view) and eval.png (examples, confusion matrix).
---tilted tips each viewed object onto a random side of its bounding box first (up along +-x,
-+-y or +-z, then the random yaw) and estimates with tilt_search: the yaw columns then count
-the whole rotation's error (geodesic angle) and up_right the views whose up axis was found.
 """
 from __future__ import annotations
 
@@ -29,19 +26,15 @@ from pathlib import Path
 import numpy as np
 
 from .core.bank import load_models, parse_class_prior
-from .core.grid import (TILTS, GridSpec, rotation_angle, symmetric_turns, turn_grid,
-                        yaw_error, yaw_error_up_to, yaw_matrix)
+from .core.grid import GridSpec, symmetric_turns, yaw_error, yaw_error_up_to
 from .core.synthetic import random_partial_view
 from .core.training import fit_bank, load_voxel_npz, progress_bar, stratified_folds
 
 
-def evaluate_bank(bank, X, y, names, rng, views=1, examples=6, progress=True, index=None,
-                  tilted=False):
+def evaluate_bank(bank, X, y, names, rng, views=1, examples=6, progress=True, index=None):
     """Evaluate ``bank`` on objects X (m, N^3) with labels y indexing ``names``.
 
     ``index`` (m,): the objects' indices in their file, for the records (default 0..m-1).
-    ``tilted``: each view's object rests on a random side first (one of ``TILTS``), and the
-    estimate searches the tilt too; the yaw errors are then rotation errors.
     Returns (summary dict, per-view records list, example list for the figure).
     """
     n = bank.spec.size
@@ -59,35 +52,22 @@ def evaluate_bank(bank, X, y, names, rng, views=1, examples=6, progress=True, in
                      latency=time.perf_counter() - t0)
         recs.append(rec_c)
         for _ in range(views):
-            tilt = TILTS[rng.integers(len(TILTS))] if tilted else None
-            grid, yaw, az, el, rotated = random_partial_view(
-                occ if tilt is None else turn_grid(occ, tilt), rng)
+            grid, yaw, az, el, rotated = random_partial_view(occ, rng)
             t0 = time.perf_counter()
-            e = bank.estimate(grid, tilt_search=tilted)
+            e = bank.estimate(grid)
             dt = time.perf_counter() - t0
             pred = e.completion >= 0.5
             inter = (pred & rotated).sum()
             union = (pred | rotated).sum()
-            extra = {}
-            if tilt is None:
-                err = float(yaw_error(e.yaw, yaw))
-                err_sym = float(yaw_error_up_to(e.yaw, yaw, turns))
-            else:   # the rotation's error; the object's own turns are about its up
-                true_R = yaw_matrix(yaw) @ tilt
-                err = rotation_angle(e.rotation, true_R)
-                err_sym = min([err] + [rotation_angle(e.rotation, true_R @ yaw_matrix(t))
-                                       for t in turns])
-                extra = dict(tilt_up=[int(v) for v in tilt[:, 2]],
-                             true_up=[round(float(v), 4) for v in true_R[:, 2]],
-                             est_up=[round(float(v), 4) for v in e.rotation[:, 2]],
-                             up_ok=bool(e.rotation[:, 2] @ true_R[:, 2] > np.cos(np.pi / 4)))
+            err = float(yaw_error(e.yaw, yaw))
             recs.append(dict(i=int(index[i]), mode='partial', truth=truth, label=e.label,
                              latency=dt, yaw_deg=float(np.rad2deg(yaw)),
                              est_yaw_deg=float(np.rad2deg(e.yaw)),
                              symmetric_yaws_deg=[float(np.rad2deg(v)) for v in e.symmetric_yaws],
                              yaw_err_deg=float(np.rad2deg(err)),
                              self_turns_deg=[round(float(np.rad2deg(t))) for t in turns],
-                             yaw_err_sym_deg=float(np.rad2deg(err_sym)), **extra,
+                             yaw_err_sym_deg=float(np.rad2deg(yaw_error_up_to(e.yaw, yaw,
+                                                                              turns))),
                              # the rotation lost an object of a few voxels: nothing to see
                              empty_view=bool(not (grid == 1).any()),
                              iou=float(inter / union) if union else 1.0,
@@ -120,8 +100,6 @@ def summarize(recs, classes):
                      self_symmetric=float(np.mean([bool(x['self_turns_deg']) for x in r])),
                      empty_views=int(sum(x['empty_view'] for x in r)),
                      yaw_median_deg=float(np.median(e)),
-                     **({'up_right': float(np.mean([x['up_ok'] for x in r]))}
-                        if 'up_ok' in r[0] else {}),
                      yaw_within_10_correct_class=float(np.mean(e[ok_cls] <= 10)) if ok_cls.any()
                      else float('nan'),
                      iou=float(np.mean([x['iou'] for x in r])))
@@ -164,9 +142,6 @@ def print_table(summary, file=None):
               f"{f('yaw_within_10_or_flip'):>6s} {f('yaw_within_10_up_to_symmetry'):>6s} "
               f"{f('iou'):>6s} {s['latency_p50_ms']:7.1f} "
               f"{s['latency_p95_ms']:7.1f}", file=file)
-    if 'up_right' in summary.get('partial', {}):
-        print(f"tilted views: up axis found for {summary['partial']['up_right']:.3f}; the yaw "
-              'columns count the whole rotation', file=file)
 
 
 def write_figure(summary, examples, path):
@@ -235,9 +210,6 @@ def main(argv=None):
                          "fold's bank, as beo-train makes it (0: none; default: %(default)s)")
     ap.add_argument('--jobs', type=int, default=1,
                     help="--cv: processes that make the verifier's views")
-    ap.add_argument('--tilted', action='store_true',
-                    help='tip each viewed object onto a random side first and estimate with '
-                         'tilt_search (see above)')
     ap.add_argument('--class-prior', default='', metavar='PRIOR',
                     help="prior over the classes: train, uniform or name=weight,... with every "
                          "class; default: the model's own (--cv: train)")
@@ -246,8 +218,7 @@ def main(argv=None):
         if args.class_prior:
             ap.error('--class-prior is not used with --scans')
         unused = [name for name in ('data', 'model', 'cv', 'folds', 'train_views',
-                                    'max_objects', 'views', 'seed', 'verifier_views', 'jobs',
-                                    'tilted')
+                                    'max_objects', 'views', 'seed', 'verifier_views', 'jobs')
                   if getattr(args, name) != ap.get_default(name)]
         if unused:
             ap.error('not used with --scans: ' + ', '.join(f"--{n.replace('_', '-')}"
@@ -299,8 +270,7 @@ def main(argv=None):
                                 verifier_views=args.verifier_views, processes=args.jobs)
                 info.append(dict(fold=f, train=int(len(tr)), test=int(len(te)),
                                  train_seconds=round(time.time() - t0, 1)))
-                s, r, ex = evaluate_bank(bank, X[te], y[te], names, rng, args.views, index=te,
-                                         tilted=args.tilted)
+                s, r, ex = evaluate_bank(bank, X[te], y[te], names, rng, args.views, index=te)
                 print(f'fold {f}:', file=sys.stderr)
                 print_table(s, file=sys.stderr)
                 recs += r
@@ -321,14 +291,13 @@ def main(argv=None):
             if args.max_objects:
                 te = np.sort(rng.choice(te, min(args.max_objects, len(te)), replace=False))
             summary, recs, examples = evaluate_bank(bank, X[te], y[te], names, rng, args.views,
-                                                     index=te, tilted=args.tilted)
+                                                     index=te)
             summary['protocol'] = f'held-out: model {args.model or "shipped"} on {args.data}'
     except (ValueError, OSError) as e:
         print(f'beo-eval: error: {e}', file=sys.stderr)
         return 2
     summary['class_prior'] = bank.class_prior if isinstance(bank.class_prior, str) else \
         dict(zip(bank.classes, map(float, bank.class_prior)))
-    summary['tilted'] = bool(args.tilted)
     summary['command'] = 'beo-eval ' + ' '.join(sys.argv[1:] if argv is None else argv)
     print_table(summary)
     if summary.get('partial', {}).get('empty_views'):

@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 
 from beo_ros.core.bank import ModelBank, ModelError, load_models
-from beo_ros.core.grid import (TILTS, footprint_angle, rotate_grid, rotation_angle,
-                               turn_grid, yaw_matrix, yaw_source_index)
+from beo_ros.core.grid import rotate_grid, yaw_source_index
 from beo_ros.core.inference import InferenceEngine
 from beo_ros.core.synthetic import (make_tiny_bank, partial_view, primitive_shapes,
                                     render_view_points)
@@ -726,79 +725,6 @@ def test_coarse_to_fine_agrees_with_exhaustive(pose_case):
     assert np.mean(same) >= 0.4, (np.mean(same), np.round(gaps, 1))
     # the same optimum: equal log-likelihood (a tie or the same yaw) for a large part
     assert np.mean(np.array(gaps) <= 1e-4 * np.abs(lle).max()) >= 0.4, np.round(gaps, 1)
-
-
-def test_tilt_search_finds_the_up_of_an_object_resting_on_a_side(pose_case):
-    # 'ell' objects (asymmetric in every axis) tipped onto each side of their box and turned
-    # by a random yaw about the grid's z; the 'step' model of this bank has a degenerate noise
-    # variance and explains no turned object (see test_pose_of_rotated_objects), so the ells
-    # carry the test. Measured here: the up found for 44 of 48 views, median rotation error
-    # 3.4 deg, median completion IoU 0.97.
-    bank, _ = pose_case
-    Xt, yt = asymmetric_shapes(4, np.random.default_rng(5))
-    rng = np.random.default_rng(3)
-    found, err, iou = [], [], []
-    for occ in (x.reshape((N,) * 3) > 0.5 for x in Xt[yt == 0]):
-        for T in TILTS:
-            for mode in ('complete', 'partial'):
-                yaw = rng.uniform(-np.pi, np.pi)
-                truth = rotate_grid(turn_grid(occ, T).astype(np.uint8), yaw).astype(bool)
-                g = truth.astype(np.int8) if mode == 'complete' else partial_view(
-                    truth, rng.uniform(0, 2 * np.pi), np.deg2rad(rng.uniform(10, 50)))
-                e = bank.estimate(g, tilt_search=True)
-                R = yaw_matrix(yaw) @ T
-                np.testing.assert_allclose(e.rotation @ e.rotation.T, np.eye(3), atol=1e-9)
-                assert set(e.tilt_scores) == {'+z', '-z', '+x', '-x', '+y', '-y'}
-                np.testing.assert_array_equal(e.grid, g)      # the input, as it came
-                found.append(e.rotation[:, 2] @ R[:, 2] > np.cos(np.pi / 4))
-                err.append(np.rad2deg(rotation_angle(e.rotation, R)))
-                pred = e.completion >= 0.5                      # in the observed frame
-                iou.append((pred & truth).sum() / (pred | truth).sum())
-    assert np.mean(found) >= 0.85, np.mean(found)
-    assert np.median(err) <= 10, np.round(err)
-    assert np.median(iou) >= 0.8, np.round(iou, 2)
-
-
-def test_without_tilt_search_the_rotation_is_the_yaw(tiny):
-    box, part = views()
-    for g in (box, part):
-        e = tiny.estimate(g)
-        np.testing.assert_allclose(e.rotation, yaw_matrix(e.yaw))
-        assert e.tilt_scores == {}
-    assert tiny.estimate(box, yaw=0.4).rotation == pytest.approx(yaw_matrix(0.4))
-
-
-def test_tilt_search_of_an_upright_object_keeps_the_completion_in_its_frame(tiny):
-    _, part = views()
-    e = tiny.estimate(part, tilt_search=True)
-    up = e.rotation[:, 2]
-    assert max(abs(up)) == pytest.approx(1) or abs(up[2]) < 1e-9  # an axis or horizontal
-    assert max(e.tilt_scores.values()) == pytest.approx(e.tilt_scores[max(
-        e.tilt_scores, key=e.tilt_scores.get)])
-    assert e.completion.shape == part.shape and e.variance.shape == part.shape
-    # what was seen occupied is completed occupied, whichever tilt won
-    assert (e.completion[part == 1] >= 0.5).mean() >= 0.8
-
-
-def test_tilt_search_refuses_a_given_yaw_and_a_bottom_anchored_bank(tiny):
-    box, _ = views()
-    with pytest.raises(ValueError, match='yaw=None'):
-        tiny.estimate(box, yaw=0.3, tilt_search=True)
-    bottom = ModelBank(tiny.models, dataclasses.replace(tiny.spec, anchor='bottom'),
-                       tiny.classifier, tiny.training, tiny.pose_components)
-    with pytest.raises(ValueError, match="anchor 'center'"):
-        bottom.estimate(box, tilt_search=True)
-
-
-def test_footprint_angle_is_the_long_side():
-    g = np.zeros((N,) * 3, bool)
-    g[2:14, 6:9, 0:4] = True
-    assert footprint_angle(g) == pytest.approx(0.0, abs=1e-9)
-    assert footprint_angle(turn_grid(g, yaw_matrix(np.pi / 2).round().astype(int))) == \
-        pytest.approx(np.pi / 2)
-    assert footprint_angle(rotate_grid(g.astype(np.uint8), np.deg2rad(30)) > 0) == \
-        pytest.approx(np.deg2rad(30), abs=np.deg2rad(3))
-    assert footprint_angle(np.zeros((N,) * 3, bool)) == 0.0
 
 
 # ---------------------------------------------------------------------- classifier path

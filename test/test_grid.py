@@ -3,8 +3,7 @@ itself, and GridSpec."""
 import numpy as np
 import pytest
 
-from beo_ros.core.grid import (TILT_NAMES, TILTS, GridSpec, rotate_grid, rotation_angle,
-                                symmetric_turns, turn_grid, yaw_error_up_to, yaw_matrix,
+from beo_ros.core.grid import (GridSpec, rotate_grid, symmetric_turns, yaw_error_up_to, yaw_matrix,
                                 yaw_source_index)
 
 
@@ -198,47 +197,3 @@ def test_yaw_error_up_to_the_shape_turns():
     assert np.rad2deg(yaw_error_up_to(np.deg2rad(93.0), b, (np.pi,))) == pytest.approx(89.0)
     turns = (np.pi / 2, np.pi, 3 * np.pi / 2)
     assert np.rad2deg(yaw_error_up_to(np.deg2rad(-88.0), b, turns)) == pytest.approx(0.0, abs=1e-9)
-
-
-@pytest.mark.parametrize('n', [15, 16])
-def test_turn_grid_moves_voxels_by_the_matrix(n):
-    c = (n - 1) / 2
-    rng = np.random.default_rng(1)
-    pts = rng.integers(0, n, (30, 3))
-    g = np.zeros((n,) * 3, dtype=np.int8)
-    g[tuple(pts.T)] = 1
-    g[0, 0, 0] = -1   # the dtype and the labels travel along
-    for R in TILTS + (yaw_matrix(np.pi / 2).round().astype(int),):
-        got = turn_grid(g, R)
-        assert got.dtype == np.int8
-        expect = np.full_like(g, 0)
-        expect[tuple(np.rint((pts - c) @ R.T + c).astype(int).T)] = 1
-        corner = np.rint(R @ (np.zeros(3) - c) + c).astype(int)
-        expect[tuple(corner)] = -1
-        np.testing.assert_array_equal(got, expect)
-        np.testing.assert_array_equal(turn_grid(got, R.T), g)
-
-
-def test_tilts_take_up_to_each_axis_and_quarter_turns_agree_with_rotate_grid():
-    ups = {name: tuple(R[:, 2]) for name, R in zip(TILT_NAMES, TILTS)}
-    assert ups == {'+z': (0, 0, 1), '-z': (0, 0, -1), '+x': (1, 0, 0), '-x': (-1, 0, 0),
-                   '+y': (0, 1, 0), '-y': (0, -1, 0)}
-    for R in TILTS:
-        assert round(np.linalg.det(R)) == 1
-        np.testing.assert_array_equal(R @ R.T, np.eye(3))
-    g = _shape()
-    quarter = yaw_matrix(np.pi / 2).round().astype(int)
-    np.testing.assert_array_equal(turn_grid(g, quarter), rotate_grid(g, np.pi / 2))
-
-
-@pytest.mark.parametrize('R', [np.eye(3) * 2, -np.eye(3), np.ones((3, 3)), np.eye(2),
-                               yaw_matrix(0.3)])
-def test_turn_grid_refuses_rotations_that_are_not_axis_permutations(R):
-    with pytest.raises(ValueError, match='permutes the axes'):
-        turn_grid(np.zeros((4, 4, 4)), R)
-
-
-def test_rotation_angle():
-    assert rotation_angle(yaw_matrix(0.3), yaw_matrix(-0.2)) == pytest.approx(0.5)
-    assert rotation_angle(TILTS[2], np.eye(3)) == pytest.approx(np.pi / 2)
-    assert rotation_angle(TILTS[1], np.eye(3)) == pytest.approx(np.pi)

@@ -360,30 +360,6 @@ def test_parameters_validated_and_runtime_changeable(harness, tmp_path):
         assert harness.call(harness.classify, harness.good_request()).success
 
 
-def test_tilt_search_parameter_reaches_the_estimate(harness, monkeypatch):
-    node = harness.node
-    bank = node._bank
-    seen = []
-    real = bank.estimate_points
-
-    def spy(*args, **kwargs):
-        seen.append(kwargs.get('tilt_search'))
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(bank, 'estimate_points', spy)
-    assert node.get_parameter('tilt_search').value is False
-    assert harness.call(harness.classify, harness.good_request()).success
-    assert node.set_parameters([Parameter('tilt_search', value=True)])[0].successful
-    req = harness.good_request()
-    r = harness.call(harness.classify, req)
-    assert r.success, r.message
-    assert seen == [False, True]
-    ref = real(cloud_to_xyz(req.cloud)[0], tilt_search=True)
-    assert r.estimate.label == ref.label
-    np.testing.assert_allclose(pose_to_matrix(r.estimate.pose), ref.pose, atol=1e-6)
-    assert not node.set_parameters([Parameter('tilt_search', value=2.0)])[0].successful
-
-
 def test_class_prior_parameter_is_checked_and_applied_to_the_estimates(harness):
     node = harness.node
 
@@ -677,14 +653,6 @@ def test_worker_processes_estimate_like_in_process(harness_procs, tmp_path):
         kv.key == 'worker_processes' for kv in m.status[0].values))[-1].status[0]
     values = {kv.key: kv.value for kv in diag.values}
     assert values['worker_processes'] == '2' and values['worker_restarts'] == '0'
-    # tilt_search reaches the processes with each estimate
-    assert node.set_parameters([Parameter('tilt_search', value=True)])[0].successful
-    req = harness.good_request()
-    r = harness.call(harness.classify, req)
-    ref = node._bank.estimate_points(cloud_to_xyz(req.cloud)[0], tilt_search=True)
-    assert r.success and r.estimate.label == ref.label, r.message
-    np.testing.assert_allclose(pose_to_matrix(r.estimate.pose), ref.pose, atol=1e-6)
-    assert node.set_parameters([Parameter('tilt_search', value=False)])[0].successful
     assert values['class_prior'] == 'train'
     model_dir = node.get_parameter('model_dir').value
     if model_dir:

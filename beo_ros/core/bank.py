@@ -26,8 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from .estimate import UNKNOWN_LABEL, Estimate, Hypothesis
-from .grid import (TILT_NAMES, TILTS, GridSpec, footprint_angle, rotate_grid,
-                   symmetric_turns, turn_grid, yaw_matrix)
+from .grid import GridSpec, symmetric_turns, yaw_matrix
 from .inference import FEATURE_NAMES, InferenceEngine, observed_edt, top_modes
 from .shape import DESCRIPTOR_NAMES as SHAPE_DESCRIPTORS, shape_descriptors
 from .verifier import TURNS, OrientationVerifier, check_arrays, quarter_turned_features
@@ -827,7 +826,7 @@ class ModelBank:
 
     def estimate(self, grid, yaw=None, yaw_step_deg=1.0, n_hypotheses=5, exhaustive=True,
                  refine_deg=3.0, stage2_modes=6, stage2_window_deg=15.0, search_step_deg=None,
-                 point_features=None, probe_deg=PROBE_DEG, verify=True, tilt_search=False):
+                 point_features=None, probe_deg=PROBE_DEG, verify=True):
         """Classify, orient and complete one labelled grid (see :class:`Estimate`).
 
         Args:
@@ -856,13 +855,6 @@ class ModelBank:
                 classifier decides the class (and so the refined pose and the completion);
                 NaN descriptors fall back to the grid rule (``classifier_note`` says so).
                 None: the grid rule, exactly as without this argument.
-            tilt_search: also consider the object resting on a side (a coarse search over
-                rotations: the object's up along +-z or along +-either side of its footprint,
-                each with the full yaw search about that up). The tilt whose best class
-                explains the view best (the search's pooled log-likelihood) is kept; the yaw,
-                hypotheses and ``symmetric_yaws`` are then about that up axis, and
-                ``rotation`` holds the whole rotation. About six times the search time.
-                Needs ``yaw=None`` and a bank whose grid is centred (anchor 'center').
         """
         t0 = time.perf_counter()
         grid = self.check_grid(grid)
@@ -882,32 +874,9 @@ class ModelBank:
         if search_step_deg is None:
             search_step_deg = max(SEARCH_STEP_DEG, yaw_step_deg)
         check_yaw(yaw)
-        if tilt_search and yaw is not None:
-            raise ValueError('tilt_search searches the pose: pass yaw=None')
-        if tilt_search and self.spec.anchor != 'center':
-            raise ValueError(f"tilt_search needs a bank whose grid is centred (anchor 'center'); "
-                             f'this one is anchored at the {self.spec.anchor}')
         if not (grid == 1).any():
             return self._no_object(grid, yaw, t0)
-        tilt, tilt_scores, observed = None, {}, grid
-        if tilt_search:
-            # An object on its side has its up horizontal, along a side of its footprint: the
-            # grid is turned so the footprint's long side lies along x (one resampling), then
-            # each axis is tried as the up by an exact quarter turn (+-z on the grid as it is).
-            alpha = footprint_angle(observed == 1)
-            aligned = rotate_grid(observed, -alpha, fill=-1)
-            best_score = -np.inf
-            for name, R in zip(TILT_NAMES, TILTS):
-                pre = 0.0 if R[2, 2] else alpha
-                upright = turn_grid(aligned if pre else observed, R.T)   # candidate up -> +z
-                f, p = self.features(upright, None, search_step_deg, exhaustive)
-                # the stage-1 search's own score (pooled log-likelihood per pooled voxel): the
-                # exact one punishes a class with a tiny noise variance without bound
-                tilt_scores[name] = float(f[:, 1].max())
-                if tilt_scores[name] > best_score:
-                    best_score, tilt, grid, feats, per = tilt_scores[name], (pre, R), upright, f, p
-        else:
-            feats, per = self.features(grid, yaw, search_step_deg, exhaustive)
+        feats, per = self.features(grid, yaw, search_step_deg, exhaustive)
         t1 = time.perf_counter()
         mode = 'complete' if (grid < 0).mean() < 0.01 else 'partial'
         rule, note = None, ''
@@ -916,10 +885,7 @@ class ModelBank:
             if point_features.shape != (2,):
                 raise ValueError(f'point_features must be 2 values (r4, frac10), got shape '
                                  f'{point_features.shape}')
-            if self.has_point_classifier and tilt is not None and tilt[1] is not TILTS[0]:
-                note = ("'points' classifier not used: the object rests on a side, and its "
-                        'side-normal descriptors are about the input up; grid rule')
-            elif self.has_point_classifier:
+            if self.has_point_classifier:
                 if np.isfinite(point_features).all():
                     probs, unknown = self.classify_points(feats, point_features)
                     rule = POINTS_MODE
@@ -943,14 +909,7 @@ class ModelBank:
         t2 = time.perf_counter()
         completion, variance = self._completion(grid, per, probs, best)
         est_yaw = per[best]['yaw']
-        turns = symmetric_turns(completion >= 0.5)   # about the object's up
-        rotation = yaw_matrix(est_yaw)
-        if tilt is not None:   # back to the observed grid's frame
-            pre, R = tilt
-            rotation = yaw_matrix(pre) @ R @ rotation
-            completion, variance = turn_grid(completion, R), turn_grid(variance, R)
-            if pre:
-                completion, variance = rotate_grid(completion, pre), rotate_grid(variance, pre)
+        turns = symmetric_turns(completion >= 0.5)
         t3 = time.perf_counter()
         # the chosen class's yaw modes first (symmetric objects have several), then the others
         hyps = [(self.classes[best], y, ll) for y, ll in per[best]['hypotheses']]
@@ -963,7 +922,6 @@ class ModelBank:
             label=label, scores={c: float(p) for c, p in zip(self.classes, probs)},
             yaw=_wrap(est_yaw),
             symmetric_yaws=[_wrap(est_yaw + t) for t in turns],
-            rotation=rotation, tilt_scores=tilt_scores,
             completion=completion, variance=variance,
             hypotheses=[Hypothesis(lab, _wrap(y), float(s))
                         for lab, y, s in hyps[:n_hypotheses]],
@@ -971,7 +929,7 @@ class ModelBank:
                      'pose_refinement': t_ref - t_cls, 'orientation_check': t2 - t_ref,
                      'completion': t3 - t2,
                      'total': t3 - t0},
-            features=feats, grid=observed, classifier_mode=rule, point_features=point_features,
+            features=feats, grid=grid, classifier_mode=rule, point_features=point_features,
             classifier_note=note)
 
     def _no_object(self, grid, yaw, t0):
@@ -987,12 +945,12 @@ class ModelBank:
         yaw = 0.0 if yaw is None else _wrap(float(yaw))
         zeros = np.zeros(grid.shape, dtype=np.float32)
         return Estimate(label=UNKNOWN_LABEL, scores=dict(zip(self.classes, map(float, weights))),
-                        yaw=yaw, rotation=yaw_matrix(yaw), completion=zeros, variance=zeros.copy(), grid=grid,
+                        yaw=yaw, completion=zeros, variance=zeros.copy(), grid=grid,
                         timings={'total': time.perf_counter() - t0}, classifier_mode='none',
                         classifier_note='grid has no occupied voxel: no object to estimate')
 
     def estimate_points(self, points, sensor_origin=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0),
-                        yaw_step_deg=1.0, threshold=0.5, center=None, tilt_search=False):
+                        yaw_step_deg=1.0, threshold=0.5, center=None):
         """Estimate from an (n, 3) cloud in metres (any frame; the sensor at ``sensor_origin``).
 
         The pose and completed points come back in the input frame (see :class:`Estimate`).
@@ -1015,14 +973,13 @@ class ModelBank:
             point_features = side_normal_descriptors(
                 pts_in[np.isfinite(pts_in).all(axis=1)], up, sensor_origin)
         t2 = time.perf_counter()
-        est = self.estimate(view.grid, yaw_step_deg=yaw_step_deg, point_features=point_features,
-                            tilt_search=tilt_search)
+        est = self.estimate(view.grid, yaw_step_deg=yaw_step_deg, point_features=point_features)
         T = np.asarray(view.grid_to_input, dtype=np.float64)
         c = (self.spec.size - 1) / 2.0
         centre = T @ np.array([c, c, c, 1.0])
         R_grid = T[:3, :3] / np.linalg.norm(T[:3, :3], axis=0)
         pose = np.eye(4)
-        pose[:3, :3] = R_grid @ est.rotation
+        pose[:3, :3] = R_grid @ yaw_matrix(est.yaw)
         pose[:3, 3] = centre[:3]
         pts, prob = grid_to_points(est.completion, T, threshold)
         est.pose = pose

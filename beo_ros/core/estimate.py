@@ -29,8 +29,7 @@ class Estimate:
     Attributes:
         label: best class name, or ``'unknown'`` when no class explains the object.
         scores: class name -> calibrated probability (sums to 1 over the classes).
-        yaw: radians, right-handed rotation about +z that maps the canonical model onto the object
-            (about the object's own up when ``tilt_search`` turned it onto a side).
+        yaw: radians, right-handed rotation about +z that maps the canonical model onto the object.
         completion: float32 (N,N,N) occupancy probability.
         variance: float32 (N,N,N) predictive variance of the occupancy.
         hypotheses: top (class, yaw) hypotheses, best first.
@@ -53,18 +52,9 @@ class Estimate:
             has no 'points' classifier); NaN when undefined for this cloud.
         classifier_note: why the 'points' classifier was not used although the bank has one
             (e.g. its descriptors are undefined for a tiny cloud: the grid rule decided), else ''.
-        rotation: float64 (3,3) rotation that maps the canonical model onto the object, grid
-            frame: ``yaw_matrix(yaw)``, or with ``tilt_search`` the chosen tilt (one of
-            :data:`beo_ros.core.grid.TILTS`) times ``yaw_matrix(yaw)``, so ``rotation[:, 2]``
-            is the object's up in the grid.
-        tilt_scores: with ``tilt_search``, the object's up axis in the grid ('+z', '-z', '+x',
-            '-x', '+y', '-y') -> best pooled log-likelihood per pooled voxel (the stage-1
-            search's score) over classes and yaws with that axis up (the highest was chosen);
-            else empty.
         grid: int8 (N,N,N) labelled input grid (1 occupied, 0 free, -1 unknown).
         pose: float64 (4,4) object frame in the input frame (only from ``estimate_points``): the
-            translation is the object centre in metres, the rotation is ``rotation`` (``yaw``
-            about the up vector unless ``tilt_search`` turned the object onto a side).
+            translation is the object centre in metres, the rotation is ``yaw`` about the up vector.
         grid_to_input: float64 (4,4) maps homogeneous grid index coordinates to the input frame
             (only from ``estimate_points``).
         completed_points: float32 (m,3) centres of voxels with probability >= threshold, input frame
@@ -87,9 +77,7 @@ class Estimate:
     classifier_mode: str = ''
     point_features: np.ndarray | None = None
     classifier_note: str = ''
-    symmetric_yaws: list = field(default_factory=list)   # last ones: positional use stays
-    rotation: np.ndarray | None = None
-    tilt_scores: dict = field(default_factory=dict)
+    symmetric_yaws: list = field(default_factory=list)   # last: positional use stays as it was
 
     @property
     def probability(self) -> float:

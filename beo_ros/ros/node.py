@@ -5,8 +5,7 @@ publishes, in the input cloud's frame:
 
 - ``~/estimates`` beo_interfaces/ObjectEstimate (label, class probabilities, pose, dimensions),
 - ``~/completed`` sensor_msgs/PointCloud2 (x y z probability) of the completed object,
-- ``~/pose`` geometry_msgs/PoseStamped (object centre, yaw about the up axis; with
-  ``tilt_search`` the object may also rest on a side),
+- ``~/pose`` geometry_msgs/PoseStamped (object centre, yaw about the up axis),
 - ``~/markers`` visualization_msgs/MarkerArray (label text + box) for RViz,
 - ``/diagnostics`` diagnostic_msgs/DiagnosticArray (rates, stage latencies, counters).
 
@@ -340,10 +339,6 @@ class BeoNode(Node):
                         'optical frame held level)', type=ParameterType.PARAMETER_DOUBLE_ARRAY))
         d('yaw_step_deg', 1.0, _fdesc('Resolution of the returned yaw (degrees); the search '
                                       'over all classes runs at max(2, this)', 0.05, 45.0))
-        d('tilt_search', False, ParameterDescriptor(
-            description="Also find objects resting on a side (up along any axis of the "
-                        "object's box, not only the up vector): about 6x the search time; the "
-                        'pose then holds the tilt', type=ParameterType.PARAMETER_BOOL))
         d('min_points', 30, _idesc('Fewer finite points than this: the cloud is rejected',
                                    1, 1_000_000))
         d('max_points', 50000, _idesc('More points than this: random downsampling (fixed seed)',
@@ -375,7 +370,7 @@ class BeoNode(Node):
     def _params(self) -> dict:
         return {p: self.get_parameter(p).value for p in (
             'model_dir', 'base_frame', 'sensor_origin', 'up_vector', 'yaw_step_deg',
-            'tilt_search', 'min_points', 'max_points', 'completion_threshold', 'publish_completed',
+            'min_points', 'max_points', 'completion_threshold', 'publish_completed',
             'class_prior', 'diagnostics_period', 'workers', 'worker_processes', 'blas_threads')}
 
     @staticmethod
@@ -592,15 +587,13 @@ class BeoNode(Node):
         try:
             if self._n_procs:
                 try:
-                    return self._pool_estimate(pts, origin, up, p['yaw_step_deg'], threshold,
-                                               p['tilt_search'])
+                    return self._pool_estimate(pts, origin, up, p['yaw_step_deg'], threshold)
                 except ValueError as e:
                     raise InputRejected(f'estimator rejected the cloud: {e}') from e
             bank = self._bank  # one bank per estimate, even if model_dir is reloaded meanwhile
             try:
                 est = bank.estimate_points(pts, sensor_origin=origin, up=up,
-                                           yaw_step_deg=p['yaw_step_deg'], threshold=threshold,
-                                           tilt_search=p['tilt_search'])
+                                           yaw_step_deg=p['yaw_step_deg'], threshold=threshold)
             except ValueError as e:
                 raise InputRejected(f'estimator rejected the cloud: {e}') from e
             return est, list(bank.classes)

@@ -58,14 +58,14 @@ def _ready(delay):
     return os.getpid()
 
 
-def _estimate(points, origin, up, yaw_step_deg, threshold, tilt_search=False, class_prior=None):
+def _estimate(points, origin, up, yaw_step_deg, threshold, class_prior=None):
     """Estimate in this worker process -> (Estimate without its grids, class names).
     ``class_prior``: the node's current prior (None: the bank's own), so that changing it
     needs no new processes."""
     if class_prior is not None:
         _bank.class_prior = class_prior
     est = _bank.estimate_points(points, sensor_origin=origin, up=up, yaw_step_deg=yaw_step_deg,
-                                threshold=threshold, tilt_search=tilt_search)
+                                threshold=threshold)
     if dataclasses.is_dataclass(est):
         # the node needs neither the (N,N,N) grids nor the features: ~0.3 MB less per result
         est = dataclasses.replace(est, completion=None, variance=None, grid=None, features=None)
@@ -114,8 +114,7 @@ class EstimatorPool:
                 pids.add(f.result(timeout=max(deadline - time.monotonic(), 0.01)))
         return sorted(pids)
 
-    def estimate(self, points, origin, up, yaw_step_deg, threshold, tilt_search=False,
-                 class_prior=None):
+    def estimate(self, points, origin, up, yaw_step_deg, threshold, class_prior=None):
         """Estimate one cloud in a worker process (blocks) -> (Estimate, class names);
         ``class_prior`` as for ``ModelBank.class_prior`` (None: the bank's own).
 
@@ -125,8 +124,7 @@ class EstimatorPool:
         try:
             future = self._pool.submit(_estimate, np.ascontiguousarray(points, np.float64),
                                        np.asarray(origin, np.float64), np.asarray(up, np.float64),
-                                       float(yaw_step_deg), float(threshold),
-                                       bool(tilt_search), class_prior)
+                                       float(yaw_step_deg), float(threshold), class_prior)
         except BrokenProcessPool as e:
             raise PoolRetired('the estimator pool is broken') from e
         except RuntimeError as e:
