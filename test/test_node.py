@@ -439,7 +439,7 @@ def _gated_node(harness, workers):
     """The harness's node after its warm-up, with a bank that holds estimates at a gate."""
     node = harness.node
     assert node.get_parameter('workers').value == workers
-    assert node._warm.wait(TIMEOUT)  # the warm-up estimate is done
+    assert node.wait_ready(TIMEOUT)  # the warm-up estimate is done
     gated = node._bank = GatedBank(node._bank)
     return node, gated, cloud(box_view())
 
@@ -490,7 +490,7 @@ def test_two_workers_overlap_and_publish_each_topic_in_order(harness2):
     harness = harness2
     node = harness.node
     slow_pts, fast_pts = box_view(n=3000), box_view(n=1500)
-    assert node._warm.wait(TIMEOUT)
+    assert node.wait_ready(TIMEOUT)
     gated = node._bank = GatedBank(node._bank, hold={len(slow_pts)})
     try:
         node._on_cloud(cloud(slow_pts, 'slow'), '/beo/input')
@@ -713,7 +713,7 @@ def test_killed_worker_process_is_replaced(harness_procs):
     import signal
     harness = harness_procs
     node = harness.node
-    assert node._warm.wait(TIMEOUT)
+    assert node.wait_ready(TIMEOUT)
     old = list(node._pool.pids)
     os.kill(old[0], signal.SIGKILL)
     harness.wait('estimates', republish=cloud(box_view()))

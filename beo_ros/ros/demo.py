@@ -164,6 +164,10 @@ def run_node_on_bag(bag_path, model_dir, bank, up, origin, timeout: float = 120.
                     if left <= 0:
                         return
                     got.wait(min(left, 0.1))
+        # the latency column is the steady state's: the first cloud would wait for the
+        # node's warm-up estimate (about 0.5-1 s) otherwise (a node stuck in it shows as
+        # estimates that never come)
+        node.wait_ready(timeout)
         stats = bag.replay(bag_path, player, rate=0, wait_subscribers=1, wait_timeout=10.0,
                            on_publish=wait_for_estimate)
         return estimates, completed, stats, node.counters()

@@ -787,6 +787,11 @@ class BeoNode(Node):
             response.message = f'internal error: {type(e).__name__}: {e}'
         return response
 
+    def wait_ready(self, timeout: float | None = None) -> bool:
+        """Block until the warm-up estimate is done (True) or ``timeout`` seconds pass
+        (False). The node takes clouds before that, but the first waits for the warm-up."""
+        return self._warm.wait(timeout)
+
     # ------------------------------------------------------------------ diagnostics
     def counters(self) -> dict:
         """Snapshot of the counters (received, processed, dropped_stale, rejected, ...)."""
