@@ -40,16 +40,10 @@ def cloud(points, frame='camera'):
     return xyz_to_cloud(points, Header(frame_id=frame))
 
 
-@pytest.fixture
-def ros_bank_source(request):
-    """(model_dir, bank) for the node: the real core with a tiny generated model bank."""
-    return request.getfixturevalue('ros_tiny_model_dir'), None
-
-
 class Harness:
     """A BeoNode plus a client node on one isolated context, spun by a background executor."""
 
-    def __init__(self, ctx, model_dir, bank, **params):
+    def __init__(self, ctx, model_dir, **params):
         import rclpy
         from beo_interfaces.msg import ObjectEstimate
         from beo_interfaces.srv import Classify, Complete
@@ -59,11 +53,9 @@ class Harness:
 
         from beo_ros.ros.node import BeoNode
 
-        overrides = {'input_topics': ['/beo/input', '/beo/input2'], 'diagnostics_period': 0.2}
-        if model_dir is not None:
-            overrides['model_dir'] = model_dir
-        overrides.update(params)
-        self.node = BeoNode(context=ctx, bank=bank, parameter_overrides=[
+        overrides = {'input_topics': ['/beo/input', '/beo/input2'], 'diagnostics_period': 0.2,
+                     'model_dir': model_dir, **params}
+        self.node = BeoNode(context=ctx, parameter_overrides=[
             Parameter(k, value=v) for k, v in overrides.items()])
         self.client = rclpy.create_node('beo_test_client', context=ctx)
         self.received = {k: [] for k in ('estimates', 'completed', 'pose', 'markers', 'diag')}
@@ -148,8 +140,8 @@ class Harness:
 
 
 @pytest.fixture
-def harness(ros_context, ros_bank_source):
-    h = Harness(ros_context, *ros_bank_source)
+def harness(ros_context, ros_tiny_model_dir):
+    h = Harness(ros_context, ros_tiny_model_dir)
     yield h
     h.close()
 
@@ -422,15 +414,15 @@ class GatedBank:
 
 
 @pytest.fixture
-def harness1(ros_context, ros_bank_source):
-    h = Harness(ros_context, *ros_bank_source, workers=1)
+def harness1(ros_context, ros_tiny_model_dir):
+    h = Harness(ros_context, ros_tiny_model_dir, workers=1)
     yield h
     h.close()
 
 
 @pytest.fixture
-def harness2(ros_context, ros_bank_source):
-    h = Harness(ros_context, *ros_bank_source, workers=2)
+def harness2(ros_context, ros_tiny_model_dir):
+    h = Harness(ros_context, ros_tiny_model_dir, workers=2)
     yield h
     h.close()
 
@@ -546,7 +538,7 @@ def test_bank_estimates_concurrently_like_serially(ros_tiny_model_dir):
         np.testing.assert_allclose(est.pose, ref.pose, atol=1e-6)
 
 
-def test_blas_threads_capped_while_the_node_lives(ros_context, ros_bank_source):
+def test_blas_threads_capped_while_the_node_lives(ros_context, ros_tiny_model_dir):
     threadpoolctl = pytest.importorskip('threadpoolctl')
     from beo_ros.ros.node import BeoNode
 
@@ -555,9 +547,9 @@ def test_blas_threads_capped_while_the_node_lives(ros_context, ros_bank_source):
                 if p['user_api'] == 'blas']
 
     before = blas_threads()
-    model_dir, bank = ros_bank_source
-    base = [Parameter('model_dir', value=model_dir)] if model_dir else []
-    node = BeoNode(context=ros_context, bank=bank,
+    model_dir = ros_tiny_model_dir
+    base = [Parameter('model_dir', value=model_dir)]
+    node = BeoNode(context=ros_context,
                    parameter_overrides=base + [Parameter('blas_threads', value=1)])
     try:
         assert node.get_parameter('workers').value == 1
@@ -581,10 +573,10 @@ def test_bad_model_dir_refuses_to_start(ros_context, tmp_path):
                 parameter_overrides=[Parameter('model_dir', value=str(corrupt))])
 
 
-def test_bad_parameter_override_refuses_to_start(ros_context, ros_bank_source):
+def test_bad_parameter_override_refuses_to_start(ros_context, ros_tiny_model_dir):
     from beo_ros.ros.node import BeoNode, StartupError
-    model_dir, bank = ros_bank_source
-    base = [Parameter('model_dir', value=model_dir)] if model_dir else []
+    model_dir = ros_tiny_model_dir
+    base = [Parameter('model_dir', value=model_dir)]
     for p in (Parameter('yaw_step_deg', value=90.0), Parameter('up_vector', value=[0.0, 0.0, 0.0]),
               Parameter('min_points', value=100), Parameter('workers', value=0),
               Parameter('workers', value=65), Parameter('blas_threads', value=-1),
@@ -594,14 +586,14 @@ def test_bad_parameter_override_refuses_to_start(ros_context, ros_bank_source):
               Parameter('input_topics', value=['/bad topic'])):
         extra = [Parameter('max_points', value=50)] if p.name == 'min_points' else []
         with pytest.raises(StartupError, match=p.name):
-            BeoNode(context=ros_context, bank=bank, parameter_overrides=base + [p] + extra)
+            BeoNode(context=ros_context, parameter_overrides=base + [p] + extra)
 
 
-def test_duplicate_input_topics_are_subscribed_once(ros_context, ros_bank_source):
+def test_duplicate_input_topics_are_subscribed_once(ros_context, ros_tiny_model_dir):
     from beo_ros.ros.node import BeoNode
-    model_dir, bank = ros_bank_source
-    base = [Parameter('model_dir', value=model_dir)] if model_dir else []
-    node = BeoNode(context=ros_context, bank=bank, parameter_overrides=base + [
+    model_dir = ros_tiny_model_dir
+    base = [Parameter('model_dir', value=model_dir)]
+    node = BeoNode(context=ros_context, parameter_overrides=base + [
         Parameter('input_topics', value=['/beo/a', '/beo/b', '/beo/a'])])
     try:
         assert node._topics == ['/beo/a', '/beo/b']
@@ -611,8 +603,8 @@ def test_duplicate_input_topics_are_subscribed_once(ros_context, ros_bank_source
 
 
 @pytest.fixture
-def harness_procs(ros_context, ros_bank_source):
-    h = Harness(ros_context, *ros_bank_source, worker_processes=2)
+def harness_procs(ros_context, ros_tiny_model_dir):
+    h = Harness(ros_context, ros_tiny_model_dir, worker_processes=2)
     yield h
     h.close()
 
@@ -733,11 +725,11 @@ def test_killed_worker_process_is_replaced(harness_procs):
     assert c['errors'] == 0 and c['service_failures'] == 0 and not any(map(_alive, new))
 
 
-def test_worker_processes_stop_with_the_node(ros_context, ros_bank_source):
+def test_worker_processes_stop_with_the_node(ros_context, ros_tiny_model_dir):
     from beo_ros.ros.node import BeoNode
-    model_dir, bank = ros_bank_source
-    base = [Parameter('model_dir', value=model_dir)] if model_dir else []
-    node = BeoNode(context=ros_context, bank=bank, parameter_overrides=base + [
+    model_dir = ros_tiny_model_dir
+    base = [Parameter('model_dir', value=model_dir)]
+    node = BeoNode(context=ros_context, parameter_overrides=base + [
         Parameter('worker_processes', value=1), Parameter('workers', value=1)])
     pids = list(node._pool.pids)
     assert node._n_workers == 1 and len(pids) == 1 and _alive(pids[0])
