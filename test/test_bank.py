@@ -727,6 +727,68 @@ def test_coarse_to_fine_agrees_with_exhaustive(pose_case):
     assert np.mean(np.array(gaps) <= 1e-4 * np.abs(lle).max()) >= 0.4, np.round(gaps, 1)
 
 
+def test_coarse_to_fine_keeps_both_modes_and_scores_them_exactly(pose_case):
+    # the coarse-to-fine candidates are two windows, not a circular grid: both modes survive
+    # into the hypotheses, and each window holds its coarse mode itself (at a 2 degree step too)
+    bank, cases = pose_case
+    g, *_ = cases[0]
+    for step in (1.0, 2.0):
+        _, _, per = bank.engine.search(g, step, exhaustive=False)
+        yaws, _ = per[0]
+        deg = np.rad2deg(yaws)
+        assert len(yaws) == 2 * (2 * int(round(5 / step)) + 1)
+        centres = deg.reshape(2, -1)[:, len(yaws) // 4]
+        assert np.allclose((centres + 2.5) % 5 - 2.5, 0, atol=1e-6), deg
+    est = bank.estimate(g, exhaustive=False)
+    ys = [h.yaw for h in est.hypotheses if h.label == est.label]
+    assert len(ys) >= 2
+
+
+def test_estimate_takes_array_probes_and_no_stage2_window(pose_case):
+    bank, cases = pose_case
+    g, *_ = cases[0]
+    ref = bank.estimate(g, probe_deg=(10, 20))
+    assert bank.estimate(g, probe_deg=np.array([10, 20])).yaw == pytest.approx(ref.yaw)
+    # no window: stage 2 scores every yaw, as with stage2_modes=None
+    assert bank.estimate(g, stage2_window_deg=None).yaw == pytest.approx(
+        bank.estimate(g, stage2_modes=None).yaw)
+
+
+def test_top_yaw_modes_separates_by_angle():
+    from beo_ros.core.inference import top_yaw_modes
+    yaws = np.deg2rad([40, 41, 42, 10, 11, 12, 359, 1])
+    scores = np.array([9, 10, 8, 7, 6, 5, 4, 3], dtype=float)
+    assert top_yaw_modes(yaws, scores, 3) == [1, 3]        # 359 and 1 are 12-13 deg from 11
+    assert top_yaw_modes(yaws, scores, 3, min_sep_deg=5) == [1, 3, 6]
+    # on a regular circular grid it picks what the index-based top_modes picks
+    from beo_ros.core.inference import top_modes
+    rng = np.random.default_rng(0)
+    ll = rng.normal(size=360)
+    assert top_yaw_modes(np.deg2rad(np.arange(360)), ll, 3) == top_modes(ll, 3, 20)
+
+
+@pytest.mark.parametrize('size', [32.0, np.int64(16)])
+def test_grid_spec_size_becomes_an_int(size):
+    from beo_ros.core.grid import GridSpec
+    spec = GridSpec(size=size)
+    assert type(spec.size) is int and spec.shape == (int(size),) * 3
+
+
+@pytest.mark.parametrize('size', [32.5, True, '32', 3, 300])
+def test_grid_spec_refuses_a_bad_size(size):
+    from beo_ros.core.grid import GridSpec
+    with pytest.raises(ValueError, match='GridSpec.size'):
+        GridSpec(size=size)
+
+
+def test_engine_refuses_an_odd_grid():
+    from beo_ros.core.inference import InferenceEngine
+    d = 15 ** 3
+    with pytest.raises(ValueError, match='even'):
+        InferenceEngine(np.zeros((1, d, 2), np.float32), np.zeros((1, d), np.float32),
+                        np.ones(1), np.ones(1), 15, pose_components=2)
+
+
 # ---------------------------------------------------------------------- classifier path
 @pytest.fixture(scope='module')
 def clf_bank():

@@ -122,6 +122,13 @@ def test_estimate_takes_the_turn_with_the_best_combined_score(bank, monkeypatch)
     monkeypatch.setattr(bank.verifier, 'weight', 1e9)
     turned = bank.estimate(g)
     assert np.rad2deg(yaw_error(turned.yaw, plain.yaw + np.pi)) < 1e-6
+    # the hypotheses lead with the chosen (turned) yaw and still list the likelihood's own
+    # choice with its pooled score; nothing else within 10 degrees of the turned yaw
+    assert turned.hypotheses[0].yaw == pytest.approx(turned.yaw)
+    assert turned.hypotheses[0].label == turned.label
+    assert turned.hypotheses[1].yaw == pytest.approx(plain.yaw)
+    assert turned.hypotheses[1].score == pytest.approx(plain.hypotheses[0].score)
+    assert all(np.rad2deg(yaw_error(h.yaw, turned.yaw)) >= 10 for h in turned.hypotheses[1:])
     # the completion follows the chosen yaw (it is the model's, turned)
     assert not np.allclose(turned.completion, plain.completion)
     # a verifier without an opinion leaves the likelihood's choice

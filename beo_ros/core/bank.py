@@ -27,7 +27,7 @@ import numpy as np
 
 from .estimate import UNKNOWN_LABEL, Estimate, Hypothesis
 from .grid import GridSpec, symmetric_turns, yaw_matrix
-from .inference import FEATURE_NAMES, InferenceEngine, observed_edt, top_modes
+from .inference import FEATURE_NAMES, InferenceEngine, observed_edt, top_modes, top_yaw_modes
 from .shape import DESCRIPTOR_NAMES as SHAPE_DESCRIPTORS, shape_descriptors
 from .verifier import TURNS, OrientationVerifier, check_arrays, quarter_turned_features
 
@@ -655,7 +655,7 @@ class ModelBank:
             ex = eng.exact(obs, c, float(best_yaw[c]))
             feats.append(eng.features(ex, c, best_ll[c] / n_pooled, edt_pad[ex['idx']]))
             yaws_c, ll_c = searched[c]
-            modes = top_modes(ll_c, 3, max(1, int(round(20.0 / yaw_step_deg))))
+            modes = top_yaw_modes(yaws_c, ll_c, 3)   # exhaustive or coarse-to-fine yaws
             per.append(dict(yaw=float(best_yaw[c]), exact=ex, searched=searched[c],
                             search_step_deg=float(yaw_step_deg), pooled=pooled, observed=obs,
                             hypotheses=[(float(yaws_c[i]), float(ll_c[i])) for i in modes]))
@@ -734,10 +734,9 @@ class ModelBank:
             step = np.deg2rad(stage2_step_deg)
             yaws = np.arange(int(round(2 * np.pi / step))) * step
             rows = None
-            if stage2_modes:
+            if stage2_modes and stage2_window_deg:
                 sy, sl = per_c['searched']
-                m0 = top_modes(sl, stage2_modes, max(1, int(round(
-                    20.0 / per_c.get('search_step_deg', step_deg)))))
+                m0 = top_yaw_modes(sy, sl, stage2_modes)
                 r = np.rint(sy[m0] / step).astype(int)
                 w = int(round(stage2_window_deg / stage2_step_deg))
                 rows = np.unique((r[:, None] + np.arange(-w, w + 1)).ravel() % len(yaws))
@@ -796,6 +795,18 @@ class ModelBank:
                 break
         return best
 
+    def _pooled_score(self, grid, c, per_c, yaw, step_deg=STAGE2_MIN_STEP_DEG):
+        """Pooled log-likelihood of class ``c`` with all its components at ``yaw`` rounded to
+        the stage-2 grid of ``step_deg`` (whose rotation maps are cached), as the hypotheses'
+        scores."""
+        step = np.deg2rad(step_deg)
+        yaws = np.arange(int(round(2 * np.pi / step))) * step
+        pooled = per_c.get('pooled')
+        if pooled is None:
+            pooled = self.engine.pooled(grid)
+        row = int(np.rint(yaw / step)) % len(yaws)
+        return float(self.engine.scores(pooled, yaws, c, full=True, rows=[row])[0, 0])
+
     def _verify_turns(self, grid, c, per_c):
         """The refined yaw of class ``c`` or one of its 90, 180, 270° turns: the one with the
         largest exact log-likelihood + weight x log P(turn 0) of the orientation verifier
@@ -842,7 +853,7 @@ class ModelBank:
             stage2_modes, stage2_window_deg: the chosen class is re-scored on the pooled grid
                 with all its components (not only the leading ``pose_components``) every
                 yaw_step_deg within +-stage2_window_deg of its ``stage2_modes`` best stage-1
-                modes (None or 0: all yaws);
+                modes (either None or 0: all yaws);
             probe_deg: then it is solved exactly at full resolution at the pooled optimum
                 and at +- each of these offsets (degrees; () or None: no probes), and
             refine_deg: climbs from the best of those within +-refine_deg
@@ -861,7 +872,13 @@ class ModelBank:
         check_step('yaw_step_deg', yaw_step_deg)
         if search_step_deg is not None:
             check_step('search_step_deg', search_step_deg)
-        probe_deg = tuple(probe_deg or ())
+        if probe_deg is None:
+            probe_deg = ()
+        elif isinstance(probe_deg, np.ndarray):
+            probe_deg = probe_deg.ravel().tolist()
+        probe_deg = tuple(probe_deg)
+        if stage2_window_deg is None:
+            stage2_window_deg = 0.0
         if not all(isinstance(p, (int, float, np.floating, np.integer))
                    and not isinstance(p, bool) and 0 < p <= 180 for p in probe_deg):
             raise ValueError(f'probe_deg must be offsets in (0, 180] degrees, got {probe_deg}')
@@ -903,6 +920,7 @@ class ModelBank:
                                      max(yaw_step_deg, STAGE2_MIN_STEP_DEG), stage2_modes,
                                      stage2_window_deg, probe_deg)
         t_ref = time.perf_counter()
+        refined_yaw = per[best]['yaw']
         if yaw is None and refine_deg > 0 and verify and self.verifier is not None \
                 and self.verifier.has_class(best):
             per[best] = self._verify_turns(grid, best, per[best])
@@ -914,7 +932,15 @@ class ModelBank:
         # the chosen class's yaw modes first (symmetric objects have several), then the others
         hyps = [(self.classes[best], y, ll) for y, ll in per[best]['hypotheses']]
         if hyps:  # the best mode, as refined at full resolution
-            hyps[0] = (hyps[0][0], est_yaw, hyps[0][2])
+            hyps[0] = (hyps[0][0], refined_yaw, hyps[0][2])
+        if per[best].get('turned'):
+            # the verifier's quarter turn goes first, with its own pooled score (it may be
+            # lower than the likelihood's choice, which stays listed); modes within 10 degrees
+            # of it are the same hypothesis
+            score = self._pooled_score(grid, best, per[best], est_yaw,
+                                       max(yaw_step_deg, STAGE2_MIN_STEP_DEG))
+            hyps = [(self.classes[best], est_yaw, score)] + \
+                [h for h in hyps if abs(_wrap(h[1] - est_yaw)) >= np.deg2rad(10.0)]
         hyps += sorted(((self.classes[c], y, ll) for c in range(len(per)) if c != best
                         for y, ll in per[c]['hypotheses'][:1]), key=lambda h: -h[2])
         label = UNKNOWN_LABEL if unknown else self.classes[best]

@@ -38,8 +38,10 @@ class GridSpec:
     anchor: str = 'center'
 
     def __post_init__(self):
-        if int(self.size) != self.size or not 4 <= self.size <= 256:
+        if (isinstance(self.size, (bool, np.bool_)) or not isinstance(self.size, (int, np.integer, float))
+                or int(self.size) != self.size or not 4 <= self.size <= 256):
             raise ValueError(f'GridSpec.size must be an integer in [4, 256], got {self.size!r}')
+        object.__setattr__(self, 'size', int(self.size))   # 32.0 from a manifest -> 32
         if self.units not in UNITS:
             raise ValueError(f'GridSpec.units must be one of {UNITS}, got {self.units!r}')
         if self.units == 'metric' and not (np.isfinite(self.voxel_size) and self.voxel_size > 0):

@@ -96,6 +96,9 @@ class InferenceEngine:
 
     def __init__(self, W, mu, v, v_coarse, n, pose_components=8, coarse_noise_maps=None):
         self.C, self.d, self.k = W.shape
+        if n % 2 or n ** 3 != self.d:
+            raise ValueError(f'grid size must be even (the pose search pools it by 2) and '
+                             f'n^3 = d; got n={n}, d={self.d}')
         self.n = n
         # W is a view of [W | mu] (C, d, k + 1): the exact posterior's weighted sums over voxels
         # are the blocks of one augmented gram A^T diag(w) A (see ``exact``)
@@ -396,7 +399,8 @@ class InferenceEngine:
             yaws0 = np.arange(int(round(2 * np.pi / cstep))) * cstep
             ll0 = self.scores(P, yaws0)
             half = np.deg2rad(coarse_step_deg if window_deg is None else window_deg)
-            offs = np.arange(-half, half + 1e-9, step)
+            nw = int(round(half / step))
+            offs = np.arange(-nw, nw + 1) * step     # includes the coarse mode itself
             per = []
             min_sep = max(1, int(round(30.0 / coarse_step_deg)))
             for c in range(self.C):
@@ -548,6 +552,24 @@ def observed_edt(grid):
     if not occ.any():
         return np.full(grid.shape, float(grid.shape[0]), dtype=np.float32)
     return ndimage.distance_transform_edt(~occ).astype(np.float32)
+
+
+def top_yaw_modes(yaws, scores, n_modes, min_sep_deg=20.0):
+    """Indices of the ``n_modes`` best ``scores`` (Y,) whose ``yaws`` (Y,) radians are at least
+    ``min_sep_deg`` apart on the circle, best first (any set of yaws, e.g. the windows of a
+    coarse-to-fine search, not only a regular grid)."""
+    yaws = np.asarray(yaws, dtype=np.float64)
+    sep = np.deg2rad(min_sep_deg) - 1e-9
+    alive = np.ones(len(yaws), dtype=bool)
+    picked = []
+    for i in np.argsort(-np.asarray(scores)):
+        if not alive[i]:
+            continue
+        picked.append(int(i))
+        if len(picked) == n_modes:
+            break
+        alive &= np.abs((yaws - yaws[i] + np.pi) % (2 * np.pi) - np.pi) >= sep
+    return picked
 
 
 def top_modes(scores, n_modes, min_sep):

@@ -375,7 +375,10 @@ class VBPCA(TransformerMixin, BaseEstimator):
         return Z @ self.components_ + self.mean_
 
     def score_samples(self, X, mask=None):
-        """Log-likelihood of each sample's observed entries under the marginal p(y_O) (n,)."""
+        """Log-likelihood (n,) of each sample's observed entries y_O, with the scores integrated
+        out under their variational posterior (the loadings' posterior covariance enters through
+        E[W^T W]): the exact marginal p(y_O | W, mu, v) when ``loading_covariance_`` is zero,
+        an approximation of it otherwise."""
         X, mask = self._check_query(X, mask)
         W = self.components_.T.astype(np.float64)
         v = self.noise_variance_
