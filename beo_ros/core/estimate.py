@@ -32,7 +32,10 @@ class Estimate:
         yaw: radians, right-handed rotation about +z that maps the canonical model onto the object.
         completion: float32 (N,N,N) occupancy probability.
         variance: float32 (N,N,N) predictive variance of the occupancy.
-        hypotheses: top (class, yaw) hypotheses, best first.
+        hypotheses: top (class, yaw) hypotheses: ``(label, yaw)`` first, then the chosen
+            class's other yaw modes, then the other classes' best. When the orientation
+            verifier turned the yaw by a quarter turn, the first one's score can be below the
+            likelihood's own choice, which is listed next.
         symmetric_yaws: radians, the yaws that the completed shape cannot tell from ``yaw``:
             ``yaw`` + each quarter turn about +z that maps the completion (p >= 0.5) onto itself
             with IoU >= 0.9, turned about its footprint's centre (see
