@@ -17,7 +17,9 @@ view) and eval.png (examples, confusion matrix).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import math
 import os
 import sys
 import time
@@ -28,7 +30,26 @@ import numpy as np
 from .core.bank import load_models, parse_class_prior
 from .core.grid import GridSpec, symmetric_turns, yaw_error, yaw_error_up_to
 from .core.synthetic import random_partial_view
-from .core.training import fit_bank, load_voxel_npz, progress_bar, stratified_folds
+from .core.training import (fit_bank, load_voxel_npz, progress_bar, select_classes,
+                            stratified_folds)
+
+
+def stratified_subset(idx, y, m, rng):
+    """At most ``m`` of the object indices ``idx`` (sorted), drawn per class of ``y[idx]`` in
+    proportion to its count, at least one of every class when ``m`` allows (largest
+    remainders get the rest)."""
+    idx = np.asarray(idx)
+    if m >= len(idx):
+        return idx
+    classes, counts = np.unique(y[idx], return_counts=True)
+    base = np.ones(len(classes), dtype=int) if m >= len(classes) else np.zeros(len(classes),
+                                                                              dtype=int)
+    share = (m - base.sum()) * (counts - base) / (counts - base).sum()
+    take = base + np.floor(share).astype(int)
+    rest = m - int(take.sum())
+    take[np.argsort(-(share - np.floor(share)), kind='stable')[:rest]] += 1
+    pick = [rng.choice(idx[y[idx] == c], t, replace=False) for c, t in zip(classes, take)]
+    return np.sort(np.concatenate(pick))
 
 
 def evaluate_bank(bank, X, y, names, rng, views=1, examples=6, progress=True, index=None):
@@ -128,6 +149,32 @@ def summarize(recs, classes):
     return out
 
 
+def json_safe(obj):
+    """``obj`` with every non-finite float (NaN: nothing to average) as None, for strict JSON."""
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def _out_dir_problem(out):
+    """Why ``out`` cannot be the output directory, or None; creates nothing."""
+    if out.exists():
+        if not out.is_dir():
+            return 'exists and is not a directory'
+        return None if os.access(out, os.W_OK | os.X_OK) else \
+            'the output directory is not writable'
+    parent = next(d for d in out.absolute().parents if d.exists())
+    if not parent.is_dir():
+        return f'cannot make the output directory ({parent} is not a directory)'
+    if not os.access(parent, os.W_OK | os.X_OK):
+        return f'cannot make the output directory ({parent} is not writable)'
+    return None
+
+
 def print_table(summary, file=None):
     file = file or sys.stdout   # looked up at call time (a default would pin the import's)
     print(f"{'mode':10s} {'n':>5s} {'acc':>6s} {'bal':>6s} {'yaw<=10':>8s} {'+flip':>6s} "
@@ -200,7 +247,8 @@ def main(argv=None):
     ap.add_argument('--train-views', type=int, default=1,
                     help='partial views per object for the OOF classifier (--cv)')
     ap.add_argument('--max-objects', type=int, default=0,
-                    help='evaluate at most this many objects (per fold), stratified (0: all)')
+                    help='evaluate at most this many objects (per fold), stratified: per class '
+                         'in proportion, at least one of each when there are enough (0: all)')
     ap.add_argument('--views', type=int, default=1, help='partial views per evaluated object')
     ap.add_argument('--seed', type=int, default=0)
     ap.add_argument('--out', default='beo_eval_out', help='directory for JSON and PNG')
@@ -244,24 +292,47 @@ def main(argv=None):
     except ValueError as e:
         ap.error(str(e))
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        ap.error(f'--out {out}: exists and is not a directory')
+    problem = _out_dir_problem(out)   # --out is made once the inputs have loaded
+    if problem:
+        ap.error(f'--out {out}: {problem}')
+    rng = np.random.default_rng(args.seed)
+    try:
+        X, y, names, n = load_voxel_npz(args.data)
+        if args.cv:
+            # classes named by the file but without objects: nothing to train a model on
+            present = [names[c] for c in np.unique(y)]
+            if len(present) < len(names):
+                print(f'beo-eval: classes without objects in {args.data} left out: '
+                      f'{[c for c in names if c not in present]}', file=sys.stderr)
+                X, y, names = select_classes(X, y, names, present, args.data)
+        else:
+            bank = load_models(args.model, class_prior)
+            # the classes of the objects, not the file's whole class list: a subset file may
+            # still name every class
+            present = {names[c] for c in np.unique(y)}
+            missing = present - set(bank.classes)
+            if missing:
+                raise ValueError(f'data classes {sorted(missing)} (of objects in {args.data}) '
+                                 f'are not in the model (classes {bank.classes})')
+            if n != bank.spec.size:
+                raise ValueError(f'{args.data}: objects on a {n}^3 grid, the model '
+                                 f'{args.model or "(shipped)"} is for {bank.spec.size}^3')
+    except (ValueError, OSError) as e:
+        print(f'beo-eval: error: {e}', file=sys.stderr)
+        return 2
+    made = not out.exists()
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         ap.error(f'--out {out}: cannot make the output directory ({e.strerror or e})')
-    if not os.access(out, os.W_OK | os.X_OK):
-        ap.error(f'--out {out}: the output directory is not writable')
-    rng = np.random.default_rng(args.seed)
     try:
-        X, y, names, n = load_voxel_npz(args.data)
         if args.cv:
             fold = stratified_folds(y, args.cv, rng)
             recs, examples, info = [], [], []
             for f in range(args.folds or args.cv):
                 tr, te = np.flatnonzero(fold != f), np.flatnonzero(fold == f)
                 if args.max_objects:
-                    te = np.sort(rng.choice(te, min(args.max_objects, len(te)), replace=False))
+                    te = stratified_subset(te, y, args.max_objects, rng)
                 t0 = time.time()
                 bank = fit_bank(X[tr], y[tr], names, GridSpec(size=n),
                                 k=20 if args.k is None else args.k,
@@ -279,22 +350,17 @@ def main(argv=None):
             summary['folds'] = info
             summary['protocol'] = f'{args.cv}-fold stratified CV on {args.data}'
         else:
-            bank = load_models(args.model, class_prior)
-            # the classes of the objects, not the file's whole class list: a subset file may
-            # still name every class
-            present = {names[c] for c in np.unique(y)}
-            missing = present - set(bank.classes)
-            if missing:
-                raise ValueError(f'data classes {sorted(missing)} (of objects in {args.data}) '
-                                 f'are not in the model (classes {bank.classes})')
             te = np.arange(len(X))
             if args.max_objects:
-                te = np.sort(rng.choice(te, min(args.max_objects, len(te)), replace=False))
+                te = stratified_subset(te, y, args.max_objects, rng)
             summary, recs, examples = evaluate_bank(bank, X[te], y[te], names, rng, args.views,
                                                      index=te)
             summary['protocol'] = f'held-out: model {args.model or "shipped"} on {args.data}'
     except (ValueError, OSError) as e:
         print(f'beo-eval: error: {e}', file=sys.stderr)
+        if made:   # nothing written: leave no empty --out behind
+            with contextlib.suppress(OSError):
+                out.rmdir()
         return 2
     summary['class_prior'] = bank.class_prior if isinstance(bank.class_prior, str) else \
         dict(zip(bank.classes, map(float, bank.class_prior)))
@@ -304,9 +370,12 @@ def main(argv=None):
         print(f"{summary['partial']['empty_views']} view(s) had no occupied voxel (objects of a "
               "few voxels lost to the rotation), answered 'unknown', a wrong class")
     try:
-        (out / 'eval.json').write_text(json.dumps(summary, indent=2) + '\n')
+        # strict JSON: non-finite numbers (a mean over no rows) as null
+        (out / 'eval.json').write_text(json.dumps(json_safe(summary), indent=2,
+                                                  allow_nan=False) + '\n')
         # one line per complete object and per view (i: the object's index in --data)
-        (out / 'records.jsonl').write_text(''.join(json.dumps(r) + '\n' for r in recs))
+        (out / 'records.jsonl').write_text(''.join(json.dumps(json_safe(r), allow_nan=False)
+                                                   + '\n' for r in recs))
         write_figure(summary, examples, out / 'eval.png')
     except OSError as e:
         print(f'beo-eval: error: {e}', file=sys.stderr)

@@ -100,14 +100,26 @@ def main(argv=None):
         ap.error('--mirror is for --scans with --views 0 (maximum-likelihood rule)')
     if args.point_classifier and not args.mirror:
         ap.error('--point-classifier is for --scans --mirror --views 0')
+    if args.oof_out and args.views == 0:
+        ap.error('--oof-out needs --views >= 1 (--views 0 makes no out-of-fold features)')
+    if args.mirror:   # train_scan_bank: maximum-likelihood rule, no out-of-fold classifier
+        unused = [name for name in ('seed', 'folds', 'row_standardize', 'descriptors')
+                  if getattr(args, name) != ap.get_default(name)]
+        if unused:
+            ap.error('not used with --mirror: ' + ', '.join(f"--{n.replace('_', '-')}"
+                                                         for n in unused))
     try:
         if args.mirror:
-            from .core.scan_training import train_scan_bank
+            from .core.bank import resolve_class_prior
+            from .core.scan_training import parse_scan_classes, train_scan_bank
+            # a prior naming a class the scans lack fails before the fit, not after it
+            resolve_class_prior(class_prior, parse_scan_classes(args.scan_classes)[0])
             t0 = time.time()
             bank = train_scan_bank(args.inputs, args.scan_classes, args.grid or 32,
                                    args.voxel_size, args.k, args.max_iter, mirror=True,
                                    congeal=args.congeal, verbose=True,
                                    point_classifier=args.point_classifier)
+            bank.class_prior = class_prior
             bank.save(args.out)
             print(f'wrote {args.out}: {len(bank.classes)} classes {bank.classes}, '
                   f'{bank.training["n_training_grids"]} training grids, '

@@ -434,6 +434,86 @@ def test_cli_replay_of_what_is_not_a_bag_exits_2_with_a_message(tmp_path, capsys
         assert 'beo-replay: cannot read' in err and why in err and 'Traceback' not in err, err
 
 
+@pytest.mark.parametrize('extra, message', [
+    (['--rate', 'nan'], '--rate must be a finite number >= 0'),
+    (['--rate', 'inf'], '--rate must be a finite number >= 0'),
+    (['--depth', '0'], '--depth must be >= 1'),
+    (['--depth', '-1'], '--depth must be >= 1'),
+    (['--wait-subscribers', '-1'], '--wait-subscribers must be >= 0'),
+])
+def test_cli_replay_bad_numbers_refused(tmp_path, capsys, extra, message):
+    write_test_bag(tmp_path / 'b', 'sqlite3', n=1)
+    with pytest.raises(SystemExit) as ei:
+        bag.replay_main([str(tmp_path / 'b'), *extra])
+    assert ei.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+@pytest.fixture
+def keep_signal_handlers():
+    """The command-line tools install SIGINT/SIGTERM handlers: put pytest's back."""
+    import signal
+    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    yield
+    for s, h in saved.items():
+        signal.signal(s, h)
+
+
+def test_cli_node_ignores_the_tools_own_remap_arguments(monkeypatch, keep_signal_handlers):
+    # rclpy.init(args=None) took sys.argv: beo-replay -r /a:=/b became a global rcl remap too
+    monkeypatch.setattr(sys, 'argv', ['beo-replay', 'bag', '-r', '/a:=/b', '-r', '/b:=/a'])
+    with bag._cli_node('beo_replay_argv_test') as (node, _):
+        assert node.resolve_topic_name('/a') == '/a'
+        assert node.resolve_topic_name('/b') == '/b'
+
+
+def _bag_with_uninstalled_type(path):
+    """write_test_bag's bag plus 3 messages of foo_msgs/msg/Bar (a type with no Python module)
+    on /foo."""
+    from rosbags.typesys import Stores, get_typestore, get_types_from_msg
+    store = get_typestore(Stores.ROS2_JAZZY)   # a store of its own: the shared one stays clean
+    store.register(get_types_from_msg('int32 a\n', 'foo_msgs/msg/Bar'))
+    Bar = store.types['foo_msgs/msg/Bar']
+    with bag.BagWriter(path, 'sqlite3') as w:
+        conn = w._writer.add_connection('/foo', 'foo_msgs/msg/Bar', typestore=store)
+        for i in range(3):
+            w._writer.write(conn, T0 + i, bytes(store.serialize_cdr(Bar(a=i), conn.msgtype)))
+        for i in range(4):
+            w.write('/beo/input', make_cloud(i)[1], T0 + 10 + i)
+
+
+def test_replay_skips_topics_of_types_not_installed(ctx, tmp_path):
+    p = tmp_path / 'b'
+    _bag_with_uninstalled_type(p)
+    with pytest.raises(KeyError, match='is not installed'):
+        bag.import_msg_class('foo_msgs/msg/Bar')
+    node = rclpy.create_node('player', context=ctx)
+    stats = bag.replay(p, node, all_topics=True, rate=0)
+    assert stats.skipped == {'/foo': 'foo_msgs/msg/Bar'} and set(stats.topics) == {'/beo/input'}
+    assert stats.messages == 4 and '1 topic(s) skipped' in stats.table()
+    with pytest.raises(KeyError, match='foo_msgs/msg/Bar is not installed'):
+        bag.replay(p, node, topics=['/foo'], rate=0)
+
+
+def test_cli_replay_of_types_not_installed(tmp_path, capsys, keep_signal_handlers):
+    p = tmp_path / 'b'
+    _bag_with_uninstalled_type(p)
+    assert bag.replay_main([str(p), '--all-topics', '--rate', '0', '--json']) == 0
+    out, err = capsys.readouterr()
+    assert 'warning: skipping /foo: message type foo_msgs/msg/Bar is not installed' in err
+    assert json.loads(out)['skipped'] == {'/foo': 'foo_msgs/msg/Bar'}
+    assert bag.replay_main([str(p), '--topics', '/foo']) == 2
+    err = capsys.readouterr().err
+    assert 'foo_msgs/msg/Bar is not installed' in err and 'Traceback' not in err
+
+
+def test_cli_record_of_an_unknown_type_leaves_no_bag(tmp_path, capsys, keep_signal_handlers):
+    out = tmp_path / 'rb1'
+    assert bag.record_main(['/x:foo_msgs/msg/Bar', '-o', str(out), '--duration', '1']) == 2
+    assert 'foo_msgs/msg/Bar' in capsys.readouterr().err
+    assert not out.exists()   # a re-run would be refused: 'exists already'
+
+
 def test_cli_pcd2bag_of_a_corrupt_scene_writes_no_bag(tmp_path, capsys):
     bad = tmp_path / 'bad.pcd'
     bad.write_bytes(b'# .PCD v0.7\nFIELDS x y z\nDATA ascii\n')

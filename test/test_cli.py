@@ -297,6 +297,60 @@ def test_train_bad_arguments_refused(tmp_path, capsys, extra, message):
 
 
 @pytest.mark.parametrize('extra, message', [
+    (['--views', '0', '--oof-out', 'oof.npz'], '--oof-out needs --views >= 1'),
+    (['--scans', '--mirror', '--views', '0', '--seed', '3'], 'not used with --mirror: --seed'),
+    (['--scans', '--mirror', '--views', '0', '--folds', '3', '--descriptors', 'on',
+      '--row-standardize', 'off'],
+     'not used with --mirror: --folds, --row-standardize, --descriptors'),
+])
+def test_train_options_that_do_not_apply_refused(tmp_path, capsys, extra, message):
+    write_npz(tmp_path / 'd.npz', count=2)
+    with pytest.raises(SystemExit) as ei:
+        train.main([str(tmp_path / 'd.npz'), '-o', str(tmp_path / 'm'),
+                    '--verifier-views', '0'] + extra)
+    assert ei.value.code == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / 'm').exists()
+
+
+def test_train_mirror_passes_the_class_prior_on(trained, tmp_path, monkeypatch, capsys):
+    from beo_ros.core import scan_training
+    tmp, _ = trained
+    calls = []
+
+    def fake_train_scan_bank(*args, **kwargs):   # the trained box/cylinder bank stands in
+        calls.append(args)
+        bank = ModelBank.load(tmp / 'model')
+        bank.training['n_training_grids'] = 32
+        return bank
+    monkeypatch.setattr(scan_training, 'train_scan_bank', fake_train_scan_bank)
+    argv = ['learn0.pcd', '--scans', '--mirror', '--views', '0', '--k', '2']
+    assert train.main([*argv, '-o', str(tmp_path / 'm'), '--class-prior', 'uniform']) == 0
+    assert ModelBank.load(tmp_path / 'm').class_prior == 'uniform'
+    assert train.main([*argv, '-o', str(tmp_path / 'm2'), '--class-prior', 'box=1,cup=1']) == 2
+    assert "unknown ['cup']" in capsys.readouterr().err
+    assert not (tmp_path / 'm2').exists() and len(calls) == 1   # refused before the fit
+
+
+@pytest.mark.parametrize('count, extra, message', [
+    # 2 boxes: 5 folds would leave a fold's training part 1 box
+    (2, [], "class 'box' has 2 training objects; out-of-fold classifier features over 5 "
+            'folds need >= 3 per class'),
+    (3, ['--folds', '2'], 'need >= 4 per class (each fold trains class models on the other '
+                          "folds' objects); use 3 or more folds"),
+    (1, ['--views', '0'], "class 'box' has 1 training objects; a class model needs >= 2"),
+    (4, ['--classes', 'box', 'box', 'cylinder'], "classes ['box'] given more than once"),
+])
+def test_train_too_few_objects_explained(tmp_path, capsys, count, extra, message):
+    write_npz(tmp_path / 'd.npz', count=count)
+    rc = train.main([str(tmp_path / 'd.npz'), '-o', str(tmp_path / 'm'), '--k', '2',
+                     '--verifier-views', '0'] + extra)
+    assert rc == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / 'm').exists()
+
+
+@pytest.mark.parametrize('extra, message', [
     (['--cv', '-2'], '--cv must be 0 (held-out mode) or a number of folds >= 2'),
     (['--cv', '1'], '--cv must be 0 (held-out mode) or a number of folds >= 2'),
     (['--cv', '2', '--folds', '3'], '--folds must be in [0, --cv]'),
@@ -351,6 +405,78 @@ def test_eval_compares_the_classes_present(trained, tmp_path, capsys):
     assert "data classes ['cup']" in capsys.readouterr().err
 
 
+def test_stratified_subset():
+    rng = np.random.default_rng(0)
+    y = np.array([0] * 12 + [1] * 12)
+    idx = np.arange(24)
+    for m, want in ((4, [2, 2]), (5, [3, 2]), (1, None), (24, [12, 12]), (30, [12, 12])):
+        got = evaluate.stratified_subset(idx, y, m, rng)
+        assert len(got) == min(m, 24) and (np.diff(got) > 0).all()
+        if want is not None:
+            assert sorted(np.bincount(y[got], minlength=2).tolist(), reverse=True) == want
+    y = np.array([0] * 10 + [1] * 2 + [2])   # proportional, but every class once
+    got = evaluate.stratified_subset(np.arange(13), y, 4, rng)
+    assert np.bincount(y[got]).tolist() == [2, 1, 1]
+    # a subset of the objects (a fold): indices into y
+    te = np.array([1, 3, 13, 15, 20])
+    got = evaluate.stratified_subset(te, np.array([0] * 12 + [1] * 12), 2, rng)
+    assert set(got) <= set(te) and len(got) == 2 and (got[0] < 12) != (got[1] < 12)
+
+
+def test_eval_max_objects_is_stratified(trained, tmp_path):
+    tmp, _ = trained   # test.npz: 4 boxes, 4 cylinders (a uniform draw of seed 0: 3 + 1)
+    rc = evaluate.main(['--model', str(tmp / 'model'), '--data', str(tmp / 'test.npz'),
+                        '--max-objects', '4', '--views', '0', '--out', str(tmp_path / 'e'),
+                        '--seed', '0'])
+    assert rc == 0
+    s = json.loads((tmp_path / 'e' / 'eval.json').read_text())
+    assert np.array(s['complete']['confusion']).sum(axis=1).tolist() == [2, 2]
+
+
+def test_eval_grid_size_must_match_the_model(trained, tmp_path, capsys):
+    tmp, _ = trained
+    X, y, names = primitive_shapes(8, 2, np.random.default_rng(0))
+    _save(tmp_path / 'd8.npz', X, y, names, shape=(8, 8, 8))
+    rc = evaluate.main(['--model', str(tmp / 'model'), '--data', str(tmp_path / 'd8.npz'),
+                        '--out', str(tmp_path / 'e')])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert 'objects on a 8^3 grid' in err and 'is for 16^3' in err and 'reshape' not in err
+    assert not (tmp_path / 'e').exists()   # no empty --out left behind
+
+
+def _strict_json(text):
+    def refuse(c):
+        raise AssertionError(f'not strict JSON: {c}')
+    return json.loads(text, parse_constant=refuse)
+
+
+def test_eval_json_is_strict_json(trained, tmp_path):
+    """No partial view classified right: the yaw over the right ones is null, not NaN."""
+    tmp, _ = trained
+    X, y, names = primitive_shapes(N, 2, np.random.default_rng(5))
+    _save(tmp_path / 'boxes.npz', X[y == 0], y[y == 0], names)
+    rc = evaluate.main(['--model', str(tmp / 'model'), '--data', str(tmp_path / 'boxes.npz'),
+                        '--out', str(tmp_path / 'e'), '--class-prior', 'box=0,cylinder=1'])
+    assert rc == 0
+    s = _strict_json((tmp_path / 'e' / 'eval.json').read_text())
+    assert s['partial']['accuracy'] == 0 and s['partial']['yaw_within_10_correct_class'] is None
+    for line in (tmp_path / 'e' / 'records.jsonl').read_text().splitlines():
+        _strict_json(line)
+
+
+def test_eval_cv_leaves_out_classes_without_objects(tmp_path, capsys):
+    X, y, names = primitive_shapes(N, 4, np.random.default_rng(2))
+    _save(tmp_path / 'gap.npz', X, np.where(y == 1, 2, 0), ['box', 'cup', 'cylinder'])
+    rc = evaluate.main(['--cv', '2', '--data', str(tmp_path / 'gap.npz'), '--k', '2',
+                        '--train-views', '0', '--verifier-views', '0', '--views', '0',
+                        '--out', str(tmp_path / 'e')])
+    assert rc == 0, capsys.readouterr().err
+    assert "left out: ['cup']" in capsys.readouterr().err
+    s = json.loads((tmp_path / 'e' / 'eval.json').read_text())
+    assert s['classes'] == ['box', 'cylinder'] and s['complete']['n'] == 8
+
+
 def _box_off(path, sx, sy, sz):
     """An axis-aligned box mesh centred at the origin, as an OFF file."""
     v = [(x * sx, y * sy, z * sz) for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]
@@ -390,3 +516,34 @@ def test_eval_scans_forwards_k_and_refuses_what_it_does_not_use(monkeypatch, cap
         with pytest.raises(SystemExit):
             evaluate.main(['--scans', 'a.pcd', *extra])
         assert 'not used with --scans: ' + extra[0] in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------- beo-demo: arguments
+@pytest.mark.parametrize('extra, message', [
+    (['--views-per-class', '0'], '--views-per-class must be >= 1'),
+    (['--views-per-class', '-2'], '--views-per-class must be >= 1'),
+    (['--timeout', '-5'], '--timeout must be a finite number of seconds > 0'),
+    (['--timeout', 'nan'], '--timeout must be a finite number of seconds > 0'),
+    (['--out', 'A_FILE'], 'exists and is not a directory'),
+])
+def test_demo_bad_arguments_refused_up_front(tmp_path, capsys, extra, message):
+    from beo_ros.ros import demo
+    (tmp_path / 'a_file').write_text('x')
+    extra = [str(tmp_path / 'a_file') if a == 'A_FILE' else a for a in extra]
+    argv = extra if '--out' in extra else ['--out', str(tmp_path / 'o'), *extra]
+    with pytest.raises(SystemExit) as ei:
+        demo.main(argv)
+    assert ei.value.code == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / 'o').exists()
+
+
+def test_fit_bank_refuses_oof_path_without_classifier(tmp_path):
+    from beo_ros.core.grid import GridSpec
+    from beo_ros.core.training import fit_bank
+    X, y, names = primitive_shapes(N, 3, np.random.default_rng(0))
+    with pytest.raises(ValueError, match='oof_path needs classifier_views >= 1'):
+        fit_bank(X, y, names, GridSpec(size=N), k=2, classifier_views=0,
+                 oof_path=tmp_path / 'oof.npz')
+    with pytest.raises(ValueError, match='class names must be unique'):
+        fit_bank(X, y, ['box', 'box'], GridSpec(size=N), k=2, classifier_views=0)

@@ -154,3 +154,51 @@ def test_real_osd_scan():
     assert 0.3 < ok.mean() < 1.0
     assert np.all(xyz[ok, 2] > 0.3) and np.all(xyz[ok, 2] < 3)  # in front of the camera
     assert set(np.unique(pcd['label'])) >= {1, 20, 30}
+
+
+@pytest.mark.parametrize('kind', ['ascii', 'binary', 'binary_compressed'])
+def test_repeated_padding_fields_are_read_past(tmp_path, kind):
+    # PCL pads with fields named '_' (several of them): FIELDS x y z _ rgb _
+    rng = np.random.default_rng(4)
+    n = 5
+    xyz = rng.normal(size=(n, 3)).astype(np.float32)
+    rgb = rng.integers(0, 2 ** 32, n, dtype=np.uint64).astype(np.uint32)
+    pad1, pad2 = np.zeros((n, 4), np.uint8), np.zeros((n, 12), np.uint8)
+    header = ('VERSION 0.7\nFIELDS x y z _ rgb _\nSIZE 4 4 4 1 4 1\nTYPE F F F U U U\n'
+              f'COUNT 1 1 1 4 1 12\nWIDTH {n}\nHEIGHT 1\nPOINTS {n}\nDATA {kind}\n').encode()
+    cols = [xyz[:, 0], xyz[:, 1], xyz[:, 2], pad1, rgb, pad2]
+    if kind == 'ascii':
+        body = ''.join(' '.join([*(repr(float(v)) for v in xyz[i]), *map(str, pad1[i]),
+                                 str(rgb[i]), *map(str, pad2[i])]) + '\n'
+                       for i in range(n)).encode()
+    elif kind == 'binary':
+        rec = np.dtype([('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('p1', 'u1', (4,)),
+                        ('rgb', '<u4'), ('p2', 'u1', (12,))])
+        arr = np.empty(n, rec)
+        for k, v in zip(rec.names, cols):
+            arr[k] = v
+        body = arr.tobytes()
+    else:
+        raw = b''.join(np.ascontiguousarray(v).tobytes() for v in cols)
+        comp = lzf_compress(raw)
+        body = struct.pack('<II', len(comp), len(raw)) + comp
+    (tmp_path / 'pad.pcd').write_bytes(header + body)
+    pcd = read_pcd(tmp_path / 'pad.pcd')
+    assert list(pcd.fields) == ['x', 'y', 'z', 'rgb']
+    np.testing.assert_array_equal(pcd.xyz(), xyz)
+    np.testing.assert_array_equal(pcd['rgb'], rgb)
+    # other repeated names are still refused
+    (tmp_path / 'dup.pcd').write_bytes(header.replace(b'x y z _ rgb _', b'x y z _ x _'))
+    with pytest.raises(PCDError, match='duplicate field names'):
+        read_pcd(tmp_path / 'dup.pcd')
+
+
+def test_ascii_64_bit_integers_round_trip_exactly(tmp_path):
+    fields = {'u': np.array([2 ** 64 - 1, 0, 2 ** 53 + 1], dtype=np.uint64),
+              'i': np.array([2 ** 62 + 1, -2 ** 63, 2 ** 63 - 1], dtype=np.int64)}
+    write_pcd(tmp_path / 'big.pcd', fields, data='ascii')
+    assert_same(fields, read_pcd(tmp_path / 'big.pcd'))
+    # integral values written as floats are still accepted
+    (tmp_path / 'f.pcd').write_bytes(b'FIELDS a\nSIZE 4\nTYPE I\nWIDTH 2\nHEIGHT 1\n'
+                                     b'DATA ascii\n3.0\n-1e3\n')
+    np.testing.assert_array_equal(read_pcd(tmp_path / 'f.pcd')['a'], [3, -1000])

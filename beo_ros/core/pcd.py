@@ -2,7 +2,8 @@
 
 Supports ``DATA ascii``, ``binary`` and ``binary_compressed`` (LZF, decoded in pure Python) for
 any field layout (TYPE I/U/F, SIZE 1/2/4/8, COUNT >= 1). Organized clouds keep their
-``width``/``height``; arrays are flat in row-major order (index = row * width + col).
+``width``/``height``; arrays are flat in row-major order (index = row * width + col). Padding
+fields named ``_`` (PCL's, possibly several) are read past but not returned.
 """
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ _TYPES = {('I', 1): 'i1', ('I', 2): '<i2', ('I', 4): '<i4', ('I', 8): '<i8',
           ('U', 1): 'u1', ('U', 2): '<u2', ('U', 4): '<u4', ('U', 8): '<u8',
           ('F', 4): '<f4', ('F', 8): '<f8'}
 _MAX_HEADER_LINES = 64
+PADDING = '_'   # PCL's name for padding fields; may repeat, never returned
 
 
 class PCDError(ValueError):
@@ -28,7 +30,8 @@ class PCDData:
     """Content of one PCD file.
 
     Attributes:
-        fields: name -> array (n,) for COUNT 1 fields, (n, count) otherwise; dtype from TYPE/SIZE.
+        fields: name -> array (n,) for COUNT 1 fields, (n, count) otherwise; dtype from TYPE/SIZE
+            (padding fields ``_`` left out).
         width, height: cloud organisation (height 1 for unorganized clouds), n = width * height.
         viewpoint: (7,) float64 sensor pose ``tx ty tz qw qx qy qz``.
         data: 'ascii', 'binary' or 'binary_compressed' (how the file stored the points).
@@ -184,7 +187,8 @@ def _layout(header: dict, path) -> tuple:
     if nf == 0 or not (len(sizes) == len(types) == len(counts) == nf):
         raise PCDError(f'{path}: FIELDS/SIZE/TYPE/COUNT lengths differ '
                        f'({nf}, {len(sizes)}, {len(types)}, {len(counts)})')
-    if len(set(names)) != nf:
+    real = [nm for nm in names if nm != PADDING]
+    if len(set(real)) != len(real):
         raise PCDError(f'{path}: duplicate field names {names}')
     dtypes = []
     for name, t, s, c in zip(names, types, sizes, counts):
@@ -209,6 +213,30 @@ def _shape(arr: np.ndarray, count: int) -> np.ndarray:
     return arr if count == 1 else arr.reshape(-1, count)
 
 
+def _ascii_values(cells, dt, name, path, ncol) -> np.ndarray:
+    """Text cells (k,) of one ascii field -> (k,) array of dtype ``dt``; integers exactly
+    (64-bit ones would lose digits through float64), never wrapped or truncated."""
+    dt = np.dtype(dt)
+    try:
+        if dt.kind == 'f':
+            return cells.astype(np.float64).astype(dt)
+        try:
+            ints = [int(v) for v in cells]
+        except ValueError:   # written as floats ('3.0', '1e3'): integral values only
+            floats = cells.astype(np.float64)
+            if not (np.isfinite(floats) & (floats == np.round(floats))).all():
+                ints = None
+            else:
+                ints = [int(v) for v in floats]
+    except ValueError:
+        raise PCDError(f'{path}: ascii data rows are not {ncol} numbers each') from None
+    info = np.iinfo(dt)
+    if ints is None or (ints and not (info.min <= min(ints) and max(ints) <= info.max)):
+        raise PCDError(f'{path}: ascii field {name!r} ({dt.name}) has values that are not '
+                       f'integers in [{info.min}, {info.max}]')
+    return np.array(ints, dtype=dt)
+
+
 def read_pcd(path) -> PCDData:
     """Read a PCD file (ascii, binary or binary_compressed). Raises :class:`PCDError`."""
     path = os.fspath(path)
@@ -225,23 +253,18 @@ def read_pcd(path) -> PCDData:
         ncol = sum(counts)
         if len(lines) != n:
             raise PCDError(f'{path}: {len(lines)} ascii data lines, expected {n}')
-        try:
-            table = np.array([ln.split() for ln in lines], dtype=np.float64) if n else \
-                np.zeros((0, ncol))
+        try:   # text cells: integer fields are parsed exactly, not through float64
+            table = np.array([ln.split() for ln in lines], dtype=str) if n else \
+                np.zeros((0, ncol), dtype=str)
         except ValueError:
             raise PCDError(f'{path}: ascii data rows are not {ncol} numbers each') from None
         if table.ndim != 2 or table.shape[1] != ncol:
             raise PCDError(f'{path}: ascii data rows are not {ncol} numbers each')
         col = 0
         for name, dt, c in zip(names, dtypes, counts):
-            values = table[:, col:col + c]
-            if np.dtype(dt).kind in 'iu':   # astype would wrap or truncate silently
-                info = np.iinfo(dt)
-                if not (np.isfinite(values) & (values == np.round(values))
-                        & (values >= info.min) & (values <= info.max)).all():
-                    raise PCDError(f'{path}: ascii field {name!r} ({np.dtype(dt).name}) has '
-                                   f'values that are not integers in [{info.min}, {info.max}]')
-            fields[name] = _shape(values.astype(dt).ravel(), c)
+            if name != PADDING:
+                values = _ascii_values(table[:, col:col + c].ravel(), dt, name, path, ncol)
+                fields[name] = _shape(values, c)
             col += c
     elif kind == 'binary':
         rec = np.dtype([(f'f{i}', dt, (c,)) for i, (dt, c) in enumerate(zip(dtypes, counts))])
@@ -250,7 +273,8 @@ def read_pcd(path) -> PCDData:
             raise PCDError(f'{path}: binary data has {len(body)} bytes, expected {need}')
         arr = np.frombuffer(body, dtype=rec, count=n)
         for i, (name, c) in enumerate(zip(names, counts)):
-            fields[name] = _shape(np.ascontiguousarray(arr[f'f{i}']).ravel(), c)
+            if name != PADDING:
+                fields[name] = _shape(np.ascontiguousarray(arr[f'f{i}']).ravel(), c)
     else:
         if len(body) < 8:
             raise PCDError(f'{path}: binary_compressed data misses its size header')
@@ -264,7 +288,9 @@ def read_pcd(path) -> PCDData:
         pos = 0  # structure of arrays: all values of field 0, then field 1, ...
         for name, dt, c in zip(names, dtypes, counts):
             nbytes = dt.itemsize * c * n
-            fields[name] = _shape(np.frombuffer(raw, dtype=dt, count=c * n, offset=pos).copy(), c)
+            if name != PADDING:
+                fields[name] = _shape(np.frombuffer(raw, dtype=dt, count=c * n,
+                                                    offset=pos).copy(), c)
             pos += nbytes
     return PCDData(fields=fields, width=width, height=height, viewpoint=viewpoint, data=kind)
 

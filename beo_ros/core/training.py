@@ -45,6 +45,25 @@ def fit_class_models(X, y, names, spec, k=20, masks=None, max_iter=200, tol=1e-5
     return models
 
 
+def check_class_counts(y, names, folds=0):
+    """ValueError naming the first class of ``names`` with too few objects in labels y: a class
+    model needs 2; with ``folds`` >= 2 (out-of-fold classifier features) every fold's training
+    part needs 2 as well, i.e. the objects a class keeps when its biggest fold is held out."""
+    counts = np.bincount(np.asarray(y, dtype=int), minlength=len(names))
+    need = 2
+    if folds >= 2:   # stratified_folds holds out up to ceil(m / folds) objects of m
+        while need - -(-need // folds) < 2:
+            need += 1
+    for name, m in zip(names, counts):
+        if m < need:
+            why = (f'out-of-fold classifier features over {folds} folds need >= {need} per class '
+                   "(each fold trains class models on the other folds' objects); "
+                   + ('use 3 or more folds' if m >= 3 else
+                      'add objects, or train no classifier (views 0)')) \
+                if folds >= 2 and m >= 2 else 'a class model needs >= 2'
+            raise ValueError(f'class {name!r} has {int(m)} training objects; {why}')
+
+
 def stratified_folds(y, k, rng):
     """(m,) fold index in 0..k-1 of labels y (m,): every class dealt round-robin over the
     folds in a random order drawn from ``rng``."""
@@ -390,10 +409,16 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
     if verifier_views and (masks is not None or spec.size % 8):
         raise ValueError('the orientation verifier needs whole objects in their canonical pose '
                          f'(no masks) on a grid of a multiple of 8 (got {spec.size})')
+    if oof_path and classifier_views <= 0:
+        raise ValueError('oof_path needs classifier_views >= 1: without a classifier there are '
+                         'no out-of-fold features to save')
+    if len(set(names)) != len(names):
+        raise ValueError(f'class names must be unique, got {list(names)}')
     weights = resolve_class_prior(class_prior, names)
     cv_prior = class_prior if isinstance(class_prior, str) else weights
     X = np.asarray(X, dtype=np.float32)
     y = np.asarray(y)
+    check_class_counts(y, names, folds if classifier_views > 0 else 0)
     t0 = time.time()
     models = fit_class_models(X, y, names, spec, k, masks)
     info = dict(training or {}, k=k, n_objects=int(len(X)), folds=folds, seed=seed,
@@ -581,7 +606,10 @@ def load_voxel_npz(path, classes=None):
 
 def select_classes(X, labels, names, classes, where):
     """(X, labels, names) of only the objects of ``classes``, labels renumbered in that order;
-    ValueError naming ``where`` for a class not in ``names``."""
+    ValueError naming ``where`` for a class not in ``names`` or given twice."""
+    twice = sorted({c for c in classes if list(classes).count(c) > 1})
+    if twice:
+        raise ValueError(f'{where}: classes {twice} given more than once')
     keep = [names.index(c) if c in names else None for c in classes]
     missing = [c for c, k in zip(classes, keep) if k is None]
     if missing:

@@ -42,6 +42,7 @@ import argparse
 import contextlib
 import importlib
 import json
+import math
 import os
 import re
 import signal
@@ -76,12 +77,16 @@ def normalize_msgtype(name: str) -> str:
 
 
 def import_msg_class(msgtype: str):
-    """The rclpy message class of 'pkg/msg/Type'."""
+    """The rclpy message class of 'pkg/msg/Type'; ``KeyError`` naming it if not installed."""
     pkg, _, name = normalize_msgtype(msgtype).split('/')
     if pkg == 'beo_interfaces':
         from beo_ros.ros.env import ensure_ament_prefix
         ensure_ament_prefix()
-    return getattr(importlib.import_module(f'{pkg}.msg'), name)
+    try:
+        return getattr(importlib.import_module(f'{pkg}.msg'), name)
+    except (ImportError, AttributeError):
+        raise KeyError(f'message type {pkg}/msg/{name} is not installed (no Python module '
+                       f'{pkg}.msg with {name})') from None
 
 
 def msgtype_of(msg) -> str:
@@ -334,6 +339,7 @@ class ReplayStats:
     waited_s: float = 0.0               # time spent in --wait-subscribers
     interrupted: bool = False
     topics: dict = field(default_factory=dict)   # published topic -> TopicStats
+    skipped: dict = field(default_factory=dict)  # bag topic -> type not installed (all_topics)
 
     @property
     def messages_per_s(self) -> float:
@@ -358,6 +364,9 @@ class ReplayStats:
         lines.append(f'{self.messages} messages, {self.bytes / 1e6:.2f} MB in {self.wall_s:.3f} s '
                      f'(bag span {self.bag_span_s:.3f} s, rate {rate}, {self.loops} pass(es)'
                      f'{", interrupted" if self.interrupted else ""})')
+        if self.skipped:
+            lines.append(f'{len(self.skipped)} topic(s) skipped, type not installed: '
+                         + ', '.join(f'{t} ({m})' for t, m in self.skipped.items()))
         return '\n'.join(lines)
 
 
@@ -419,8 +428,9 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
         bag_path: rosbag2 directory (sqlite3 or mcap) or a single ``.db3``/``.mcap`` file.
         node: an rclpy Node; it need not be spun (publishing does not need an executor). Its
             publishers are created on first use and reused by later replays with that node.
-        topics: bag topics to play (any type); default: every PointCloud2 topic, or every topic
-            with ``all_topics``.
+        topics: bag topics to play (any type; ``KeyError`` if one's type is not installed);
+            default: every PointCloud2 topic, or every topic with ``all_topics`` (topics of
+            types not installed are then skipped, listed in ``stats.skipped``).
         remap: ``{bag_topic: published_topic}`` or a list of ``'OLD:=NEW'`` strings.
         rate: timing factor: a message is sent at ``t0 + (stamp - first_stamp) / rate``; ``0``
             publishes as fast as possible.
@@ -432,8 +442,8 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
         on_publish: ``callable(published_topic, raw_bytes, bag_stamp_ns)`` after every publish.
     """
     from rosbags.rosbag2 import Reader
-    if rate < 0:
-        raise ValueError(f'rate must be >= 0, got {rate}')
+    if not (math.isfinite(rate) and rate >= 0):
+        raise ValueError(f'rate must be a finite number >= 0, got {rate}')
     remap = parse_remaps(remap) if isinstance(remap, (list, tuple)) else dict(remap or {})
     bag_path = Path(bag_path)
     n_passes = loops if loops is not None else (None if loop else 1)
@@ -451,10 +461,19 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
         else:
             conns = [c for c in reader.connections if c.msgtype == CLOUD_TYPE]
         pubs, pub_by_out = {}, {}
-        for c in conns:
+        for c in list(conns):
             out = remap.get(c.topic, c.topic)
-            if c.topic not in pubs:
-                pubs[c.topic] = _publisher(node, c.msgtype, out, qos, depth)
+            if c.topic in stats.skipped:
+                conns.remove(c)
+            elif c.topic not in pubs:
+                try:
+                    pubs[c.topic] = _publisher(node, c.msgtype, out, qos, depth)
+                except KeyError:   # type not installed: fatal only for a topic asked for
+                    if topics:
+                        raise
+                    stats.skipped[c.topic] = c.msgtype
+                    conns.remove(c)
+                    continue
                 pub_by_out.setdefault(out, pubs[c.topic])
                 stats.topics.setdefault(out, TopicStats(out, c.topic, c.msgtype))
         if not conns:
@@ -606,13 +625,17 @@ def record(node, bag_path, topics, *, storage: str = 'sqlite3', wait: float = 10
         ready: set once all subscriptions exist (useful to start publishers in tests).
     Messages are stored as received (raw CDR), stamped with the node clock at receipt. A topic is
     subscribed once it has a publisher (typed topics may have none yet), with reliability and
-    durability adapted to what its publishers offer.
+    durability adapted to what its publishers offer. ``KeyError``, before the bag is created,
+    for a type without a definition or Python module.
     """
     from rclpy.executors import SingleThreadedExecutor
     if isinstance(topics, (list, tuple)):
         topics = parse_topic_specs(topics)
     stop = stop or threading.Event()
     topics = resolve_topic_types(node, dict(topics), wait, stop)
+    for typ in set(topics.values()):   # before the bag exists: a bad type leaves no bag
+        get_typestore([typ])
+        import_msg_class(typ)
     stats = RecordStats(bag=str(bag_path), storage=storage)
     writer = BagWriter(bag_path, storage)
     own_exec = executor is None
@@ -791,7 +814,8 @@ def _cli_node(name):
     _ros_setup()
     import rclpy
     stop = threading.Event()
-    rclpy.init(args=None, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+    # no command-line arguments: rcl would take the tool's own ones (-r OLD:=NEW) as remap rules
+    rclpy.init(args=[], signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
     node = rclpy.create_node(name)
     _install_sigint(stop)
     try:
@@ -824,8 +848,12 @@ def replay_main(argv=None) -> int:
     p.add_argument('--node-name', default='beo_replay')
     p.add_argument('--json', action='store_true', help='print the report as JSON')
     args = p.parse_args(argv)
-    if args.rate < 0:
-        p.error('--rate must be >= 0')
+    if not (math.isfinite(args.rate) and args.rate >= 0):
+        p.error(f'--rate must be a finite number >= 0, got {args.rate:g}')
+    if args.depth < 1:
+        p.error(f'--depth must be >= 1, got {args.depth}')
+    if args.wait_subscribers < 0:
+        p.error(f'--wait-subscribers must be >= 0, got {args.wait_subscribers}')
     try:
         remap = parse_remaps(args.remap)
     except ValueError as e:
@@ -841,6 +869,9 @@ def replay_main(argv=None) -> int:
                            depth=args.depth, wait_subscribers=args.wait_subscribers,
                            wait_timeout=args.wait_timeout, stop=stop)
             time.sleep(0.2)  # let reliable transports drain before the publishers go away
+            for topic, typ in stats.skipped.items():
+                print(f'beo-replay: warning: skipping {topic}: message type {typ} is not '
+                      'installed', file=sys.stderr)
             print(json.dumps(stats.to_dict(), indent=2) if args.json else stats.table())
             if stats.messages == 0 and not stats.interrupted:
                 print('beo-replay: nothing to play (no matching topics)', file=sys.stderr)

@@ -115,7 +115,7 @@ def run_node_on_bag(bag_path, model_dir, bank, up, origin, timeout: float = 120.
     from beo_ros.ros.node import BeoNode, drain_executor
     msgs = interfaces()
     ctx = rclpy.Context()
-    rclpy.init(context=ctx)
+    rclpy.init(args=[], context=ctx)   # not sys.argv: no remap rules from the command line
     estimates, completed = {}, {}
     lock = threading.Lock()
     got = threading.Condition(lock)
@@ -259,6 +259,12 @@ def main(argv=None) -> int:
     p.add_argument('--timeout', type=float, default=120.0,
                    help='seconds to wait for each estimate (default 120)')
     args = p.parse_args(argv)
+    if args.views_per_class < 1:
+        p.error(f'--views-per-class must be >= 1, got {args.views_per_class}')
+    if not (math.isfinite(args.timeout) and args.timeout > 0):
+        p.error(f'--timeout must be a finite number of seconds > 0, got {args.timeout:g}')
+    if Path(args.out).exists() and not Path(args.out).is_dir():
+        p.error(f'--out {args.out}: exists and is not a directory')
     t_start = time.monotonic()
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'OFF')
     from beo_ros.ros.env import ensure_ament_prefix
@@ -273,7 +279,10 @@ def main(argv=None) -> int:
         return 2
     print(f'model: {model_dir} ({len(bank.classes)} classes: {", ".join(bank.classes)})')
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        p.error(f'--out {out}: cannot make the output directory ({e.strerror or e})')
 
     spec = bank.spec   # render at the model's scale: a metric grid spans size * voxel_size
     size = spec.size * spec.voxel_size if spec.units == 'metric' else 1.0
