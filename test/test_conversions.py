@@ -142,6 +142,10 @@ def test_duplicate_fields_other_than_xyz_are_ignored(pts):
     msg = hand_cloud(pts, [('x', 0, F32), ('y', 4, F32), ('z', 8, F32)], 20)
     msg.fields += [PointField(name='_', offset=o, datatype=F32, count=1) for o in (12, 16)]
     np.testing.assert_allclose(cloud_to_xyz(msg)[0], pts, atol=1e-6)
+    # names that are substrings of 'xyz' are other fields too
+    for name in ('', 'xy', 'yz'):
+        msg.fields[3].name = msg.fields[4].name = name
+        np.testing.assert_allclose(cloud_to_xyz(msg)[0], pts, atol=1e-6)
 
 
 def _good(pts):

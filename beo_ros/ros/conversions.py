@@ -61,7 +61,8 @@ def cloud_to_xyz(msg: PointCloud2):
     n_points = height * width
     fields = {}
     for f in msg.fields:
-        if f.name in fields and f.name in 'xyz':   # others are ignored (PCD pads with '_')
+        # only x, y, z must be unique (PCD pads with repeated '_' fields, others are ignored)
+        if f.name in fields and f.name in ('x', 'y', 'z'):
             raise CloudFormatError(f'PointCloud2 has duplicate field {f.name!r}')
         fields.setdefault(f.name, f)
     missing = [k for k in 'xyz' if k not in fields]

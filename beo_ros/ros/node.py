@@ -35,6 +35,7 @@ from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescr
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
 from rclpy.time import Time
 from sensor_msgs.msg import PointCloud2
@@ -215,6 +216,7 @@ class BeoNode(Node):
             self.get_logger().info(f"loaded models from '{model_dir}': classes {bank.classes}")
         self._base_bank = bank  # as loaded: the class_prior parameter is applied to a copy
         self._serving_base = bank   # the models the estimates use now (a reload may be pending)
+        self._serving_dir = self.get_parameter('model_dir').value   # the directory they came from
         try:
             bank = with_class_prior(bank, self.get_parameter('class_prior').value)
         except ValueError as e:
@@ -229,6 +231,8 @@ class BeoNode(Node):
                 raise StartupError(f'cannot start {self._n_procs} worker process(es) '
                                    f'({type(e).__name__}: {e}); a script that creates the '
                                    "node needs the if __name__ == '__main__': guard") from e
+            if not self.context.ok():   # shut down by a signal during the seconds that took
+                raise ExternalShutdownException()
             self.get_logger().info(f'{self._n_procs} worker process(es) ready in '
                                    f'{time.monotonic() - t0:.1f} s')
 
@@ -237,7 +241,7 @@ class BeoNode(Node):
             'received', 'processed', 'dropped_stale', 'order_waits', 'rejected',
             'rejected_format',
             'rejected_too_few_points', 'errors', 'downsampled', 'nonfinite_points',
-            'service_calls', 'service_failures', 'worker_restarts')})
+            'service_calls', 'service_failures', 'worker_restarts', 'dropped_shutdown')})
         self._latency = collections.defaultdict(lambda: collections.deque(maxlen=LATENCY_WINDOW))
         self._last_diag = (time.monotonic(), collections.Counter(self._counters))
 
@@ -399,9 +403,21 @@ class BeoNode(Node):
             if reason:
                 return SetParametersResult(successful=False, reason=reason)
         new = {p.name: p.value for p in params}
-        reload = 'model_dir' in new and new['model_dir'] != self.get_parameter('model_dir').value
+        # against the models answering (a failed background reload leaves the old ones)
+        reload = 'model_dir' in new and new['model_dir'] != self._serving_dir
         reprior = ('class_prior' in new
                    and new['class_prior'] != self.get_parameter('class_prior').value)
+        if ('model_dir' in new and not reload
+                and new['model_dir'] != self.get_parameter('model_dir').value):
+            # back to the models answering while a reload is starting (or after it failed):
+            # that reload is cancelled
+            try:
+                with_class_prior(self._serving_base, merged['class_prior'])
+            except ValueError as e:
+                return SetParametersResult(successful=False, reason=str(e))
+            with self._bank_lock:
+                self._reload_gen += 1
+                self._base_bank = self._serving_base
         if reload or reprior:
             try:
                 base = load_bank(new['model_dir']) if reload else self._base_bank
@@ -426,6 +442,7 @@ class BeoNode(Node):
                         except ValueError:  # names the classes of a reload still starting:
                             pass            # it applies the prior when it switches
             if reload and not self._n_procs:
+                self._serving_dir = new['model_dir']
                 self.get_logger().info(f"reloaded models from '{new['model_dir']}'")
             self.get_logger().info(f'class prior: {prior_text(bank)}')
         if 'diagnostics_period' in new:  # re-timing (not re-creating) is safe while spinning
@@ -484,6 +501,9 @@ class BeoNode(Node):
             try:
                 self._process(topic, msg, t_recv, ticket)
             except Exception as e:  # never let one cloud kill the worker
+                if self._shutting_down():   # e.g. published after a signal shut rclpy down
+                    self._count('dropped_shutdown')
+                    continue
                 self._count('errors')
                 self.get_logger().error(f'estimation failed for a cloud on {topic}: '
                                         f'{type(e).__name__}: {e}',
@@ -491,6 +511,10 @@ class BeoNode(Node):
             finally:
                 with self._cond:
                     self._in_flight -= 1
+
+    def _shutting_down(self) -> bool:
+        """destroy_node has begun, or the context was shut down (e.g. by a signal)."""
+        return self._stop or not self.context.ok()
 
     def _wait_turn(self, topic, ticket) -> float:
         """Block until every earlier cloud of ``topic`` is published or given up; returns the
@@ -626,7 +650,8 @@ class BeoNode(Node):
     def _replace_broken_pool(self, broken, err):
         """Replace ``broken`` (unless another worker already did); counted in worker_restarts."""
         with self._pool_lock:
-            if self._pool is not broken or self._pool_closed:
+            # a signal to the process group also ends the worker processes: no restart then
+            if self._pool is not broken or self._pool_closed or self._shutting_down():
                 return
             self._count('worker_restarts')
             self.get_logger().error(f'a worker process died ({err}); restarting the '
@@ -646,7 +671,15 @@ class BeoNode(Node):
             self._count('errors')
             self.get_logger().error(f"worker processes cannot load the models of '{model_dir}' "
                                     f'({type(e).__name__}: {e}); the previous models still '
-                                    'answer')
+                                    f"answer and model_dir goes back to '{self._serving_dir}'")
+            with self._bank_lock:
+                if gen != self._reload_gen or self._pool_closed:
+                    return
+                # class_prior is checked against _base_bank: the models answering again
+                self._base_bank = self._serving_base
+            # not a reload: it names the models answering (see _on_set_parameters)
+            self.set_parameters([Parameter('model_dir', Parameter.Type.STRING,
+                                           self._serving_dir)])
             return
         with self._pool_lock:
             if self._pool_closed or gen != self._reload_gen:
@@ -657,6 +690,7 @@ class BeoNode(Node):
                 except ValueError:   # checked against these models when it was set
                     bank = base
                 old, self._pool, self._bank, self._serving_base = self._pool, new, bank, base
+                self._serving_dir = model_dir
         if old is not None:
             old.shutdown(timeout=None)
         if old is not new:
@@ -697,6 +731,9 @@ class BeoNode(Node):
             status = self._status(est, p['completion_threshold'])
             completed = completed_cloud(est, header) if p['publish_completed'] else None
             waited = self._wait_turn(topic, ticket)
+            if not self.context.ok():   # a signal shut rclpy down meanwhile: nothing to send on
+                self._count('dropped_shutdown')
+                return
             t3 = time.monotonic()
             out = estimate_to_msg(est, header, topic, t3 - t_recv, include_cloud=False,
                                   status=status, class_names=classes)
@@ -869,6 +906,10 @@ class BeoNode(Node):
         self._shutdown_worker()
         self._shutdown_pool()
         self._restore_blas()
+        lost = self._counters['dropped_shutdown']
+        if lost:   # not on the node's logger: its /rosout publisher may be gone with the context
+            rclpy.logging.get_logger(f'{self.get_name()}.shutdown').info(
+                f'{lost} cloud(s) estimated while shutting down were not published')
         super().destroy_node()
 
 
@@ -923,6 +964,11 @@ def main(args=None):
     except StartupError as e:
         rclpy.logging.get_logger('beo').fatal(f'cannot start: {e}')
         failed = True
+    except Exception:
+        if rclpy.ok():
+            raise
+        # a signal shut rclpy down while the node was starting (e.g. creating a publisher on
+        # the dead context): a normal shutdown
     finally:
         if executor is not None:
             drain_executor(executor)

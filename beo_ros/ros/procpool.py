@@ -87,7 +87,8 @@ class EstimatorPool:
         timeout: seconds to wait for the processes to be ready.
 
     Raises:
-        RuntimeError: the processes did not start (BrokenProcessPool) or not in time.
+        BrokenProcessPool (a RuntimeError): the processes did not start;
+        TimeoutError: not within ``timeout``.
     """
 
     def __init__(self, n: int, bank, blas_threads: int = 1, timeout: float = 120.0):
