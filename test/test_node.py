@@ -455,6 +455,34 @@ def test_only_latest_cloud_per_topic_is_kept(harness1):
     assert not node._slots
 
 
+def test_cloud_in_flight_when_rclpy_shuts_down_is_counted_not_an_error(harness1):
+    """A signal shuts the context down while a cloud is estimated (then destroy_node): the
+    result is counted as dropped_shutdown, not logged as an estimation error."""
+    harness = harness1
+    node, gated, msg = _gated_node(harness, 1)
+    try:
+        node._on_cloud(msg, '/beo/input')
+        gated.wait(lambda g: len(g.entered) == 1)
+        harness.stop.set()        # the executor thread stops spinning, as main's would
+        harness.thread.join(timeout=5.0)
+        node.context.shutdown()
+    finally:
+        gated.gate.set()
+    c = harness.wait_counter(lambda c: c['dropped_shutdown'] == 1)
+    assert c['errors'] == 0 and c['processed'] == 0
+
+    class DeadPool:   # the worker processes died with the signal: no restart now
+        def shutdown(self, timeout=None):
+            raise AssertionError('restarted while shutting down')
+
+    node._pool = dead = DeadPool()
+    try:
+        node._replace_broken_pool(dead, RuntimeError('terminated abruptly'))
+        assert node._pool is dead and node.counters()['worker_restarts'] == 0
+    finally:
+        node._pool = None
+
+
 def test_two_workers_keep_latest_cloud_and_in_flight_limit(harness2):
     """Two workers busy with two clouds of one topic: a third waits, newer ones replace it."""
     harness = harness2
