@@ -322,7 +322,7 @@ def _replay_probe(cfg_json=None):
     from beo_ros.ros.bag import replay
     from beo_ros.ros.conversions import interfaces
     ctx = Context()
-    rclpy.init(context=ctx, domain_id=int(cfg['domain']))
+    rclpy.init(args=[], context=ctx, domain_id=int(cfg['domain']))
     node = rclpy.create_node('beo_bench_player', context=ctx)
     sent, got = {}, {}
     lock = threading.Lock()
@@ -410,7 +410,7 @@ def node_bench(bank, X, y, n, idx, args, rng):
     _write_node_bag(bag_path, clouds, n_msgs, xyz_to_cloud, Header, TimeMsg)
 
     ctx = Context()
-    rclpy.init(context=ctx, domain_id=domain)
+    rclpy.init(args=[], context=ctx, domain_id=domain)
     node = client = executor = None
     try:
         overrides = [Parameter('input_topics', value=['/beo/input'])]

@@ -801,3 +801,39 @@ def test_help_prints_usage_without_starting_the_node(capsys, monkeypatch):
         node_mod.main(argv)
         out = capsys.readouterr().out
         assert out.startswith('usage: beo-node') and 'config/beo.yaml' in out
+
+
+def test_up_vector_from_tf_when_tf2_ros_is_there(ros_context, ros_tiny_model_dir, monkeypatch):
+    """With base_frame set and tf2_ros importable (faked here: it is not on PyPI), the node
+    listens from the start and takes up = +z of base_frame in the cloud's frame."""
+    import types
+
+    import beo_ros.ros.node as node_mod
+    from beo_ros.ros.node import BeoNode, InputRejected
+
+    s = np.sqrt(0.5)   # base_frame turned 90 deg about x: its +z is -y of the camera frame
+    lookups = []
+
+    class Buffer:
+        def lookup_transform(self, target, source, when):
+            lookups.append((target, source))
+            if target != 'camera':
+                raise LookupError(f'no frame {target}')
+            rot = types.SimpleNamespace(x=s, y=0.0, z=0.0, w=s)
+            return types.SimpleNamespace(transform=types.SimpleNamespace(rotation=rot))
+
+    listeners = []
+    fake = types.SimpleNamespace(Buffer=Buffer,
+                                 TransformListener=lambda buf, node: listeners.append(buf))
+    monkeypatch.setattr(node_mod, 'tf2_ros', fake)
+    node = BeoNode(context=ros_context, parameter_overrides=[
+        Parameter('model_dir', value=ros_tiny_model_dir), Parameter('base_frame', value='base')])
+    try:
+        assert len(listeners) == 1          # listening before the first cloud
+        _, _, up = node._prepare(cloud(box_view()), node._params())
+        np.testing.assert_allclose(up, [0.0, -1.0, 0.0], atol=1e-12)
+        assert lookups == [('camera', 'base')]
+        with pytest.raises(InputRejected, match='no transform base -> lidar'):
+            node._prepare(cloud(box_view(), frame='lidar'), node._params())
+    finally:
+        node.destroy_node()

@@ -251,6 +251,11 @@ class BeoNode(Node):
         if self.get_parameter('base_frame').value and tf2_ros is None:
             self.get_logger().warning('base_frame is set but tf2_ros is not installed; using the '
                                       'sensor_origin and up_vector parameters')
+        elif self.get_parameter('base_frame').value:
+            # listening from the start: created on the first cloud, the buffer would still be
+            # empty for it and the next few (rejected: no transform)
+            self._tf_buffer = tf2_ros.Buffer()
+            self._tf_listener = tf2_ros.TransformListener(self._tf_buffer, self)
 
         sub_group = MutuallyExclusiveCallbackGroup()
         self._svc_group = ReentrantCallbackGroup()
