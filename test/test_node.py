@@ -774,6 +774,31 @@ def test_killed_worker_process_is_replaced(harness_procs):
     assert c['errors'] == 0 and c['service_failures'] == 0 and not any(map(_alive, new))
 
 
+def test_hung_worker_process_times_out_and_is_replaced(harness_procs):
+    """A worker process that stops answering (SIGSTOP): after estimate_timeout its processes
+    are killed and restarted, the cloud counted as an error, and the stream goes on."""
+    import signal
+    harness = harness_procs
+    node = harness.node
+    assert node.wait_ready(TIMEOUT)
+    assert node.set_parameters([Parameter('estimate_timeout', value=1.0)])[0].successful
+    old = list(node._pool.pids)
+    for pid in old:   # both: whichever gets the cloud hangs
+        os.kill(pid, signal.SIGSTOP)
+    node._on_cloud(cloud(box_view()), '/beo/input')
+    c = harness.wait_counter(lambda c: c['worker_timeouts'] == 1 and c['worker_restarts'] == 1
+                             and c['errors'] == 1)
+    assert c['processed'] == 0
+    new = list(node._pool.pids)
+    assert len(new) == 2 and set(new).isdisjoint(old)
+    end = time.monotonic() + TIMEOUT
+    while any(map(_alive, old)) and time.monotonic() < end:
+        time.sleep(0.05)
+    assert not any(map(_alive, old))
+    harness.wait('estimates', republish=cloud(box_view()))
+    assert node.counters()['worker_timeouts'] == 1
+
+
 def test_worker_processes_stop_with_the_node(ros_context, ros_tiny_model_dir):
     from beo_ros.ros.node import BeoNode
     model_dir = ros_tiny_model_dir

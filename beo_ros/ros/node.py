@@ -46,7 +46,8 @@ from beo_ros.core.bank import parse_class_prior
 from beo_ros.core.voxelize import MAX_COORDINATE
 from beo_ros.ros.conversions import (CloudFormatError, cloud_to_xyz, completed_cloud,
                                      estimate_to_msg, interfaces, object_dimensions)
-from beo_ros.ros.procpool import BrokenProcessPool, EstimatorPool, PoolRetired, warm_up_points
+from beo_ros.ros.procpool import (BrokenProcessPool, EstimateTimeout, EstimatorPool, PoolRetired,
+                                  warm_up_points)
 
 try:  # optional: TF gives the up vector when base_frame is set
     import tf2_ros
@@ -241,7 +242,8 @@ class BeoNode(Node):
             'received', 'processed', 'dropped_stale', 'order_waits', 'rejected',
             'rejected_format',
             'rejected_too_few_points', 'errors', 'downsampled', 'nonfinite_points',
-            'service_calls', 'service_failures', 'worker_restarts', 'dropped_shutdown')})
+            'service_calls', 'service_failures', 'worker_restarts', 'worker_timeouts',
+            'dropped_shutdown')})
         self._latency = collections.defaultdict(lambda: collections.deque(maxlen=LATENCY_WINDOW))
         self._last_diag = (time.monotonic(), collections.Counter(self._counters))
 
@@ -372,6 +374,10 @@ class BeoNode(Node):
                                         'copy of the models (0: in the worker threads); '
                                         'several estimate in parallel without sharing the '
                                         "node's GIL. Read-only", 0, 64, read_only=True))
+        d('estimate_timeout', 30.0, _fdesc(
+            'Seconds a worker process may take for one estimate (worker_processes > 0 only): '
+            'after that its processes are taken for hung, killed and restarted, and the cloud '
+            'counted in errors and worker_timeouts; 0: no limit', 0.0, 3600.0))
         d('blas_threads', 1, _idesc('Threads of the BLAS library for the node process and '
                                     'each worker process (0: leave its default); parallelism '
                                     'comes from the workers. Read-only', 0, 64, read_only=True))
@@ -380,7 +386,8 @@ class BeoNode(Node):
         return {p: self.get_parameter(p).value for p in (
             'model_dir', 'base_frame', 'sensor_origin', 'up_vector', 'yaw_step_deg',
             'min_points', 'max_points', 'completion_threshold', 'publish_completed',
-            'class_prior', 'diagnostics_period', 'workers', 'worker_processes', 'blas_threads')}
+            'class_prior', 'diagnostics_period', 'workers', 'worker_processes', 'blas_threads',
+            'estimate_timeout')}
 
     @staticmethod
     def _check(name, value, merged) -> str | None:
@@ -616,7 +623,8 @@ class BeoNode(Node):
         try:
             if self._n_procs:
                 try:
-                    return self._pool_estimate(pts, origin, up, p['yaw_step_deg'], threshold)
+                    return self._pool_estimate(pts, origin, up, p['yaw_step_deg'], threshold,
+                                               timeout=p['estimate_timeout'] or None)
                 except ValueError as e:
                     raise InputRejected(f'estimator rejected the cloud: {e}') from e
             bank = self._bank  # one bank per estimate, even if model_dir is reloaded meanwhile
@@ -629,9 +637,11 @@ class BeoNode(Node):
         finally:
             self._est_slots.release()
 
-    def _pool_estimate(self, *args):
+    def _pool_estimate(self, *args, timeout=None):
         """Estimate in a worker process -> (Estimate, class names). A dead process breaks the
-        pool: it is replaced and the cloud tried once more (it may not be the cloud's fault)."""
+        pool: it is replaced and the cloud tried once more (it may not be the cloud's fault).
+        No answer within ``timeout`` s: the processes are killed and replaced, and the cloud
+        is not tried again (it may be what hangs them); counted in worker_timeouts."""
         retried = False
         for _ in range(8):
             with self._pool_lock:   # the pool and the prior of the bank it serves, together
@@ -639,7 +649,11 @@ class BeoNode(Node):
             if pool is None:
                 raise RuntimeError('the worker processes are shut down')
             try:
-                return pool.estimate(*args, class_prior=prior)
+                return pool.estimate(*args, class_prior=prior, timeout=timeout)
+            except EstimateTimeout as e:
+                self._count('worker_timeouts')
+                self._replace_broken_pool(pool, e)
+                raise
             except PoolRetired as e:  # not sent: the pool broke earlier, or a reload replaced it
                 if pool.broken:
                     self._replace_broken_pool(pool, e)

@@ -17,7 +17,8 @@ from concurrent.futures.process import BrokenProcessPool
 
 import numpy as np
 
-__all__ = ['BrokenProcessPool', 'EstimatorPool', 'PoolRetired', 'warm_up_points']
+__all__ = ['BrokenProcessPool', 'EstimateTimeout', 'EstimatorPool', 'PoolRetired',
+           'warm_up_points']
 
 _bank = None         # this worker process's bank
 _blas_limits = None  # kept alive: threadpoolctl restores the limits when it is collected
@@ -26,6 +27,11 @@ _blas_limits = None  # kept alive: threadpoolctl restores the limits when it is 
 class PoolRetired(RuntimeError):
     """The estimate was not sent: the pool was shut down (model reload, node shutdown) or was
     already broken."""
+
+
+class EstimateTimeout(TimeoutError):
+    """An estimate took longer than its timeout: the pool's processes were killed (the pool is
+    broken; estimates waiting on it get BrokenProcessPool)."""
 
 
 def warm_up_points() -> np.ndarray:
@@ -115,12 +121,16 @@ class EstimatorPool:
                 pids.add(f.result(timeout=max(deadline - time.monotonic(), 0.01)))
         return sorted(pids)
 
-    def estimate(self, points, origin, up, yaw_step_deg, threshold, class_prior=None):
+    def estimate(self, points, origin, up, yaw_step_deg, threshold, class_prior=None,
+                 timeout=None):
         """Estimate one cloud in a worker process (blocks) -> (Estimate, class names);
         ``class_prior`` as for ``ModelBank.class_prior`` (None: the bank's own).
 
         Raises ValueError from the core as is, BrokenProcessPool when a process died while the
-        estimate was queued or running, PoolRetired when it could not be sent.
+        estimate was queued or running, PoolRetired when it could not be sent,
+        EstimateTimeout when no answer came within ``timeout`` seconds (None: no limit): a
+        process that hangs (e.g. stopped, or deadlocked in a library) would otherwise hold
+        the calling thread forever, so all processes are killed.
         """
         try:
             future = self._pool.submit(_estimate, np.ascontiguousarray(points, np.float64),
@@ -132,7 +142,21 @@ class EstimatorPool:
             if self._closed:
                 raise PoolRetired('the estimator pool was shut down') from e
             raise
-        return future.result()
+        try:
+            return future.result(timeout=timeout)
+        except TimeoutError:
+            if future.done():   # finished right at the deadline
+                return future.result()
+            self.kill()
+            raise EstimateTimeout(f'no answer from the worker processes within {timeout:g} s; '
+                                  'they were killed') from None
+
+    def kill(self):
+        """Kill the processes at once (SIGKILL: also ends a stopped or hung process); the pool
+        is broken afterwards."""
+        for p in list((getattr(self._pool, '_processes', None) or {}).values()):
+            if p.is_alive():
+                p.kill()
 
     @property
     def broken(self) -> bool:
