@@ -3,12 +3,13 @@ exact posterior formula, load errors, classifier and the point-cloud entry point
 import dataclasses
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from beo_ros.core.bank import ModelBank, ModelError, load_models
-from beo_ros.core.grid import rotate_grid, yaw_source_index
+from beo_ros.core.grid import rotate_grid, yaw_error, yaw_source_index
 from beo_ros.core.inference import InferenceEngine
 from beo_ros.core.synthetic import (make_tiny_bank, partial_view, primitive_shapes,
                                     render_view_points)
@@ -617,6 +618,53 @@ def test_estimate_points_pose_and_points(tiny):
     assert len(e.completed_probability) == len(e.completed_points)
     assert e.completed_probability.min() >= 0.5
     assert 'voxelize' in e.timings and e.label in tiny.classes + ['unknown']
+
+
+def test_estimate_points_heading_is_the_same_from_every_side(tiny):
+    # yaw is in the grid frame, whose x axis follows the bearing from the sensor; yaw +
+    # heading_offset is the heading in the input frame (here up = +z: from the x axis)
+    occ = tiny.models[0].mean.reshape((N,) * 3) > 0.5        # a box, 180 deg symmetric
+    yaws, headings = [], []
+    for az in (0.3, 1.5, 2.8, 4.0):
+        pts, origin = render_view_points(occ, 0.5, az, np.deg2rad(30), distance=2.0, size=0.4)
+        e = tiny.estimate_points(pts, sensor_origin=origin)
+        h = e.yaw + e.heading_offset
+        pose_heading = np.arctan2(e.pose[1, 0], e.pose[0, 0])
+        assert np.rad2deg(yaw_error(h, pose_heading)) < 1e-6
+        yaws.append(e.yaw)
+        headings.append(h)
+    # up to the box's half turn, three of the four views agree with the true 0.5 rad
+    off = [min(yaw_error(h, 0.5), yaw_error(h, 0.5 + np.pi)) for h in headings]
+    assert np.sum(np.rad2deg(off) < 15) >= 3, np.rad2deg(headings).round()
+    # while the grid-frame yaws follow the sensor around
+    assert np.ptp(np.rad2deg(np.mod(yaws, np.pi))) > 60
+
+
+def test_heading_offset_for_a_camera_frame():
+    from beo_ros.core.bank import heading_offset
+    # optical frame, level: up = -y; reference axis = x (horizontal); the grid x axis along
+    # the optical z axis (straight ahead) is a quarter turn from x about up (-y x x = +z)
+    R = np.column_stack([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    assert np.rad2deg(heading_offset(R, (0.0, -1.0, 0.0))) == pytest.approx(90.0)
+    # x along up: the y axis is the reference
+    R = np.column_stack([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+    assert heading_offset(R, (2.0, 0.0, 0.0)) == pytest.approx(0.0)
+
+
+def test_pose_centre_is_the_middle_of_a_short_object_on_a_bottom_grid():
+    # the tabletop model's grids sit on the support ('bottom'): the grid centre is 0.24 m up,
+    # above this 0.12 m box; the pose is at the middle of the completed box
+    import beo_ros
+    bank = beo_ros.load_models(Path(__file__).resolve().parents[1] / 'models' / 'tabletop_32')
+    assert bank.spec.anchor == 'bottom'
+    rng = np.random.default_rng(0)
+    L, W, H = 0.16, 0.10, 0.12
+    top = np.c_[rng.uniform(-L / 2, L / 2, 800), rng.uniform(-W / 2, W / 2, 800),
+                np.full(800, H)]
+    front = np.c_[np.full(800, -L / 2), rng.uniform(-W / 2, W / 2, 800), rng.uniform(0, H, 800)]
+    e = bank.estimate_points(np.r_[top, front], sensor_origin=(-0.8, 0.0, 0.5))
+    assert abs(e.pose[2, 3] - H / 2) < 0.03, e.pose[:3, 3]
+    assert np.linalg.norm(e.pose[:2, 3]) < 0.03, e.pose[:3, 3]
 
 
 @pytest.mark.parametrize('threshold', [float('nan'), 0.0, -1.0, 1.5])

@@ -262,3 +262,9 @@ def test_estimate_to_msg():
     assert m.completed_cloud.width == 3 and m.completed_cloud.header.frame_id == 'cam'
     m2 = conv.estimate_to_msg(est, h, '/in', 0.0, include_cloud=False)
     assert m2.completed_cloud.width == 0 and list(m2.class_names) == ['chair', 'table']
+    # yaws from estimate_points are in the grid frame: the message has headings in its frame
+    est.heading_offset = 3.0
+    m3 = conv.estimate_to_msg(est, h)
+    np.testing.assert_allclose([hh.yaw for hh in m3.hypotheses],
+                               [3.5 - 2 * np.pi, 4.0 - 2 * np.pi], atol=1e-9)
+    np.testing.assert_allclose(m3.symmetric_yaws, [3.5 - np.pi], rtol=1e-6)

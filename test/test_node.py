@@ -725,20 +725,20 @@ def test_failed_reload_keeps_the_old_worker_processes(harness_procs, tmp_path, m
     harness.wait_counter(lambda c: c['errors'] == 1)
     assert list(node._pool.pids) == old
     assert harness.call(harness.classify, harness.good_request()).success
-    # model_dir names the models answering again, and a prior for them is accepted
-    end = time.monotonic() + TIMEOUT
-    while node.get_parameter('model_dir').value != model_dir and time.monotonic() < end:
-        time.sleep(0.01)
-    assert node.get_parameter('model_dir').value == model_dir
+    # a prior is checked against the models answering
     classes = node._bank.classes
     prior = ','.join(f'{c}={i + 1}' for i, c in enumerate(classes))
     assert node.set_parameters([Parameter('class_prior', value=prior)])[0].successful
     w = np.arange(1.0, len(classes) + 1)
     np.testing.assert_allclose(node._bank.class_prior, w / w.sum())
-    # setting the failed directory again tries again (it is not the models answering)
+    # model_dir still names the directory that failed: setting it again tries again
+    assert node.get_parameter('model_dir').value == str(tmp_path / 'copy')
     assert node.set_parameters([Parameter('model_dir', value=str(tmp_path / 'copy'))])[0] \
         .successful
     harness.wait_counter(lambda c: c['errors'] == 2)
+    # and back to the models answering: nothing to reload
+    assert node.set_parameters([Parameter('model_dir', value=model_dir)])[0].successful
+    assert list(node._pool.pids) == old and node.counters()['errors'] == 2
 
 
 def test_killed_worker_process_is_replaced(harness_procs):

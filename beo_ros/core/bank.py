@@ -1001,14 +1001,15 @@ class ModelBank:
         t2 = time.perf_counter()
         est = self.estimate(view.grid, yaw_step_deg=yaw_step_deg, point_features=point_features)
         T = np.asarray(view.grid_to_input, dtype=np.float64)
-        c = (self.spec.size - 1) / 2.0
-        centre = T @ np.array([c, c, c, 1.0])
         R_grid = T[:3, :3] / np.linalg.norm(T[:3, :3], axis=0)
         pose = np.eye(4)
         pose[:3, :3] = R_grid @ yaw_matrix(est.yaw)
-        pose[:3, 3] = centre[:3]
         pts, prob = grid_to_points(est.completion, T, threshold)
+        c = (self.spec.size - 1) / 2.0
+        pose[:3, 3] = object_centre(pts if len(pts) else grid_to_points(view.grid, T, 1)[0],
+                                    pose[:3, :3], T @ np.array([c, c, c, 1.0]))
         est.pose = pose
+        est.heading_offset = heading_offset(R_grid, up)
         est.grid_to_input = T
         est.completed_points = np.asarray(pts, dtype=np.float32)
         est.completed_probability = np.asarray(prob, dtype=np.float32)
@@ -1017,6 +1018,33 @@ class ModelBank:
             est.timings['point_descriptors'] = t2 - t1
         est.timings['total'] = time.perf_counter() - t0
         return est
+
+
+def object_centre(points, rotation, fallback) -> np.ndarray:
+    """(3,) middle of the extent of ``points`` (m, 3, input frame) along the object axes
+    ``rotation`` (3, 3: axes as columns, input frame); ``fallback`` (3,) when there are none.
+    (The grid centre alone is where the voxelization put the view, not the object: on a
+    'bottom' grid it lies (N-1)/2 voxels above the support, above a short object.)"""
+    pts = np.asarray(points, dtype=np.float64)
+    if len(pts) == 0:
+        return np.asarray(fallback, dtype=np.float64)[:3]
+    local = pts @ rotation
+    return rotation @ ((local.min(axis=0) + local.max(axis=0)) / 2.0)
+
+
+def heading_offset(grid_rotation, up) -> float:
+    """Radians to add to a grid-frame yaw to get the heading about ``up`` in the input frame:
+    the angle from the input frame's x axis projected on the plane normal to ``up`` (its y axis
+    when x is within 25 degrees of ``up``) to the grid's x axis. ``grid_rotation`` (3, 3):
+    the grid axes in the input frame, z = up."""
+    u = np.asarray(up, dtype=np.float64)
+    u = u / np.linalg.norm(u)
+    ref = np.eye(3)[0] - u * u[0]
+    if np.linalg.norm(ref) < np.sin(np.deg2rad(25.0)):
+        ref = np.eye(3)[1] - u * u[1]
+    ref /= np.linalg.norm(ref)
+    g = np.asarray(grid_rotation, dtype=np.float64)[:, 0]
+    return float(np.arctan2(np.cross(u, ref) @ g, ref @ g))
 
 
 def _wrap(yaw):

@@ -57,7 +57,14 @@ class Estimate:
             (e.g. its descriptors are undefined for a tiny cloud: the grid rule decided), else ''.
         grid: int8 (N,N,N) labelled input grid (1 occupied, 0 free, -1 unknown).
         pose: float64 (4,4) object frame in the input frame (only from ``estimate_points``): the
-            translation is the object centre in metres, the rotation is ``yaw`` about the up vector.
+            translation is the object centre in metres (the middle of the completed points'
+            extent along the object axes), the rotation the grid's axes (z up, x horizontal
+            from the sensor towards the object) turned by ``yaw`` about up.
+        heading_offset: radians (only from ``estimate_points``): ``yaw`` + heading_offset is
+            the object's heading about up in the input frame, measured from the input x axis
+            projected on the horizontal plane (the y axis if x is within 25° of up). ``yaw``,
+            the hypotheses' and the symmetric yaws are in the grid frame, whose x axis follows
+            the bearing from the sensor; add this to compare them across views.
         grid_to_input: float64 (4,4) maps homogeneous grid index coordinates to the input frame
             (only from ``estimate_points``).
         completed_points: float32 (m,3) centres of voxels with probability >= threshold, input frame
@@ -81,6 +88,7 @@ class Estimate:
     point_features: np.ndarray | None = None
     classifier_note: str = ''
     symmetric_yaws: list = field(default_factory=list)   # last: positional use stays as it was
+    heading_offset: float | None = None
 
     @property
     def probability(self) -> float:

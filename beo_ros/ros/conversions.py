@@ -241,6 +241,11 @@ def object_dimensions(est) -> np.ndarray:
     return ext + voxel  # voxel centres -> outer faces
 
 
+def _wrap(yaw) -> float:
+    """Radians in [-pi, pi)."""
+    return float((float(yaw) + math.pi) % (2 * math.pi) - math.pi)
+
+
 def _voxel_size(est) -> float:
     """Edge length (m) of one voxel of ``est.grid_to_input`` (0 if unknown)."""
     g = getattr(est, 'grid_to_input', None)
@@ -293,9 +298,13 @@ def estimate_to_msg(est, header, source_topic: str = '', latency: float = 0.0,
         out.pose.orientation.w = 1.0
     d = object_dimensions(est)
     out.dimensions = Vector3(x=float(d[0]), y=float(d[1]), z=float(d[2]))
-    out.hypotheses = [msgs.YawHypothesis(label=str(h.label), yaw=float(h.yaw), score=float(h.score))
+    # headings about up in the header frame, not the estimator's grid frame (whose x axis
+    # follows the bearing from the sensor to the object)
+    off = float(getattr(est, 'heading_offset', None) or 0.0)
+    out.hypotheses = [msgs.YawHypothesis(label=str(h.label), yaw=_wrap(h.yaw + off),
+                                         score=float(h.score))
                       for h in (est.hypotheses or [])]
-    out.symmetric_yaws = [float(y) for y in (est.symmetric_yaws or [])]
+    out.symmetric_yaws = [_wrap(y + off) for y in (est.symmetric_yaws or [])]
     if include_cloud and est.completed_points is not None:
         out.completed_cloud = completed_cloud(est, header)
     else:

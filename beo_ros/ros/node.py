@@ -35,7 +35,6 @@ from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescr
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
 from rclpy.time import Time
 from sensor_msgs.msg import PointCloud2
@@ -689,16 +688,13 @@ class BeoNode(Node):
         except Exception as e:  # noqa: BLE001 - reported, the old processes keep serving
             self._count('errors')
             self.get_logger().error(f"worker processes cannot load the models of '{model_dir}' "
-                                    f'({type(e).__name__}: {e}); the previous models still '
-                                    f"answer and model_dir goes back to '{self._serving_dir}'")
+                                    f'({type(e).__name__}: {e}); the models of '
+                                    f"'{self._serving_dir}' still answer (set model_dir again "
+                                    'to retry)')
             with self._bank_lock:
-                if gen != self._reload_gen or self._pool_closed:
-                    return
-                # class_prior is checked against _base_bank: the models answering again
-                self._base_bank = self._serving_base
-            # not a reload: it names the models answering (see _on_set_parameters)
-            self.set_parameters([Parameter('model_dir', Parameter.Type.STRING,
-                                           self._serving_dir)])
+                if gen == self._reload_gen and not self._pool_closed:
+                    # class_prior is checked against _base_bank: the models answering again
+                    self._base_bank = self._serving_base
             return
         with self._pool_lock:
             if self._pool_closed or gen != self._reload_gen:
@@ -887,6 +883,7 @@ class BeoNode(Node):
         values.append(KeyValue(key='workers', value=str(self._n_workers)))
         values.append(KeyValue(key='worker_processes', value=str(self._n_procs)))
         values.append(KeyValue(key='class_prior', value=prior_text(self._bank)))
+        values.append(KeyValue(key='model_dir', value=str(self._serving_dir)))   # answering
         with self._cond:
             values.append(KeyValue(key='in_flight', value=str(self._in_flight)))
         status = DiagnosticStatus(level=level, name=f'{self.get_name()}: estimator',
