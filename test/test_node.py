@@ -862,3 +862,16 @@ def test_up_vector_from_tf_when_tf2_ros_is_there(ros_context, ros_tiny_model_dir
             node._prepare(cloud(box_view(), frame='lidar'), node._params())
     finally:
         node.destroy_node()
+
+
+def test_node_is_warm_before_it_subscribes(ros_context, ros_tiny_model_dir):
+    """The warm-up estimate runs in the constructor, before the subscriptions: a replay that
+    waits for the subscriber finds a node that is ready."""
+    from beo_ros.ros.node import BeoNode
+    node = BeoNode(context=ros_context, parameter_overrides=[
+        Parameter('model_dir', value=ros_tiny_model_dir)])
+    try:
+        assert node.wait_ready(0)
+        assert 'warm_up' in node.latency_p50()
+    finally:
+        node.destroy_node()

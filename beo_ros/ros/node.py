@@ -277,6 +277,13 @@ class BeoNode(Node):
         self._turn_cond = threading.Condition()
         self._in_flight = 0
         self._warm = threading.Event()
+        # the throw-away estimate comes before the subscriptions: a node that listens is ready
+        # (a bag replay that waits for the subscriber would otherwise see its first cloud wait
+        # for the warm-up and the next replace it as stale)
+        try:
+            self._warm_up()
+        finally:
+            self._warm.set()
         self._topics = []
         for topic in topics:
             self.create_subscription(
@@ -489,15 +496,6 @@ class BeoNode(Node):
         self._record('warm_up', time.monotonic() - t0)
 
     def _worker_loop(self, index=0):
-        if index == 0:
-            try:
-                self._warm_up()
-            finally:
-                self._warm.set()
-        else:  # let worker 0 fill the caches first, so no real cloud pays for them
-            while not self._warm.wait(0.1):
-                if self._stop:
-                    return
         while True:
             with self._cond:
                 while not self._slots and not self._stop:
@@ -840,8 +838,8 @@ class BeoNode(Node):
         return response
 
     def wait_ready(self, timeout: float | None = None) -> bool:
-        """Block until the warm-up estimate is done (True) or ``timeout`` seconds pass
-        (False). The node takes clouds before that, but the first waits for the warm-up."""
+        """True once the warm-up estimate is done (it runs in the constructor, before the node
+        subscribes, so a constructed node is ready); False if ``timeout`` seconds pass."""
         return self._warm.wait(timeout)
 
     # ------------------------------------------------------------------ diagnostics
