@@ -79,6 +79,21 @@ def test_icp_baseline_classifies_and_reports_db_size(shapes):
     assert hits >= 0.75 * len(queries)
 
 
+@pytest.mark.parametrize('peer', ['paper', 'icp'])
+def test_baselines_refuse_a_wrong_size_or_empty_grid(shapes, peer):
+    from beo_ros.core.baselines import ICPDatabase, PaperPCA
+    if peer == 'icp':
+        pytest.importorskip('open3d')
+    X, y, names, _ = shapes
+    model = (PaperPCA(k=2, n_yaws=4) if peer == 'paper' else
+             ICPDatabase(per_class=1, n_init_yaws=1)).fit(X, y, names, N)
+    with pytest.raises(ValueError, match=r'grid must have shape \(16, 16, 16\)'):
+        model.predict(np.zeros((8,) * 3, np.int8))
+    for fill in (-1, 0):   # all unknown (a matmul error), all free (ICP: a silent (0, 0, 0))
+        with pytest.raises(ValueError, match='no occupied voxel'):
+            model.predict(np.full((N,) * 3, fill, np.int8))
+
+
 def test_yaw_error_wraps():
     from beo_ros.bench import yaw_error_deg
     assert yaw_error_deg(np.deg2rad(359), np.deg2rad(1)) == pytest.approx(2)

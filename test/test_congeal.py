@@ -1,5 +1,6 @@
 """Yaw congealing: randomly rotated copies of one asymmetric shape are re-aligned."""
 import numpy as np
+import pytest
 
 from beo_ros.core.congeal import class_entropy, congeal_classes, congeal_yaws
 from beo_ros.core.grid import rotate_grid
@@ -44,3 +45,12 @@ def test_congeal_without_masks_returns_x_only():
     assert isinstance(Xa, np.ndarray) and Xa.shape == X.shape
     Xa, yaws = congeal_classes(X, y, n, return_yaws=True)
     assert yaws[0] == 0 and yaws[2] == 0  # the first object of each class keeps its yaw
+
+
+def test_congeal_classes_refuses_no_objects():
+    n = 16
+    empty = np.zeros((0, n ** 3), np.float32)
+    with pytest.raises(ValueError, match='at least one object'):   # np.stack's error before
+        congeal_classes(empty, np.zeros(0, int), n, masks=np.zeros((0, n ** 3), bool))
+    with pytest.raises(ValueError, match='one label per object'):
+        congeal_classes(np.zeros((2, n ** 3), np.float32), np.zeros(3, int), n)

@@ -43,6 +43,11 @@ def test_z_up_and_odd_size():
     assert bbox(g)[0][2] == 0 and bbox(g)[1][2] == 16
     t = mesh_to_grid_transform(tet, 17)
     np.testing.assert_allclose(t[:3, :3] @ [0, 0, 2.0], [0, 0, 17])
+    # a whole float is an integer size (a TypeError in np.zeros before); bool and 16.5 are not
+    np.testing.assert_array_equal(voxelize_mesh(tet, 17.0), g)
+    for bad in (True, 16.5, float('nan'), '16'):
+        with pytest.raises(ValueError, match='size must be an integer'):
+            voxelize_mesh(tet, bad)
 
 
 def test_load_mesh_formats_and_errors(tmp_path):

@@ -127,3 +127,39 @@ def test_train_scan_bank_with_a_points_classifier(small_set, tmp_path):
              classes=np.array(s.names))
     with pytest.raises(ValueError, match='no out-of-fold features'):
         train_scan_bank(files, k=2, max_iter=3, point_classifier=oof)
+
+
+def test_train_scan_bank_records_generator_inputs(small_set, monkeypatch):
+    # a generator of paths was consumed by load_scan_objects: the manifest said inputs=[]
+    import beo_ros.core.bank as bank_mod
+    import beo_ros.core.scan_training as st
+    import beo_ros.core.training as training
+    seen = {}
+    monkeypatch.setattr(st, 'load_scan_objects', lambda paths, *a: (list(paths), small_set)[1])
+    monkeypatch.setattr(training, 'fit_class_models', lambda *a, **k: None)
+    monkeypatch.setattr(bank_mod, 'ModelBank', lambda *a: seen.setdefault('info', a[3]))
+    st.train_scan_bank((f'learn{i}.pcd' for i in (0, 33)), mirror=False)
+    assert seen['info']['inputs'] == ['learn0.pcd', 'learn33.pcd']
+
+
+def test_load_scan_objects_errors_name_the_scan_and_object(tmp_path):
+    from beo_ros.core.pcd import write_pcd
+    rng = np.random.default_rng(0)
+
+    def write(name, pts, labels):
+        write_pcd(tmp_path / name, {'x': pts[:, 0].astype(np.float32),
+                                    'y': pts[:, 1].astype(np.float32),
+                                    'z': pts[:, 2].astype(np.float32),
+                                    'label': np.asarray(labels, np.uint32)})
+        return tmp_path / name
+
+    # a table in the plane y = 0, through the camera: seen edge-on
+    edge = np.c_[rng.uniform(-0.5, 0.5, 500), np.zeros(500), rng.uniform(0.5, 1.5, 500)]
+    with pytest.raises(ValueError, match=r'learn0\.pcd: the fitted support plane is seen edge-on'):
+        load_scan_objects([write('learn0.pcd', edge, np.ones(500))])
+    # a table z = 1 seen face-on and object 2 in two clusters 10 m apart: none inside its grid
+    table = np.c_[rng.uniform(-0.5, 0.5, (500, 2)), np.ones(500)]
+    obj = np.r_[rng.normal([-5, 0, 0.9], 0.01, (10, 3)), rng.normal([5, 0, 0.9], 0.01, (10, 3))]
+    path = write('learn1.pcd', np.r_[table, obj], np.r_[np.ones(500), np.full(20, 20)])
+    with pytest.raises(ValueError, match=r'learn1\.pcd: object 2: none of the 20 points'):
+        load_scan_objects([path])

@@ -102,6 +102,12 @@ def test_fit_table_plane_orientation():
     edge_on = np.c_[u.ravel(), np.zeros(u.size), v.ravel()]         # the plane y = 0
     with pytest.raises(ValueError, match='edge-on'):
         fit_table_plane(edge_on)
+    # a NaN sensor skipped the edge-on check and the orientation; a 2-vector failed in matmul
+    for bad in ((np.nan, 0, 0), (0, 1)):
+        with pytest.raises(ValueError, match='sensor_origin must be a finite 3-vector'):
+            fit_table_plane(edge_on, sensor_origin=bad)
+    with pytest.raises(ValueError, match='labels must hold one label per point'):
+        fit_table_plane(scene.points, labels=scene.labels[:10])
 
 
 def test_object_view_on_table_and_stacked():

@@ -199,6 +199,11 @@ def test_label_free_unknown_single_voxel_and_hole_closing():
     (dict(sensor_origin=[np.inf, 0, 0]), 'sensor_origin'),
     (dict(center=[0, 0]), 'center'),
     (dict(floor=np.nan), 'floor'),
+    (dict(floor='0'), 'floor must be a finite number'),            # a TypeError before
+    (dict(floor=np.array([0.0])), 'floor must be a finite number'),
+    (dict(up=[0, 0, 1e-10]), 'largest component at least 1e-09'),
+    (dict(occluders=np.ones(4)), r'occluders must be an \(m, 3\)'),   # a reshape error before
+    (dict(occluders=np.ones((20, 6))), r'occluders must be an \(m, 3\)'),  # XYZRGB rows
     (dict(points=box_front(100) * 1e7), r'within \+-1e\+06'),
     (dict(sensor_origin=[-1e300, 0, 0]), 'sensor_origin must lie within'),
     (dict(center=[0, 0, 1e9]), 'center must lie within'),
@@ -210,6 +215,25 @@ def test_validation(kwargs, match):
     args.update(kwargs)
     with pytest.raises(ValueError, match=match):
         voxelize_view(**args)
+
+
+def test_empty_occluders_are_none():
+    args = (box_front(100), np.zeros(3), [0, 0, 1], GridSpec(8))
+    a = voxelize_view(*args)
+    for empty in ([], np.zeros((0, 3))):
+        np.testing.assert_array_equal(voxelize_view(*args, occluders=empty).grid, a.grid)
+
+
+def test_label_free_unknown_integer_occupancy_is_a_mask():
+    # a uint8 0/1 array used to index whole slabs (128 occupied voxels instead of 4)
+    occ = np.zeros((8, 8, 8), bool)
+    occ[4, 3:5, 3:5] = True
+    a = label_free_unknown(occ, [-10, 3.5, 3.5])
+    b = label_free_unknown(occ.astype(np.uint8), [-10, 3.5, 3.5])
+    assert (b == OCCUPIED).sum() == 4
+    np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match=r'occupied must be an \(N, N, N\)'):
+        label_free_unknown(np.zeros((8, 8)), [0, 0, 0])
 
 
 def test_points_outside_a_metric_grid_are_refused():

@@ -20,6 +20,16 @@ import numpy as np
 from .grid import rotate_grid
 
 
+def _check_query(grid, n):
+    """The labelled query grid as an array, after checking its shape and that it has an object."""
+    grid = np.asarray(grid)
+    if grid.shape != (n,) * 3:
+        raise ValueError(f'grid must have shape {(n,) * 3} (the fitted size), got {grid.shape}')
+    if not (grid == 1).any():   # all free or all unknown: nothing to classify or align
+        raise ValueError('grid has no occupied voxel: there is no object to estimate')
+    return grid
+
+
 class PaperPCA:
     """The paper's method, written plainly (per-candidate and per-class Python loops).
 
@@ -56,8 +66,11 @@ class PaperPCA:
         return int(sum(w.nbytes + m.nbytes for w, m in zip(self.W, self.mu)))
 
     def predict(self, grid):
-        """(class index, yaw radians, completion (N, N, N) float32 in the canonical frame)."""
-        grid = np.asarray(grid, dtype=np.int8)
+        """(class index, yaw radians, completion (N, N, N) float32 in the canonical frame).
+
+        Raises ValueError for a grid of another size than the fitted one or with no occupied voxel.
+        """
+        grid = _check_query(grid, self.n).astype(np.int8)
         best = (np.inf, 0, 0.0, None)
         for j in range(self.n_yaws):
             yaw = 2 * np.pi * j / self.n_yaws
@@ -148,9 +161,12 @@ class ICPDatabase:
         return int(self.n_points * 6 * 8)   # points + normals, float64
 
     def predict(self, grid):
-        """(class index, yaw radians, best fitness) for a labelled grid."""
+        """(class index, yaw radians, best fitness) for a labelled grid.
+
+        Raises ValueError for a grid of another size than the fitted one or with no occupied voxel.
+        """
         o3d = self.o3d
-        grid = np.asarray(grid)
+        grid = _check_query(grid, self.n)
         pts = np.argwhere(grid == 1).astype(np.float64) - (self.n - 1) / 2.0
         src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
         est = o3d.pipelines.registration.TransformationEstimationPointToPlane()

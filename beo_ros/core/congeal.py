@@ -115,6 +115,10 @@ def congeal_classes(X, y, n, masks=None, yaw_step_deg=10.0, iters=6, prior=0.5, 
     """
     X = np.asarray(X)
     y = np.asarray(y)
+    if len(X) == 0:
+        raise ValueError('X must hold at least one object, got 0')
+    if len(y) != len(X):
+        raise ValueError(f'y must hold one label per object ({len(X)}), got {len(y)}')
     yaws = np.zeros(len(X))
     for c in np.unique(y):
         sel = np.flatnonzero(y == c)

@@ -7,6 +7,7 @@ surfaces is filled.
 """
 from __future__ import annotations
 
+import numbers
 import os
 
 import numpy as np
@@ -71,8 +72,10 @@ def voxelize_mesh(mesh, size: int = 32, fill: bool = True, density: float = 32.0
     """
     if isinstance(mesh, (str, os.PathLike)):
         mesh = load_mesh(mesh)
-    if int(size) != size or size < 2:
+    if not (isinstance(size, numbers.Real) and not isinstance(size, bool) and np.isfinite(size)
+            and int(size) == size and size >= 2):
         raise ValueError(f'size must be an integer >= 2, got {size!r}')
+    size = int(size)
     t = mesh_to_grid_transform(mesh, size)
     v = np.asarray(mesh.vertices, dtype=np.float64) @ t[:3, :3].T + t[:3, 3]
     scaled = trimesh.Trimesh(v, np.asarray(mesh.faces), process=False)

@@ -123,7 +123,8 @@ def load_scan_objects(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32, voxel_s
     """Every segmented object of the scans whose scene number has a class, as partial grids.
 
     Scenes whose number is in no class are skipped (with a note when verbose). Raises ValueError
-    when a class ends up with fewer than 2 objects or no scan has a class.
+    when a class ends up with fewer than 2 objects or no scan has a class, or (naming the scan
+    and object) when a table plane or an object's grid cannot be made.
     """
     names, table = parse_scan_classes(scan_classes)
     spec = grid_spec(grid, voxel_size)
@@ -135,10 +136,16 @@ def load_scan_objects(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32, voxel_s
                 print(f'{p}: scene {num} is in no class, skipped', file=sys.stderr)
             continue
         scene = load_scene(p)
-        up, d = fit_table_plane(scene)
+        try:
+            up, d = fit_table_plane(scene)
+        except ValueError as exc:   # name the scan: the message alone does not
+            raise ValueError(f'{p}: {exc}') from exc
         objs = segment_objects(scene)
         for oid, pts in objs.items():
-            view = object_view(pts, up, d, spec, occluders=scene_occluders(scene, oid))
+            try:
+                view = object_view(pts, up, d, spec, occluders=scene_occluders(scene, oid))
+            except ValueError as exc:
+                raise ValueError(f'{p}: object {oid}: {exc}') from exc
             g = view.grid
             X.append((g == 1).ravel())
             M.append((g >= 0).ravel())
@@ -290,6 +297,7 @@ def train_scan_bank(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32, voxel_siz
     from .bank import ModelBank
     from .training import fit_class_models
     t0 = time.time()
+    paths = list(paths)   # a generator would be consumed by load_scan_objects (manifest inputs)
     s = load_scan_objects(paths, scan_classes, grid, voxel_size, verbose)
     classifier = extra = None
     if point_classifier is not None:  # before the fit: a bad npz fails fast

@@ -89,6 +89,7 @@ def fit_table_plane(scene_or_points, labels=None, distance_threshold: float = 0.
         scene_or_points: a :class:`Scene`, or (n, 3) points (camera frame).
         labels: (n,) labels for raw points; table points are labels 1-9. With no table labels
             (or no labels) all finite points are used and the dominant plane is taken.
+        sensor_origin: finite (3,) sensor position, same frame as the points.
 
     Returns (up float64 (3,), d float): unit plane normal oriented toward the sensor side and
     offset with ``up . p + d = 0`` on the plane; ``up . sensor_origin + d > 0`` is the sensor's
@@ -102,9 +103,15 @@ def fit_table_plane(scene_or_points, labels=None, distance_threshold: float = 0.
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise ValueError(f'points must be (n, 3), got shape {pts.shape}')
     pts = np.asarray(pts, dtype=np.float64)
+    origin = np.asarray(sensor_origin, dtype=np.float64)
+    if origin.shape != (3,) or not np.isfinite(origin).all():
+        raise ValueError(f'sensor_origin must be a finite 3-vector, got {sensor_origin!r}')
     ok = _finite(pts)
     if labels is not None:
         labels = np.asarray(labels).reshape(-1)
+        if len(labels) != len(pts):
+            raise ValueError(f'labels must hold one label per point ({len(pts)}), got '
+                             f'{len(labels)}')
         table = ok & (labels >= TABLE_LABELS[0]) & (labels <= TABLE_LABELS[1])
         if table.sum() >= 3:
             ok = table
@@ -134,7 +141,6 @@ def fit_table_plane(scene_or_points, labels=None, distance_threshold: float = 0.
             break
         keep = again
     d = -float(normal @ centroid)
-    origin = np.asarray(sensor_origin, float)
     height = normal @ origin + d
     seen_deg = np.degrees(np.arcsin(min(1.0, abs(height) / max(
         float(np.linalg.norm(centroid - origin)), 1e-12))))

@@ -58,7 +58,11 @@ def partial_view(occ, azimuth, elevation, ray_spacing=0.5, step=0.5):
 
 
 def random_partial_view(occ, rng, elevation_deg=(10.0, 50.0)):
-    """The evaluation protocol: random yaw, random view. Returns (grid int8, yaw, az, el)."""
+    """The evaluation protocol: random yaw, random view.
+
+    Returns (grid int8 (N, N, N), yaw, az, el, rotated bool (N, N, N): the whole object after
+    the yaw, i.e. the ground truth of the view).
+    """
     yaw = rng.uniform(0, 2 * np.pi)
     az = rng.uniform(0, 2 * np.pi)
     el = np.deg2rad(rng.uniform(*elevation_deg))

@@ -22,6 +22,7 @@ from .grid import FREE, OCCUPIED, UNKNOWN, GridSpec
 MIN_POINTS = 10
 MIN_EXTENT = 1e-6  # input units (m): points spanning no more than this are refused
 MAX_COORDINATE = 1e6  # input units (m): points and positions beyond are refused (overflow)
+MIN_DIRECTION = 1e-9  # a direction (``up``) whose largest component is below this is refused
 _RAY_MARGIN = 0.25  # voxels: a ray stops this short of the voxel centre it is cast at
 
 
@@ -68,8 +69,9 @@ def _check_vec(v, name: str, unit: bool = False) -> np.ndarray:
         raise ValueError(f'{name} must be a finite 3-vector, got {np.asarray(v)!r}')
     if unit:
         big = np.abs(v).max()
-        if big < 1e-9:
-            raise ValueError(f'{name} must be non-zero, got {v!r}')
+        if big < MIN_DIRECTION:
+            raise ValueError(f'{name} must be non-zero (largest component at least '
+                             f'{MIN_DIRECTION:g}), got {v!r}')
         if big > 1e100:   # the norm would overflow
             v = v / big
         v = v / np.linalg.norm(v)
@@ -77,6 +79,18 @@ def _check_vec(v, name: str, unit: bool = False) -> np.ndarray:
         raise ValueError(f'{name} must lie within +-{MAX_COORDINATE:g} (input units, m), got '
                          f'{v!r}')
     return v
+
+
+def _check_floor(floor) -> float:
+    if isinstance(floor, (str, bytes)) or np.ndim(floor) != 0:
+        raise ValueError(f'floor must be a finite number, got {floor!r}')
+    try:
+        floor = float(floor)
+    except (TypeError, ValueError):
+        raise ValueError(f'floor must be a finite number, got {floor!r}') from None
+    if not np.isfinite(floor):
+        raise ValueError(f'floor must be finite, got {floor!r}')
+    return floor
 
 
 def aligned_frame(up, sensor_origin, target) -> np.ndarray:
@@ -175,7 +189,7 @@ def label_free_unknown(occupied: np.ndarray, origin_grid, close_holes: bool = Tr
     """Label a grid from its occupied voxels and the sensor position by ray casting.
 
     Args:
-        occupied: bool (N, N, N).
+        occupied: bool (N, N, N) (any dtype: non-zero is occupied).
         origin_grid: (3,) sensor position in grid index coordinates (may be inside the grid).
         close_holes: block rays with a morphological closing of ``occupied`` (fills one-voxel
             holes of sparse surfaces so they do not leak free space behind the object).
@@ -186,6 +200,10 @@ def label_free_unknown(occupied: np.ndarray, origin_grid, close_holes: bool = Tr
     crosses an occupied cube first (occluded); 0 otherwise (in front of the surface or outside
     the silhouette).
     """
+    occupied = np.asarray(occupied)
+    if occupied.ndim != 3 or len(set(occupied.shape)) != 1:
+        raise ValueError(f'occupied must be an (N, N, N) array, got shape {occupied.shape}')
+    occupied = occupied.astype(bool)   # a 0/1 integer array would index, not mask, below
     n = occupied.shape[0]
     o = np.asarray(origin_grid, dtype=np.float64)
     blocked = occupied.copy()
@@ -231,7 +249,8 @@ def voxelize_view(points, sensor_origin, up, spec: GridSpec, center=None, floor=
     Args:
         points: (n, 3) object points in the input frame (metres); non-finite rows are dropped.
         sensor_origin: (3,) sensor position in the input frame.
-        up: (3,) gravity-up direction in the input frame (any non-zero length).
+        up: (3,) gravity-up direction in the input frame (any length; its largest component
+            must be at least ``MIN_DIRECTION``).
         spec: grid size, units ('normalized' / 'metric') and anchor ('center' / 'bottom').
         center: optional (3,) input-frame point placed at the grid's anchor point: the grid centre
             ((N-1)/2 on all axes) for anchor 'center', the centre of the grid floor
@@ -259,8 +278,15 @@ def voxelize_view(points, sensor_origin, up, spec: GridSpec, center=None, floor=
     upv = _check_vec(up, 'up', unit=True)
     if center is not None:
         center = _check_vec(center, 'center')
-    if floor is not None and not np.isfinite(floor):
-        raise ValueError(f'floor must be finite, got {floor!r}')
+    if floor is not None:
+        floor = _check_floor(floor)
+    o_pts = None
+    if occluders is not None:
+        o_pts = np.asarray(occluders, dtype=np.float64)
+        if o_pts.size and (o_pts.ndim != 2 or o_pts.shape[1] != 3):
+            raise ValueError(f'occluders must be an (m, 3) array of points, got shape '
+                             f'{o_pts.shape}')
+        o_pts = o_pts.reshape(-1, 3)
     n = spec.size
     rot = aligned_frame(upv, origin, pts.mean(axis=0))
     q = pts @ rot  # aligned-frame coordinates (same origin as the input frame)
@@ -304,8 +330,7 @@ def voxelize_view(points, sensor_origin, up, spec: GridSpec, center=None, floor=
     occ[idx[:, 0], idx[:, 1], idx[:, 2]] = True
     origin_grid = (origin - g2i[:3, 3]) @ rot / voxel
     occ_vox = None
-    if occluders is not None:
-        o_pts = np.asarray(occluders, dtype=np.float64).reshape(-1, 3)
+    if o_pts is not None:
         o_pts = o_pts[np.isfinite(o_pts).all(axis=1)]
         if len(o_pts):
             occ_vox = _relevant_occluders((o_pts - g2i[:3, 3]) @ rot / voxel, origin_grid, n)
