@@ -189,6 +189,9 @@ def test_stream_publishes_estimate_completed_pose_markers(harness):
     assert {'received_hz', 'processed_hz', 'received', 'processed', 'dropped_stale',
             'rejected', 'latency_p50_estimate_ms', 'latency_p50_core_total_ms'} <= keys, keys
     assert diag.name == 'beo: estimator'
+    values = {kv.key: kv.value for kv in diag.values}
+    assert values['model_dir'] == harness.node.get_parameter('model_dir').value   # answering
+    assert values['worker_timeouts'] == '0' and values['dropped_shutdown'] == '0'
 
 
 def test_services_classify_and_complete(harness):

@@ -216,7 +216,8 @@ class BeoNode(Node):
             self.get_logger().info(f"loaded models from '{model_dir}': classes {bank.classes}")
         self._base_bank = bank  # as loaded: the class_prior parameter is applied to a copy
         self._serving_base = bank   # the models the estimates use now (a reload may be pending)
-        self._serving_dir = self.get_parameter('model_dir').value   # the directory they came from
+        # the directory they came from ('' resolved: diagnostics name it)
+        self._serving_dir = self.get_parameter('model_dir').value or default_model_dir()
         try:
             bank = with_class_prior(bank, self.get_parameter('class_prior').value)
         except ValueError as e:
@@ -422,7 +423,8 @@ class BeoNode(Node):
                 return SetParametersResult(successful=False, reason=reason)
         new = {p.name: p.value for p in params}
         # against the models answering (a failed background reload leaves the old ones)
-        reload = 'model_dir' in new and new['model_dir'] != self._serving_dir
+        want_dir = (new.get('model_dir') or default_model_dir()) if 'model_dir' in new else None
+        reload = want_dir is not None and want_dir != self._serving_dir
         reprior = ('class_prior' in new
                    and new['class_prior'] != self.get_parameter('class_prior').value)
         if ('model_dir' in new and not reload
@@ -450,7 +452,7 @@ class BeoNode(Node):
                     # the old ones serve until the new ones are ready
                     self._reload_gen += 1
                     threading.Thread(target=self._reload_pool, name='beo_reload', daemon=True,
-                                     args=(base, self._reload_gen, merged['model_dir'])).start()
+                                     args=(base, self._reload_gen, want_dir)).start()
                 else:   # worker processes get the prior with each estimate: no new ones
                     serving = self._serving_base if self._n_procs else base
                     with self._pool_lock:
@@ -460,7 +462,7 @@ class BeoNode(Node):
                         except ValueError:  # names the classes of a reload still starting:
                             pass            # it applies the prior when it switches
             if reload and not self._n_procs:
-                self._serving_dir = new['model_dir']
+                self._serving_dir = want_dir
                 self.get_logger().info(f"reloaded models from '{new['model_dir']}'")
             self.get_logger().info(f'class prior: {prior_text(bank)}')
         if 'diagnostics_period' in new:  # re-timing (not re-creating) is safe while spinning
