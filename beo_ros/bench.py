@@ -679,27 +679,32 @@ def markdown(res):
         sus = node.get('sustained_rate_hz')
         lines += [f"Node (real rclpy, bag replay, workers={node.get('workers')}, "
                   f"worker_processes={node.get('worker_processes', 0)}): "
-                  + (f"sustains {sus:g} Hz: {node['objects_per_s']:.2f} objects/s out, "
+                  + (f"sustains {sus:g} Hz: {_fmt(node['objects_per_s'], '.2f')} objects/s out, "
                      if sus else 'sustains none of the rates; at the lowest: '
-                     f"{node['objects_per_s']:.2f} objects/s out, ")
+                     f"{_fmt(node['objects_per_s'], '.2f')} objects/s out, ")
                   + f"{node['dropped_stale']} dropped, {node['lost']} lost, end-to-end publish -> "
-                  f"estimate p50 {node['e2e_p50_ms']:.1f} ms, p95 {node['e2e_p95_ms']:.1f} ms; "
-                  f"highest output rate {node.get('max_objects_per_s', float('nan')):.2f}/s; "
+                  f"estimate p50 {_fmt(node['e2e_p50_ms'])} ms, p95 {_fmt(node['e2e_p95_ms'])} ms; "
+                  f"highest output rate {_fmt(node.get('max_objects_per_s'), '.2f')}/s; "
                   f"{node['mode']}.", '']
         if node.get('rates'):
             lines += ['| replay Hz | sent | estimates | out/s | dropped stale | lost | '
                       'e2e p50 ms | e2e p95 ms |', '|---|---|---|---|---|---|---|---|']
             lines += [f"| {r['rate_hz']:g} | {r['sent']} | {r['estimates']} | "
-                      f"{r['objects_per_s']:.2f} | {r['dropped_stale']} | {r['lost']} | "
-                      f"{r['e2e_p50_ms']:.1f} | {r['e2e_p95_ms']:.1f} |" for r in node['rates']]
+                      f"{_fmt(r['objects_per_s'], '.2f')} | {r['dropped_stale']} | {r['lost']} | "
+                      f"{_fmt(r['e2e_p50_ms'])} | {_fmt(r['e2e_p95_ms'])} |" for r in node['rates']]
         cl = node.get('closed_loop') or {}
         if cl:
             lines += ['', f"Closed loop ({cl['objects']} objects, {cl['lost']} lost): "
-                      f"{cl['objects_per_s']:.2f} objects/s, e2e p50 {cl['e2e_p50_ms']:.1f} ms, "
-                      f"p95 {cl['e2e_p95_ms']:.1f} ms."]
+                      f"{_fmt(cl['objects_per_s'], '.2f')} objects/s, e2e p50 "
+                      f"{_fmt(cl['e2e_p50_ms'])} ms, p95 {_fmt(cl['e2e_p95_ms'])} ms."]
     else:
         lines += [f"Node: skipped ({node.get('skipped')})."]
     return '\n'.join(lines) + '\n'
+
+
+def _fmt(v, spec='.1f'):
+    """``v`` formatted, or 'n/a' for None (a NaN in bench.json: e.g. no estimate at all)."""
+    return 'n/a' if v is None else format(v, spec)
 
 
 def _finite(o):
@@ -722,7 +727,9 @@ def parse_args(argv):
                     f"{DEFAULT_DATA}, or generated boxes/cylinders when that file is "
                     "missing); 'none' = generated boxes/cylinders")
     ap.add_argument('--classes', nargs='*', default=None, help='class subset')
-    ap.add_argument('--quick', action='store_true', help='tiny run (< ~60 s)')
+    ap.add_argument('--quick', action='store_true',
+                    help='tiny run (< ~60 s): overrides the sizes (classes, objects per class, '
+                         'repeats, k, scaling points, node rates and objects) with small ones')
     ap.add_argument('--seed', type=int, default=0)
     ap.add_argument('--test-frac', type=float, default=0.2, help='held-out fraction per class')
     ap.add_argument('--train-per-class', type=int, default=None,
@@ -772,10 +779,18 @@ def parse_args(argv):
                     help="the node's blas_threads parameter (default: the node's default; "
                          "0: the BLAS library's own default)")
     args = ap.parse_args(argv)
+    if not all(math.isfinite(r) and r > 0 for r in args.node_rates):
+        ap.error(f'--node-rates must be finite rates > 0 Hz, got {args.node_rates}')
     if args.quick:
         p = data_path(args.data)
         if p is not None and not args.classes:
-            args.classes = ['chair', 'monitor']
+            try:
+                with np.load(p) as z:
+                    have = [str(c) for c in z['classes']]
+            except (OSError, KeyError, ValueError):
+                have = []   # the loader says what is wrong with the file
+            args.classes = (['chair', 'monitor'] if {'chair', 'monitor'} <= set(have)
+                            else have[:2] or None)
         args.train_per_class = args.train_per_class or 12
         args.queries_per_class = min(args.queries_per_class, 3)
         args.repeats = min(args.repeats, 2)
@@ -884,7 +899,12 @@ def run(args):
         res['node'] = {'skipped': '--no-node'}
     else:
         log('[node] bag replay (open loop) and closed loop through BeoNode')
-        res['node'] = node_bench(bank, X, y, n, te, args, np.random.default_rng(args.seed + 3))
+        try:
+            res['node'] = node_bench(bank, X, y, n, te, args,
+                                     np.random.default_rng(args.seed + 3))
+        except Exception as e:  # noqa: BLE001 - the peers' results are kept and written
+            log(f'[node] failed: {type(e).__name__}: {e}')
+            res['node'] = {'skipped': f'failed: {type(e).__name__}: {e}'}
     res['setup']['wall_s'] = time.perf_counter() - t_all
 
     res = _finite(res)
@@ -900,10 +920,10 @@ def run(args):
     if 'objects_per_s' in node:
         print(f"node (workers={node['workers']}, "
               f"worker_processes={node.get('worker_processes', 0)}): sustains "
-              f"{node['sustained_rate_hz'] or 0:g} Hz replay, {node['objects_per_s']:.2f} "
+              f"{node['sustained_rate_hz'] or 0:g} Hz replay, {_fmt(node['objects_per_s'], '.2f')} "
               f"objects/s out ({node['dropped_stale']} dropped, {node['lost']} lost), "
-              f"end-to-end p50 {node['e2e_p50_ms']:.1f} ms, p95 {node['e2e_p95_ms']:.1f} ms; "
-              f"highest output {node['max_objects_per_s']:.2f}/s")
+              f"end-to-end p50 {_fmt(node['e2e_p50_ms'])} ms, p95 {_fmt(node['e2e_p95_ms'])} ms; "
+              f"highest output {_fmt(node.get('max_objects_per_s'), '.2f')}/s")
     else:
         print(f"node: skipped ({node.get('skipped')})")
     print(f'wrote {out / "bench.json"}')

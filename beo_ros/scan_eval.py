@@ -440,6 +440,10 @@ def main(argv=None):
         prog='beo-eval --scans', description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter))
     args = ap.parse_args(argv)
+    if args.scenes < 0:
+        ap.error(f'--scenes must be >= 0 (0: all), got {args.scenes}')
+    if args.scene_folds == 1 or args.scene_folds < 0:
+        ap.error(f'--scene-folds must be 0 (leave one scene out) or >= 2, got {args.scene_folds}')
     try:
         run(args)
     except (ValueError, OSError) as e:

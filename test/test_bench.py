@@ -212,3 +212,44 @@ def test_bench_out_is_a_file_exit_2(tmp_path, capsys):
     (tmp_path / 'a_file').write_text('x')
     assert main(QUICK + ['--data', 'none', '--out', str(tmp_path / 'a_file')]) == 2
     assert 'beo-bench: error:' in capsys.readouterr().err
+
+
+def test_quick_takes_the_files_own_classes_without_chair_and_monitor(tmp_path):
+    from beo_ros.bench import parse_args
+    args = parse_args(['--quick', '--data', str(_npz(tmp_path / 'd.npz', ('mug', 'bowl')))])
+    assert args.classes == ['mug', 'bowl']
+
+
+@pytest.mark.parametrize('rates', [['0'], ['10', '-2'], ['nan']])
+def test_bench_node_rates_must_be_positive(rates, capsys):
+    from beo_ros.bench import parse_args
+    with pytest.raises(SystemExit):
+        parse_args(['--node-rates', *rates])
+    assert '--node-rates must be finite rates > 0' in capsys.readouterr().err
+
+
+def test_a_failing_node_phase_keeps_the_other_results(tmp_path, monkeypatch):
+    import beo_ros.bench as bench
+
+    def broken(*a, **k):
+        raise RuntimeError('bag player failed')
+    monkeypatch.setattr(bench, 'node_bench', broken)
+    out = tmp_path / 'b'
+    args = [a for a in QUICK if a != '--no-node']
+    assert bench.main(args + ['--data', str(_npz(tmp_path / 'd.npz')), '--out', str(out)]) == 0
+    res = json.loads((out / 'bench.json').read_text())
+    assert res['node'] == {'skipped': 'failed: RuntimeError: bag player failed'}
+    assert 'beo' in res and (out / 'bench.md').is_file()
+
+
+def test_markdown_writes_n_a_for_missing_latencies():
+    from beo_ros.bench import markdown
+    node = {'objects_per_s': 0.0, 'sustained_rate_hz': None, 'dropped_stale': 0, 'lost': 4,
+            'e2e_p50_ms': None, 'e2e_p95_ms': None, 'max_objects_per_s': None, 'mode': 'm',
+            'workers': 1, 'rates': [{'rate_hz': 2.0, 'sent': 4, 'estimates': 0,
+                                     'objects_per_s': 0.0, 'dropped_stale': 0, 'lost': 4,
+                                     'e2e_p50_ms': None, 'e2e_p95_ms': None}],
+            'closed_loop': {'objects': 4, 'lost': 4, 'objects_per_s': 0.0, 'e2e_p50_ms': None,
+                            'e2e_p95_ms': None}}
+    md = markdown({'node': node})
+    assert 'p50 n/a ms' in md and '| n/a | n/a |' in md

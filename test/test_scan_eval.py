@@ -208,3 +208,15 @@ def test_loso_from_points_uses_the_deployment_path(scan_files, tmp_path):
     assert 'estimate_points' in res['summary']['protocol']
     assert len(z['y']) == 4 and np.isfinite(z['features']).all()
     assert z['point_descriptors'].shape == (4, 2)
+
+
+@pytest.mark.parametrize('argv, message', [
+    (['--scenes', '-1'], '--scenes must be >= 0'),
+    (['--scene-folds', '1'], '--scene-folds must be 0'),
+    (['--scene-folds', '-1'], '--scene-folds must be 0'),
+])
+def test_scene_options_are_checked(argv, message, tmp_path, capsys):
+    from beo_ros.scan_eval import main
+    with pytest.raises(SystemExit):
+        main(['--scans', str(tmp_path / 'none.pcd'), '--out', str(tmp_path / 'o'), *argv])
+    assert message in capsys.readouterr().err
