@@ -802,6 +802,40 @@ def test_hung_worker_process_times_out_and_is_replaced(harness_procs):
     assert node.counters()['worker_timeouts'] == 1
 
 
+def test_class_prior_change_does_not_wait_for_a_pool_restart(harness_procs, monkeypatch):
+    """New worker processes start outside the pool lock: a class_prior change (on the
+    executor thread in a running node) goes through while they start; the estimate waiting
+    for them is answered by them."""
+    import signal
+    harness = harness_procs
+    node = harness.node
+    assert node.wait_ready(TIMEOUT)
+    starting, release = threading.Event(), threading.Event()
+    real_new_pool = node._new_pool
+
+    def slow_new_pool(bank):
+        starting.set()
+        assert release.wait(TIMEOUT)
+        return real_new_pool(bank)
+    monkeypatch.setattr(node, '_new_pool', slow_new_pool)
+    pool = node._pool
+    os.kill(pool.pids[0], signal.SIGKILL)
+    end = time.monotonic() + TIMEOUT
+    while not pool.broken and time.monotonic() < end:
+        time.sleep(0.01)
+    node._on_cloud(cloud(box_view()), '/beo/input')
+    assert starting.wait(TIMEOUT)
+    done = []
+    t = threading.Thread(target=lambda: done.append(
+        node.set_parameters([Parameter('class_prior', value='uniform')])[0].successful))
+    t.start()
+    t.join(5.0)
+    release.set()
+    assert done == [True], 'class_prior change waited for the new worker processes'
+    c = harness.wait_counter(lambda c: c['processed'] >= 1 and c['worker_restarts'] == 1)
+    assert c['errors'] == 0 and node._pool is not pool
+
+
 def test_worker_processes_stop_with_the_node(ros_context, ros_tiny_model_dir):
     from beo_ros.ros.node import BeoNode
     model_dir = ros_tiny_model_dir

@@ -160,6 +160,8 @@ class BeoNode(Node):
         self._blas_limits = None
         self._pool = None
         self._pool_lock = threading.Lock()  # the pool and the bank it serves; shutdown
+        self._pool_cond = threading.Condition(self._pool_lock)
+        self._replacing = None   # the broken pool being replaced (outside the lock)
         self._reload_gen = 0   # the latest model_dir reload (a newer one wins)
         self._pool_closed = False
         self._destroyed = False
@@ -666,16 +668,32 @@ class BeoNode(Node):
         raise RuntimeError('no usable worker process pool')
 
     def _replace_broken_pool(self, broken, err):
-        """Replace ``broken`` (unless another worker already did); counted in worker_restarts."""
-        with self._pool_lock:
+        """Replace ``broken`` (unless another worker already did, or is doing it: then wait
+        for that); counted in worker_restarts. The new processes start outside the pool lock
+        (seconds), so a class_prior change meanwhile does not stall the executor."""
+        with self._pool_cond:
+            if self._replacing is broken:
+                self._pool_cond.wait_for(lambda: self._replacing is not broken)
+                return
             # a signal to the process group also ends the worker processes: no restart then
             if self._pool is not broken or self._pool_closed or self._shutting_down():
                 return
+            self._replacing = broken
             self._count('worker_restarts')
             self.get_logger().error(f'a worker process died ({err}); restarting the '
                                     f'{self._n_procs} worker process(es)')
+        new = None
+        try:
             broken.shutdown(timeout=1.0)
-            self._pool = self._new_pool(self._bank)
+            new = self._new_pool(self._bank)
+        finally:
+            with self._pool_cond:
+                self._replacing = None
+                if new is not None and self._pool is broken and not self._pool_closed:
+                    self._pool, new = new, None
+                self._pool_cond.notify_all()
+            if new is not None:   # shut down or reloaded meanwhile
+                new.shutdown(timeout=None)
 
     def _reload_pool(self, base, gen, model_dir):
         """Thread: start worker processes for the models ``base``, then switch to them (with the
