@@ -59,6 +59,14 @@ def test_training_rows_are_the_true_pose_and_its_turns(trained, monkeypatch):
     np.testing.assert_array_equal(one[2], np.repeat(np.arange(7), 4))
     F3, _, _ = verifier_training_set(X, N, views=3, seed=1)
     assert not np.array_equal(F3, F)
+    # turn 0 is the view turned into the model's frame by its true yaw: its occupied cells
+    # lie where the canonical object is (pooled to 8^3), more than those of the half turn
+    from beo_ros.core.verifier import verifier_features
+    canon = np.stack([verifier_features(np.where(x.reshape((N,) * 3) > 0.5, 1, 0)
+                                        .astype(np.int8))[:512] for x in X])
+    occ = F[:, :512]
+    match = (occ * canon[obj]).sum(axis=1)
+    assert np.mean(match[turn == 0] > match[turn == 2]) > 0.9
 
 
 def test_exported_trees_give_scikit_learns_probabilities(trained):
@@ -158,6 +166,14 @@ def test_verifier_survives_save_load_and_pickling(bank, tmp_path):
     g, *_ = random_partial_view(X[1].reshape((N,) * 3) > 0.5, np.random.default_rng(0))
     e1, e2, e3 = bank.estimate(g), again.estimate(g), pickle.loads(pickle.dumps(again)).estimate(g)
     assert e1.yaw == e2.yaw == e3.yaw and e1.label == e2.label == e3.label
+    # the trees themselves: the same probabilities for views at every turn
+    F = turned_features(g, np.arange(4) * np.pi / 2 + 0.3)
+    unpickled = pickle.loads(pickle.dumps(again)).verifier
+    for c in (0, 1):
+        ref = bank.verifier.predict_log_proba(c, F)
+        assert np.ptp(ref) > 0.1   # not a constant: the comparison can tell trees apart
+        np.testing.assert_allclose(again.verifier.predict_log_proba(c, F), ref, rtol=1e-6)
+        np.testing.assert_allclose(unpickled.predict_log_proba(c, F), ref, rtol=1e-6)
 
 
 @pytest.mark.parametrize('change, msg', [
