@@ -285,6 +285,13 @@ def test_replay_best_effort_reaches_sensor_qos_subscriber(ctx, tmp_path):
     finally:
         spin.close()
     assert stats.topics['/beo/input'].subscribers == 1
+    # the publisher in the graph is best effort (a reliable one would reach this subscriber
+    # too, so the messages alone cannot tell)
+    from rclpy.qos import ReliabilityPolicy
+    infos = [i for i in sub_node.get_publishers_info_by_topic('/beo/input')
+             if i.node_name == 'replayer']
+    assert infos and all(i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+                         for i in infos)
 
 
 def test_record_in_process_then_read_back(ctx, tmp_path):

@@ -29,11 +29,14 @@ def test_congeal_realigns_rotated_copies():
     tot = np.rad2deg(yaws + rot)
     d = (tot[:, None] - tot[None] + 180) % 360 - 180
     assert np.abs(d).max() <= 15, np.round(tot)
-    Xa, Ma = congeal_classes(X, np.zeros(len(X), int), n, masks=masks)
+    Xa, Ma, ya = congeal_classes(X, np.zeros(len(X), int), n, masks=masks, return_yaws=True)
     assert Xa.shape == X.shape and Ma.dtype == bool
     assert class_entropy(Xa, n, Ma) < before
-    # unknown stays unknown: rotated masks only lose voxels at the rim, never gain occupancy
-    assert ((Xa > 0) <= (X.reshape(len(X), -1).sum(1, keepdims=True) > 0)).all()
+    # voxels rotated in from outside the grid are unknown: a fully known object turned by a
+    # yaw that is no quarter turn comes back with unknown corners
+    odd = [i for i in range(1, len(X), 2)
+           if abs((np.rad2deg(ya[i]) + 45) % 90 - 45) > 5]
+    assert odd and all((~Ma[i]).any() for i in odd), np.rad2deg(ya).round()
 
 
 def test_congeal_without_masks_returns_x_only():

@@ -120,7 +120,15 @@ def test_scene_cv_is_grouped_and_learns():
     assert rep['n_unknown'] == 1 and 0 in rep['wrong']
 
 
-def test_loso_saves_out_of_fold_features(scan_files, tmp_path):
+def test_loso_saves_out_of_fold_features(scan_files, tmp_path, monkeypatch):
+    import beo_ros.scan_eval as scan_eval
+    fitted_on = []
+    real_fit = scan_eval.fit_models
+
+    def spy(objs, *a, **k):
+        fitted_on.append(set(objs.scenes))
+        return real_fit(objs, *a, **k)
+    monkeypatch.setattr(scan_eval, 'fit_models', spy)
     out = tmp_path / 'ev'
     rc = main(['--scans', *map(str, scan_files), '--out', str(out), '--no-congeal', '--k', '2',
                '--max-iter', '3', '--grid', '16', '--voxel-size', '0.03125',
@@ -132,6 +140,9 @@ def test_loso_saves_out_of_fold_features(scan_files, tmp_path):
     assert list(z['classes']) == ['box', 'cylinder']
     assert list(z['feature_names']) == list(FEATURE_NAMES)
     assert sorted(set(z['scenes'])) == ['learn0', 'learn1', 'learn33', 'learn34']
+    # one fit per held-out scene, each on the other three scenes only
+    everything = {'learn0', 'learn1', 'learn33', 'learn34'}
+    assert sorted(map(sorted, fitted_on)) == sorted(sorted(everything - {s}) for s in everything)
     assert np.isfinite(z['features']).all()
     res = json.loads((out / 'scan_eval.json').read_text())
     s, recs = res['summary'], res['objects']
@@ -196,7 +207,15 @@ def test_scene_cv_point_predictions_learn_from_the_descriptors_and_are_grouped()
         train_point_classifier(F[:, :, 0], D3, y, 2)
 
 
-def test_loso_from_points_uses_the_deployment_path(scan_files, tmp_path):
+def test_loso_from_points_uses_the_deployment_path(scan_files, tmp_path, monkeypatch):
+    from beo_ros.core.bank import ModelBank
+    calls = []
+    real = ModelBank.estimate_points
+
+    def spy(self, *a, **k):
+        calls.append(1)
+        return real(self, *a, **k)
+    monkeypatch.setattr(ModelBank, 'estimate_points', spy)
     out = tmp_path / 'fp'
     rc = main(['--scans', *map(str, scan_files), '--out', str(out), '--no-congeal', '--k', '2',
                '--max-iter', '3', '--grid', '16', '--voxel-size', '0.03125',
@@ -208,6 +227,7 @@ def test_loso_from_points_uses_the_deployment_path(scan_files, tmp_path):
     assert 'estimate_points' in res['summary']['protocol']
     assert len(z['y']) == 4 and np.isfinite(z['features']).all()
     assert z['point_descriptors'].shape == (4, 2)
+    assert len(calls) == 4   # every object's estimate went through estimate_points
 
 
 @pytest.mark.parametrize('argv, message', [

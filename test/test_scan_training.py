@@ -52,6 +52,9 @@ def test_vbpca_with_masks_trains(small_set):
     s = small_set.subset(small_set.y == 0)
     est = VBPCA(n_components=2, max_iter=3).fit(s.X, mask=s.masks)
     assert np.isfinite(est.components_).all() and est.mean_.shape == (32 ** 3,)
+    # the unknown voxels are missing data, not free space: another mean than without masks
+    assert (~s.masks).any()
+    assert not np.allclose(est.mean_, VBPCA(n_components=2, max_iter=3).fit(s.X).mean_)
 
 
 def test_shipped_tabletop_model_classifies_a_real_object():

@@ -67,3 +67,5 @@ def test_symmetric_flag_script_scores_both_flags(capsys, tmp_path):
     # generated boxes and cylinders are symmetric: every truth set has the half turn
     assert all(180 in r['truth'] for r in rows)
     assert all(r['symmetric_yaws_turns'] == r['completion@0.9'] for r in rows)
+    # the class model's own prediction of a box or a cylinder has the half turn too
+    assert sum(180 in r['model@0.9'] for r in rows) >= len(rows) // 2, rows

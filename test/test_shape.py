@@ -67,6 +67,10 @@ def test_classifier_with_descriptors_is_trained_saved_checked_and_used(tmp_path)
     from beo_ros.core.bank import classifier_probabilities
     p2 = classifier_probabilities(clf, z, f[:, 0])[0][0]
     assert not np.allclose(p1, p2)
+    # and they are the grid's own descriptors
+    z = classifier_input(f, 2, bool(clf['row_standardize']), shape_descriptors(g))
+    np.testing.assert_allclose(p1, classifier_probabilities(clf, z, f[:, 0],
+                                                            again._prior_offset(clf))[0][0])
     with pytest.raises(ValueError, match='pass the grid'):
         again.classify_features(f, 'partial')
     # a descriptor classifier whose weights do not fit is refused on load, naming the file
