@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from .estimate import UNKNOWN_LABEL, Estimate, Hypothesis
-from .grid import GridSpec, symmetric_turns, yaw_matrix
+from .grid import GridSpec, symmetric_turns, wrap_yaw as _wrap, yaw_matrix
 from .inference import FEATURE_NAMES, InferenceEngine, observed_edt, top_modes, top_yaw_modes
 from .shape import DESCRIPTOR_NAMES as SHAPE_DESCRIPTORS, shape_descriptors
 from .verifier import TURNS, OrientationVerifier, check_arrays, quarter_turned_features
@@ -1045,11 +1045,6 @@ def heading_offset(grid_rotation, up) -> float:
     ref /= np.linalg.norm(ref)
     g = np.asarray(grid_rotation, dtype=np.float64)[:, 0]
     return float(np.arctan2(np.cross(u, ref) @ g, ref @ g))
-
-
-def _wrap(yaw):
-    """A yaw in radians as a float in [-pi, pi)."""
-    return float(np.mod(yaw + np.pi, 2 * np.pi) - np.pi)
 
 
 def check_yaw(yaw):

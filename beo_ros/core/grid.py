@@ -70,6 +70,11 @@ def yaw_matrix(yaw: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def wrap_yaw(yaw) -> float:
+    """A yaw in radians as a float in [-pi, pi)."""
+    return float(np.mod(yaw + np.pi, 2 * np.pi) - np.pi)
+
+
 def yaw_error(a, b):
     """Absolute angular difference of yaws ``a`` and ``b`` (radians, broadcast), in [0, pi]."""
     return np.abs((np.asarray(a) - np.asarray(b) + np.pi) % (2 * np.pi) - np.pi)

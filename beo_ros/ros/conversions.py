@@ -16,6 +16,8 @@ import numpy as np
 from geometry_msgs.msg import Point, Pose, Quaternion, Vector3
 from sensor_msgs.msg import PointField, PointCloud2
 
+from beo_ros.core.grid import wrap_yaw
+
 __all__ = [
     'CloudFormatError', 'cloud_to_xyz', 'xyz_to_cloud', 'matrix_to_pose', 'pose_to_matrix',
     'rotation_to_quaternion', 'quaternion_to_rotation', 'yaw_quaternion', 'object_dimensions',
@@ -241,11 +243,6 @@ def object_dimensions(est) -> np.ndarray:
     return ext + voxel  # voxel centres -> outer faces
 
 
-def _wrap(yaw) -> float:
-    """Radians in [-pi, pi)."""
-    return float((float(yaw) + math.pi) % (2 * math.pi) - math.pi)
-
-
 def _voxel_size(est) -> float:
     """Edge length (m) of one voxel of ``est.grid_to_input`` (0 if unknown)."""
     g = getattr(est, 'grid_to_input', None)
@@ -301,10 +298,10 @@ def estimate_to_msg(est, header, source_topic: str = '', latency: float = 0.0,
     # headings about up in the header frame, not the estimator's grid frame (whose x axis
     # follows the bearing from the sensor to the object)
     off = float(getattr(est, 'heading_offset', None) or 0.0)
-    out.hypotheses = [msgs.YawHypothesis(label=str(h.label), yaw=_wrap(h.yaw + off),
+    out.hypotheses = [msgs.YawHypothesis(label=str(h.label), yaw=wrap_yaw(h.yaw + off),
                                          score=float(h.score))
                       for h in (est.hypotheses or [])]
-    out.symmetric_yaws = [_wrap(y + off) for y in (est.symmetric_yaws or [])]
+    out.symmetric_yaws = [wrap_yaw(y + off) for y in (est.symmetric_yaws or [])]
     if include_cloud and est.completed_points is not None:
         out.completed_cloud = completed_cloud(est, header)
     else:
