@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from .core.grid import yaw_error
+from .evaluate import json_safe
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = 'modelnet10/modelnet10_vox32_train.npz'
@@ -707,18 +708,6 @@ def _fmt(v, spec='.1f'):
     return 'n/a' if v is None else format(v, spec)
 
 
-def _finite(o):
-    if isinstance(o, float) and not math.isfinite(o):
-        return None
-    if isinstance(o, dict):
-        return {k: _finite(v) for k, v in o.items()}
-    if isinstance(o, list):
-        return [_finite(v) for v in o]
-    if isinstance(o, (np.floating, np.integer)):
-        return _finite(o.item())
-    return o
-
-
 # ---------------------------------------------------------------------- main
 def parse_args(argv):
     ap = argparse.ArgumentParser(prog='beo-bench', description=__doc__.split('\n')[0])
@@ -907,7 +896,7 @@ def run(args):
             res['node'] = {'skipped': f'failed: {type(e).__name__}: {e}'}
     res['setup']['wall_s'] = time.perf_counter() - t_all
 
-    res = _finite(res)
+    res = json_safe(res)
     (out / 'bench.json').write_text(json.dumps(res, indent=2) + '\n')
     (out / 'bench.md').write_text(markdown(res))
     if not args.no_plots and all(p in res for p in ('beo', 'paper', 'icp')):

@@ -150,11 +150,14 @@ def summarize(recs, classes):
 
 
 def json_safe(obj):
-    """``obj`` with every non-finite float (NaN: nothing to average) as None, for strict JSON."""
+    """``obj`` with every non-finite float (NaN: nothing to average) as None and numpy scalars
+    as Python numbers, for strict JSON."""
     if isinstance(obj, dict):
         return {k: json_safe(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return [json_safe(v) for v in obj]
+    if isinstance(obj, (np.floating, np.integer)):
+        return json_safe(obj.item())
     if isinstance(obj, float) and not math.isfinite(obj):
         return None
     return obj
