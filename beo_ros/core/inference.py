@@ -573,13 +573,7 @@ def top_yaw_modes(yaws, scores, n_modes, min_sep_deg=20.0):
 
 
 def top_modes(scores, n_modes, min_sep):
-    """Indices of the ``n_modes`` best circular local maxima of ``scores`` (Y,), best first."""
+    """Indices of the ``n_modes`` best circular local maxima of ``scores`` (Y,) over a regular
+    grid of Y yaws, at least ``min_sep`` grid steps apart, best first (``top_yaw_modes``)."""
     Y = len(scores)
-    order = np.argsort(-scores)
-    picked = []
-    for i in order:
-        if all(min(abs(i - j), Y - abs(i - j)) >= min_sep for j in picked):
-            picked.append(int(i))
-            if len(picked) == n_modes:
-                break
-    return picked
+    return top_yaw_modes(np.arange(Y) * (2 * np.pi / Y), scores, n_modes, min_sep * 360.0 / Y)
