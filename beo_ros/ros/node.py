@@ -279,14 +279,10 @@ class BeoNode(Node):
         self._turn = collections.Counter()      # topic -> ticket allowed to publish now
         self._turn_cond = threading.Condition()
         self._in_flight = 0
-        self._warm = threading.Event()
         # the throw-away estimate comes before the subscriptions: a node that listens is ready
         # (a bag replay that waits for the subscriber would otherwise see its first cloud wait
         # for the warm-up and the next replace it as stale)
-        try:
-            self._warm_up()
-        finally:
-            self._warm.set()
+        self._warm_up()
         self._topics = []
         for topic in topics:
             self.create_subscription(
@@ -304,8 +300,8 @@ class BeoNode(Node):
                                              callback_group=self._timer_group)
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
-        self._workers = [threading.Thread(target=self._worker_loop, args=(i,),
-                                          name=f'beo_worker_{i}', daemon=True)
+        self._workers = [threading.Thread(target=self._worker_loop, name=f'beo_worker_{i}',
+                                          daemon=True)
                          for i in range(self._n_workers)]
         for w in self._workers:
             w.start()
@@ -499,7 +495,7 @@ class BeoNode(Node):
             self.get_logger().debug(f'warm-up estimate failed: {type(e).__name__}: {e}')
         self._record('warm_up', time.monotonic() - t0)
 
-    def _worker_loop(self, index=0):
+    def _worker_loop(self):
         while True:
             with self._cond:
                 while not self._slots and not self._stop:
@@ -857,10 +853,10 @@ class BeoNode(Node):
             response.message = f'internal error: {type(e).__name__}: {e}'
         return response
 
-    def wait_ready(self, timeout: float | None = None) -> bool:
-        """True once the warm-up estimate is done (it runs in the constructor, before the node
-        subscribes, so a constructed node is ready); False if ``timeout`` seconds pass."""
-        return self._warm.wait(timeout)
+    def wait_ready(self, timeout: float | None = None) -> bool:  # noqa: ARG002 - API kept
+        """True: the warm-up estimate runs in the constructor, before the node subscribes, so
+        a constructed node is ready (kept for scripts written when it ran in the background)."""
+        return True
 
     # ------------------------------------------------------------------ diagnostics
     def counters(self) -> dict:
