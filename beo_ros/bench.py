@@ -366,6 +366,13 @@ def _replay_probe(cfg_json=None):
     node.destroy_node()
 
 
+def bench_domain(pid):
+    """The ROS domain id of the node phase for process ``pid``: 215-232, the upper of the
+    two ranges whose DDS ports stay clear of Linux's ephemeral ports (ROS 2 "About Domain
+    ID"; the tests' subprocesses use 10-99 of the lower one)."""
+    return 215 + int(pid) % 18
+
+
 def node_bench(bank, X, y, n, idx, args, rng):
     """A real BeoNode fed by a rosbag2 replay (open loop) at fixed rates, plus a closed loop.
 
@@ -381,7 +388,7 @@ def node_bench(bank, X, y, n, idx, args, rng):
     # the bag player runs in its own process (like ros2 bag play), so discovery stays on the
     # local host, on a domain of our own
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    domain = 150 + os.getpid() % 80
+    domain = bench_domain(os.getpid())
     try:
         import subprocess
         import tempfile

@@ -257,3 +257,11 @@ def test_markdown_writes_n_a_for_missing_latencies():
                             'e2e_p95_ms': None}}
     md = markdown({'node': node})
     assert 'p50 n/a ms' in md and '| n/a | n/a |' in md
+
+
+def test_bench_domain_is_in_the_linux_safe_range():
+    """The node phase's domain keeps its DDS ports clear of Linux's ephemeral ports
+    (215-232) and of the tests' own subprocess domains (10-99)."""
+    from beo_ros.bench import bench_domain
+    domains = {bench_domain(pid) for pid in range(1, 5000)}
+    assert domains == set(range(215, 233))
