@@ -11,6 +11,7 @@ import pytest
 from beo_ros.core.bank import ModelBank, ModelError, load_models
 from beo_ros.core.grid import rotate_grid, yaw_error, yaw_source_index
 from beo_ros.core.inference import InferenceEngine
+from beo_ros.core.shape import DESCRIPTOR_NAMES
 from beo_ros.core.synthetic import (make_tiny_bank, partial_view, primitive_shapes,
                                     render_view_points)
 
@@ -854,7 +855,7 @@ def test_classifier_modes_and_cross_validation(clf_bank, tmp_path):
     for mode, clf in bank.classifier.items():
         # 'auto': the 12 per-class features, plus the 12 shape descriptors if they won
         assert bool(clf['descriptors']) == cv[mode]['descriptors']
-        assert clf['coef'].shape == (2, 12 + 12 * cv[mode]['descriptors'])
+        assert clf['coef'].shape == (2, 12 + len(DESCRIPTOR_NAMES) * cv[mode]['descriptors'])
         assert clf['unknown_threshold'].shape == (2,)
     assert set(cv) == {'complete', 'partial'}
     for mode, rep in cv.items():

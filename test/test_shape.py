@@ -95,3 +95,39 @@ def test_expected_calibration_error():
     assert expected_calibration_error(np.full(10, 0.9), np.arange(10) < 9) == pytest.approx(0)
     # confidence 0.9, right half the time: off by 0.4
     assert expected_calibration_error(np.full(10, 0.9), np.arange(10) < 5) == pytest.approx(0.4)
+
+
+def test_classifier_stores_its_descriptor_count_and_old_classifiers_take_the_first_set(tmp_path):
+    """New classifiers record how many descriptors they take; one saved before the second
+    set (no count, 12 inputs) is fed the first 12 of the grid's descriptors, and a bad count
+    is refused on load."""
+    from beo_ros.core.bank import classifier_probabilities, descriptor_count
+    from beo_ros.core.grid import GridSpec
+    from beo_ros.core.shape import BASIC_NAMES
+    from beo_ros.core.training import fit_bank, train_classifier
+    X, y, names = primitive_shapes(N, 8, np.random.default_rng(2))
+    bank = fit_bank(X, y, names, GridSpec(size=N), k=3, pose_components=3, classifier_views=1,
+                    folds=2, seed=0, descriptors=True)
+    for clf in bank.classifier.values():
+        assert int(clf['descriptor_count']) == len(DESCRIPTOR_NAMES) == descriptor_count(clf)
+    # an old-style classifier: trained on the first 12 descriptors, saved without the count
+    grids = [partial_view(X[i].reshape((N,) * 3) > 0.5, 0.3 + i, 0.5) for i in range(len(X))]
+    F = np.array([bank.features(g)[0].ravel() for g in grids])
+    D12 = np.array([shape_descriptors(g)[:len(BASIC_NAMES)] for g in grids])
+    old = train_classifier(F, y, 2, row_standardize=False, descriptors=D12)
+    del old['descriptor_count']
+    assert descriptor_count(old) == len(BASIC_NAMES) == 12
+    path = ModelBank(bank.models, bank.spec, {'partial': old}, bank.training).save(tmp_path / 'o')
+    again = ModelBank.load(path)
+    g = grids[3]
+    f, _ = again.features(g)
+    z = classifier_input(f, 2, False, shape_descriptors(g)[:12])
+    np.testing.assert_allclose(again.classify_features(f, 'partial', g)[0],
+                               classifier_probabilities(old, z, f[:, 0],
+                                                        again._prior_offset(old))[0][0])
+    for bad in (0, len(DESCRIPTOR_NAMES) + 1, 12.0, True):
+        clf = dict(old, descriptor_count=np.asarray(bad))
+        p = ModelBank(bank.models, bank.spec, {'partial': clf}, bank.training).save(
+            tmp_path / f'bad{bad!r}')
+        with pytest.raises(ModelError, match='descriptor_count'):
+            ModelBank.load(p)

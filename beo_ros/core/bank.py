@@ -28,7 +28,8 @@ import numpy as np
 from .estimate import UNKNOWN_LABEL, Estimate, Hypothesis
 from .grid import GridSpec, symmetric_turns, wrap_yaw as _wrap, yaw_matrix
 from .inference import FEATURE_NAMES, InferenceEngine, observed_edt, top_modes, top_yaw_modes
-from .shape import DESCRIPTOR_NAMES as SHAPE_DESCRIPTORS, shape_descriptors
+from .shape import BASIC_NAMES as BASIC_SHAPE_DESCRIPTORS, DESCRIPTOR_NAMES as SHAPE_DESCRIPTORS
+from .shape import shape_descriptors
 from .verifier import TURNS, OrientationVerifier, check_arrays, quarter_turned_features
 
 FORMAT = 'beo_ros.models'
@@ -136,6 +137,23 @@ def classifier_input(F, n_classes, row_standardize=False, descriptors=None):
 def uses_descriptors(clf):
     """Whether a grid classifier dict takes the shape descriptors as extra inputs."""
     return bool(clf.get('descriptors', False))
+
+
+def descriptor_count(clf):
+    """How many shape descriptors (the first of ``shape.DESCRIPTOR_NAMES``) a grid classifier
+    dict takes: 0 without descriptors; ``descriptor_count`` when stored, else the 12 of the
+    first set (classifiers saved before the second). ModelError for a count that is not an
+    integer in 1..len(DESCRIPTOR_NAMES)."""
+    if not uses_descriptors(clf):
+        return 0
+    if 'descriptor_count' not in clf:
+        return len(BASIC_SHAPE_DESCRIPTORS)
+    c = np.asarray(clf['descriptor_count'])
+    if c.shape != () or not np.issubdtype(c.dtype, np.integer) or c.dtype == bool \
+            or not 1 <= int(c) <= len(SHAPE_DESCRIPTORS):
+        raise ModelError(f"'descriptor_count' must be an integer in 1..{len(SHAPE_DESCRIPTORS)}, "
+                         f'got {clf["descriptor_count"]!r}')
+    return int(c)
 
 
 def resolve_class_prior(prior, classes):
@@ -573,9 +591,12 @@ class ModelBank:
                 if mode not in MODES:
                     raise ModelError(f'{fp}: unknown classifier {mode!r} (known: '
                                      f'{", ".join(MODES + (POINTS_MODE,))})')
-                with_d = uses_descriptors(clf)
-                nf = len(FEATURE_NAMES) * len(classes) + with_d * len(SHAPE_DESCRIPTORS)
-                extra = f' + {len(SHAPE_DESCRIPTORS)} shape descriptors' if with_d else ''
+                try:
+                    n_d = descriptor_count(clf)
+                except ModelError as e:
+                    raise ModelError(f'{fp}: classifier {mode!r}: {e}') from None
+                nf = len(FEATURE_NAMES) * len(classes) + n_d
+                extra = f' + {n_d} shape descriptors' if n_d else ''
                 check_classifier_arrays(clf, len(classes), nf, f'{fp}: classifier {mode!r}',
                                         f'{len(classes)} classes x {len(FEATURE_NAMES)} '
                                         f'features{extra}')
@@ -671,7 +692,7 @@ class ModelBank:
                 if grid is None:
                     raise ValueError(f'the {mode!r} classifier takes shape descriptors: pass the '
                                      'grid')
-                desc = shape_descriptors(grid)
+                desc = shape_descriptors(grid)[:descriptor_count(clf)]
             x = classifier_input(feats, len(self.models), bool(clf.get('row_standardize', False)),
                                  desc)
             p, unknown = classifier_probabilities(clf, x, feats[:, 0], self._prior_offset(clf))

@@ -318,18 +318,21 @@ def fit_logistic(Z, y, n_classes, C=1.0):
 def train_classifier(F, y, n_classes, C=1.0, row_standardize=False, descriptors=None):
     """Standardised multinomial logistic regression on features F (r, C*F) [+ shape
     descriptors (r, D)] -> arrays dict (``row_standardize``, ``descriptors``: see
-    ``classifier_input``)."""
+    ``classifier_input``; ``descriptor_count``: D, the first D of ``shape.DESCRIPTOR_NAMES``)."""
     clf = fit_logistic(classifier_input(F, n_classes, row_standardize, descriptors), y,
                        n_classes, C)
-    return dict(clf, unknown_threshold=loglik_bounds(F[:, 0::len(FEATURE_NAMES)], y, n_classes),
-                row_standardize=np.asarray(bool(row_standardize)),
-                descriptors=np.asarray(descriptors is not None))
+    out = dict(clf, unknown_threshold=loglik_bounds(F[:, 0::len(FEATURE_NAMES)], y, n_classes),
+               row_standardize=np.asarray(bool(row_standardize)),
+               descriptors=np.asarray(descriptors is not None))
+    if descriptors is not None:
+        out['descriptor_count'] = np.asarray(np.shape(descriptors)[1], dtype=np.int64)
+    return out
 
 
 def select_classifier(F, y, records, objects, D, n_classes, C=C_OPTIONS, seed=0,
                       row_standardize='auto', descriptors='auto', class_prior='train'):
     """Cross-validate every classifier input (raw or row-standardised features, with or
-    without the shape descriptors D (r, 12), each regularisation strength in ``C``: a number
+    without the shape descriptors D (r, D), each regularisation strength in ``C``: a number
     or a sequence) on out-of-fold features F (r, C*F) with labels y and the object of every
     row, keep the most accurate under ``class_prior`` (its ``prior_accuracy``; the first of
     equals, in that order), train it on all rows.
