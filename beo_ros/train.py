@@ -63,7 +63,7 @@ def main(argv=None):
                          'classifier; auto: per mode, whichever cross-validates better (needs '
                          '3+ classes)')
     ap.add_argument('--descriptors', choices=tuple(AUTO_ON_OFF), default='auto',
-                    help="also give the classifier 12 yaw-invariant shape descriptors of the "
+                    help="also give the classifier the 43 yaw-invariant shape descriptors of the "
                          "grid's occupied voxels; auto: per mode, whichever cross-validates "
                          'better')
     ap.add_argument('--verifier-views', type=int, default=None, metavar='N',

@@ -8,8 +8,9 @@ Layout of a model directory::
     verifier.npz           optional: the orientation verifier's trees (``beo_ros.core.verifier``)
     classifier.npz         optional: standardisation + multinomial logistic regression per mode
                            ('complete', 'partial': on the (C, F) grid features, with
-                           ``descriptors`` also on the 12 shape descriptors of the grid
-                           (``beo_ros.core.shape``); 'points': on the
+                           ``descriptors`` also on the first ``descriptor_count`` shape
+                           descriptors of the grid (``beo_ros.core.shape``; 12 when the count
+                           is not stored, as before 2026-11-23); 'points': on the
                            C per-class log-likelihoods + the 2 side-normal descriptors of the raw
                            points, used by ``estimate_points`` only); every mode may hold
                            ``class_counts`` (C,): its training rows per class, the prior that
