@@ -631,3 +631,30 @@ def test_cli_record_stops_on_sigint_and_duration(tmp_path, ros_domain_id):
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)['stopped_by'] == 'duration'
     assert time.monotonic() - t < 20
+
+
+def test_replay_plays_latched_topics_transient_local(ctx, tmp_path):
+    """A topic recorded from transient-local publishers (like /tf_static) is played
+    transient-local: a transient-local subscriber that joins after the replay still gets
+    it. A volatile topic is not kept for late subscribers."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile
+    p = tmp_path / 'b'
+    with bag.BagWriter(p, storage='mcap') as w:
+        w.add_topic('/latched', 'std_msgs/msg/String', transient_local=True)
+        w.add_topic('/plain', 'std_msgs/msg/String')
+        w.write('/latched', String(data='static'), 1)
+        w.write('/plain', String(data='volatile'), 2)
+    pub_node = rclpy.create_node('replayer', context=ctx)
+    stats = bag.replay(p, pub_node, all_topics=True, rate=0, qos='best_effort')
+    assert stats.latched == ['/latched'] and 'transient-local' in stats.table()
+    sub_node = rclpy.create_node('late_listener', context=ctx)
+    latched_qos = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    late = collect(sub_node, '/latched', String, latched_qos)
+    plain = collect(sub_node, '/plain', String, QoSProfile(depth=10))
+    spin = Spinner(ctx, sub_node)
+    try:
+        assert wait_for(lambda: [m.data for m in late] == ['static'], 5)
+        time.sleep(0.3)
+    finally:
+        spin.close()
+    assert plain == []

@@ -340,6 +340,7 @@ class ReplayStats:
     interrupted: bool = False
     topics: dict = field(default_factory=dict)   # published topic -> TopicStats
     skipped: dict = field(default_factory=dict)  # bag topic -> type not installed (all_topics)
+    latched: list = field(default_factory=list)  # published topics played transient-local
 
     @property
     def messages_per_s(self) -> float:
@@ -364,6 +365,8 @@ class ReplayStats:
         lines.append(f'{self.messages} messages, {self.bytes / 1e6:.2f} MB in {self.wall_s:.3f} s '
                      f'(bag span {self.bag_span_s:.3f} s, rate {rate}, {self.loops} pass(es)'
                      f'{", interrupted" if self.interrupted else ""})')
+        if self.latched:
+            lines.append('played transient-local, as recorded: ' + ', '.join(self.latched))
         if self.skipped:
             lines.append(f'{len(self.skipped)} topic(s) skipped, type not installed: '
                          + ', '.join(f'{t} ({m})' for t, m in self.skipped.items()))
@@ -383,14 +386,26 @@ def parse_remaps(remaps) -> dict:
     return out
 
 
-def make_qos(kind: str = 'reliable', depth: int = 10):
+def make_qos(kind: str = 'reliable', depth: int = 10, latched: bool = False):
+    """Keep-last ``depth``, ``kind`` reliability, volatile; ``latched``: reliable and
+    transient-local whatever ``kind`` (what a latched topic's subscribers ask for)."""
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     if kind not in ('reliable', 'best_effort'):
         raise ValueError(f'qos must be reliable or best_effort, got {kind!r}')
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
-                      reliability=ReliabilityPolicy.RELIABLE if kind == 'reliable'
+                      reliability=ReliabilityPolicy.RELIABLE if kind == 'reliable' or latched
                       else ReliabilityPolicy.BEST_EFFORT,
-                      durability=DurabilityPolicy.VOLATILE)
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL if latched
+                      else DurabilityPolicy.VOLATILE)
+
+
+def recorded_latched(conn) -> bool:
+    """Whether a bag connection was recorded from transient-local ("latched") publishers only,
+    such as /tf_static: every offered QoS profile in the bag metadata is TRANSIENT_LOCAL."""
+    profiles = getattr(getattr(conn, 'ext', None), 'offered_qos_profiles', None) or []
+    return bool(profiles) and all(
+        getattr(getattr(q, 'durability', None), 'name', '') == 'TRANSIENT_LOCAL'
+        for q in profiles)
 
 
 def _sleep_until(deadline: float, stop: threading.Event | None) -> bool:
@@ -407,13 +422,14 @@ def _sleep_until(deadline: float, stop: threading.Event | None) -> bool:
 _PUBLISHERS = weakref.WeakKeyDictionary()   # node -> {(topic, type, qos, depth): publisher}
 
 
-def _publisher(node, msgtype: str, topic: str, qos: str, depth: int):
+def _publisher(node, msgtype: str, topic: str, qos: str, depth: int, latched: bool = False):
     """A publisher of ``node``, reused across replays (destroying one right after the last
     publish could drop reliable messages still in flight, creating one per replay piles up)."""
     cache = _PUBLISHERS.setdefault(node, {})
-    key = (topic, msgtype, qos, depth)
+    key = (topic, msgtype, qos, depth, latched)
     if key not in cache:
-        cache[key] = node.create_publisher(import_msg_class(msgtype), topic, make_qos(qos, depth))
+        cache[key] = node.create_publisher(import_msg_class(msgtype), topic,
+                                           make_qos(qos, depth, latched))
     return cache[key]
 
 
@@ -435,7 +451,11 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
         rate: timing factor: a message is sent at ``t0 + (stamp - first_stamp) / rate``; ``0``
             publishes as fast as possible.
         loop: repeat until ``stop`` is set; ``loops`` caps the number of passes (default 1).
-        qos: 'reliable' or 'best_effort' (history keep-last ``depth``, volatile).
+        qos: 'reliable' or 'best_effort' (history keep-last ``depth``, volatile). A topic
+            recorded from transient-local publishers only (``recorded_latched``, e.g.
+            /tf_static) is played reliable and transient-local, as recorded, so that late and
+            transient-local subscribers (tf2's static listener) get it; ``stats.latched``
+            lists such topics.
         wait_subscribers: before sending, wait until every played topic has at least this many
             matched subscriptions, at most ``wait_timeout`` s (then raise ``TimeoutError``).
         stop: set it (e.g. from a signal handler) to end early; ``stats.interrupted`` is then True.
@@ -467,7 +487,10 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
                 conns.remove(c)
             elif c.topic not in pubs:
                 try:
-                    pubs[c.topic] = _publisher(node, c.msgtype, out, qos, depth)
+                    latched = recorded_latched(c)
+                    pubs[c.topic] = _publisher(node, c.msgtype, out, qos, depth, latched)
+                    if latched:
+                        stats.latched.append(out)
                 except KeyError:   # type not installed: fatal only for a topic asked for
                     if topics:
                         raise
@@ -839,7 +862,9 @@ def replay_main(argv=None) -> int:
                    help='bag topics to play, any type (default: all PointCloud2 topics)')
     p.add_argument('--all-topics', action='store_true', help='play every topic of the bag')
     p.add_argument('--qos', choices=('reliable', 'best_effort'), default='reliable',
-                   help='publisher reliability (default reliable; keep-last, volatile)')
+                   help='publisher reliability (default reliable; keep-last, volatile); '
+                        'topics recorded from transient-local publishers (e.g. /tf_static) '
+                        'are played reliable and transient-local, as recorded')
     p.add_argument('--depth', type=int, default=10, help='publisher history depth (default 10)')
     p.add_argument('--wait-subscribers', type=int, default=0, metavar='N',
                    help='wait until every played topic has N matched subscribers')
