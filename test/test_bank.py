@@ -853,7 +853,7 @@ def test_classifier_modes_and_cross_validation(clf_bank, tmp_path):
     assert set(bank.classifier) == {'complete', 'partial'}
     cv = bank.training['cross_validation']
     for mode, clf in bank.classifier.items():
-        # 'auto': the 12 per-class features, plus the 12 shape descriptors if they won
+        # 'auto': the 12 per-class features, plus the shape descriptors if they won
         assert bool(clf['descriptors']) == cv[mode]['descriptors']
         assert clf['coef'].shape == (2, 12 + len(DESCRIPTOR_NAMES) * cv[mode]['descriptors'])
         assert clf['unknown_threshold'].shape == (2,)

@@ -131,3 +131,34 @@ def test_classifier_stores_its_descriptor_count_and_old_classifiers_take_the_fir
             tmp_path / f'bad{bad!r}')
         with pytest.raises(ModelError, match='descriptor_count'):
             ModelBank.load(p)
+
+
+def test_second_set_describes_how_the_voxels_are_built():
+    """Height profile and height x radius histogram are shares of the voxels; a solid block
+    is stacked and fills its columns, a shelf (two slabs joined by a wall) leaves gaps in its
+    columns, and a pedestal (thin column under a wide top) spreads out at the top."""
+    names = DESCRIPTOR_NAMES
+    block = np.zeros((N,) * 3, dtype=np.int8)
+    block[4:12, 4:12, 0:6] = 1
+    shelf = np.zeros_like(block)
+    shelf[4:12, 4:12, 0:2] = 1
+    shelf[4:12, 4:12, 8:10] = 1
+    shelf[4:5, 4:12, 0:10] = 1
+    pedestal = np.zeros_like(block)
+    pedestal[7:9, 7:9, 0:8] = 1
+    pedestal[2:14, 2:14, 8:10] = 1
+    d = {k: dict(zip(names, shape_descriptors(g)))
+         for k, g in (('block', block), ('shelf', shelf), ('pedestal', pedestal))}
+    for k, v in d.items():
+        assert sum(v[f'z_profile_{i}'] for i in range(8)) == pytest.approx(1.0), k
+        assert sum(v[f'height_radius_{i}_{j}'] for i in range(4) for j in range(4)) == \
+            pytest.approx(1.0), k
+    # the block: all voxels in the lowest eighths of the grid (z < 6 of 16), 5 of 6 stacked
+    assert d['block']['z_profile_0'] + d['block']['z_profile_1'] + \
+        d['block']['z_profile_2'] == pytest.approx(1.0)
+    assert d['block']['supported'] == pytest.approx(5 / 6)
+    assert d['block']['column_fill'] == pytest.approx(1.0)
+    assert d['block']['columns'] == pytest.approx(1 / 6)
+    assert d['shelf']['column_fill'] < 0.7 < d['block']['column_fill']
+    assert d['pedestal']['spread_q3'] > 3 * d['pedestal']['spread_q0']
+    assert d['block']['spread_q3'] == pytest.approx(d['block']['spread_q0'])

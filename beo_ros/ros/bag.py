@@ -419,7 +419,7 @@ def _sleep_until(deadline: float, stop: threading.Event | None) -> bool:
         time.sleep(min(left, 0.05))
 
 
-_PUBLISHERS = weakref.WeakKeyDictionary()   # node -> {(topic, type, qos, depth): publisher}
+_PUBLISHERS = weakref.WeakKeyDictionary()   # node -> {(topic, type, qos, depth, latched): pub}
 
 
 def _publisher(node, msgtype: str, topic: str, qos: str, depth: int, latched: bool = False):
