@@ -401,11 +401,13 @@ def test_cli_record_and_replay_subprocesses(tmp_path, ros_domain_id):
         rep = subprocess.run(
             [sys.executable, '-c', code.format('replay_main', 'replay_main'), str(src),
              '--remap', '/beo/input:=/beo/copy', '--wait-subscribers', '1', '--wait-timeout',
-             '20', '--json'],
+             '20', '--clock', '--json'],
             env=env, capture_output=True, text=True, timeout=60)
         assert rep.returncode == 0, rep.stderr
         rstats = json.loads(rep.stdout)
         assert rstats['messages'] == 6 and rstats['topics']['/beo/copy']['count'] == 6
+        # --clock without a value: 40 Hz; one before each message, a few over 0.1 s between
+        assert rstats['clock_messages'] >= 6
         o, e = rec.communicate(timeout=30)
     finally:
         if rec.poll() is None:
@@ -447,6 +449,8 @@ def test_cli_replay_of_what_is_not_a_bag_exits_2_with_a_message(tmp_path, capsys
     (['--depth', '0'], '--depth must be >= 1'),
     (['--depth', '-1'], '--depth must be >= 1'),
     (['--wait-subscribers', '-1'], '--wait-subscribers must be >= 0'),
+    (['--clock', 'nan'], '--clock must be a finite number >= 0'),
+    (['--clock', '-5'], '--clock must be a finite number >= 0'),
 ])
 def test_cli_replay_bad_numbers_refused(tmp_path, capsys, extra, message):
     write_test_bag(tmp_path / 'b', 'sqlite3', n=1)
@@ -658,3 +662,39 @@ def test_replay_plays_latched_topics_transient_local(ctx, tmp_path):
     finally:
         spin.close()
     assert plain == []
+
+
+def test_replay_publishes_the_bag_time_on_clock(ctx, tmp_path):
+    """clock_hz: /clock carries the bag time, before every message and in between, never
+    going back; a node with use_sim_time follows it."""
+    from rclpy.parameter import Parameter
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rosgraph_msgs.msg import Clock
+    p = tmp_path / 'b'
+    t0 = 1_700_000_000_000_000_000
+    with bag.BagWriter(p, storage='sqlite3') as w:
+        w.add_topic('/chatter', 'std_msgs/msg/String')
+        for i in range(3):
+            w.write('/chatter', String(data=str(i)), t0 + i * 200_000_000)
+    pub_node = rclpy.create_node('replayer', context=ctx)
+    sub_node = rclpy.create_node('clock_listener', context=ctx)
+    sim_node = rclpy.create_node('sim', context=ctx,
+                                 parameter_overrides=[Parameter('use_sim_time', value=True)])
+    clocks = collect(sub_node, '/clock', Clock,
+                     QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT))
+    spin = Spinner(ctx, sub_node, sim_node)
+    try:
+        stats = bag.replay(p, pub_node, all_topics=True, rate=1.0, clock_hz=50.0,
+                           wait_subscribers=0)
+        assert wait_for(lambda: len(clocks) >= stats.clock_messages - 2, 5)
+        assert wait_for(lambda: sim_node.get_clock().now().nanoseconds >= t0 + 400_000_000, 5)
+    finally:
+        spin.close()
+    ns = [m.clock.sec * 1_000_000_000 + m.clock.nanosec for m in clocks]
+    # 0.4 s of bag at 50 Hz: about 20 in between, plus one per message
+    assert stats.clock_messages >= 15 and len(ns) >= 12
+    assert ns == sorted(ns) and t0 <= ns[0] and ns[-1] == t0 + 400_000_000
+    assert t0 + 400_000_000 in ns and t0 + 200_000_000 in ns
+    assert len([v for v in ns if t0 < v < t0 + 200_000_000]) >= 3   # ticks between messages
+    with pytest.raises(ValueError, match='clock_hz'):
+        bag.replay(p, pub_node, clock_hz=float('nan'))

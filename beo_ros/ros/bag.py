@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import importlib
 import json
 import math
@@ -341,6 +342,7 @@ class ReplayStats:
     topics: dict = field(default_factory=dict)   # published topic -> TopicStats
     skipped: dict = field(default_factory=dict)  # bag topic -> type not installed (all_topics)
     latched: list = field(default_factory=list)  # published topics played transient-local
+    clock_messages: int = 0                      # /clock messages published (clock_hz)
 
     @property
     def messages_per_s(self) -> float:
@@ -365,6 +367,8 @@ class ReplayStats:
         lines.append(f'{self.messages} messages, {self.bytes / 1e6:.2f} MB in {self.wall_s:.3f} s '
                      f'(bag span {self.bag_span_s:.3f} s, rate {rate}, {self.loops} pass(es)'
                      f'{", interrupted" if self.interrupted else ""})')
+        if self.clock_messages:
+            lines.append(f'{self.clock_messages} /clock messages')
         if self.latched:
             lines.append('played transient-local, as recorded: ' + ', '.join(self.latched))
         if self.skipped:
@@ -408,15 +412,22 @@ def recorded_latched(conn) -> bool:
         for q in profiles)
 
 
-def _sleep_until(deadline: float, stop: threading.Event | None) -> bool:
-    """Sleep until time.monotonic() >= deadline; False if ``stop`` got set first."""
+def _sleep_until(deadline: float, stop: threading.Event | None, tick=None,
+                 period: float = 0.05) -> bool:
+    """Sleep until time.monotonic() >= deadline; False if ``stop`` got set first. ``tick()``
+    is called every ``period`` s while sleeping (the /clock of a replay)."""
+    next_tick = time.monotonic() + period
     while True:
-        left = deadline - time.monotonic()
+        now = time.monotonic()
+        left = deadline - now
         if stop is not None and stop.is_set():
             return False
         if left <= 0:
             return True
-        time.sleep(min(left, 0.05))
+        if tick is not None and now >= next_tick:
+            tick()
+            next_tick += period * max(1, math.ceil((now - next_tick) / period))
+        time.sleep(min(left, 0.05, max(next_tick - now, 0.0) if tick is not None else 0.05))
 
 
 _PUBLISHERS = weakref.WeakKeyDictionary()   # node -> {(topic, type, qos, depth, latched): pub}
@@ -433,11 +444,36 @@ def _publisher(node, msgtype: str, topic: str, qos: str, depth: int, latched: bo
     return cache[key]
 
 
+def _clock_publisher(node):
+    """``node``'s /clock publisher (best effort, depth 1, like rclcpp's ClockQoS), reused."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rosgraph_msgs.msg import Clock
+    cache = _PUBLISHERS.setdefault(node, {})
+    key = ('/clock', 'rosgraph_msgs/msg/Clock', 'best_effort', 1, False)
+    if key not in cache:
+        cache[key] = node.create_publisher(
+            Clock, '/clock', QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
+    return cache[key]
+
+
+def _publish_clock(pub, stamp_ns: int, stats) -> None:
+    from rosgraph_msgs.msg import Clock
+    msg = Clock()
+    msg.clock.sec, msg.clock.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    pub.publish(msg)
+    stats.clock_messages += 1
+
+
+def _clock_tick(pub, stats, t_start: float, bag_t0: int, rate: float) -> None:
+    """Publish the bag time of this moment of a replay that started at ``t_start``."""
+    _publish_clock(pub, bag_t0 + int((time.monotonic() - t_start) * rate * 1e9), stats)
+
+
 def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
            rate: float = 1.0, loop: bool = False, loops: int | None = None,
            qos: str = 'reliable', depth: int = 10, wait_subscribers: int = 0,
            wait_timeout: float = 10.0, stop: threading.Event | None = None,
-           on_publish=None) -> ReplayStats:
+           on_publish=None, clock_hz: float = 0.0) -> ReplayStats:
     """Publish the messages of a bag with ``node``'s publishers; returns what was sent.
 
     Args:
@@ -460,10 +496,15 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
             matched subscriptions, at most ``wait_timeout`` s (then raise ``TimeoutError``).
         stop: set it (e.g. from a signal handler) to end early; ``stats.interrupted`` is then True.
         on_publish: ``callable(published_topic, raw_bytes, bag_stamp_ns)`` after every publish.
+        clock_hz: > 0: also publish the bag time on /clock (``rosgraph_msgs/Clock``, best
+            effort, depth 1, as ``ros2 bag play --clock``) before every message and at this
+            rate in between, for nodes with ``use_sim_time``; ``stats.clock_messages``.
     """
     from rosbags.rosbag2 import Reader
     if not (math.isfinite(rate) and rate >= 0):
         raise ValueError(f'rate must be a finite number >= 0, got {rate}')
+    if not (math.isfinite(clock_hz) and clock_hz >= 0):
+        raise ValueError(f'clock_hz must be a finite number >= 0, got {clock_hz}')
     remap = parse_remaps(remap) if isinstance(remap, (list, tuple)) else dict(remap or {})
     bag_path = Path(bag_path)
     n_passes = loops if loops is not None else (None if loop else 1)
@@ -517,6 +558,7 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
                 time.sleep(0.02)
             stats.waited_s = time.monotonic() - t_wait
 
+        clock = _clock_publisher(node) if clock_hz > 0 else None
         t_first = t_last = None
         while n_passes is None or stats.loops < n_passes:
             t_start = None
@@ -528,12 +570,17 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
                 if rate > 0:
                     if t_start is None:
                         t_start = time.monotonic()
-                    if not _sleep_until(t_start + (t - bag_t0) / 1e9 / rate, stop):
+                    tick = None if clock is None else functools.partial(
+                        _clock_tick, clock, stats, t_start, bag_t0, rate)
+                    if not _sleep_until(t_start + (t - bag_t0) / 1e9 / rate, stop, tick,
+                                        1.0 / clock_hz if clock_hz > 0 else 0.05):
                         stats.interrupted = True
                         break
                 elif stop is not None and stop.is_set():
                     stats.interrupted = True
                     break
+                if clock is not None:
+                    _publish_clock(clock, t, stats)
                 data = bytes(raw)
                 pubs[conn.topic].publish(data)
                 now = time.monotonic()
@@ -866,6 +913,9 @@ def replay_main(argv=None) -> int:
                         'topics recorded from transient-local publishers (e.g. /tf_static) '
                         'are played reliable and transient-local, as recorded')
     p.add_argument('--depth', type=int, default=10, help='publisher history depth (default 10)')
+    p.add_argument('--clock', type=float, nargs='?', const=40.0, default=0.0, metavar='HZ',
+                   help='also publish the bag time on /clock, before every message and at HZ '
+                        '(default 40) in between, for nodes run with use_sim_time:=true')
     p.add_argument('--wait-subscribers', type=int, default=0, metavar='N',
                    help='wait until every played topic has N matched subscribers')
     p.add_argument('--wait-timeout', type=float, default=10.0, metavar='S',
@@ -877,6 +927,8 @@ def replay_main(argv=None) -> int:
         p.error(f'--rate must be a finite number >= 0, got {args.rate:g}')
     if args.depth < 1:
         p.error(f'--depth must be >= 1, got {args.depth}')
+    if not (math.isfinite(args.clock) and args.clock >= 0):
+        p.error(f'--clock must be a finite number >= 0, got {args.clock:g}')
     if args.wait_subscribers < 0:
         p.error(f'--wait-subscribers must be >= 0, got {args.wait_subscribers}')
     try:
@@ -892,7 +944,7 @@ def replay_main(argv=None) -> int:
             stats = replay(args.bag, node, topics=args.topics, all_topics=args.all_topics,
                            remap=remap, rate=args.rate, loop=args.loop, qos=args.qos,
                            depth=args.depth, wait_subscribers=args.wait_subscribers,
-                           wait_timeout=args.wait_timeout, stop=stop)
+                           wait_timeout=args.wait_timeout, stop=stop, clock_hz=args.clock)
             time.sleep(0.2)  # let reliable transports drain before the publishers go away
             for topic, typ in stats.skipped.items():
                 print(f'beo-replay: warning: skipping {topic}: message type {typ} is not '
