@@ -42,8 +42,9 @@ def test_descriptors_use_only_occupied_voxels_and_check_input():
     labelled = np.where(g == 1, 1, -1).astype(np.int8)      # unknown around: same voxels
     np.testing.assert_allclose(shape_descriptors(labelled), shape_descriptors(g))
     assert not shape_descriptors(np.zeros((N,) * 3, dtype=np.int8)).any()
-    with pytest.raises(ValueError, match='N, N, N'):
-        shape_descriptors(np.zeros((N, N), dtype=np.int8))
+    for shape in ((N, N), (N, N, 2 * N)):
+        with pytest.raises(ValueError, match='N, N, N'):
+            shape_descriptors(np.zeros(shape, dtype=np.int8))
 
 
 def test_classifier_with_descriptors_is_trained_saved_checked_and_used(tmp_path):

@@ -44,7 +44,7 @@ def shape_descriptors(grid):
     quarter i of the z extent (0 if none). Fewer than 3 voxels: all zeros.
     """
     g = np.asarray(grid)
-    if g.ndim != 3:
+    if g.ndim != 3 or len(set(g.shape)) != 1:
         raise ValueError(f'grid must be (N, N, N), got shape {g.shape}')
     n = g.shape[0]
     occ = g == 1

@@ -415,7 +415,7 @@ def recorded_latched(conn) -> bool:
 def _sleep_until(deadline: float, stop: threading.Event | None, tick=None,
                  period: float = 0.05) -> bool:
     """Sleep until time.monotonic() >= deadline; False if ``stop`` got set first. ``tick()``
-    is called every ``period`` s while sleeping (the /clock of a replay)."""
+    is called with time.monotonic() every ``period`` s while sleeping (a replay's /clock)."""
     next_tick = time.monotonic() + period
     while True:
         now = time.monotonic()
@@ -425,8 +425,9 @@ def _sleep_until(deadline: float, stop: threading.Event | None, tick=None,
         if left <= 0:
             return True
         if tick is not None and now >= next_tick:
-            tick()
+            tick(now)
             next_tick += period * max(1, math.ceil((now - next_tick) / period))
+            continue   # the tick took time: look at the clock again
         time.sleep(min(left, 0.05, max(next_tick - now, 0.0) if tick is not None else 0.05))
 
 
@@ -464,9 +465,18 @@ def _publish_clock(pub, stamp_ns: int, stats) -> None:
     stats.clock_messages += 1
 
 
-def _clock_tick(pub, stats, t_start: float, bag_t0: int, rate: float) -> None:
-    """Publish the bag time of this moment of a replay that started at ``t_start``."""
-    _publish_clock(pub, bag_t0 + int((time.monotonic() - t_start) * rate * 1e9), stats)
+# with wait_subscribers and clock_hz: how long to wait for a /clock subscriber once the data
+# topics have theirs (a use_sim_time node subscribes to /clock when it starts; without one,
+# nothing needs /clock and the replay starts after this pause)
+CLOCK_GRACE_S = 1.0
+
+
+def _clock_tick(pub, stats, t_start: float, bag_t0: int, rate: float, t_next: int,
+                now: float) -> None:
+    """Publish the bag time at monotonic time ``now`` of a replay that started at ``t_start``,
+    never past ``t_next``, the stamp of the message about to be sent (/clock must not step
+    back when that message's own clock follows)."""
+    _publish_clock(pub, min(bag_t0 + round((now - t_start) * rate * 1e9), t_next), stats)
 
 
 def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
@@ -529,7 +539,11 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
             elif c.topic not in pubs:
                 try:
                     latched = recorded_latched(c)
-                    pubs[c.topic] = _publisher(node, c.msgtype, out, qos, depth, latched)
+                    # keep every latched message for late subscribers (one per static
+                    # broadcaster on /tf_static), not only the last ``depth``
+                    pubs[c.topic] = _publisher(node, c.msgtype, out, qos,
+                                               max(depth, int(getattr(c, 'msgcount', 0) or 0))
+                                               if latched else depth, latched)
                     if latched:
                         stats.latched.append(out)
                 except KeyError:   # type not installed: fatal only for a topic asked for
@@ -543,22 +557,34 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
         if not conns:
             return stats
 
+        # made before the wait, so that discovery matches /clock with the data topics
+        clock = _clock_publisher(node) if clock_hz > 0 else None
         if wait_subscribers > 0:
             t_wait = time.monotonic()
             deadline = t_wait + wait_timeout
-            while any(p.get_subscription_count() < wait_subscribers for p in pubs.values()):
+            clock_grace = None   # once the data topics match, up to 1 s more for /clock
+
+            def waiting():
+                nonlocal clock_grace
+                if any(p.get_subscription_count() < wait_subscribers for p in pubs.values()):
+                    return True
+                if clock is None or clock.get_subscription_count() > 0:
+                    return False
+                clock_grace = clock_grace or time.monotonic() + CLOCK_GRACE_S
+                return time.monotonic() < clock_grace
+
+            while waiting():
                 if stop is not None and stop.is_set():
                     stats.interrupted = True
                     return stats
-                if time.monotonic() > deadline:
-                    short = {p.topic_name: p.get_subscription_count() for p in pubs.values()
-                             if p.get_subscription_count() < wait_subscribers}
+                short = {p.topic_name: p.get_subscription_count() for p in pubs.values()
+                         if p.get_subscription_count() < wait_subscribers}
+                if short and time.monotonic() > deadline:
                     raise TimeoutError(f'waited {wait_timeout:g} s for {wait_subscribers} '
                                        f'subscriber(s); matched: {short}')
                 time.sleep(0.02)
             stats.waited_s = time.monotonic() - t_wait
 
-        clock = _clock_publisher(node) if clock_hz > 0 else None
         t_first = t_last = None
         while n_passes is None or stats.loops < n_passes:
             t_start = None
@@ -571,7 +597,7 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
                     if t_start is None:
                         t_start = time.monotonic()
                     tick = None if clock is None else functools.partial(
-                        _clock_tick, clock, stats, t_start, bag_t0, rate)
+                        _clock_tick, clock, stats, t_start, bag_t0, rate, t)
                     if not _sleep_until(t_start + (t - bag_t0) / 1e9 / rate, stop, tick,
                                         1.0 / clock_hz if clock_hz > 0 else 0.05):
                         stats.interrupted = True
@@ -915,7 +941,9 @@ def replay_main(argv=None) -> int:
     p.add_argument('--depth', type=int, default=10, help='publisher history depth (default 10)')
     p.add_argument('--clock', type=float, nargs='?', const=40.0, default=0.0, metavar='HZ',
                    help='also publish the bag time on /clock, before every message and at HZ '
-                        '(default 40) in between, for nodes run with use_sim_time:=true')
+                        '(default 40) in between, for nodes run with use_sim_time:=true; '
+                        'put it after BAG or write --clock=HZ (before BAG, "--clock BAG" '
+                        'would read BAG as HZ); with --loop the clock goes back at each pass')
     p.add_argument('--wait-subscribers', type=int, default=0, metavar='N',
                    help='wait until every played topic has N matched subscribers')
     p.add_argument('--wait-timeout', type=float, default=10.0, metavar='S',
