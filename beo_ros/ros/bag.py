@@ -445,18 +445,6 @@ def _publisher(node, msgtype: str, topic: str, qos: str, depth: int, latched: bo
     return cache[key]
 
 
-def _clock_publisher(node):
-    """``node``'s /clock publisher (best effort, depth 1, like rclcpp's ClockQoS), reused."""
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from rosgraph_msgs.msg import Clock
-    cache = _PUBLISHERS.setdefault(node, {})
-    key = ('/clock', 'rosgraph_msgs/msg/Clock', 'best_effort', 1, False)
-    if key not in cache:
-        cache[key] = node.create_publisher(
-            Clock, '/clock', QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
-    return cache[key]
-
-
 def _publish_clock(pub, stamp_ns: int, stats) -> None:
     from rosgraph_msgs.msg import Clock
     msg = Clock()
@@ -558,27 +546,25 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
             return stats
 
         # made before the wait, so that discovery matches /clock with the data topics
-        clock = _clock_publisher(node) if clock_hz > 0 else None
+        # best effort, depth 1, volatile: rclcpp's ClockQoS
+        clock = (_publisher(node, 'rosgraph_msgs/msg/Clock', '/clock', 'best_effort', 1)
+                 if clock_hz > 0 else None)
         if wait_subscribers > 0:
             t_wait = time.monotonic()
             deadline = t_wait + wait_timeout
             clock_grace = None   # once the data topics match, up to 1 s more for /clock
-
-            def waiting():
-                nonlocal clock_grace
-                if any(p.get_subscription_count() < wait_subscribers for p in pubs.values()):
-                    return True
-                if clock is None or clock.get_subscription_count() > 0:
-                    return False
-                clock_grace = clock_grace or time.monotonic() + CLOCK_GRACE_S
-                return time.monotonic() < clock_grace
-
-            while waiting():
+            while True:
+                short = {p.topic_name: p.get_subscription_count() for p in pubs.values()
+                         if p.get_subscription_count() < wait_subscribers}
+                if not short:
+                    if clock is None or clock.get_subscription_count() > 0:
+                        break
+                    clock_grace = clock_grace or time.monotonic() + CLOCK_GRACE_S
+                    if time.monotonic() >= clock_grace:
+                        break
                 if stop is not None and stop.is_set():
                     stats.interrupted = True
                     return stats
-                short = {p.topic_name: p.get_subscription_count() for p in pubs.values()
-                         if p.get_subscription_count() < wait_subscribers}
                 if short and time.monotonic() > deadline:
                     raise TimeoutError(f'waited {wait_timeout:g} s for {wait_subscribers} '
                                        f'subscriber(s); matched: {short}')
