@@ -57,9 +57,11 @@ def write_test_bag(path, storage, n=10, period_ns=10_000_000, extra_topic=True):
 
 
 @pytest.fixture
-def ctx():
+def ctx(ros_domain_id):
+    # a domain per test: a participant of the test before (its /clock subscriber) can linger in
+    # the discovery graph of the next context of this process and would match its endpoints
     c = rclpy.Context()
-    rclpy.init(context=c)
+    rclpy.init(context=c, domain_id=ros_domain_id)
     yield c
     rclpy.try_shutdown(context=c)
 
