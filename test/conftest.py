@@ -32,8 +32,9 @@ def ros_domain_id():
 
 
 @pytest.fixture
-def ros_context(monkeypatch):
-    """An initialised rclpy Context of its own, discovery OFF (no traffic outside the process).
+def ros_context(monkeypatch, ros_domain_id):
+    """An initialised rclpy Context of its own, discovery OFF (no traffic outside the process)
+    and its own domain (no endpoints of an earlier test's context in its graph).
 
     Yields the context; shuts it down afterwards.
     """
@@ -42,7 +43,7 @@ def ros_context(monkeypatch):
 
     monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'OFF')
     ctx = Context()
-    rclpy.init(context=ctx)
+    rclpy.init(context=ctx, domain_id=ros_domain_id)
     try:
         yield ctx
     finally:

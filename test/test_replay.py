@@ -106,10 +106,10 @@ def bank(request):
 class NodeHarness:
     """BeoNode + a listener + a replay node in one fresh context, spun in a background thread."""
 
-    def __init__(self, bank, up=UP, **params):
+    def __init__(self, bank, up=UP, domain_id=None, **params):
         from beo_ros.ros.node import BeoNode
         self.ctx = rclpy.Context()
-        rclpy.init(context=self.ctx)
+        rclpy.init(context=self.ctx, domain_id=domain_id)
         overrides = [Parameter('up_vector', value=[float(v) for v in up]),
                      Parameter('sensor_origin', value=[0.0, 0.0, 0.0]),
                      Parameter('diagnostics_period', value=0.1)]
@@ -176,11 +176,12 @@ class NodeHarness:
 
 
 @pytest.fixture
-def harness(bank):
+def harness(bank, ros_domain_id):
     hs = []
 
     def make(**kw):
-        h = NodeHarness(bank, **kw)
+        # a domain per test: endpoints of the test before must not count as subscribers
+        h = NodeHarness(bank, domain_id=ros_domain_id, **kw)
         hs.append(h)
         return h
     yield make
