@@ -496,6 +496,15 @@ def _write_manifest(p, m):
     (p / 'manifest.json').write_text(json.dumps(m))
 
 
+def test_repr_names_classes_grid_and_parts(tiny):
+    r = repr(tiny)
+    k = tiny.models[0].W.shape[1]
+    assert r.startswith("ModelBank(2 classes ['box', 'cylinder'], grid 16^3 normalized")
+    assert f'k {k}-{k}' in r and "prior 'train'" in r and 'verifier no' in r
+    assert "classifier ['max-likelihood']" in r and tiny.classifier is None
+    assert repr(tiny.with_class_prior('uniform')).endswith("prior 'uniform')")
+
+
 def test_load_missing_dir_and_manifest(tmp_path, tiny_dir):
     with pytest.raises(ModelError, match='nope'):
         ModelBank.load(tmp_path / 'nope')

@@ -434,6 +434,14 @@ class ModelBank:
                              self.pose_components, self.stage2_noise_map, self.class_prior,
                              self.verifier))
 
+    def __repr__(self):
+        ks = [m.W.shape[1] for m in self.models]
+        modes = sorted(self.classifier) if self.classifier else ['max-likelihood']
+        return (f'ModelBank({len(self.models)} classes {self.classes}, grid {self.spec.size}^3 '
+                f'{self.spec.units}, k {min(ks)}-{max(ks)}, classifier {modes}, '
+                f'verifier {"yes" if self.verifier is not None else "no"}, '
+                f'prior {self.class_prior!r})')
+
     @property
     def classes(self):
         return [m.name for m in self.models]
