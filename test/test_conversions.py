@@ -117,6 +117,18 @@ def test_nan_and_inf_are_dropped_and_counted(pts):
     np.testing.assert_allclose(out, pts[keep], atol=1e-6)
 
 
+def test_signalling_nan_is_dropped_without_a_warning(pts):
+    import warnings
+    msg = hand_cloud(pts, [('x', 0, F32), ('y', 4, F32), ('z', 8, F32)], 12, big=True)
+    data = bytearray(msg.data)
+    data[3 * 12 + 4:3 * 12 + 8] = b'\x7f\xa0\x00\x00'   # point 3's y: a signalling NaN
+    msg.data = bytes(data)
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        out, dropped = cloud_to_xyz(msg)
+    assert dropped == 1 and out.shape == (len(pts) - 1, 3)
+
+
 def test_all_nan_gives_empty(pts):
     msg = hand_cloud(np.full_like(pts, np.nan), [('x', 0, F64), ('y', 8, F64), ('z', 16, F64)], 24)
     out, dropped = cloud_to_xyz(msg)

@@ -113,8 +113,10 @@ def cloud_to_xyz(msg: PointCloud2):
     arr = np.ndarray(shape=(height, width), dtype=dtype, buffer=data, offset=0,
                      strides=(row_step, point_step))
     pts = np.empty((n_points, 3), dtype=np.float64)
-    for i, k in enumerate('xyz'):
-        pts[:, i] = arr[k].reshape(-1)
+    # signalling NaNs raise 'invalid' when widened; every non-finite point is counted below
+    with np.errstate(invalid='ignore'):
+        for i, k in enumerate('xyz'):
+            pts[:, i] = arr[k].reshape(-1)
     finite = np.isfinite(pts).all(axis=1)
     n_dropped = int(n_points - np.count_nonzero(finite))
     if n_dropped:
