@@ -435,10 +435,10 @@ class ModelBank:
                              self.verifier))
 
     def __repr__(self):
-        ks = [m.W.shape[1] for m in self.models]
+        lo, hi = min(m.W.shape[1] for m in self.models), max(m.W.shape[1] for m in self.models)
         modes = sorted(self.classifier) if self.classifier else ['max-likelihood']
         return (f'ModelBank({len(self.models)} classes {self.classes}, grid {self.spec.size}^3 '
-                f'{self.spec.units}, k {min(ks)}-{max(ks)}, classifier {modes}, '
+                f'{self.spec.units}, k {lo if lo == hi else f"{lo}-{hi}"}, classifier {modes}, '
                 f'verifier {"yes" if self.verifier is not None else "no"}, '
                 f'prior {self.class_prior!r})')
 

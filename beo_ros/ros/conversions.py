@@ -113,7 +113,8 @@ def cloud_to_xyz(msg: PointCloud2):
     arr = np.ndarray(shape=(height, width), dtype=dtype, buffer=data, offset=0,
                      strides=(row_step, point_step))
     pts = np.empty((n_points, 3), dtype=np.float64)
-    # signalling NaNs raise 'invalid' when widened; every non-finite point is counted below
+    # a byte-swapped signalling NaN raises 'invalid' when widened; non-finite points are
+    # dropped and counted below
     with np.errstate(invalid='ignore'):
         for i, k in enumerate('xyz'):
             pts[:, i] = arr[k].reshape(-1)
