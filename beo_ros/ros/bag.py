@@ -428,7 +428,8 @@ def _sleep_until(deadline: float, stop: threading.Event | None, tick=None,
             tick(now)
             next_tick += period * max(1, math.ceil((now - next_tick) / period))
             continue   # the tick took time: look at the clock again
-        time.sleep(min(left, 0.05, max(next_tick - now, 0.0) if tick is not None else 0.05))
+        # here now < next_tick whenever there is a tick
+        time.sleep(min(left, 0.05, next_tick - now if tick is not None else left))
 
 
 _PUBLISHERS = weakref.WeakKeyDictionary()   # node -> {(topic, type, qos, depth, latched): pub}
@@ -554,8 +555,8 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
             deadline = t_wait + wait_timeout
             clock_grace = None   # once the data topics match, up to 1 s more for /clock
             while True:
-                short = {p.topic_name: p.get_subscription_count() for p in pubs.values()
-                         if p.get_subscription_count() < wait_subscribers}
+                counts = {p.topic_name: p.get_subscription_count() for p in pubs.values()}
+                short = {t: c for t, c in counts.items() if c < wait_subscribers}
                 if not short:
                     if clock is None or clock.get_subscription_count() > 0:
                         break
