@@ -66,6 +66,10 @@ def main(argv=None):
                     help="also give the classifier the 43 yaw-invariant shape descriptors of the "
                          "grid's occupied voxels; auto: per mode, whichever cross-validates "
                          'better')
+    ap.add_argument('--classifier', choices=('auto', 'logistic', 'mlp'), default='auto',
+                    help='the classifier on the out-of-fold features: a logistic regression, a '
+                         'one-layer ReLU network (128 units), or auto: per mode, whichever '
+                         'cross-validates better with the inputs above')
     ap.add_argument('--verifier-views', type=int, default=None, metavar='N',
                     help='random views per object for the orientation verifier, which picks '
                          'among a yaw and its quarter turns (default 6; 0: none; not with '
@@ -103,7 +107,8 @@ def main(argv=None):
     if args.oof_out and args.views == 0:
         ap.error('--oof-out needs --views >= 1 (--views 0 makes no out-of-fold features)')
     if args.mirror:   # train_scan_bank: maximum-likelihood rule, no out-of-fold classifier
-        unused = [name for name in ('seed', 'folds', 'row_standardize', 'descriptors')
+        unused = [name for name in ('seed', 'folds', 'row_standardize', 'descriptors',
+                                    'classifier')
                   if getattr(args, name) != ap.get_default(name)]
         if unused:
             ap.error('not used with --mirror: ' + ', '.join(f"--{n.replace('_', '-')}"
@@ -165,7 +170,8 @@ def main(argv=None):
                         grids=grids, oof_path=args.oof_out,
                         row_standardize=AUTO_ON_OFF[args.row_standardize],
                         descriptors=AUTO_ON_OFF[args.descriptors], class_prior=class_prior,
-                        verifier_views=args.verifier_views, processes=args.jobs)
+                        verifier_views=args.verifier_views, processes=args.jobs,
+                        classifier_kind=args.classifier)
         bank.save(args.out)
     except (ValueError, OSError) as e:
         print(f'beo-train: error: {e}', file=sys.stderr)

@@ -858,13 +858,19 @@ def clf_bank():
 
 
 def test_classifier_modes_and_cross_validation(clf_bank, tmp_path):
+    from beo_ros.core.training import MLP_HIDDEN
     bank, X, y = clf_bank
     assert set(bank.classifier) == {'complete', 'partial'}
     cv = bank.training['cross_validation']
     for mode, clf in bank.classifier.items():
         # 'auto': the 12 per-class features, plus the shape descriptors if they won
         assert bool(clf['descriptors']) == cv[mode]['descriptors']
-        assert clf['coef'].shape == (2, 12 + len(DESCRIPTOR_NAMES) * cv[mode]['descriptors'])
+        n_in = 12 + len(DESCRIPTOR_NAMES) * cv[mode]['descriptors']
+        if cv[mode]['kind'] == 'mlp':   # 'auto' also tries the one-layer network
+            assert clf['hidden_coef'].shape == (MLP_HIDDEN, n_in)
+            assert clf['coef'].shape == (2, MLP_HIDDEN)
+        else:
+            assert clf['coef'].shape == (2, n_in) and 'hidden_coef' not in clf
         assert clf['unknown_threshold'].shape == (2,)
     assert set(cv) == {'complete', 'partial'}
     for mode, rep in cv.items():

@@ -302,6 +302,8 @@ def test_train_bad_arguments_refused(tmp_path, capsys, extra, message):
     (['--scans', '--mirror', '--views', '0', '--folds', '3', '--descriptors', 'on',
       '--row-standardize', 'off'],
      'not used with --mirror: --folds, --row-standardize, --descriptors'),
+    (['--scans', '--mirror', '--views', '0', '--classifier', 'mlp'],
+     'not used with --mirror: --classifier'),
 ])
 def test_train_options_that_do_not_apply_refused(tmp_path, capsys, extra, message):
     write_npz(tmp_path / 'd.npz', count=2)

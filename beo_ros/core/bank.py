@@ -44,6 +44,8 @@ MODES = ('complete', 'partial')
 POINTS_MODE = 'points'
 POINT_CLASSIFIER_KEYS = ('mean', 'scale', 'coef', 'intercept', 'unknown_threshold')
 OPTIONAL_CLASSIFIER_KEYS = ('class_counts',)
+# a grid classifier's optional hidden layer (training.fit_mlp): both arrays or neither
+HIDDEN_CLASSIFIER_KEYS = ('hidden_coef', 'hidden_intercept')
 # named class priors: 'train' keeps the classifier's own probabilities (its training rows'
 # class frequencies are its prior); 'uniform' treats every class as equally likely a priori
 CLASS_PRIORS = ('train', 'uniform')
@@ -235,9 +237,10 @@ def _softmax(z):
 
 def classifier_probabilities(clf, Z, loglik, offset=None):
     """Class probabilities (m, C) and 'unknown' flags (m,) of a classifier dict (mean, scale,
-    coef, intercept, unknown_threshold) on its input rows Z (m, n_in), given every row's
-    per-class exact log-likelihood per known voxel (m, C); ``offset`` (C,): added to the
-    logits (a class prior, see :func:`prior_offset`).
+    coef, intercept, unknown_threshold; optionally hidden_coef (H, n_in) and hidden_intercept
+    (H,): a ReLU layer between the standardised input and the softmax layer, coef then (C, H))
+    on its input rows Z (m, n_in), given every row's per-class exact log-likelihood per known
+    voxel (m, C); ``offset`` (C,): added to the logits (a class prior, see :func:`prior_offset`).
 
     'unknown': the winner explains the object far worse than its own training objects, or the
     classes that do explain it hold less than half the probability (the classifier compares
@@ -246,6 +249,9 @@ def classifier_probabilities(clf, Z, loglik, offset=None):
     """
     L = np.atleast_2d(np.asarray(loglik, dtype=np.float64))
     z = (np.atleast_2d(np.asarray(Z, dtype=np.float64)) - clf['mean']) / clf['scale']
+    if 'hidden_coef' in clf:   # one ReLU layer (training.fit_mlp) before the softmax layer
+        z = np.maximum(z @ np.asarray(clf['hidden_coef'], dtype=np.float64).T
+                       + clf['hidden_intercept'], 0.0)
     logits = z @ np.asarray(clf['coef'], dtype=np.float64).T + clf['intercept']
     if offset is not None:
         logits = logits + offset
@@ -274,12 +280,23 @@ def check_point_classifier(clf, n_classes, where='classifier'):
 def check_classifier_arrays(clf, n_classes, n_in, where, inputs):
     """Raise ModelError unless the dict ``clf`` holds mean, scale (n_in,), coef (C, n_in),
     intercept (C,), unknown_threshold (C,), all numeric and finite (unknown_threshold may be
-    -inf: never 'unknown'), scale > 0, and valid optional class_counts. ``inputs`` describes
-    the n_in inputs for the message."""
-    shapes = dict(mean=(n_in,), scale=(n_in,), coef=(n_classes, n_in), intercept=(n_classes,),
-                  unknown_threshold=(n_classes,))
+    -inf: never 'unknown'), scale > 0, and valid optional class_counts. With a hidden layer
+    (hidden_coef (H, n_in) and hidden_intercept (H,), both or neither) coef is (C, H).
+    ``inputs`` describes the n_in inputs for the message."""
     if not isinstance(clf, dict):
         raise ModelError(f'{where} must be a dict of arrays')
+    shapes = dict(mean=(n_in,), scale=(n_in,), coef=(n_classes, n_in), intercept=(n_classes,),
+                  unknown_threshold=(n_classes,))
+    hidden = [k for k in HIDDEN_CLASSIFIER_KEYS if k in clf]
+    if hidden:
+        if len(hidden) != len(HIDDEN_CLASSIFIER_KEYS):
+            raise ModelError(f"{where} has {hidden[0]!r} without "
+                             f"{(set(HIDDEN_CLASSIFIER_KEYS) - set(hidden)).pop()!r}")
+        h = np.shape(clf['hidden_intercept'])
+        if len(h) != 1 or h[0] < 1:
+            raise ModelError(f"{where} 'hidden_intercept' has shape {h}, expected (H,) with "
+                             'H >= 1 hidden units')
+        shapes.update(hidden_coef=(h[0], n_in), hidden_intercept=h, coef=(n_classes, h[0]))
     for key, shape in shapes.items():
         if key not in clf:
             raise ModelError(f'{where} has no {key!r} array')
@@ -436,7 +453,8 @@ class ModelBank:
 
     def __repr__(self):
         lo, hi = min(m.W.shape[1] for m in self.models), max(m.W.shape[1] for m in self.models)
-        modes = sorted(self.classifier) if self.classifier else ['max-likelihood']
+        modes = [f"{m}: {'mlp' if 'hidden_coef' in self.classifier[m] else 'logistic'}"
+                 for m in sorted(self.classifier)] if self.classifier else ['max-likelihood']
         return (f'ModelBank({len(self.models)} classes {self.classes}, grid {self.spec.size}^3 '
                 f'{self.spec.units}, k {lo if lo == hi else f"{lo}-{hi}"}, classifier {modes}, '
                 f'verifier {"yes" if self.verifier is not None else "no"}, '
