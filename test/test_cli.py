@@ -52,6 +52,16 @@ def test_train_writes_a_loadable_model(trained):
     assert all(0 <= cv[m]['accuracy'] <= 1 for m in cv)
 
 
+def test_train_classifier_kind_is_passed_on(tmp_path):
+    write_npz(tmp_path / 'd.npz', count=8)
+    assert train.main([str(tmp_path / 'd.npz'), '-o', str(tmp_path / 'm'), '--k', '3',
+                       '--folds', '2', '--pose-components', '3', '--verifier-views', '0',
+                       '--classifier', 'logistic']) == 0
+    bank = ModelBank.load(tmp_path / 'm')
+    assert {r['kind'] for r in bank.training['cross_validation'].values()} == {'logistic'}
+    assert not any('hidden_coef' in c for c in bank.classifier.values())
+
+
 def test_eval_writes_json_and_png(trained, capsys):
     tmp, _ = trained
     out = tmp / 'eval'
