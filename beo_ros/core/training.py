@@ -188,6 +188,18 @@ MLP_MAX_ITER = 1000
 CLASSIFIER_KINDS = ('logistic', 'mlp')
 
 
+def _network(hidden, alpha, seed):
+    """The unfitted one-layer ReLU network of :func:`fit_mlp` and of its cross-validation."""
+    from sklearn.neural_network import MLPClassifier
+    return MLPClassifier((int(hidden),), alpha=alpha, max_iter=MLP_MAX_ITER, random_state=seed)
+
+
+def _check_kind(kind, name):
+    """ValueError unless ``kind`` is one of CLASSIFIER_KINDS or 'auto'."""
+    if kind not in CLASSIFIER_KINDS + ('auto',):
+        raise ValueError(f"{name} must be one of {CLASSIFIER_KINDS + ('auto',)}, got {kind!r}")
+
+
 def cross_validated_report(F, y, records, C=1.0, folds=5, seed=0, row_standardize=False,
                            groups=None, descriptors=None, class_prior='train', hidden=0,
                            alpha=MLP_ALPHA):
@@ -210,9 +222,7 @@ def cross_validated_report(F, y, records, C=1.0, folds=5, seed=0, row_standardiz
     from sklearn.pipeline import make_pipeline
     from sklearn.preprocessing import StandardScaler
     if hidden:
-        from sklearn.neural_network import MLPClassifier
-        clf = make_pipeline(StandardScaler(), MLPClassifier(
-            (int(hidden),), alpha=alpha, max_iter=MLP_MAX_ITER, random_state=seed))
+        clf = make_pipeline(StandardScaler(), _network(hidden, alpha, seed))
     else:
         clf = make_pipeline(StandardScaler(), LogisticRegression(C=C, max_iter=2000))
     if groups is not None and len(np.unique(groups)) < len(y):
@@ -343,12 +353,10 @@ def fit_mlp(Z, y, n_classes, hidden=MLP_HIDDEN, alpha=MLP_ALPHA, seed=0):
     :func:`fit_logistic` plus hidden_coef (hidden, n_in) and hidden_intercept (hidden,); coef
     (n_classes, hidden) is then the softmax layer on the hidden units (see
     ``bank.classifier_probabilities``). Absent classes and a binary fit as in fit_logistic."""
-    from sklearn.neural_network import MLPClassifier
     Z = np.asarray(Z, dtype=np.float64)
     mean = Z.mean(axis=0)
     scale = Z.std(axis=0) + 1e-9
-    net = MLPClassifier((int(hidden),), alpha=alpha, max_iter=MLP_MAX_ITER,
-                        random_state=seed).fit((Z - mean) / scale, y)
+    net = _network(hidden, alpha, seed).fit((Z - mean) / scale, y)
     (w1, w2), (b1, b2) = net.coefs_, net.intercepts_
     coef = np.zeros((n_classes, w1.shape[1]))
     intercept = np.full(n_classes, -30.0)
@@ -394,8 +402,7 @@ def select_classifier(F, y, records, objects, D, n_classes, C=C_OPTIONS, seed=0,
     row_standardize, descriptors, kind and C (logistic) or hidden and alpha (network), and
     every option's accuracy).
     """
-    if kind not in CLASSIFIER_KINDS + ('auto',):
-        raise ValueError(f"kind must be one of {CLASSIFIER_KINDS + ('auto',)}, got {kind!r}")
+    _check_kind(kind, 'kind')
     if row_standardize == 'auto':
         rs_options = [False, True] if n_classes >= 3 else [False]
     else:
@@ -474,9 +481,7 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
         raise ValueError(f"row_standardize must be True, False or 'auto', got {row_standardize!r}")
     if descriptors not in (True, False, 'auto'):
         raise ValueError(f"descriptors must be True, False or 'auto', got {descriptors!r}")
-    if classifier_kind not in CLASSIFIER_KINDS + ('auto',):
-        raise ValueError(f'classifier_kind must be one of {CLASSIFIER_KINDS + ("auto",)}, got '
-                         f'{classifier_kind!r}')
+    _check_kind(classifier_kind, 'classifier_kind')   # before the long fits
     if row_standardize is True and len(names) < 3:
         raise ValueError('row_standardize needs at least 3 classes')
     if not (isinstance(verifier_views, (int, np.integer)) and verifier_views >= 0):
