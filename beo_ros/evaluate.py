@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from .core.bank import load_models, parse_class_prior
+from .core.calibration import calibration_sums, metrics_from_sums
 from .core.grid import GridSpec, symmetric_turns, yaw_error, yaw_error_up_to
 from .core.synthetic import random_partial_view
 from .core.training import (fit_bank, load_voxel_npz, progress_bar, select_classes,
@@ -81,6 +82,7 @@ def evaluate_bank(bank, X, y, names, rng, views=1, examples=6, progress=True, in
             inter = (pred & rotated).sum()
             union = (pred | rotated).sum()
             err = float(yaw_error(e.yaw, yaw))
+            unknown = grid < 0
             recs.append(dict(i=int(index[i]), mode='partial', truth=truth, label=e.label,
                              latency=dt, yaw_deg=float(np.rad2deg(yaw)),
                              est_yaw_deg=float(np.rad2deg(e.yaw)),
@@ -92,6 +94,8 @@ def evaluate_bank(bank, X, y, names, rng, views=1, examples=6, progress=True, in
                              # the rotation lost an object of a few voxels: nothing to see
                              empty_view=bool(not (grid == 1).any()),
                              iou=float(inter / union) if union else 1.0,
+                             # how well the unknown voxels' probabilities are calibrated
+                             voxels=calibration_sums(e.completion[unknown], rotated[unknown]),
                              prob=float(e.probability)))
             if len(ex) < examples and (not ex or truth not in [x[0] for x in ex]):
                 ex.append((truth, e.label, grid, e.completion, rotated, np.rad2deg(err)))
@@ -123,7 +127,9 @@ def summarize(recs, classes):
                      yaw_median_deg=float(np.median(e)),
                      yaw_within_10_correct_class=float(np.mean(e[ok_cls] <= 10)) if ok_cls.any()
                      else float('nan'),
-                     iou=float(np.mean([x['iou'] for x in r])))
+                     iou=float(np.mean([x['iou'] for x in r])),
+                     completion_calibration=metrics_from_sums(
+                         [x['voxels'] for x in r if 'voxels' in x]))
             per = {}
             for c in classes:
                 rc = [x for x in r if x['truth'] == c]
@@ -192,6 +198,11 @@ def print_table(summary, file=None):
               f"{f('yaw_within_10_or_flip'):>6s} {f('yaw_within_10_up_to_symmetry'):>6s} "
               f"{f('iou'):>6s} {s['latency_p50_ms']:7.1f} "
               f"{s['latency_p95_ms']:7.1f}", file=file)
+    cal = summary.get('partial', {}).get('completion_calibration')
+    if cal and cal['voxels']:
+        print(f"completion, {cal['voxels']} unknown voxels of the partial views: Brier "
+              f"{cal['brier']:.4f}, log loss {cal['log_loss']:.4f}, ECE {cal['ece']:.4f}",
+              file=file)
 
 
 def write_figure(summary, examples, path):

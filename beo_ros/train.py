@@ -74,6 +74,15 @@ def main(argv=None):
                     help='random views per object for the orientation verifier, which picks '
                          'among a yaw and its quarter turns (default 6; 0: none; not with '
                          '--scans, whose objects have no known yaw)')
+    ap.add_argument('--calibration-views', type=int, default=None, metavar='N',
+                    help="random views per object for the calibration of the completion's "
+                         'occupancy probabilities, made under the out-of-fold folds (default 1 '
+                         'with a classifier on whole objects; 0: none; not with --scans, whose '
+                         'unknown voxels have no truth)')
+    ap.add_argument('--calibrate-only', action='store_true',
+                    help='refit only the occupancy calibration of the existing model directory '
+                         '-o on the inputs it was trained on (its k, folds and seed; its class '
+                         'models, classifier and verifier are kept) and rewrite it')
     ap.add_argument('--jobs', type=int, default=1,
                     help="processes that make the verifier's views (default: %(default)s)")
     ap.add_argument('--class-prior', default='train', metavar='PRIOR',
@@ -98,6 +107,12 @@ def main(argv=None):
     if args.views > 0 and args.folds < 2:
         ap.error(f'--folds must be >= 2 for the out-of-fold classifier features, got '
                  f'{args.folds} (--views 0 trains no classifier)')
+    if args.calibration_views is not None and args.calibration_views < 0:
+        ap.error(f'--calibration-views must be >= 0, got {args.calibration_views}')
+    if args.calibrate_only and args.calibration_views == 0:
+        ap.error('--calibrate-only fits a calibration: --calibration-views must be >= 1')
+    if args.scans and (args.calibration_views or args.calibrate_only):
+        ap.error('--calibration-views and --calibrate-only need whole objects, not --scans')
     if args.scans and args.verifier_views:
         ap.error('--verifier-views needs objects in their canonical pose, not --scans')
     if args.mirror and not (args.scans and args.views == 0):
@@ -108,7 +123,7 @@ def main(argv=None):
         ap.error('--oof-out needs --views >= 1 (--views 0 makes no out-of-fold features)')
     if args.mirror:   # train_scan_bank: maximum-likelihood rule, no out-of-fold classifier
         unused = [name for name in ('seed', 'folds', 'row_standardize', 'descriptors',
-                                    'classifier')
+                                    'classifier', 'calibration_views', 'calibrate_only')
                   if getattr(args, name) != ap.get_default(name)]
         if unused:
             ap.error('not used with --mirror: ' + ', '.join(f"--{n.replace('_', '-')}"
@@ -156,6 +171,8 @@ def main(argv=None):
         grids = None
         if masks is not None:  # real partial scans: OOF classifier features from these grids
             grids = np.where(masks, X > 0.5, -1).astype(np.int8).reshape((-1,) + spec.shape)
+        if args.calibrate_only:
+            return _calibrate_only(args, X, y, names, spec)
         if args.congeal:
             from .core.congeal import congeal_classes
             if masks is not None:
@@ -171,12 +188,45 @@ def main(argv=None):
                         row_standardize=AUTO_ON_OFF[args.row_standardize],
                         descriptors=AUTO_ON_OFF[args.descriptors], class_prior=class_prior,
                         verifier_views=args.verifier_views, processes=args.jobs,
-                        classifier_kind=args.classifier)
+                        classifier_kind=args.classifier,
+                        calibration_views=('auto' if args.calibration_views is None
+                                           else args.calibration_views))
         bank.save(args.out)
     except (ValueError, OSError) as e:
         print(f'beo-train: error: {e}', file=sys.stderr)
         return 2
     print(f'wrote {args.out}: {len(names)} classes {names}, {len(X)} objects, '
+          f'{time.time() - t0:.1f} s')
+    return 0
+
+
+def _calibrate_only(args, X, y, names, spec):
+    """``--calibrate-only``: refit the occupancy calibration of the model directory args.out
+    on X, y (its training objects) with its own k, folds and seed, and rewrite it."""
+    from .core.bank import ModelBank
+    from .core.training import fit_occupancy_calibration
+    bank = ModelBank.load(args.out)
+    if list(bank.classes) != list(names) or bank.spec.size != spec.size:
+        raise ValueError(f'{args.out}: classes {bank.classes} on a {bank.spec.size}^3 grid, but '
+                         f'the inputs have {names} on {spec.size}^3: not its training set')
+    info = bank.training
+    if info.get('n_objects') not in (None, len(X)):
+        raise ValueError(f"{args.out} was trained on {info['n_objects']} objects, the inputs "
+                         f'have {len(X)}')
+    if info.get('congeal'):
+        raise ValueError(f'{args.out} was trained on congealed objects: retrain it with '
+                         '--calibration-views instead')
+    t0 = time.time()
+    cal, report = fit_occupancy_calibration(
+        X, y, names, spec, int(info.get('k', args.k)), int(info.get('folds', args.folds)),
+        int(info.get('seed', args.seed)), args.calibration_views or 1, bank.classifier,
+        bank.class_prior, bank.pose_components, verbose=True)
+    report.update(seconds=round(time.time() - t0, 1))
+    print(f'occupancy calibration: {report}', file=sys.stderr)
+    ModelBank(bank.models, bank.spec, bank.classifier, dict(info, occupancy_calibration=report),
+              bank.pose_components, class_prior=bank.class_prior, verifier=bank.verifier,
+              occupancy_calibration=cal).save(args.out)
+    print(f'wrote {args.out}: occupancy calibration from {report["views"]} views, '
           f'{time.time() - t0:.1f} s')
     return 0
 

@@ -6,6 +6,8 @@ Layout of a model directory::
     class_00_<name>.npz    W (d, k) float32, mean (d,), noise_variance, coarse_noise_variance,
                            loading_covariance (k, k), mean_variance (d,), component_variance (k,)
     verifier.npz           optional: the orientation verifier's trees (``beo_ros.core.verifier``)
+    calibration.npz        optional: the completion's occupancy calibration
+                           (``beo_ros.core.calibration``)
     classifier.npz         optional: standardisation + multinomial logistic regression per mode
                            ('complete', 'partial': on the (C, F) grid features, with
                            ``descriptors`` also on the first ``descriptor_count`` shape
@@ -26,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .calibration import OccupancyCalibration, check_arrays as check_calibration_arrays
 from .estimate import UNKNOWN_LABEL, Estimate, Hypothesis
 from .grid import GridSpec, symmetric_turns, wrap_yaw as _wrap, yaw_matrix
 from .inference import FEATURE_NAMES, InferenceEngine, observed_edt, top_modes, top_yaw_modes
@@ -396,6 +399,8 @@ class ModelBank:
             manifest records the one a model directory was built for.
         verifier: optional fitted ``OrientationVerifier``: picks among the refined yaw and its
             90, 180 and 270° turns (``estimate(..., verify=True)``).
+        occupancy_calibration: optional fitted ``OccupancyCalibration``: maps the completion's
+            model probabilities of the unknown voxels to calibrated ones.
         stage2_noise_map: score the stage-2 refinement with the per-voxel noise variance of
             the pooled model (``coarse_noise_map``) instead of the class scalar. Off: since
             the observed-frame scoring it lowers the yaw accuracy (397 views of fold 0, yaw of
@@ -405,7 +410,7 @@ class ModelBank:
 
     def __init__(self, models, spec: GridSpec, classifier=None, training=None,
                  pose_components=8, stage2_noise_map=False, class_prior='train',
-                 verifier=None):
+                 verifier=None, occupancy_calibration=None):
         if not models:
             raise ModelError('a model bank needs at least one class')
         names = [m.name for m in models]
@@ -429,6 +434,13 @@ class ModelBank:
             if reason:
                 raise ModelError(reason)
         self.verifier = verifier
+        if occupancy_calibration is not None:
+            if not hasattr(occupancy_calibration, 'probability_'):
+                raise ModelError('the occupancy calibration is not fitted')
+            reason = check_calibration_arrays(occupancy_calibration.arrays_)
+            if reason:
+                raise ModelError(reason)
+        self.occupancy_calibration = occupancy_calibration
         reason = _settings_reason(pose_components, training)
         if reason:
             raise ModelError(reason)
@@ -449,7 +461,7 @@ class ModelBank:
         # caches) is rebuilt on the other side, e.g. in a worker process
         return (type(self), (self.models, self.spec, self.classifier, self.training,
                              self.pose_components, self.stage2_noise_map, self.class_prior,
-                             self.verifier))
+                             self.verifier, self.occupancy_calibration))
 
     def __repr__(self):
         lo, hi = min(m.W.shape[1] for m in self.models), max(m.W.shape[1] for m in self.models)
@@ -458,6 +470,7 @@ class ModelBank:
         return (f'ModelBank({len(self.models)} classes {self.classes}, grid {self.spec.size}^3 '
                 f'{self.spec.units}, k {lo if lo == hi else f"{lo}-{hi}"}, classifier {modes}, '
                 f'verifier {"yes" if self.verifier is not None else "no"}, '
+                f'calibrated {"yes" if self.occupancy_calibration is not None else "no"}, '
                 f'prior {self.class_prior!r})')
 
     @property
@@ -517,6 +530,9 @@ class ModelBank:
         if self.verifier is not None:
             np.savez_compressed(path / 'verifier.npz', **self.verifier.arrays_)
             files['verifier.npz'] = _sha256(path / 'verifier.npz')
+        if self.occupancy_calibration is not None:
+            np.savez_compressed(path / 'calibration.npz', **self.occupancy_calibration.arrays_)
+            files['calibration.npz'] = _sha256(path / 'calibration.npz')
         if self.classifier:
             arrays = {f'{mode}__{k}': np.asarray(v) for mode, clf in self.classifier.items()
                       for k, v in clf.items()}
@@ -642,6 +658,18 @@ class ModelBank:
             if reason:
                 raise ModelError(reason)
             verifier = OrientationVerifier.from_arrays(arrays)
+        calibration = None
+        if 'calibration.npz' in files:
+            fp = path / 'calibration.npz'
+            try:
+                with np.load(fp, allow_pickle=False) as z:
+                    arrays = {k: z[k] for k in z.files}
+            except (OSError, ValueError) as e:
+                raise ModelError(f'{fp}: unreadable: {e}') from None
+            reason = check_calibration_arrays(arrays, str(fp))
+            if reason:
+                raise ModelError(reason)
+            calibration = OccupancyCalibration.from_arrays(arrays)
         if class_prior is None:
             class_prior = manifest.get('class_prior', 'train')
             try:
@@ -653,7 +681,7 @@ class ModelBank:
             raise ModelError(f'{mf}: {reason}')
         return cls(models, spec, classifier, manifest.get('training'),
                    manifest.get('pose_components', 8), class_prior=class_prior,
-                   verifier=verifier)
+                   verifier=verifier, occupancy_calibration=calibration)
 
     # ------------------------------------------------------------------ queries
     def check_grid(self, grid):
@@ -742,7 +770,9 @@ class ModelBank:
 
     def _completion(self, grid, per, probs, best, min_prob=0.1, max_classes=3):
         """Occupancy probability and variance (N, N, N) in the observed frame, averaged over the
-        likely classes (Bayesian model averaging: weights = class probabilities >= min_prob)."""
+        likely classes (Bayesian model averaging: weights = class probabilities >= min_prob);
+        the probability of the unknown voxels is then calibrated when the bank has an
+        ``occupancy_calibration``. The variance is that of the linear-Gaussian occupancy."""
         order = [int(c) for c in np.argsort(-probs)[:max_classes] if probs[c] >= min_prob]
         order = order or [best]
         w = probs[order] / probs[order].sum()
@@ -762,6 +792,8 @@ class ModelBank:
             m1 += wc * mean_c
             m2 += wc * (var_c + mean_c.astype(np.float64) ** 2)
         variance = np.maximum(m2 - m1 ** 2, 0)
+        if self.occupancy_calibration is not None:
+            prob = self.occupancy_calibration.predict(prob)
         # what was observed is kept: seen surface occupied, seen space free
         prob = np.where(grid == 1, 1.0, np.where(grid == 0, 0.0, prob))
         variance = np.where(grid >= 0, 0.0, variance)

@@ -11,6 +11,7 @@ import numpy as np
 from .bank import (ClassModel, ModelBank, classifier_input, coarse_noise, prior_offset,
                    resolve_class_prior)
 from .grid import yaw_error
+from .calibration import OccupancyCalibration, calibration_sums, metrics_from_sums
 from .inference import FEATURE_NAMES
 from .shape import shape_descriptors
 from .synthetic import random_partial_view
@@ -174,6 +175,60 @@ def _hypothesis_quality(engine, grid, per, yaw, rotated):
         union = (comp | rotated).sum()
         ious.append((comp & rotated).sum() / union if union else 1.0)
     return dict(yaw_err=np.array(errs), iou=np.array(ious))
+
+
+def fit_occupancy_calibration(X, y, names, spec, k=20, folds=5, seed=0, views=1,
+                              classifier=None, class_prior='train', pose_components=8,
+                              verbose=False):
+    """Calibrate the completion's occupancy probabilities on out-of-fold views.
+
+    For each of ``folds`` stratified folds (those of ``fit_bank`` with the same ``seed``),
+    class models fitted without the fold complete ``views`` random protocol views of each of
+    its whole objects X (m, N^3), classified by ``classifier`` (as the bank will be); the
+    model probability and the truth of every unknown voxel, in the observed frame, go into an
+    :class:`OccupancyCalibration`. The views use their own random stream, so the classifier's
+    out-of-fold views do not change.
+
+    Returns (calibration, report): the report has the views counted, the number of knots,
+    the Brier score, log loss and 10-bin ECE of the model probabilities ('raw'), and the
+    Brier score and log loss of the calibrated ones ('calibrated_in_sample': on the same
+    voxels, each at its bin's mean probability; held-out figures come from ``beo-eval``).
+    """
+    if not (isinstance(views, (int, np.integer)) and views >= 1):
+        raise ValueError(f'views must be an integer >= 1, got {views!r}')
+    X = np.asarray(X, dtype=np.float32)
+    y = np.asarray(y)
+    n = spec.size
+    fold = stratified_folds(y, folds, np.random.default_rng(seed))
+    rng = np.random.default_rng([seed, 1])
+    cal = OccupancyCalibration()
+    raw, n_views = [], 0
+    for f in progress_bar(range(folds), 'occupancy calibration', disable=not verbose):
+        sub = ModelBank(fit_class_models(X[fold != f], y[fold != f], names, spec, k), spec,
+                        classifier, pose_components=pose_components, class_prior=class_prior)
+        for i in np.flatnonzero(fold == f):
+            occ = X[i].reshape(n, n, n) > 0.5
+            for _ in range(views):
+                grid, _, _, _, rotated = random_partial_view(occ, rng)
+                unknown = grid < 0
+                if not (grid == 1).any() or not unknown.any():
+                    continue
+                p = sub.estimate(grid).completion[unknown]
+                cal.partial_fit(p, rotated[unknown])
+                raw.append(calibration_sums(p, rotated[unknown]))
+                n_views += 1
+    if not hasattr(cal, 'probability_'):
+        raise ValueError('occupancy calibration: the views gave no unknown voxels of two '
+                         'distinct probabilities')
+    c = cal.counts_[cal.counts_[:, 2] > 0]
+    q = cal.predict(c[:, 0] / c[:, 2]).astype(np.float64)
+    qc = np.clip(q, 1e-6, 1 - 1e-6)
+    occ, free, m = c[:, 1], c[:, 2] - c[:, 1], c[:, 2].sum()
+    report = dict(views=n_views, folds=folds, knots=len(cal.probability_),
+                  raw=metrics_from_sums(raw), calibrated_in_sample=dict(
+                      brier=float(np.sum(occ * (1 - q) ** 2 + free * q ** 2) / m),
+                      log_loss=float(-np.sum(occ * np.log(qc) + free * np.log(1 - qc)) / m)))
+    return cal, report
 
 
 # the network that select_classifier tries beside the logistic regression: one ReLU layer of
@@ -443,7 +498,7 @@ def select_classifier(F, y, records, objects, D, n_classes, C=C_OPTIONS, seed=0,
 def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_views=1,
              folds=5, seed=0, C=None, verbose=False, training=None, grids=None,
              oof_path=None, row_standardize='auto', descriptors='auto', class_prior='train',
-             verifier_views=0, processes=1, classifier_kind='auto'):
+             verifier_views=0, processes=1, classifier_kind='auto', calibration_views='auto'):
     """Fit class models on all of X and a classifier on out-of-fold features.
 
     ``classifier_views``: random partial views per training object for the partial-view
@@ -472,6 +527,10 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
     ``verifier_views``: random views per object for the orientation verifier
     (``fit_verifier``; 0: none, needs the objects in their canonical pose and N a multiple
     of 8); ``processes`` make its views.
+    ``calibration_views``: random views per object for the completion's occupancy calibration
+    (``fit_occupancy_calibration``, after the classifier, which classifies them; 0: none, the
+    model probabilities are published as they are). 'auto': 1 when a classifier is trained on
+    whole objects, else 0 (partial training data have no truth for their unknown voxels).
     """
     if C is None:
         C = C_OPTIONS
@@ -489,6 +548,15 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
     if verifier_views and (masks is not None or spec.size % 8):
         raise ValueError('the orientation verifier needs whole objects in their canonical pose '
                          f'(no masks) on a grid of a multiple of 8 (got {spec.size})')
+    if calibration_views == 'auto':
+        calibration_views = int(classifier_views > 0 and masks is None and grids is None)
+    if isinstance(calibration_views, (bool, np.bool_)) or not (
+            isinstance(calibration_views, (int, np.integer)) and calibration_views >= 0):
+        raise ValueError("calibration_views must be 'auto' or an integer >= 0, got "
+                         f'{calibration_views!r}')
+    if calibration_views and (masks is not None or grids is not None):
+        raise ValueError('the occupancy calibration needs whole training objects (no masks, '
+                         'no scans): their unknown voxels have no truth')
     if oof_path and classifier_views <= 0:
         raise ValueError('oof_path needs classifier_views >= 1: without a classifier there are '
                          'no out-of-fold features to save')
@@ -498,7 +566,7 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
     cv_prior = class_prior if isinstance(class_prior, str) else weights
     X = np.asarray(X, dtype=np.float32)
     y = np.asarray(y)
-    check_class_counts(y, names, folds if classifier_views > 0 else 0)
+    check_class_counts(y, names, folds if classifier_views > 0 or calibration_views else 0)
     t0 = time.time()
     models = fit_class_models(X, y, names, spec, k, masks)
     info = dict(training or {}, k=k, n_objects=int(len(X)), folds=folds, seed=seed,
@@ -566,6 +634,15 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
             print(f'cross-validated (out-of-fold features, {folds} folds): {cv_report}',
                   file=sys.stderr)
         info['classifier_seconds'] = round(time.time() - t0 - info['fit_seconds'], 1)
+    calibration = None
+    if calibration_views:
+        t1 = time.time()
+        calibration, info['occupancy_calibration'] = fit_occupancy_calibration(
+            X, y, names, spec, k, folds, seed, calibration_views, classifier, class_prior,
+            pose_components, verbose)
+        info['occupancy_calibration'].update(seconds=round(time.time() - t1, 1))
+        if verbose:
+            print(f"occupancy calibration: {info['occupancy_calibration']}", file=sys.stderr)
     verifier = None
     if verifier_views > 0:
         t1 = time.time()
@@ -573,7 +650,7 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
         info.update(verifier_views=int(verifier_views),
                     verifier_seconds=round(time.time() - t1, 1))
     return ModelBank(models, spec, classifier, info, pose_components, class_prior=class_prior,
-                     verifier=verifier)
+                     verifier=verifier, occupancy_calibration=calibration)
 
 
 # ---------------------------------------------------------------------- data loading
