@@ -30,8 +30,11 @@ class Estimate:
         label: best class name, or ``'unknown'`` when no class explains the object.
         scores: class name -> calibrated probability (sums to 1 over the classes).
         yaw: radians, right-handed rotation about +z that maps the canonical model onto the object.
-        completion: float32 (N,N,N) occupancy probability.
-        variance: float32 (N,N,N) predictive variance of the occupancy.
+        completion: float32 (N,N,N) occupancy probability in the observed grid's frame: 1 / 0
+            where seen, calibrated for the unknown voxels when the bank has an
+            ``occupancy_calibration`` (``beo_ros.core.calibration``).
+        variance: float32 (N,N,N) predictive variance of the linear-Gaussian occupancy (0
+            where seen).
         hypotheses: top (class, yaw) hypotheses: ``(label, yaw)`` first, then the chosen
             class's other yaw modes, then the other classes' best. When the orientation
             verifier turned the yaw by a quarter turn, the first one's score can be below the
