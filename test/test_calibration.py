@@ -201,6 +201,10 @@ def test_fit_bank_calibration_options():
             fit_bank(X, y, names, spec, k=2, calibration_views=bad)
     with pytest.raises(ValueError, match='views must be an integer >= 1'):
         fit_occupancy_calibration(X, y, names, spec, k=2, folds=2, views=0)
+    for fn, kw in ((fit_bank, dict(classifier_views=0, calibration_views=1)),
+                   (fit_occupancy_calibration, {})):
+        with pytest.raises(ValueError, match='needs folds >= 2'):
+            fn(X, y, names, spec, k=2, folds=1, **kw)
 
 
 def test_eval_reports_the_calibration_of_the_completion(calibrated, tmp_path, capsys):

@@ -10,8 +10,8 @@ import numpy as np
 
 from .bank import (ClassModel, ModelBank, classifier_input, coarse_noise, prior_offset,
                    resolve_class_prior)
-from .grid import yaw_error
 from .calibration import OccupancyCalibration, calibration_sums, metrics_from_sums
+from .grid import yaw_error
 from .inference import FEATURE_NAMES
 from .shape import shape_descriptors
 from .synthetic import random_partial_view
@@ -196,6 +196,8 @@ def fit_occupancy_calibration(X, y, names, spec, k=20, folds=5, seed=0, views=1,
     """
     if not (isinstance(views, (int, np.integer)) and views >= 1):
         raise ValueError(f'views must be an integer >= 1, got {views!r}')
+    if not (isinstance(folds, (int, np.integer)) and folds >= 2):
+        raise ValueError(f'the occupancy calibration needs folds >= 2, got {folds!r}')
     X = np.asarray(X, dtype=np.float32)
     y = np.asarray(y)
     n = spec.size
@@ -223,11 +225,11 @@ def fit_occupancy_calibration(X, y, names, spec, k=20, folds=5, seed=0, views=1,
     c = cal.counts_[cal.counts_[:, 2] > 0]
     q = cal.predict(c[:, 0] / c[:, 2]).astype(np.float64)
     qc = np.clip(q, 1e-6, 1 - 1e-6)
-    occ, free, m = c[:, 1], c[:, 2] - c[:, 1], c[:, 2].sum()
+    n_occ, n_free, m = c[:, 1], c[:, 2] - c[:, 1], c[:, 2].sum()
     report = dict(views=n_views, folds=folds, knots=len(cal.probability_),
                   raw=metrics_from_sums(raw), calibrated_in_sample=dict(
-                      brier=float(np.sum(occ * (1 - q) ** 2 + free * q ** 2) / m),
-                      log_loss=float(-np.sum(occ * np.log(qc) + free * np.log(1 - qc)) / m)))
+                      brier=float(np.sum(n_occ * (1 - q) ** 2 + n_free * q ** 2) / m),
+                      log_loss=float(-np.sum(n_occ * np.log(qc) + n_free * np.log(1 - qc)) / m)))
     return cal, report
 
 
@@ -554,6 +556,8 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
             isinstance(calibration_views, (int, np.integer)) and calibration_views >= 0):
         raise ValueError("calibration_views must be 'auto' or an integer >= 0, got "
                          f'{calibration_views!r}')
+    if calibration_views and not (isinstance(folds, (int, np.integer)) and folds >= 2):
+        raise ValueError(f'the occupancy calibration needs folds >= 2, got {folds!r}')
     if calibration_views and (masks is not None or grids is not None):
         raise ValueError('the occupancy calibration needs whole training objects (no masks, '
                          'no scans): their unknown voxels have no truth')
