@@ -793,7 +793,8 @@ class ModelBank:
             m2 += wc * (var_c + mean_c.astype(np.float64) ** 2)
         variance = np.maximum(m2 - m1 ** 2, 0)
         if self.occupancy_calibration is not None:
-            prob = self.occupancy_calibration.predict(prob)
+            unknown = grid < 0
+            prob[unknown] = self.occupancy_calibration.predict(prob[unknown])
         # what was observed is kept: seen surface occupied, seen space free
         prob = np.where(grid == 1, 1.0, np.where(grid == 0, 0.0, prob))
         variance = np.where(grid >= 0, 0.0, variance)
