@@ -145,6 +145,14 @@ def test_fit_bank_calibrates_by_default(calibrated):
     np.testing.assert_array_equal(loaded.occupancy_calibration.frequency_, cal.frequency_)
 
 
+def test_the_calibration_travels_to_worker_processes(calibrated):
+    import pickle
+    bank = calibrated[0]
+    copy = pickle.loads(pickle.dumps(bank))   # how the node's process pool gets the bank
+    np.testing.assert_array_equal(copy.occupancy_calibration.frequency_,
+                                  bank.occupancy_calibration.frequency_)
+
+
 def test_completion_applies_the_calibration_to_unknown_voxels_only(calibrated):
     bank, _, X, _ = calibrated
     raw_bank = ModelBank(bank.models, bank.spec, bank.classifier, bank.training,
