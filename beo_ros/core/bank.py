@@ -371,6 +371,24 @@ def check_class_arrays(arr, d, where, size):
         raise ModelError(f'{where}: loading_covariance must be symmetric positive semi-definite')
 
 
+def _optional_arrays(path, files, name, check):
+    """The arrays of the optional file ``name`` of model directory ``path``, or None when the
+    manifest's ``files`` do not list it; ModelError when it is unreadable or when
+    ``check(arrays, where)`` gives a reason."""
+    if name not in files:
+        return None
+    fp = path / name
+    try:
+        with np.load(fp, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except (OSError, ValueError) as e:
+        raise ModelError(f'{fp}: unreadable: {e}') from None
+    reason = check(arrays, str(fp))
+    if reason:
+        raise ModelError(reason)
+    return arrays
+
+
 def _settings_reason(pose_components, training):
     """Why a bank's pose_components / training settings are unusable (None: they are fine)."""
     if isinstance(pose_components, (bool, np.bool_)) \
@@ -646,30 +664,11 @@ class ModelBank:
                 if bool(clf.get('row_standardize', False)) and len(classes) < 3:
                     raise ModelError(f'{fp}: classifier {mode!r} standardises features across '
                                      f'classes, which needs at least 3 classes')
-        verifier = None
-        if 'verifier.npz' in files:
-            fp = path / 'verifier.npz'
-            try:
-                with np.load(fp, allow_pickle=False) as z:
-                    arrays = {k: z[k] for k in z.files}
-            except (OSError, ValueError) as e:
-                raise ModelError(f'{fp}: unreadable: {e}') from None
-            reason = check_arrays(arrays, len(classes), spec.size, str(fp))
-            if reason:
-                raise ModelError(reason)
-            verifier = OrientationVerifier.from_arrays(arrays)
-        calibration = None
-        if 'calibration.npz' in files:
-            fp = path / 'calibration.npz'
-            try:
-                with np.load(fp, allow_pickle=False) as z:
-                    arrays = {k: z[k] for k in z.files}
-            except (OSError, ValueError) as e:
-                raise ModelError(f'{fp}: unreadable: {e}') from None
-            reason = check_calibration_arrays(arrays, str(fp))
-            if reason:
-                raise ModelError(reason)
-            calibration = OccupancyCalibration.from_arrays(arrays)
+        arrays = _optional_arrays(path, files, 'verifier.npz',
+                                  lambda a, where: check_arrays(a, len(classes), spec.size, where))
+        verifier = None if arrays is None else OrientationVerifier.from_arrays(arrays)
+        arrays = _optional_arrays(path, files, 'calibration.npz', check_calibration_arrays)
+        calibration = None if arrays is None else OccupancyCalibration.from_arrays(arrays)
         if class_prior is None:
             class_prior = manifest.get('class_prior', 'train')
             try:
