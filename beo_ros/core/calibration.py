@@ -57,7 +57,8 @@ class OccupancyCalibration:
         return self.partial_fit(p, occupied)
 
     def partial_fit(self, p, occupied):
-        """Add voxels to the counts and refit the map (call it once per view). Returns self."""
+        """Add voxels to the counts and refit the map (a batch of views at a time: each call
+        refits). Returns self."""
         if isinstance(self.bins, (bool, np.bool_)) or not isinstance(self.bins, (int, np.integer)) \
                 or self.bins < 2:
             raise ValueError(f'bins must be an integer >= 2, got {self.bins!r}')

@@ -206,8 +206,11 @@ def fit_occupancy_calibration(X, y, names, spec, k=20, folds=5, seed=0, views=1,
     cal = OccupancyCalibration()
     raw, n_views = [], 0
     for f in progress_bar(range(folds), 'occupancy calibration', disable=not verbose):
+        # the class models of fit_bank's own fold f again: a few seconds, where keeping all
+        # folds' models from its classifier loop would hold ~130 MB for ModelNet10
         sub = ModelBank(fit_class_models(X[fold != f], y[fold != f], names, spec, k), spec,
                         classifier, pose_components=pose_components, class_prior=class_prior)
+        ps, ts = [], []
         for i in np.flatnonzero(fold == f):
             occ = X[i].reshape(n, n, n) > 0.5
             for _ in range(views):
@@ -215,10 +218,13 @@ def fit_occupancy_calibration(X, y, names, spec, k=20, folds=5, seed=0, views=1,
                 unknown = grid < 0
                 if not (grid == 1).any() or not unknown.any():
                     continue
-                p = sub.estimate(grid).completion[unknown]
-                cal.partial_fit(p, rotated[unknown])
-                raw.append(calibration_sums(p, rotated[unknown]))
-                n_views += 1
+                ps.append(sub.estimate(grid).completion[unknown])
+                ts.append(rotated[unknown])
+        if ps:   # one count and one map fit per fold, not per view
+            p, t = np.concatenate(ps), np.concatenate(ts)
+            cal.partial_fit(p, t)
+            raw.append(calibration_sums(p, t))
+            n_views += len(ps)
     if not hasattr(cal, 'probability_'):
         raise ValueError('occupancy calibration: the views gave no unknown voxels of two '
                          'distinct probabilities')
