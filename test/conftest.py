@@ -1,4 +1,5 @@
 """Shared pytest fixtures. Append-only; ROS fixtures are prefixed ``ros_``."""
+import faulthandler
 import itertools
 import os
 
@@ -68,3 +69,13 @@ def ros_tiny_model_dir(tmp_path_factory):
     except ImportError as e:  # the training code is not there yet
         pytest.skip(f'make_tiny_bank cannot train: {e}')
     return str(out if out is not None and not hasattr(out, 'estimate_points') else path)
+
+
+EXIT_GRACE = 120.0   # seconds the interpreter may take to exit once the tests are done
+
+
+def pytest_unconfigure(config):
+    """A process that hangs on its way out (a thread joined at exit that never ends: CI
+    2026-11-23, a wedged ProcessPoolExecutor thread) prints every thread's stack and fails
+    within EXIT_GRACE s instead of holding CI until its own limit."""
+    faulthandler.dump_traceback_later(EXIT_GRACE, exit=True)

@@ -11,9 +11,11 @@ import dataclasses
 import multiprocessing
 import os
 import signal
+import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
+from multiprocessing.connection import wait as wait_ready
 
 import numpy as np
 
@@ -108,6 +110,36 @@ class EstimatorPool:
         except BaseException:
             self.shutdown(timeout=1.0)
             raise
+        procs = list(self._pool._processes.values())
+        self._watchdog = threading.Thread(target=self._watch, args=(procs,), daemon=True,
+                                          name='beo_pool_watchdog')
+        self._watchdog.start()
+
+    def _watch(self, procs):
+        """Thread: a process that dies on its own (not shut down) takes its siblings with it;
+        once all are gone, the parent's copy of the result pipe's write end is closed.
+
+        Why: ProcessPoolExecutor (CPython 3.11) reads a result to its end before it looks at
+        the processes again, and the parent keeps a write end of that pipe open. A process
+        killed half-way through sending a result (the OOM killer, say) leaves the executor's
+        thread waiting for the rest for ever: the estimate never ends, the pool is never
+        marked broken, and the interpreter hangs at exit joining that thread. A sibling may
+        also wait for ever on the queue lock the dead process held. With every process gone
+        and the last write end closed, the read ends in EOF and the executor breaks the pool
+        as for any other death.
+        """
+        pending = [p.sentinel for p in procs]
+        while pending:
+            ready = wait_ready(pending)
+            pending = [s for s in pending if s not in ready]
+            if pending and not self._closed:
+                self.kill()   # the pool is broken anyway
+        writer = getattr(getattr(self._pool, '_result_queue', None), '_writer', None)
+        if writer is not None:
+            try:
+                writer.close()
+            except OSError:
+                pass
 
     def _wait_ready(self, timeout):
         """Pids of the processes once each has run a task (so its initializer is done)."""
@@ -166,7 +198,8 @@ class EstimatorPool:
         """Stop the processes; estimates already running finish, queued ones are cancelled.
 
         ``timeout`` None returns at once (the pool winds down in the background); otherwise
-        processes still alive after ``timeout`` seconds are terminated.
+        processes still alive after ``timeout`` seconds are terminated, and killed if that
+        does not end them within 1 s (a stopped process keeps SIGTERM pending).
         """
         self._closed = True
         procs = list((getattr(self._pool, '_processes', None) or {}).values())
@@ -178,4 +211,7 @@ class EstimatorPool:
             p.join(max(deadline - time.monotonic(), 0.0))
             if p.is_alive():
                 p.terminate()
+                p.join(1.0)
+            if p.is_alive():
+                p.kill()
                 p.join(1.0)
