@@ -1,0 +1,73 @@
+"""Pieces shared by the command lines (ROS-free): argparse number types and Ctrl-C handling.
+
+    ap.add_argument('--duration', type=number(0, None, lo_open=True), ...)
+
+    @interruptible('beo-train')
+    def main(argv=None): ...
+"""
+from __future__ import annotations
+
+import argparse
+import functools
+import math
+import sys
+
+__all__ = ['INTERRUPTED', 'count', 'interruptible', 'number']
+
+INTERRUPTED = 130   # the shell's code for a process ended by SIGINT
+
+
+def number(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False,
+           hi_open: bool = False):
+    """argparse ``type``: a finite float in [lo, hi] (open ends with ``lo_open``/``hi_open``;
+    None: unbounded). NaN and infinities are refused with a message naming the range."""
+    def parse(text):
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f'{text!r} is not a number') from None
+        if not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f'must be a finite number, got {text!r}')
+        if ((lo is not None and (value < lo or (lo_open and value == lo)))
+                or (hi is not None and (value > hi or (hi_open and value == hi)))):
+            raise argparse.ArgumentTypeError(f'must be in {_range(lo, hi, lo_open, hi_open)}, '
+                                             f'got {text}')
+        return value
+    parse.__name__ = 'number'   # argparse names the type in its messages
+    return parse
+
+
+def count(lo: int = 0, hi: int | None = None):
+    """argparse ``type``: an integer in [lo, hi] (None: unbounded)."""
+    def parse(text):
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f'{text!r} is not an integer') from None
+        if value < lo or (hi is not None and value > hi):
+            raise argparse.ArgumentTypeError(f'must be in {_range(lo, hi, False, False)}, '
+                                             f'got {text}')
+        return value
+    parse.__name__ = 'integer'
+    return parse
+
+
+def _range(lo, hi, lo_open, hi_open):
+    left = '-inf' if lo is None else f'{lo:g}'
+    right = 'inf' if hi is None else f'{hi:g}'
+    return f"{'(' if lo_open or lo is None else '['}{left}, {right}{')' if hi_open or hi is None else ']'}"
+
+
+def interruptible(prog: str):
+    """Decorator for a command's ``main``: Ctrl-C ends it with one line on stderr and exit
+    code 130 instead of a traceback (the command cleans up in its own ``finally`` blocks)."""
+    def wrap(main):
+        @functools.wraps(main)
+        def run(*args, **kwargs):
+            try:
+                return main(*args, **kwargs)
+            except KeyboardInterrupt:
+                print(f'{prog}: interrupted', file=sys.stderr)
+                return INTERRUPTED
+        return run
+    return wrap

@@ -1,0 +1,57 @@
+"""beo_ros.cli: the argparse number types and the Ctrl-C wrapper shared by the commands."""
+import argparse
+
+import pytest
+
+from beo_ros.cli import INTERRUPTED, count, interruptible, number
+
+
+def _parser(kind):
+    ap = argparse.ArgumentParser(prog='p')
+    ap.add_argument('--x', type=kind)
+    return ap
+
+
+@pytest.mark.parametrize('text', ['nan', 'inf', '-inf', 'abc', '-1', '0'])
+def test_number_refuses(text, capsys):
+    with pytest.raises(SystemExit) as e:
+        _parser(number(0, 10, lo_open=True)).parse_args([f'--x={text}'])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert '--x' in err and ('finite' in err or 'not a number' in err or '(0, 10]' in err)
+
+
+@pytest.mark.parametrize('text, value', [('0.5', 0.5), ('10', 10.0), ('1e-9', 1e-9)])
+def test_number_accepts(text, value):
+    assert _parser(number(0, 10, lo_open=True)).parse_args(['--x', text]).x == value
+
+
+def test_number_unbounded_and_open_upper():
+    assert _parser(number()).parse_args(['--x=-1e300']).x == -1e300
+    with pytest.raises(SystemExit):
+        _parser(number(0, 1, hi_open=True)).parse_args(['--x', '1'])
+
+
+@pytest.mark.parametrize('text', ['-1', '1.5', 'x', '101'])
+def test_count_refuses(text, capsys):
+    with pytest.raises(SystemExit):
+        _parser(count(0, 100)).parse_args([f'--x={text}'])
+    assert '--x' in capsys.readouterr().err
+
+
+def test_count_accepts():
+    assert _parser(count(1)).parse_args(['--x', '7']).x == 7
+
+
+def test_interruptible(capsys):
+    @interruptible('beo-x')
+    def main(argv=None):
+        raise KeyboardInterrupt
+
+    assert main() == INTERRUPTED
+    assert capsys.readouterr().err.strip() == 'beo-x: interrupted'
+
+    @interruptible('beo-x')
+    def ok(argv=None):
+        return 3
+    assert ok() == 3
