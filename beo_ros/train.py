@@ -7,39 +7,55 @@ labelled tabletop scans (``--scans``, PCD files; see beo_ros.core.scans).
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
-from .core.bank import parse_class_prior
+from .cli import count, interruptible, number
+from .core.bank import (UNREADABLE, check_class_names, check_save_target, is_model_dir,
+                        parse_class_prior)
 from .core.grid import GridSpec
-from .core.training import fit_bank, load_meshes, load_voxel_npz
+from .core.training import (check_grid_size, drop_empty_objects, fit_bank, load_meshes,
+                            load_voxel_npz, select_classes, training_data_hash)
 
 
 # the values of the auto|on|off options, as fit_bank takes them
 AUTO_ON_OFF = {'auto': 'auto', 'on': True, 'off': False}
+# defaults of the options that apply to --scans (or --scans --mirror) only; the options
+# default to None so that giving one without --scans is refused
+SCAN_CLASSES, VOXEL_SIZE, MAX_ITER = 'box:0-16,cylinder:33-44', 0.5 / 32, 200
 
 
+@interruptible('beo-train')
 def main(argv=None):
     ap = argparse.ArgumentParser(prog='beo-train', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('inputs', nargs='+', help='voxel .npz files, mesh files, or PCD scans')
-    ap.add_argument('-o', '--out', required=True, help='model directory to write')
-    ap.add_argument('--k', type=int, default=20, help='upper bound on components per class')
-    ap.add_argument('--grid', type=int, default=None,
-                    help='grid size N for meshes/scans (npz files carry their own)')
-    ap.add_argument('--classes', nargs='+', help='train only these classes (npz input)')
+    ap.add_argument('-o', '--out', required=True,
+                    help='model directory to write: new, empty, or holding a model, which is '
+                         'replaced as a whole once the new one is complete')
+    ap.add_argument('--k', type=count(1), default=20,
+                    help='upper bound on components per class')
+    ap.add_argument('--grid', type=count(4, 256), default=None,
+                    help='grid size N for meshes/scans: even, a multiple of 8 with the '
+                         'orientation verifier (default 32; npz files carry their own, which '
+                         'must then equal it)')
+    ap.add_argument('--classes', nargs='+', help='train only these classes (npz and mesh input)')
     ap.add_argument('--scans', action='store_true',
                     help='inputs are labelled tabletop PCD scans (see --scan-classes)')
-    ap.add_argument('--scan-classes', default='box:0-16,cylinder:33-44',
-                    help='class:scene ranges for --scans, by the number in learnN.pcd')
-    ap.add_argument('--voxel-size', type=float, default=0.5 / 32,
-                    help='metres per voxel for --scans (metric grid)')
+    ap.add_argument('--scan-classes', default=None,
+                    help='class:scene ranges for --scans, by the number in learnN.pcd '
+                         f'(default: {SCAN_CLASSES})')
+    ap.add_argument('--voxel-size', type=number(0, None, lo_open=True), default=None,
+                    help=f'metres per voxel for --scans (metric grid; default {VOXEL_SIZE:g})')
     ap.add_argument('--mirror', action='store_true',
                     help='--scans: also train on the mirror image of every scan grid (needs '
                          '--views 0: out-of-fold folds over objects would split mirror pairs)')
-    ap.add_argument('--max-iter', type=int, default=200, help='VBPCA iterations per class (with --mirror)')
+    ap.add_argument('--max-iter', type=count(1), default=None,
+                    help=f'VBPCA iterations per class (--scans --mirror only; default {MAX_ITER})')
     ap.add_argument('--point-classifier', metavar='OOF_NPZ', default=None,
                     help="--scans --mirror: also store a 'points' classifier (used by "
                          'estimate_points: per-class loglik + side-normal descriptors of the raw '
@@ -128,51 +144,66 @@ def main(argv=None):
         if unused:
             ap.error('not used with --mirror: ' + ', '.join(f"--{n.replace('_', '-')}"
                                                          for n in unused))
+    if not args.scans:
+        given = [f"--{n.replace('_', '-')}" for n in ('scan_classes', 'voxel_size')
+                 if getattr(args, n) is not None]
+        if given:
+            ap.error(f"{', '.join(given)} {'is' if len(given) == 1 else 'are'} for --scans only")
+    elif args.classes:
+        ap.error('--classes is for npz and mesh input; with --scans use --scan-classes')
+    if args.max_iter is not None and not args.mirror:
+        ap.error('--max-iter is for --scans --mirror only (the other fits use their own)')
+    args.scan_classes = args.scan_classes or SCAN_CLASSES
+    args.voxel_size = args.voxel_size or VOXEL_SIZE
+    args.max_iter = args.max_iter or MAX_ITER
+    if args.grid is not None:
+        try:
+            check_grid_size(args.grid, verifier=args.verifier_views > 0)
+        except ValueError as e:
+            ap.error(f'--grid: {e}')
     try:
+        replace = _check_out(args)
         if args.mirror:
             from .core.bank import resolve_class_prior
             from .core.scan_training import parse_scan_classes, train_scan_bank
             # a prior naming a class the scans lack fails before the fit, not after it
-            resolve_class_prior(class_prior, parse_scan_classes(args.scan_classes)[0])
+            scan_names = parse_scan_classes(args.scan_classes)[0]
+            check_class_names(scan_names, '--scan-classes')
+            resolve_class_prior(class_prior, scan_names)
+            if args.point_classifier:
+                _check_oof_npz(args.point_classifier, scan_names)
             t0 = time.time()
             bank = train_scan_bank(args.inputs, args.scan_classes, args.grid or 32,
                                    args.voxel_size, args.k, args.max_iter, mirror=True,
                                    congeal=args.congeal, verbose=True,
                                    point_classifier=args.point_classifier)
             bank.class_prior = class_prior
-            bank.save(args.out)
+            _save(bank, args.out, replace)
             print(f'wrote {args.out}: {len(bank.classes)} classes {bank.classes}, '
                   f'{bank.training["n_training_grids"]} training grids, '
                   f'{time.time() - t0:.1f} s')
             return 0
         if args.scans:
-            from .core.scan_training import load_scan_training_set
+            from .core.scan_training import load_scan_training_set, parse_scan_classes
+            check_class_names(parse_scan_classes(args.scan_classes)[0], '--scan-classes')
             X, y, names, masks, spec = load_scan_training_set(
                 args.inputs, args.scan_classes, args.grid or 32, args.voxel_size,
                 verbose=True)
         else:
             masks = None
-            parts = [(p, *load_voxel_npz(p, args.classes)) for p in args.inputs
-                     if p.endswith('.npz')]
-            mesh_paths = [p for p in args.inputs if not p.endswith('.npz')]
-            if mesh_paths:   # all at once: one class list for every mesh
-                parts.append(('the meshes', *load_meshes(mesh_paths, args.grid or 32),
-                              args.grid or 32))
-            # one class list over all inputs, in the order the classes first appear
-            Xs, ys, names, n = [], [], [], parts[0][4]
-            for src, X1, y1, names1, n1 in parts:
-                if n1 != n:
-                    raise ValueError(f'{src}: grid {n1} differs from {n}')
-                names += [c for c in names1 if c not in names]
-                Xs.append(X1)
-                ys.append(np.array([names.index(names1[v]) for v in y1], dtype=int))
-            X, y = np.vstack(Xs), np.concatenate(ys)
-            spec = GridSpec(size=n)
+            X, y, names, spec = _load_objects(args)
+        if args.views > 0 and len(names) < 2 and not args.calibrate_only:
+            raise ValueError(f'the classifier needs 2 or more classes, the inputs have '
+                             f'{len(names)} ({names}): add a class, or train no classifier '
+                             'with --views 0 (the maximum-likelihood rule)')
+        training = dict(inputs=[str(p) for p in args.inputs], congeal=args.congeal)
+        if masks is None:   # whole objects: --calibrate-only can tell other data apart
+            training['data_sha256'] = training_data_hash(X, y, names)
         grids = None
         if masks is not None:  # real partial scans: OOF classifier features from these grids
             grids = np.where(masks, X > 0.5, -1).astype(np.int8).reshape((-1,) + spec.shape)
         if args.calibrate_only:
-            return _calibrate_only(args, X, y, names, spec)
+            return _calibrate_only(args, X, y, names, spec, training.get('data_sha256'))
         if args.congeal:
             from .core.congeal import congeal_classes
             if masks is not None:
@@ -182,8 +213,7 @@ def main(argv=None):
         t0 = time.time()
         bank = fit_bank(X, y, names, spec, k=args.k, masks=masks,
                         pose_components=args.pose_components, classifier_views=args.views,
-                        folds=args.folds, seed=args.seed, verbose=True,
-                        training=dict(inputs=[str(p) for p in args.inputs], congeal=args.congeal),
+                        folds=args.folds, seed=args.seed, verbose=True, training=training,
                         grids=grids, oof_path=args.oof_out,
                         row_standardize=AUTO_ON_OFF[args.row_standardize],
                         descriptors=AUTO_ON_OFF[args.descriptors], class_prior=class_prior,
@@ -191,7 +221,7 @@ def main(argv=None):
                         classifier_kind=args.classifier,
                         calibration_views=('auto' if args.calibration_views is None
                                            else args.calibration_views))
-        bank.save(args.out)
+        _save(bank, args.out, replace)
     except (ValueError, OSError) as e:
         print(f'beo-train: error: {e}', file=sys.stderr)
         return 2
@@ -200,9 +230,86 @@ def main(argv=None):
     return 0
 
 
-def _calibrate_only(args, X, y, names, spec):
+def _check_out(args):
+    """Refuse an output directory that cannot be written before any training: -o may be new,
+    empty or hold a model (replaced as a whole). ValueError otherwise; True when it holds a
+    model."""
+    if args.calibrate_only:   # rewrites the model it loads (ModelBank.load checks it)
+        return False
+    check_save_target(args.out)
+    parent = Path(args.out).absolute().parent
+    while not parent.exists():
+        parent = parent.parent
+    if not (parent.is_dir() and os.access(parent, os.W_OK | os.X_OK)):
+        raise ValueError(f'cannot write {args.out}: {parent} is not a writable directory')
+    return is_model_dir(args.out)
+
+
+def _save(bank, out, replace):
+    """bank.save(out), saying so when it replaces the model there."""
+    if replace:
+        print(f'beo-train: replacing the model in {out} as a whole', file=sys.stderr)
+    bank.save(out)
+
+
+def _load_objects(args):
+    """(X, y, names, spec) of the npz and mesh inputs: one class list in the order the classes
+    first appear (or the --classes order), without objects that have no occupied voxel."""
+    parts = [(p, *load_voxel_npz(p)) for p in args.inputs if p.endswith('.npz')]
+    mesh_paths = [p for p in args.inputs if not p.endswith('.npz')]
+    n = args.grid or (parts[0][4] if parts else 32)
+    if mesh_paths:   # all at once: one class list for every mesh
+        parts.append(('the meshes', *load_meshes(mesh_paths, n), n))
+    Xs, ys, names = [], [], []
+    for src, X1, y1, names1, n1 in parts:
+        if n1 != n:
+            why = '--grid' if args.grid else 'the first input'
+            raise ValueError(f'{src}: grid {n1} differs from {n} ({why})')
+        names += [c for c in names1 if c not in names]
+        Xs.append(X1)
+        ys.append(np.array([names.index(names1[v]) for v in y1], dtype=int))
+    X, y = np.vstack(Xs), np.concatenate(ys)
+    where = args.inputs[0] if len(args.inputs) == 1 else 'the inputs'
+    if args.classes:
+        X, y, names = select_classes(X, y, names, args.classes, where)
+    check_class_names(names, where)
+    X, y, dropped = drop_empty_objects(X, y, names)
+    if dropped:
+        print(f'beo-train: warning: dropped {sum(dropped.values())} objects with no occupied '
+              'voxel (' + ', '.join(f'{c}: {m}' for c, m in dropped.items()) + ')',
+              file=sys.stderr)
+    return X, y, names, GridSpec(size=n)
+
+
+def _check_oof_npz(path, names):
+    """ValueError unless ``path`` is an oof_features.npz of ``beo-eval --scans`` over the
+    classes ``names`` (what --point-classifier reads), before the scans are loaded."""
+    keys = ('features', 'scenes', 'object_ids', 'classes')
+    try:
+        z = np.load(path, allow_pickle=False)
+        if not isinstance(z, np.lib.npyio.NpzFile):
+            raise ValueError(f'{path}: a single array, not an oof_features.npz')
+        with z:
+            missing = [k for k in keys if k not in z.files]
+            if missing:
+                raise ValueError(f'{path}: not an oof_features.npz of beo-eval --scans '
+                                 f'(missing {missing}; has {z.files})')
+            shape = z['features'].shape
+            classes = [str(c) for c in np.atleast_1d(z['classes'])]
+    except UNREADABLE as e:
+        if str(path) in str(e):
+            raise
+        raise ValueError(f'{path}: not a readable npz ({type(e).__name__}: {e})') from None
+    if len(shape) != 3 or shape[1] != len(classes):
+        raise ValueError(f'{path}: features must be (objects, classes, features), got {shape}')
+    if classes != list(names):
+        raise ValueError(f'{path}: classes {classes} differ from the scan classes {names}')
+
+
+def _calibrate_only(args, X, y, names, spec, data_sha256=None):
     """``--calibrate-only``: refit the occupancy calibration of the model directory args.out
-    on X, y (its training objects) with its own k, folds and seed, and rewrite it."""
+    on X, y (its training objects) with its own k, folds and seed, and rewrite it (atomically:
+    on failure the model stays as it was)."""
     from .core.bank import ModelBank
     from .core.training import fit_occupancy_calibration
     bank = ModelBank.load(args.out)
@@ -213,6 +320,9 @@ def _calibrate_only(args, X, y, names, spec):
     if info.get('n_objects') not in (None, len(X)):
         raise ValueError(f"{args.out} was trained on {info['n_objects']} objects, the inputs "
                          f'have {len(X)}')
+    if info.get('data_sha256') not in (None, data_sha256):   # recorded since 2026-11-23
+        raise ValueError(f'{args.out} was trained on other data: the inputs have the same '
+                         'classes and object count but not the same objects')
     if info.get('congeal'):
         raise ValueError(f'{args.out} was trained on congealed objects: retrain it with '
                          '--calibration-views instead')

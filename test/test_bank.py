@@ -80,6 +80,10 @@ def test_estimate_contract(tiny, which):
     assert e.variance.dtype == np.float32 and e.variance.shape == (N,) * 3
     assert e.variance.min() >= 0 and np.isfinite(e.variance).all()
     assert (e.variance[grid >= 0] == 0).all()
+    ov = e.occupancy_variance
+    assert ov.dtype == np.float32 and ov.shape == (N,) * 3
+    np.testing.assert_allclose(ov, e.completion * (1 - e.completion), rtol=1e-6)
+    assert (ov[grid >= 0] == 0).all() and ov.max() <= 0.25
     # observed voxels are kept
     assert (e.completion[grid == 1] == 1).all()
     assert (e.completion[grid == 0] == 0).all()
@@ -201,6 +205,7 @@ def test_grid_without_occupied_voxel_is_no_object(tiny, fill):
         assert sum(e.scores.values()) == pytest.approx(1.0)
         assert e.completion.shape == (N,) * 3 and e.completion.dtype == np.float32
         assert not e.completion.any() and not e.variance.any()
+        assert not e.occupancy_variance.any()
         assert e.hypotheses == [] and e.symmetric_yaws == []
     # the scores are the class prior when one is set
     w = tiny.with_class_prior({'box': 3, 'cylinder': 1}).estimate(empty).scores
@@ -574,6 +579,28 @@ def test_load_wrong_shapes(tmp_path, tiny_dir):
     _write_manifest(p, m)
     with pytest.raises(ModelError, match='class_00'):
         ModelBank.load(p)
+
+
+@pytest.mark.parametrize('cut', [0.5, 0.95])
+def test_truncated_npz_with_a_matching_checksum_is_named(tmp_path, tiny_dir, cut):
+    # a write cut short before the manifest was signed: zipfile / zlib errors, not only OSError
+    from beo_ros.core.bank import _sha256
+    p = _copy(tiny_dir, tmp_path)
+    names = sorted(f.name for f in p.glob('class_*.npz'))
+    assert len(names) == 2, names
+    # the optional files: any arrays do, they are cut before being read
+    names += ['classifier.npz', 'verifier.npz', 'calibration.npz']
+    for name in names:
+        q = _copy(p, tmp_path / f'{name}_{cut}')
+        if not (q / name).exists():
+            np.savez_compressed(q / name, complete__coef=np.random.default_rng(0).random((50, 50)))
+        data = (q / name).read_bytes()
+        (q / name).write_bytes(data[:int(len(data) * cut)])
+        m = _manifest(q)
+        m['files'][name] = _sha256(q / name)
+        _write_manifest(q, m)
+        with pytest.raises(ModelError, match=f'{name}: unreadable: '):
+            ModelBank.load(q)
 
 
 @pytest.mark.parametrize('noise_map,ok', [(None, True), ('short', False), ('zero', False)])
@@ -1240,6 +1267,9 @@ def test_resolve_class_prior_accepts_names_dicts_and_weights_and_names_what_is_w
     assert resolve_class_prior({'box': 2, 'cylinder': 1, 'ellipsoid': 1}, names) == \
         pytest.approx([0.5, 0.25, 0.25])
     assert resolve_class_prior([0, 1, 3], names) == pytest.approx([0, 0.25, 0.75])
+    # weights near the float64 limit: their sum would overflow to inf
+    assert resolve_class_prior([1e308, 1e308, 5e307], names) == pytest.approx([0.4, 0.4, 0.2])
+    assert resolve_class_prior([0, 5e-324, 0], names) == pytest.approx([0, 1, 0])
     for bad, msg in [('Uniform', 'one of'), ({'box': 1}, 'missing'),
                      ({'box': 1, 'cylinder': 1, 'ellipsoid': 1, 'cup': 1}, 'unknown'),
                      ([1, 2], '3 weights'), ([1, -1, 1], '>= 0'), ([0, 0, 0], 'not all 0'),
@@ -1535,3 +1565,9 @@ def test_training_skips_views_that_lost_the_object(monkeypatch, capsys):
     assert '2 partial view(s) skipped' in capsys.readouterr().err
     cv = bank.training['cross_validation']
     assert cv['complete']['n'] == 17 and cv['partial']['n'] == 16 * 2
+
+
+def test_occupancy_variance_is_none_without_a_completion(tiny):
+    # what the node's worker processes send back: the grids are dropped
+    e = dataclasses.replace(tiny.estimate(views()[0]), completion=None, variance=None)
+    assert e.occupancy_variance is None

@@ -22,7 +22,12 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import shutil
+import tempfile
 import time
+import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -110,6 +115,54 @@ def coarse_noise(X, est, n, shrink=100.0, floor=1e-4):
     return v, np.maximum(per, floor).astype(np.float32)
 
 
+def class_name_problem(name):
+    """Why ``name`` cannot be a class name ('' when it can): a class is saved as the file
+    ``class_XX_<name>.npz``, so a name must be a non-empty string without '/', '\\' or NUL,
+    not '.' or '..', and without leading or trailing whitespace."""
+    if not isinstance(name, str) or not name:
+        return 'class names must be non-empty strings'
+    if any(c in name for c in '/\\\0'):
+        return "class names cannot contain '/', '\\' or NUL (they name files)"
+    if name in ('.', '..'):
+        return "class names cannot be '.' or '..'"
+    if name != name.strip():
+        return 'class names cannot start or end with whitespace'
+    return ''
+
+
+def check_class_names(names, where='classes'):
+    """ValueError (a ModelError) naming the first bad or repeated name of ``names``."""
+    names = list(names)
+    for name in names:
+        why = class_name_problem(name)
+        if why:
+            raise ModelError(f'{where}: {why}, got {name!r} in {names}')
+    if len(set(names)) != len(names):
+        raise ModelError(f'{where}: class names must be distinct, got {names}')
+
+
+def is_model_dir(path):
+    """True when directory ``path`` holds a beo_ros model (a manifest of this format), which
+    ``ModelBank.save`` may replace as a whole."""
+    try:
+        manifest = json.loads((Path(path) / 'manifest.json').read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        return False
+    return isinstance(manifest, dict) and manifest.get('format') == FORMAT
+
+
+def check_save_target(path):
+    """ValueError unless ``ModelBank.save`` may write directory ``path``: it may not exist yet,
+    be empty, or hold a model (replaced as a whole); anything else is never deleted."""
+    path = Path(path)
+    if path.is_dir():
+        if any(path.iterdir()) and not is_model_dir(path):
+            raise ValueError(f'{path} is a non-empty directory that holds no beo_ros model: '
+                             'not replaced (give a new or empty directory)')
+    elif path.exists() or path.is_symlink():
+        raise ValueError(f'{path} exists and is not a directory')
+
+
 def _sha256(path):
     h = hashlib.sha256()
     with open(path, 'rb') as f:
@@ -189,8 +242,9 @@ def resolve_class_prior(prior, classes):
         raise ValueError(f'class_prior weights must be numbers, got {prior!r}') from None
     if w.shape != (C,):
         raise ValueError(f'class_prior needs {C} weights (one per class), got shape {w.shape}')
-    if not np.isfinite(w).all() or (w < 0).any() or w.sum() <= 0:
+    if not np.isfinite(w).all() or (w < 0).any() or not w.max() > 0:
         raise ValueError(f'class_prior weights must be finite, >= 0 and not all 0, got {w}')
+    w = w / w.max()   # first: the sum of weights near the float64 limit would overflow
     return w / w.sum()
 
 
@@ -371,6 +425,11 @@ def check_class_arrays(arr, d, where, size):
         raise ModelError(f'{where}: loading_covariance must be symmetric positive semi-definite')
 
 
+# what np.load raises for a file it cannot read: a truncated or overwritten npz (whose
+# checksum may still match a manifest written after it) fails inside zipfile or zlib
+UNREADABLE = (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error)
+
+
 def _optional_arrays(path, files, name, check):
     """The arrays of the optional file ``name`` of model directory ``path``, or None when the
     manifest's ``files`` do not list it; ModelError when it is unreadable or when
@@ -381,8 +440,8 @@ def _optional_arrays(path, files, name, check):
     try:
         with np.load(fp, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
-    except (OSError, ValueError) as e:
-        raise ModelError(f'{fp}: unreadable: {e}') from None
+    except UNREADABLE as e:
+        raise ModelError(f'{fp}: unreadable: {type(e).__name__}: {e}') from None
     reason = check(arrays, str(fp))
     if reason:
         raise ModelError(reason)
@@ -535,9 +594,44 @@ class ModelBank:
 
     # ------------------------------------------------------------------ persistence
     def save(self, path):
-        """Write the bank to directory ``path`` (created if needed)."""
+        """Write the bank to directory ``path`` and return it. ``path`` may be new, empty, or
+        hold a model, which is replaced as a whole (see :func:`check_save_target`). The files
+        go to a temporary directory beside ``path`` that is renamed into place when complete:
+        on any failure (or Ctrl-C) it is removed and a model already at ``path`` is kept."""
+        check_class_names(self.classes, 'cannot save the model')
         path = Path(path)
-        path.mkdir(parents=True, exist_ok=True)
+        if path.is_symlink() and path.is_dir():   # replace the directory, keep the link
+            path = path.resolve()
+        check_save_target(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f'.{path.name}.tmp-', dir=path.parent))
+        try:
+            umask = os.umask(0)
+            os.umask(umask)
+            tmp.chmod(0o777 & ~umask)   # mkdtemp's 0o700 would outlive the rename
+            self._write(tmp)
+            if path.is_dir():
+                # two renames: a reader sees the old model or the new one, never a mix (for
+                # the instant between them, no directory)
+                old = Path(tempfile.mkdtemp(prefix=f'.{path.name}.old-', dir=path.parent))
+                try:
+                    os.replace(path, old)   # onto the empty directory mkdtemp made
+                    try:
+                        os.replace(tmp, path)
+                    except BaseException:
+                        os.replace(old, path)
+                        raise
+                finally:
+                    shutil.rmtree(old, ignore_errors=True)
+            else:
+                os.replace(tmp, path)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        return path
+
+    def _write(self, path):
+        """Write the model files and the manifest (last) into the existing directory ``path``."""
         files = {}
         for i, m in enumerate(self.models):
             fn = f'class_{i:02d}_{m.name}.npz'
@@ -566,7 +660,6 @@ class ModelBank:
             'training': self.training, 'files': files,
         }
         (path / 'manifest.json').write_text(json.dumps(manifest, indent=2) + '\n')
-        return path
 
     @classmethod
     def load(cls, path, class_prior=None):
@@ -595,9 +688,7 @@ class ModelBank:
             files = dict(manifest['files'])
         except (KeyError, TypeError, ValueError) as e:
             raise ModelError(f'{mf}: bad or missing entry: {e}') from None
-        if len(set(classes)) != len(classes) or not all(isinstance(c, str) and c
-                                                         for c in classes):
-            raise ModelError(f'{mf}: classes must be distinct non-empty names, got {classes}')
+        check_class_names(classes, str(mf))   # the rule save applies: train and load agree
         if manifest['grid'].get('up', '+z') != '+z' or manifest['grid'].get('axes', 'xyz') != 'xyz':
             raise ModelError(f'{mf}: only axes xyz with up +z are supported')
         for fn, digest in files.items():
@@ -618,8 +709,8 @@ class ModelBank:
                     arr.update({k: z[k] for k in OPTIONAL_CLASS_KEYS if k in z.files})
             except KeyError as e:
                 raise ModelError(f'{fp}: missing array {e}') from None
-            except (OSError, ValueError) as e:
-                raise ModelError(f'{fp}: unreadable: {e}') from None
+            except UNREADABLE as e:
+                raise ModelError(f'{fp}: unreadable: {type(e).__name__}: {e}') from None
             check_class_arrays(arr, d, fp, spec.size)
             W = arr['W']
             noise_map = arr.get('coarse_noise_map')
@@ -643,8 +734,8 @@ class ModelBank:
                     for key in z.files:
                         mode, name = key.split('__', 1)
                         classifier.setdefault(mode, {})[name] = z[key]
-            except (OSError, ValueError) as e:
-                raise ModelError(f'{fp}: unreadable: {e}') from None
+            except UNREADABLE as e:
+                raise ModelError(f'{fp}: unreadable: {type(e).__name__}: {e}') from None
             for mode, clf in classifier.items():
                 if mode == POINTS_MODE:
                     check_point_classifier(clf, len(classes), str(fp))

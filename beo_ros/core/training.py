@@ -1,15 +1,16 @@
 """Training: per-class VBPCA models, out-of-fold classifier features, data loading."""
 from __future__ import annotations
 
+import hashlib
+import json
 import sys
 import time
 import warnings
-import zipfile
 
 import numpy as np
 
-from .bank import (ClassModel, ModelBank, classifier_input, coarse_noise, prior_offset,
-                   resolve_class_prior)
+from .bank import (UNREADABLE, ClassModel, ModelBank, check_class_names, classifier_input,
+                   coarse_noise, prior_offset, resolve_class_prior)
 from .calibration import OccupancyCalibration, calibration_sums, metrics_from_sums
 from .grid import yaw_error
 from .inference import FEATURE_NAMES
@@ -503,6 +504,19 @@ def select_classifier(F, y, records, objects, D, n_classes, C=C_OPTIONS, seed=0,
                             **model_args(m_best)), report
 
 
+def check_grid_size(n, verifier=False):
+    """ValueError unless a model can use grid size N = ``n``: an integer in [4, 256] and even
+    (the coarse pose search pools 2x2x2 voxels); a multiple of 8 with the orientation
+    ``verifier``."""
+    if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)) \
+            or not 4 <= n <= 256 or n % 2:
+        raise ValueError(f'the grid size must be an even integer in [4, 256] (the coarse pose '
+                         f'search pools 2x2x2 voxels), got {n!r}')
+    if verifier and n % 8:
+        raise ValueError(f'the orientation verifier needs a grid size that is a multiple of 8, '
+                         f'got {n}')
+
+
 def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_views=1,
              folds=5, seed=0, C=None, verbose=False, training=None, grids=None,
              oof_path=None, row_standardize='auto', descriptors='auto', class_prior='train',
@@ -572,6 +586,14 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
                          'no out-of-fold features to save')
     if len(set(names)) != len(names):
         raise ValueError(f'class names must be unique, got {list(names)}')
+    check_class_names(names)   # the names save writes and load accepts, before the long fits
+    check_grid_size(spec.size)
+    if not (isinstance(k, (int, np.integer)) and k >= 1):
+        raise ValueError(f'k must be an integer >= 1, got {k!r}')
+    if classifier_views > 0 and len(names) < 2:
+        raise ValueError(f'a classifier needs 2 or more classes, got {len(names)} '
+                         f'({list(names)}); train none (classifier_views=0) for a one-class '
+                         'model')
     weights = resolve_class_prior(class_prior, names)
     cv_prior = class_prior if isinstance(class_prior, str) else weights
     X = np.asarray(X, dtype=np.float32)
@@ -738,6 +760,15 @@ def _check_labels(path, labels, names, m):
     return labels.astype(int)
 
 
+def _head(path, n=8):
+    """The first ``n`` bytes of a file, or None when it cannot be read."""
+    try:
+        with open(path, 'rb') as f:
+            return f.read(n)
+    except OSError:
+        return None
+
+
 def load_voxel_npz(path, classes=None):
     """(X (m, N^3) float32, labels (m,), class names, N) from a voxel npz in the shared format.
 
@@ -747,16 +778,24 @@ def load_voxel_npz(path, classes=None):
     the file for anything else.
     """
     try:
-        with np.load(path, allow_pickle=False) as z:
+        z = np.load(path, allow_pickle=False)
+        if not isinstance(z, np.lib.npyio.NpzFile):   # np.save output: one bare array
+            raise ValueError(f'{path}: holds a single array (an .npy file?), not a voxel npz '
+                             "with keys 'voxels', 'labels', 'classes'")
+        with z:
             for key in ('voxels', 'labels', 'classes'):
                 if key not in z.files:
                     raise ValueError(f'{path}: missing key {key!r} (has {z.files})')
             vox, labels = z['voxels'], z['labels']
             names = [str(c) for c in np.atleast_1d(z['classes'])]
             shape = z['shape'] if 'shape' in z.files else None
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
+    except UNREADABLE as e:
         if str(path) in str(e):
             raise
+        head = _head(path)
+        if head is not None and not head.startswith((b'PK', b'\x93NUMPY')):
+            # numpy's own message here is about pickles, which says nothing useful
+            raise ValueError(f'{path}: not an npz file (it starts with {head!r})') from None
         raise ValueError(f'{path}: not a readable voxel npz ({type(e).__name__}: {e})') from None
     if shape is not None:
         if not (np.issubdtype(shape.dtype, np.number) and np.isfinite(shape).all()
@@ -769,6 +808,31 @@ def load_voxel_npz(path, classes=None):
     if classes:
         X, labels, names = select_classes(X, labels, names, classes, path)
     return X, labels, names, n
+
+
+def drop_empty_objects(X, y, names):
+    """(X, y, dropped) without the objects that have no occupied voxel (nothing to learn a
+    shape from); ``dropped``: {class name: count} of the classes that lost objects. ValueError
+    when a class has no object left."""
+    empty = ~(np.asarray(X) > 0.5).any(axis=1)
+    counts = np.bincount(np.asarray(y, dtype=int)[empty], minlength=len(names))
+    dropped = {name: int(c) for name, c in zip(names, counts) if c}
+    left = np.bincount(np.asarray(y, dtype=int)[~empty], minlength=len(names))
+    gone = [name for name, c, e in zip(names, left, counts) if e and not c]
+    if gone:
+        raise ValueError(f'classes {gone} have no object with an occupied voxel '
+                         f'(empty objects per class: {dropped})')
+    return X[~empty], y[~empty], dropped
+
+
+def training_data_hash(X, y, names):
+    """SHA-256 (hex) of a training set's occupancy (X > 0.5), labels and class names: recorded
+    in the manifest so that ``beo-train --calibrate-only`` can tell other data apart."""
+    X = np.asarray(X)
+    h = hashlib.sha256(json.dumps([list(map(str, names)), list(X.shape)]).encode())
+    h.update(np.packbits(X > 0.5, axis=-1).tobytes())
+    h.update(np.asarray(y, dtype='<i8').tobytes())
+    return h.hexdigest()
 
 
 def select_classes(X, labels, names, classes, where):

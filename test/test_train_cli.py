@@ -1,0 +1,313 @@
+"""beo-train robustness: atomic model directories, class names, options that do not apply."""
+import json
+import shutil
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from beo_ros import bench, evaluate, train
+from beo_ros.core import bank as bank_module
+from beo_ros.core.bank import ModelBank, ModelError
+from beo_ros.core.synthetic import primitive_shapes
+from beo_ros.core.training import load_voxel_npz
+from test_cli import _box_off
+
+N = 16
+FAST = ['--k', '2', '--views', '0', '--verifier-views', '0']
+
+
+def write_npz(path, count=4, seed=0, names=None, empty=()):
+    """Generated boxes and cylinders (bit-packed), optionally renamed; ``empty``: indices of
+    objects whose voxels are cleared."""
+    X, y, default = primitive_shapes(N, count, np.random.default_rng(seed))
+    X = X.astype(np.uint8)
+    X[list(empty)] = 0
+    np.savez(path, voxels=np.packbits(X, axis=1), labels=y,
+             classes=np.array(names or default), shape=np.array([N, N, N]))
+    return path
+
+
+def snapshot(path):
+    """{file name: bytes} of a directory."""
+    return {p.name: p.read_bytes() for p in sorted(path.iterdir())}
+
+
+@pytest.fixture
+def model(tmp_path):
+    """A trained model directory m in tmp_path and its files."""
+    assert train.main([str(write_npz(tmp_path / 'd.npz')), '-o', str(tmp_path / 'm')]
+                      + FAST) == 0
+    return tmp_path / 'm', snapshot(tmp_path / 'm')
+
+
+def main_no_escape(argv):
+    """train.main(argv), failing the test (not ending the session) when Ctrl-C escapes it."""
+    try:
+        return train.main(argv)
+    except KeyboardInterrupt:
+        pytest.fail('KeyboardInterrupt escaped beo-train')
+
+
+def leftovers(tmp_path):
+    return [p.name for p in tmp_path.iterdir() if p.name.startswith('.')]
+
+
+# ---------------------------------------------------------------------- 1, 2: class names
+@pytest.mark.parametrize('name, message', [
+    ('ta/ble', "cannot contain '/'"),   # used to fail in save, half-way over the old model
+    ('ta\\ble', "cannot contain '/'"),
+    ('', 'non-empty'),                  # used to write a model its own loader refused
+    ('..', "cannot be '.' or '..'"),
+    (' table', 'whitespace'),
+])
+def test_bad_class_names_refused_before_training(model, tmp_path, capsys, name, message):
+    path, before = model
+    capsys.readouterr()
+    p = write_npz(tmp_path / 'bad.npz', names=['chair', name])
+    assert train.main([str(p), '-o', str(path)] + FAST) == 2
+    err = capsys.readouterr().err
+    assert 'beo-train: error: ' in err and message in err and 'bad.npz' in err
+    assert snapshot(path) == before
+    assert ModelBank.load(path).classes == ['box', 'cylinder']
+    # --classes leaves the bad name out: fine
+    assert train.main([str(p), '-o', str(tmp_path / 'ok'), '--classes', 'chair'] + FAST) == 0
+
+
+def test_loader_applies_the_same_class_name_rule(model):
+    path, _ = model
+    bank = ModelBank.load(path)
+    bank.models[0].name = ' box'
+    with pytest.raises(ModelError, match='whitespace'):
+        bank.save(path.parent / 'new')
+    assert not (path.parent / 'new').exists()
+    # a manifest edited by hand to a name train refuses is refused on load as well
+    mf = json.loads((path / 'manifest.json').read_text())
+    mf['classes'][0] = ' box'
+    (path / 'class_00_box.npz').rename(path / 'class_00_ box.npz')
+    mf['files']['class_00_ box.npz'] = mf['files'].pop('class_00_box.npz')
+    (path / 'manifest.json').write_text(json.dumps(mf))
+    with pytest.raises(ModelError, match='whitespace'):
+        ModelBank.load(path)
+
+
+# ---------------------------------------------------------------------- 1, 11: atomic save
+def test_a_failed_save_keeps_the_old_model(model, tmp_path, monkeypatch):
+    path, before = model
+    X, y, names = primitive_shapes(N, 5, np.random.default_rng(7))
+    from beo_ros.core.grid import GridSpec
+    from beo_ros.core.training import fit_bank
+    new = fit_bank(X, y, names, GridSpec(size=N), k=2, pose_components=2, classifier_views=0)
+    real, calls = np.savez_compressed, []
+
+    def fail_second(*args, **kwargs):   # a full disk after the first class file
+        calls.append(args[0])
+        if len(calls) == 2:
+            raise OSError(28, 'No space left on device')
+        return real(*args, **kwargs)
+    monkeypatch.setattr(np, 'savez_compressed', fail_second)
+    with pytest.raises(OSError, match='No space'):
+        new.save(path)
+    assert snapshot(path) == before and leftovers(tmp_path) == []
+    ModelBank.load(path)
+    monkeypatch.setattr(np, 'savez_compressed', real)
+    assert new.save(path) == path   # and a complete save replaces it
+    assert ModelBank.load(path).training['n_objects'] == 10 and leftovers(tmp_path) == []
+
+
+def test_ctrl_c_while_saving_exits_130_and_keeps_the_old_model(model, tmp_path, monkeypatch,
+                                                               capsys):
+    path, before = model
+    capsys.readouterr()
+
+    def interrupt(*args, **kwargs):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(np, 'savez_compressed', interrupt)
+    p = write_npz(tmp_path / 'other.npz', seed=3)
+    assert main_no_escape([str(p), '-o', str(path)] + FAST) == 130
+    err = capsys.readouterr().err
+    assert 'beo-train: interrupted' in err and 'Traceback' not in err
+    assert snapshot(path) == before and leftovers(tmp_path) == []
+
+
+def test_calibrate_only_failure_keeps_the_model(tmp_path, monkeypatch, capsys):
+    p = write_npz(tmp_path / 'd.npz')
+    m = tmp_path / 'm'
+    assert train.main([str(p), '-o', str(m), '--k', '2', '--folds', '2',
+                       '--verifier-views', '0', '--classifier', 'logistic',
+                       '--descriptors', 'off', '--row-standardize', 'off']) == 0
+    before = snapshot(m)
+
+    def interrupt(*args, **kwargs):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(np, 'savez_compressed', interrupt)
+    assert main_no_escape([str(p), '-o', str(m), '--calibrate-only']) == 130
+    assert snapshot(m) == before and leftovers(tmp_path) == []
+    monkeypatch.undo()
+    # 8: other objects with the same classes and count are not its training set
+    other = write_npz(tmp_path / 'other.npz', seed=5)
+    assert train.main([str(other), '-o', str(m), '--calibrate-only']) == 2
+    assert 'trained on other data' in capsys.readouterr().err
+    assert snapshot(m) == before
+    assert train.main([str(p), '-o', str(m), '--calibrate-only']) == 0
+    assert ModelBank.load(m).occupancy_calibration is not None
+
+
+# ---------------------------------------------------------------------- 3: the -o directory
+def test_an_existing_model_is_replaced_as_a_whole(model, tmp_path, capsys):
+    path, _ = model
+    (path / 'classifier.npz').write_bytes(b'left over from an older model')
+    (path / 'class_02_cup.npz').write_bytes(b'left over from an older model')
+    capsys.readouterr()
+    assert train.main([str(write_npz(tmp_path / 'o.npz', seed=2)), '-o', str(path)] + FAST) == 0
+    assert 'replacing the model in' in capsys.readouterr().err
+    mf = json.loads((path / 'manifest.json').read_text())
+    assert sorted(p.name for p in path.iterdir()) == sorted(mf['files']) + ['manifest.json']
+    assert ModelBank.load(path).classifier is None
+
+
+def test_a_directory_that_is_not_a_model_is_never_replaced(tmp_path, capsys):
+    p = write_npz(tmp_path / 'd.npz')
+    (tmp_path / 'mine').mkdir()
+    (tmp_path / 'mine' / 'notes.txt').write_text('keep me')
+    assert train.main([str(p), '-o', str(tmp_path / 'mine')] + FAST) == 2
+    err = capsys.readouterr().err
+    assert 'holds no beo_ros model' in err and len(err.strip().splitlines()) == 1
+    assert [f.name for f in (tmp_path / 'mine').iterdir()] == ['notes.txt']
+    (tmp_path / 'afile').write_text('x')
+    assert train.main([str(p), '-o', str(tmp_path / 'afile')] + FAST) == 2
+    assert 'not a directory' in capsys.readouterr().err
+    (tmp_path / 'empty').mkdir()
+    assert train.main([str(p), '-o', str(tmp_path / 'empty')] + FAST) == 0
+    ModelBank.load(tmp_path / 'empty')
+
+
+# ---------------------------------------------------------------------- 4: empty objects
+def test_objects_without_occupied_voxels_are_dropped_with_a_warning(tmp_path, capsys):
+    X, y, names = primitive_shapes(N, 4, np.random.default_rng(0))
+    empty = [int(np.flatnonzero(y == 0)[0]), int(np.flatnonzero(y == 1)[0])]
+    p = write_npz(tmp_path / 'd.npz', empty=empty)
+    assert train.main([str(p), '-o', str(tmp_path / 'm')] + FAST) == 0
+    assert ('dropped 2 objects with no occupied voxel (box: 1, cylinder: 1)'
+            in capsys.readouterr().err)
+    assert ModelBank.load(tmp_path / 'm').training['n_objects'] == len(y) - 2
+    p = write_npz(tmp_path / 'e.npz', empty=np.flatnonzero(y == 1))
+    assert train.main([str(p), '-o', str(tmp_path / 'm2')] + FAST) == 2
+    assert "classes ['cylinder'] have no object with an occupied voxel" in \
+        capsys.readouterr().err
+    assert not (tmp_path / 'm2').exists()
+
+
+# ---------------------------------------------------------------------- 5, 6: options
+@pytest.mark.parametrize('extra, message', [
+    (['--grid', '0'], '--grid: must be in [4, 256]'),
+    (['--grid', '-4'], '--grid: must be in [4, 256]'),
+    (['--grid', '7'], 'even integer'),
+    (['--grid', '12', '--verifier-views', '1'], 'multiple of 8'),
+    (['--max-iter', '0'], '--max-iter: must be in [1, inf)'),
+    (['--max-iter', '5'], '--max-iter is for --scans --mirror only'),
+    (['--voxel-size', '-5'], '--voxel-size: must be in (0, inf)'),
+    (['--voxel-size', '0.1'], '--voxel-size is for --scans only'),
+    (['--scan-classes', 'junk'], '--scan-classes is for --scans only'),
+    (['--scans', '--classes', 'box'], '--classes is for npz and mesh input'),
+    (['--k', '0'], '--k: must be in [1, inf)'),
+])
+def test_options_that_do_not_apply_or_are_out_of_range_refused(tmp_path, capsys, extra,
+                                                               message):
+    p = write_npz(tmp_path / 'd.npz', count=2)
+    with pytest.raises(SystemExit) as ei:
+        train.main([str(p), '-o', str(tmp_path / 'm'), '--views', '0',
+                    '--verifier-views', '0'] + extra)
+    assert ei.value.code == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / 'm').exists()
+
+
+def test_grid_must_match_the_npz(tmp_path, capsys):
+    p = write_npz(tmp_path / 'd.npz', count=2)
+    assert train.main([str(p), '-o', str(tmp_path / 'm'), '--grid', '32'] + FAST) == 2
+    assert 'd.npz: grid 16 differs from 32 (--grid)' in capsys.readouterr().err
+
+
+def test_classes_apply_to_meshes(tmp_path, capsys):
+    paths = []
+    for i in range(3):
+        for name, size in (('cube', (1, 1, 1 + 0.1 * i)), ('slab', (1 + 0.1 * i, 1, 0.2))):
+            paths.append(tmp_path / f'{name}_{i:04d}.off')
+            _box_off(paths[-1], *size)
+    rc = train.main([*map(str, paths), '-o', str(tmp_path / 'm'), '--grid', '16',
+                     '--classes', 'slab'] + FAST)
+    assert rc == 0, capsys.readouterr().err
+    bank = ModelBank.load(tmp_path / 'm')
+    assert bank.classes == ['slab'] and bank.training['n_objects'] == 3
+    assert train.main([*map(str, paths), '-o', str(tmp_path / 'm2'), '--grid', '16',
+                       '--classes', 'cup'] + FAST) == 2
+    assert "classes ['cup'] not in ['cube', 'slab']" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------- 7: one class
+def test_one_class_needs_views_0(tmp_path, capsys, monkeypatch):
+    from beo_ros.core import training
+    p = write_npz(tmp_path / 'd.npz')
+    fits = []
+    real = training.fit_class_models
+    monkeypatch.setattr(training, 'fit_class_models',
+                        lambda *a, **k: fits.append(1) or real(*a, **k))
+    assert train.main([str(p), '-o', str(tmp_path / 'm'), '--classes', 'box', '--k', '2',
+                       '--verifier-views', '0']) == 2
+    err = capsys.readouterr().err
+    assert 'the classifier needs 2 or more classes' in err and '--views 0' in err
+    assert fits == [] and not (tmp_path / 'm').exists()
+    assert train.main([str(p), '-o', str(tmp_path / 'm'), '--classes', 'box'] + FAST) == 0
+    assert ModelBank.load(tmp_path / 'm').classes == ['box']
+
+
+# ---------------------------------------------------------------------- 9: --point-classifier
+def test_point_classifier_npz_checked_before_the_scans(tmp_path, monkeypatch, capsys):
+    from beo_ros.core import scan_training
+    calls = []
+    monkeypatch.setattr(scan_training, 'train_scan_bank', lambda *a, **k: calls.append(a))
+    argv = ['learn0.pcd', '--scans', '--mirror', '--views', '0', '-o', str(tmp_path / 'm')]
+    voxels = write_npz(tmp_path / 'small.npz')
+    assert train.main(argv + ['--point-classifier', str(voxels)]) == 2
+    assert 'small.npz: not an oof_features.npz of beo-eval --scans' in capsys.readouterr().err
+    oof = tmp_path / 'oof.npz'
+    np.savez(oof, features=np.zeros((2, 2, 4)), scenes=np.array(['a', 'b']),
+             object_ids=np.array([0, 1]), classes=np.array(['box', 'cup']))
+    assert train.main(argv + ['--point-classifier', str(oof)]) == 2
+    assert "classes ['box', 'cup'] differ from the scan classes" in capsys.readouterr().err
+    assert train.main(argv + ['--point-classifier', str(tmp_path / 'none.npz')]) == 2
+    assert 'none.npz' in capsys.readouterr().err
+    assert calls == []
+
+
+# ---------------------------------------------------------------------- 10: a bare array
+def test_an_npy_named_npz_is_refused_by_every_loader(tmp_path, capsys):
+    p = tmp_path / 'bare.npz'
+    with open(p, 'wb') as f:
+        np.save(f, np.zeros((2, 512), np.uint8))
+    with pytest.raises(ValueError, match='bare.npz: holds a single array'):
+        load_voxel_npz(p)
+    assert train.main([str(p), '-o', str(tmp_path / 'm')] + FAST) == 2
+    assert 'bare.npz: holds a single array' in capsys.readouterr().err
+    assert evaluate.main(['--model', str(tmp_path / 'm'), '--data', str(p),
+                          '--out', str(tmp_path / 'o')]) == 2
+    assert 'bare.npz: holds a single array' in capsys.readouterr().err
+    with pytest.raises(ValueError, match='bare.npz: holds a single array'):
+        bench.load_data(SimpleNamespace(data=str(p), classes=None), None)
+
+
+def test_save_target_rule(tmp_path):
+    (tmp_path / 'd').mkdir()
+    (tmp_path / 'd' / 'manifest.json').write_text('{"format": "something else"}')
+    with pytest.raises(ValueError, match='holds no beo_ros model'):
+        bank_module.check_save_target(tmp_path / 'd')
+    bank_module.check_save_target(tmp_path / 'new')
+    shutil.rmtree(tmp_path / 'd')
+
+
+def test_a_text_file_named_npz_is_called_so(tmp_path):
+    p = tmp_path / 'notes.npz'
+    p.write_text('voxels, labels, classes\n')
+    with pytest.raises(ValueError, match=r"notes\.npz: not an npz file \(it starts with b'voxels, '\)"):
+        load_voxel_npz(p)
