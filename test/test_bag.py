@@ -447,20 +447,179 @@ def test_cli_replay_of_what_is_not_a_bag_exits_2_with_a_message(tmp_path, capsys
 
 
 @pytest.mark.parametrize('extra, message', [
-    (['--rate', 'nan'], '--rate must be a finite number >= 0'),
-    (['--rate', 'inf'], '--rate must be a finite number >= 0'),
-    (['--depth', '0'], '--depth must be >= 1'),
-    (['--depth', '-1'], '--depth must be >= 1'),
-    (['--wait-subscribers', '-1'], '--wait-subscribers must be >= 0'),
-    (['--clock', 'nan'], '--clock must be a finite number >= 0'),
-    (['--clock', '-5'], '--clock must be a finite number >= 0'),
+    (['--rate', 'nan'], "argument --rate: must be a finite number, got 'nan'"),
+    (['--rate', 'inf'], "argument --rate: must be a finite number, got 'inf'"),
+    (['--rate', '-1'], 'argument --rate: must be in [0, inf), got -1'),
+    (['--depth', '0'], 'argument --depth: must be in [1, inf), got 0'),
+    (['--depth', '-1'], 'argument --depth: must be in [1, inf), got -1'),
+    (['--wait-subscribers', '-1'], 'argument --wait-subscribers: must be in [0, inf), got -1'),
+    (['--wait-timeout', 'nan'], "argument --wait-timeout: must be a finite number, got 'nan'"),
+    (['--wait-timeout', '-1'], 'argument --wait-timeout: must be in [0, inf), got -1'),
+    (['--clock=nan'], "argument --clock: must be a finite number, got 'nan'"),
+    (['--clock', '-5'], 'argument --clock: must be in [0, inf), got -5'),
+    (['--remap', '/beo/input:=bad!'], "bad topic name 'bad!'"),
+    (['--remap', '/beo/input:=/a', '--remap', '/beo/input:=/b'], 'remapped twice'),
+    (['--node-name', 'bad name'], "bad node name 'bad name'"),
 ])
-def test_cli_replay_bad_numbers_refused(tmp_path, capsys, extra, message):
+def test_cli_replay_bad_arguments_refused(tmp_path, capsys, extra, message):
     write_test_bag(tmp_path / 'b', 'sqlite3', n=1)
     with pytest.raises(SystemExit) as ei:
         bag.replay_main([str(tmp_path / 'b'), *extra])
     assert ei.value.code == 2
-    assert message in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert message in err and 'Traceback' not in err, err
+
+
+def test_cli_replay_refuses_a_remap_of_a_topic_not_in_the_bag(tmp_path, capsys,
+                                                               keep_signal_handlers):
+    # like --topics: a typo used to play on the old name, with exit code 0
+    write_test_bag(tmp_path / 'b', 'sqlite3', n=2)
+    assert bag.replay_main([str(tmp_path / 'b'), '--rate', '0',
+                            '--remap', '/beo/inptu:=/x']) == 2
+    out, err = capsys.readouterr()
+    assert "remapped topics not in bag" in err and '/beo/inptu' in err and out == ''
+
+
+@pytest.mark.parametrize('extra, message', [
+    (['--duration', 'nan'], "argument --duration: must be a finite number, got 'nan'"),
+    (['--duration', 'inf'], "argument --duration: must be a finite number, got 'inf'"),
+    (['--duration', '-1'], 'argument --duration: must be in (0, inf), got -1'),
+    (['--duration', '0'], 'argument --duration: must be in (0, inf), got 0'),
+    (['--wait', 'nan'], "argument --wait: must be a finite number, got 'nan'"),
+    (['--wait', '-1'], 'argument --wait: must be in [0, inf), got -1'),
+    (['--count', '0'], 'argument --count: must be in [1, inf), got 0'),
+    (['--count', '-3'], 'argument --count: must be in [1, inf), got -3'),
+    (['--node-name', 'bad name'], "bad node name 'bad name'"),
+    (['/bad topic:std_msgs/msg/String'], "bad topic name '/bad topic'"),
+    (['/x:sensor_msgs/msg/PointCloud2'],
+     '/x is given twice, as std_msgs/msg/String and as sensor_msgs/msg/PointCloud2'),
+])
+def test_cli_record_bad_arguments_refused(tmp_path, capsys, extra, message):
+    out = tmp_path / 'r'
+    with pytest.raises(SystemExit) as ei:
+        topics, opts = (extra, []) if extra[0].startswith('/') else ([], extra)
+        bag.record_main(['/x:std_msgs/msg/String', *topics, '-o', str(out), '--duration', '0.1',
+                         *opts])
+    assert ei.value.code == 2
+    err = capsys.readouterr().err
+    assert message in err and 'Traceback' not in err, err
+    assert not out.exists()
+
+
+def test_cli_record_and_pcd2bag_refuse_an_output_under_a_file(tmp_path, capsys):
+    (tmp_path / 'afile').write_text('x')
+    out = str(tmp_path / 'afile' / 'sub')
+    scene = write_scene_pcd(tmp_path / 's.pcd')
+    for main, args in ((bag.record_main, ['/x:std_msgs/msg/String', '-o', out]),
+                       (bag.pcd2bag_main, [str(scene), '-o', out])):
+        with pytest.raises(SystemExit) as ei:
+            main(args)
+        assert ei.value.code == 2
+        err = capsys.readouterr().err
+        assert 'afile is not a directory' in err and 'Traceback' not in err, err
+
+
+def test_topic_specs_and_types_of_one_topic():
+    assert bag.parse_topic_specs(['/a:std_msgs/String', '/a', '/a:std_msgs/msg/String']) == {
+        '/a': 'std_msgs/msg/String'}
+    with pytest.raises(ValueError, match='given twice'):
+        bag.parse_topic_specs(['/a:std_msgs/String', '/a:sensor_msgs/PointCloud2'])
+    with pytest.raises(ValueError, match='bad topic name'):
+        bag.parse_topic_specs(['/a b'])
+    assert bag.check_topic_name('x') == '/x'
+    with pytest.raises(ValueError, match="bad topic name '/a//b'.*repeated"):
+        bag.check_topic_name('/a//b')
+
+
+def test_record_refuses_two_names_of_one_topic_with_different_types(ctx, tmp_path):
+    node = rclpy.create_node('rec_names', context=ctx)
+    with pytest.raises(ValueError, match='/x is given twice'):
+        bag.record(node, tmp_path / 'r', {'x': 'std_msgs/msg/String',
+                                          '/x': 'sensor_msgs/msg/PointCloud2'}, duration=0.1)
+    assert not (tmp_path / 'r').exists()
+
+
+def test_record_interrupted_while_waiting_for_publishers_says_so(ctx, tmp_path):
+    node = rclpy.create_node('rec_wait', context=ctx)
+    stop = threading.Event()
+    threading.Timer(0.3, stop.set).start()
+    t = time.monotonic()
+    with pytest.raises(KeyboardInterrupt, match='interrupted while waiting for publishers of: '
+                       '/nopub'):
+        bag.record(node, tmp_path / 'r', ['/nopub'], wait=30, stop=stop)
+    assert time.monotonic() - t < 10
+    assert not (tmp_path / 'r').exists()
+
+
+def _wait_for_nodes(domain, names, timeout=60.0):
+    """Block until nodes ``names`` (of other processes) are in domain ``domain``'s graph."""
+    import rclpy
+    from rclpy.context import Context
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    try:
+        node = rclpy.create_node('beo_test_watcher', context=ctx)
+        end = time.monotonic() + timeout
+        while not names <= set(node.get_node_names()) and time.monotonic() < end:
+            time.sleep(0.1)
+        assert names <= set(node.get_node_names()), f'{names} never appeared'
+        node.destroy_node()
+    finally:
+        ctx.try_shutdown()
+
+
+def test_cli_sigint_before_anything_is_played_or_recorded_exits_130(tmp_path, ros_domain_id):
+    """beo-replay waiting for subscribers and beo-record waiting for a publisher, interrupted:
+    exit code 130, one line, no traceback (the replay used to exit 0, the recorder 2 with 'no
+    publisher found within 30 s')."""
+    import signal
+    env = _cli_env(ros_domain_id)
+    write_test_bag(tmp_path / 'b', 'sqlite3', n=2)
+    code = 'import sys; from beo_ros.ros.bag import {0}; sys.exit({0}(sys.argv[1:]))'
+    procs = [subprocess.Popen([sys.executable, '-c', code.format(main), *args], env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for main, args in (
+                 ('replay_main', [str(tmp_path / 'b'), '--wait-subscribers', '1',
+                                  '--wait-timeout', '30']),
+                 ('record_main', ['/nopub', '-o', str(tmp_path / 'r'), '--wait', '30']))]
+    try:
+        _wait_for_nodes(ros_domain_id, {'beo_replay', 'beo_record'})
+        time.sleep(1.0)   # from their node's appearance to their wait: well under a second
+        results = []
+        for p in procs:
+            p.send_signal(signal.SIGINT)
+            out, err = p.communicate(timeout=30)
+            results.append((p.returncode, out, err))
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    (rc_play, _, err_play), (rc_rec, _, err_rec) = results
+    assert rc_play == 130 and 'beo-replay: interrupted' in err_play, err_play
+    assert rc_rec == 130 and 'beo-record: interrupted' in err_rec, err_rec
+    for err in (err_play, err_rec):
+        assert 'Traceback' not in err and 'no publisher found' not in err, err
+    assert not (tmp_path / 'r').exists()
+
+
+def test_cli_loop_replay_ended_by_sigint_exits_0(tmp_path, ros_domain_id):
+    """With --loop, Ctrl-C is the normal end once the replay plays."""
+    import signal
+    write_test_bag(tmp_path / 'b', 'sqlite3', n=3)
+    code = 'import sys; from beo_ros.ros.bag import replay_main; sys.exit(replay_main(sys.argv[1:]))'
+    p = subprocess.Popen([sys.executable, '-c', code, str(tmp_path / 'b'), '--loop'],
+                         env=_cli_env(ros_domain_id), stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    try:
+        _wait_for_nodes(ros_domain_id, {'beo_replay'})
+        time.sleep(2.0)   # it plays its first message as soon as its node is up
+        p.send_signal(signal.SIGINT)
+        out, err = p.communicate(timeout=30)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 0, err
+    assert 'interrupted' in out and 'Traceback' not in err
 
 
 @pytest.fixture
@@ -526,6 +685,115 @@ def test_cli_record_of_an_unknown_type_leaves_no_bag(tmp_path, capsys, keep_sign
     assert bag.record_main(['/x:foo_msgs/msg/Bar', '-o', str(out), '--duration', '1']) == 2
     assert 'foo_msgs/msg/Bar' in capsys.readouterr().err
     assert not out.exists()   # a re-run would be refused: 'exists already'
+
+
+def write_scene_pcd(path, labels=True, objects=True):
+    """A labelled organized scene as the OSD ones: a table 0.3 m below the camera (label 1) and
+    a box on it (label 20, or 1 with objects=False); no label field with labels=False."""
+    from beo_ros.core.pcd import write_pcd
+    rng = np.random.default_rng(0)
+    m, k = 600, 300
+    table = np.c_[rng.uniform(-0.4, 0.4, m), np.full(m, 0.3), rng.uniform(0.6, 1.4, m)]
+    box = np.c_[rng.uniform(-0.05, 0.05, k), rng.uniform(0.2, 0.3, k), rng.uniform(0.95, 1.05, k)]
+    pts = np.r_[table, box].astype(np.float32)
+    fields = {'x': pts[:, 0], 'y': pts[:, 1], 'z': pts[:, 2]}
+    if labels:
+        fields['label'] = np.r_[np.ones(m), np.full(k, 20 if objects else 1)].astype(np.uint32)
+    write_pcd(path, fields, width=(m + k) // 3, height=3)
+    return path
+
+
+def test_pcd2bag_synthetic_scene(tmp_path):
+    out = tmp_path / 'b'
+    summary = bag.pcd_to_bag([write_scene_pcd(tmp_path / 's.pcd')], out, topic='objects')
+    (scene,) = summary['scenes']
+    assert [o['points'] for o in scene['objects']] == [300] and summary['skipped'] == []
+    np.testing.assert_allclose(scene['up'], [0, -1, 0], atol=1e-6)
+    assert bag.bag_info(out)['topics']['/objects']['count'] == 1   # 'objects' expanded
+
+
+@pytest.mark.parametrize('extra, message', [
+    (['--topic', 'bad topic!'], "bad topic name 'bad topic!'"),
+    (['--period', '1e12'], 'argument --period: must be in [0, 86400], got 1e12'),
+    (['--period', 'inf'], "argument --period: must be a finite number, got 'inf'"),
+    (['--period', '-1'], 'argument --period: must be in [0, 86400], got -1'),
+    (['--object-period', 'nan'], "argument --object-period: must be a finite number, got 'nan'"),
+    (['--min-points', '-1'], 'argument --min-points: must be in [0, inf), got -1'),
+])
+def test_cli_pcd2bag_bad_arguments_refused(tmp_path, capsys, extra, message):
+    out = tmp_path / 'b'
+    with pytest.raises(SystemExit) as ei:
+        bag.pcd2bag_main([str(write_scene_pcd(tmp_path / 's.pcd')), '-o', str(out), *extra])
+    assert ei.value.code == 2
+    err = capsys.readouterr().err
+    assert message in err and 'Traceback' not in err, err
+    assert not out.exists()
+
+
+def test_pcd_to_bag_refuses_stamps_past_int64_and_leaves_no_bag(tmp_path):
+    scene = write_scene_pcd(tmp_path / 's.pcd')
+    for kw in ({'period': 1e12}, {'object_period': 1e12}, {'period': float('nan')}):
+        with pytest.raises(ValueError, match='int64|finite'):
+            bag.pcd_to_bag([scene, scene], tmp_path / 'b', **kw)
+        assert not (tmp_path / 'b').exists()
+
+
+@pytest.mark.parametrize('exc', [KeyboardInterrupt, OverflowError])
+def test_pcd_to_bag_leaves_no_partial_bag_on_any_failure(tmp_path, monkeypatch, exc):
+    scene = write_scene_pcd(tmp_path / 's.pcd')
+    real = bag.BagWriter.write
+
+    def write(self, *a, **kw):   # fails after the first message is written
+        if sum(self.counts.values()):
+            raise exc('boom')
+        return real(self, *a, **kw)
+    monkeypatch.setattr(bag.BagWriter, 'write', write)
+    with pytest.raises(exc):
+        bag.pcd_to_bag([scene], tmp_path / 'b')
+    assert not (tmp_path / 'b').exists()
+
+
+def test_cli_pcd2bag_ctrl_c_is_one_line_and_no_bag(tmp_path, monkeypatch, capsys):
+    scene = write_scene_pcd(tmp_path / 's.pcd')
+    real = bag.BagWriter.write
+
+    def write(self, *a, **kw):
+        if sum(self.counts.values()) == 2:
+            raise KeyboardInterrupt
+        return real(self, *a, **kw)
+    monkeypatch.setattr(bag.BagWriter, 'write', write)
+    try:
+        rc = bag.pcd2bag_main([str(scene), '-o', str(tmp_path / 'b')])
+    except KeyboardInterrupt:   # would end the whole pytest session
+        pytest.fail('KeyboardInterrupt escaped beo-pcd2bag')
+    assert rc == 130
+    err = capsys.readouterr().err
+    assert err.strip() == 'beo-pcd2bag: interrupted'
+    assert not (tmp_path / 'b').exists()
+
+
+def test_cli_pcd2bag_scene_without_labels_or_objects(tmp_path, capsys):
+    good = write_scene_pcd(tmp_path / 'good.pcd')
+    nolabel = write_scene_pcd(tmp_path / 'nolabel.pcd', labels=False)
+    noobj = write_scene_pcd(tmp_path / 'noobj.pcd', objects=False)
+    # no label field: refused, naming the file, no bag
+    assert bag.pcd2bag_main([str(good), str(nolabel), '-o', str(tmp_path / 'b1')]) == 2
+    err = capsys.readouterr().err
+    assert f'{nolabel}: no label field' in err and 'Traceback' not in err, err
+    assert not (tmp_path / 'b1').exists()
+    # labels but no object: skipped with a warning, no up vector for it
+    assert bag.pcd2bag_main([str(good), str(noobj), '-o', str(tmp_path / 'b2'), '--json']) == 0
+    out, err = capsys.readouterr()
+    assert err.strip() == (f'beo-pcd2bag: warning: skipped {noobj}: no objects (labels >= 20)')
+    summary = json.loads(out)
+    assert [s['scene'] for s in summary['scenes']] == [str(good)]
+    assert summary['skipped'] == [{'scene': str(noobj),
+                                   'reason': f'{noobj}: no objects (labels >= 20)'}]
+    assert bag.bag_info(tmp_path / 'b2')['topics']['/beo/up']['count'] == 1
+    # nothing left: refused
+    assert bag.pcd2bag_main([str(noobj), '-o', str(tmp_path / 'b3')]) == 2
+    assert 'no scene with objects' in capsys.readouterr().err
+    assert not (tmp_path / 'b3').exists()
 
 
 def test_cli_pcd2bag_of_a_corrupt_scene_writes_no_bag(tmp_path, capsys):

@@ -158,11 +158,25 @@ def test_load_scan_objects_errors_name_the_scan_and_object(tmp_path):
 
     # a table in the plane y = 0, through the camera: seen edge-on
     edge = np.c_[rng.uniform(-0.5, 0.5, 500), np.zeros(500), rng.uniform(0.5, 1.5, 500)]
+    cup = rng.normal([0, 0.05, 1.0], 0.01, (20, 3))
     with pytest.raises(ValueError, match=r'learn0\.pcd: the fitted support plane is seen edge-on'):
-        load_scan_objects([write('learn0.pcd', edge, np.ones(500))])
+        load_scan_objects([write('learn0.pcd', np.r_[edge, cup],
+                                 np.r_[np.ones(500), np.full(20, 20)])])
     # a table z = 1 seen face-on and object 2 in two clusters 10 m apart: none inside its grid
     table = np.c_[rng.uniform(-0.5, 0.5, (500, 2)), np.ones(500)]
     obj = np.r_[rng.normal([-5, 0, 0.9], 0.01, (10, 3)), rng.normal([5, 0, 0.9], 0.01, (10, 3))]
     path = write('learn1.pcd', np.r_[table, obj], np.r_[np.ones(500), np.full(20, 20)])
     with pytest.raises(ValueError, match=r'learn1\.pcd: object 2: none of the 20 points'):
         load_scan_objects([path])
+
+
+def test_load_scan_objects_says_when_a_scene_has_no_objects(tmp_path, capsys):
+    """A labelled scene with only table labels is skipped with a line, never silently."""
+    from beo_ros.core.pcd import write_pcd
+    rng = np.random.default_rng(0)
+    table = np.c_[rng.uniform(-0.5, 0.5, (500, 2)), np.ones(500)].astype(np.float32)
+    write_pcd(tmp_path / 'learn0.pcd', {'x': table[:, 0], 'y': table[:, 1], 'z': table[:, 2],
+                                        'label': np.ones(500, np.uint32)})
+    with pytest.raises(ValueError, match=r'no object labels \(>= 20\)'):
+        load_scan_objects([tmp_path / 'learn0.pcd'])
+    assert 'learn0.pcd: no objects (labels >= 20), skipped' in capsys.readouterr().err

@@ -61,9 +61,11 @@ def test_load_scene_from_pcd(tmp_path):
     np.testing.assert_array_equal(s.points, scene.points[:n])
     np.testing.assert_array_equal(s.labels, scene.labels[:n])
     np.testing.assert_array_equal(s.rgb, scene.rgb[:n])
-    # a cloud without label/colour still loads
+    # a cloud without label field is refused, naming the file, unless labels are optional
     write_pcd(tmp_path / 'xyz.pcd', {k: fields[k] for k in 'xyz'})
-    s = load_scene(tmp_path / 'xyz.pcd')
+    with pytest.raises(PCDError, match=r'xyz\.pcd: no label field'):
+        load_scene(tmp_path / 'xyz.pcd')
+    s = load_scene(tmp_path / 'xyz.pcd', require_labels=False)
     assert not s.labels.any() and not s.rgb.any()
     write_pcd(tmp_path / 'bad.pcd', {'a': fields['x']})
     with pytest.raises(PCDError, match='x/y/z'):

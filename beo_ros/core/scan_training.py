@@ -136,11 +136,14 @@ def load_scan_objects(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32, voxel_s
                 print(f'{p}: scene {num} is in no class, skipped', file=sys.stderr)
             continue
         scene = load_scene(p)
+        objs = segment_objects(scene)
+        if not objs:   # said even when not verbose: a scene of the classes is not used
+            print(f'{p}: no objects (labels >= 20), skipped', file=sys.stderr)
+            continue
         try:
             up, d = fit_table_plane(scene)
         except ValueError as exc:   # name the scan: the message alone does not
             raise ValueError(f'{p}: {exc}') from exc
-        objs = segment_objects(scene)
         for oid, pts in objs.items():
             try:
                 view = object_view(pts, up, d, spec, occluders=scene_occluders(scene, oid))
@@ -159,7 +162,8 @@ def load_scan_objects(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32, voxel_s
         if verbose:
             print(f'{p}: {names[table[num]]}, {len(objs)} objects', file=sys.stderr)
     if not X:
-        raise ValueError(f'no scan matched the scan classes {scan_classes!r}')
+        raise ValueError(f'no objects: no scan matched the scan classes {scan_classes!r}, or '
+                         'those that did have no object labels (>= 20)')
     y = np.array(y, dtype=int)
     for c, name in enumerate(names):
         if (y == c).sum() < 2:

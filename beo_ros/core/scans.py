@@ -42,11 +42,16 @@ class Scene:
     path: str = ''
 
 
-def load_scene(path) -> Scene:
-    """Read an OSD-style PCD (fields x y z, optional label, rgba/rgb). Raises PCDError."""
+def load_scene(path, require_labels: bool = True) -> Scene:
+    """Read an OSD-style PCD (fields x y z, label, optional rgba/rgb). Raises PCDError, also
+    for a file without a label field unless ``require_labels`` is False (labels then 0)."""
     pcd = read_pcd(path)
     if not all(k in pcd for k in 'xyz'):
         raise PCDError(f'{path}: no x/y/z fields')
+    if require_labels and 'label' not in pcd:
+        # without labels every point would be "invalid": no table, no objects
+        raise PCDError(f'{path}: no label field (a segmented scene is needed: labels 1-9 the '
+                       f'table, >= {FIRST_OBJECT_LABEL} the objects)')
     n = pcd.n_points
     pts = pcd.xyz().astype(np.float32)
     labels = pcd['label'].astype(np.uint32).reshape(n) if 'label' in pcd else np.zeros(n, np.uint32)

@@ -11,6 +11,7 @@ Console entry points:
     ones named with ``--topics``) into the live graph, timed by the bag's receive timestamps divided
     by ``--rate`` (``--rate 0``: as fast as possible). Header stamps are left as recorded. Reports
     per-topic counts and the wall duration as a table (``--json`` for machine-readable output).
+    Exit code 130 when Ctrl-C cuts it short (0 for a ``--loop`` replay that played).
     In-process use: :func:`replay`.
 
 ``beo-record TOPIC[:TYPE] ... -o BAG``
@@ -34,7 +35,11 @@ Console entry points:
     - ``/beo/table_plane``, ``std_msgs/Float64MultiArray``: plane ``[a, b, c, d]`` with
       ``a x + b y + c z + d = 0``, ``(a, b, c)`` the up vector above (camera frame), scene stamp.
 
-    Each message's bag (receive) timestamp equals its header stamp.
+    Each message's bag (receive) timestamp equals its header stamp. A file without a label field
+    is refused; a scene without object labels (>= 20) is skipped with a warning.
+
+Bad arguments (numbers out of range, invalid topic or node names, an output that exists) exit 2
+with one line; Ctrl-C, one line and exit code 130, leaving no partial pcd2bag bag.
 """
 from __future__ import annotations
 
@@ -46,6 +51,7 @@ import json
 import math
 import os
 import re
+import shutil
 import signal
 import sys
 import threading
@@ -54,6 +60,8 @@ import weakref
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from beo_ros.cli import INTERRUPTED, count, interruptible, number
+
 STORAGES = ('sqlite3', 'mcap')
 CLOUD_TYPE = 'sensor_msgs/msg/PointCloud2'
 UP_TOPIC = '/beo/up'
@@ -61,6 +69,43 @@ PLANE_TOPIC = '/beo/table_plane'
 DEFAULT_INPUT_TOPIC = '/beo/input'
 DEFAULT_FRAME = 'camera'
 T0_NS = 1_700_000_000_000_000_000  # first stamp written by pcd2bag (and the demo)
+MAX_NS = 2**63 - 1                 # bag timestamps are int64 nanoseconds
+MAX_PERIOD_S = 86_400.0            # --period / --object-period bound of beo-pcd2bag
+
+
+# ---------------------------------------------------------------------------------------------
+# names
+# ---------------------------------------------------------------------------------------------
+
+def _name_reason(exc) -> str:
+    """rcl's reason from a name validation error, on one line."""
+    first = (str(exc).splitlines() or [type(exc).__name__])[0]
+    first = re.sub(r', at \S+:\d+$', '', first).rstrip(': ')
+    m = re.search(r'(?:is invalid|Invalid \w+ name): (.*)', first)
+    return m.group(1) if m else first
+
+
+def check_topic_name(name: str, node_name: str = 'beo') -> str:
+    """``name`` expanded as a topic of node ``node_name`` in namespace ``/`` ('x' -> '/x');
+    ``ValueError`` with rcl's reason if it is not a valid ROS 2 topic name."""
+    from rclpy.expand_topic_name import expand_topic_name
+    from rclpy.validate_full_topic_name import validate_full_topic_name
+    try:
+        full = expand_topic_name(name, node_name, '/')
+        validate_full_topic_name(full)
+    except Exception as e:  # noqa: BLE001 - rcl raises ValueError or NameValidationException
+        raise ValueError(f'bad topic name {name!r}: {_name_reason(e)}') from None
+    return full
+
+
+def check_node_name(name: str) -> str:
+    """``name`` if it is a valid ROS 2 node name, else ``ValueError`` with rcl's reason."""
+    from rclpy.validate_node_name import validate_node_name
+    try:
+        validate_node_name(name)
+    except Exception as e:  # noqa: BLE001
+        raise ValueError(f'bad node name {name!r}: {_name_reason(e)}') from None
+    return name
 
 
 # ---------------------------------------------------------------------------------------------
@@ -378,7 +423,8 @@ class ReplayStats:
 
 
 def parse_remaps(remaps) -> dict:
-    """['OLD:=NEW', ...] -> {OLD: NEW}."""
+    """['OLD:=NEW', ...] -> {OLD: NEW}; ``ValueError`` if NEW is not a valid topic name or OLD is
+    remapped twice."""
     out = {}
     for r in remaps or ():
         if ':=' not in r:
@@ -386,6 +432,9 @@ def parse_remaps(remaps) -> dict:
         old, new = r.split(':=', 1)
         if not old or not new:
             raise ValueError(f'remap must be OLD:=NEW, got {r!r}')
+        check_topic_name(new)
+        if out.get(old, new) != new:
+            raise ValueError(f'{old} is remapped twice: to {out[old]} and to {new}')
         out[old] = new
     return out
 
@@ -520,6 +569,9 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
             conns = list(reader.connections)
         else:
             conns = [c for c in reader.connections if c.msgtype == CLOUD_TYPE]
+        unknown = set(remap) - {c.topic for c in reader.connections}
+        if unknown:   # a typo would otherwise play on the old name
+            raise KeyError(f'remapped topics not in bag {bag_path}: {sorted(unknown)}')
         pubs, pub_by_out = {}, {}
         for c in list(conns):
             out = remap.get(c.topic, c.topic)
@@ -647,20 +699,37 @@ class RecordStats:
 
 
 def parse_topic_specs(specs) -> dict:
-    """['/a', '/b:pkg/msg/T', ...] -> {'/a': None, '/b': 'pkg/msg/T'}."""
+    """['/a', '/b:pkg/msg/T', ...] -> {'/a': None, '/b': 'pkg/msg/T'}.
+
+    ``ValueError`` for a bad topic name or type, or a topic given twice with different types.
+    """
     out = {}
     for s in specs:
         topic, sep, typ = s.partition(':')
         if not topic:
             raise ValueError(f'bad topic spec {s!r}')
-        out[topic] = normalize_msgtype(typ) if sep else None
+        check_topic_name(topic)
+        typ = normalize_msgtype(typ) if sep else None
+        old = out.get(topic)
+        if old and typ and old != typ:
+            raise ValueError(f'{topic} is given twice, as {old} and as {typ}')
+        out[topic] = typ or old
     return out
 
 
 def resolve_topic_types(node, topics: dict, wait: float = 10.0,
                         stop: threading.Event | None = None) -> dict:
-    """Fill in ``None`` types from the graph (waiting up to ``wait`` s); ``KeyError`` if not found."""
-    topics = {node.resolve_topic_name(t): typ for t, typ in topics.items()}
+    """Fill in ``None`` types from the graph (waiting up to ``wait`` s); ``KeyError`` if not found,
+    ``KeyboardInterrupt`` if ``stop`` gets set first, ``ValueError`` if two names of one topic
+    ('x' and '/x') are given different types."""
+    resolved = {}
+    for t, typ in topics.items():
+        name = node.resolve_topic_name(t)
+        old = resolved.get(name)
+        if old and typ and old != typ:
+            raise ValueError(f'{name} is given twice, as {old} and as {typ}')
+        resolved[name] = typ or old
+    topics = resolved
     deadline = time.monotonic() + wait
     while True:
         missing = [t for t, typ in topics.items() if typ is None]
@@ -672,7 +741,10 @@ def resolve_topic_types(node, topics: dict, wait: float = 10.0,
                 topics[t] = normalize_msgtype(graph[t][0])
         if all(typ is not None for typ in topics.values()):
             return topics
-        if time.monotonic() > deadline or (stop is not None and stop.is_set()):
+        if stop is not None and stop.is_set():
+            raise KeyboardInterrupt('interrupted while waiting for publishers of: ' + ', '.join(
+                t for t, typ in topics.items() if typ is None))
+        if time.monotonic() > deadline:
             raise KeyError('no publisher found within {:g} s for: {}'.format(
                 wait, ', '.join(t for t, typ in topics.items() if typ is None)))
         time.sleep(0.05)
@@ -709,7 +781,8 @@ def record(node, bag_path, topics, *, storage: str = 'sqlite3', wait: float = 10
     Messages are stored as received (raw CDR), stamped with the node clock at receipt. A topic is
     subscribed once it has a publisher (typed topics may have none yet), with reliability and
     durability adapted to what its publishers offer. ``KeyError``, before the bag is created,
-    for a type without a definition or Python module.
+    for a type without a definition or Python module; ``KeyboardInterrupt``, with no bag, if
+    ``stop`` is set while untyped topics wait for a publisher.
     """
     from rclpy.executors import SingleThreadedExecutor
     if isinstance(topics, (list, tuple)):
@@ -800,22 +873,46 @@ def _stamp(ns: int):
     return Time(sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
 
 
+class NoObjects(ValueError):
+    """A scene without object labels (>= 20): nothing to segment, and no up vector worth writing."""
+
+
 def scene_messages(scene_path, *, min_points: int = 50):
     """Segment one labelled scene -> ``(objects [(object_id, (n,3) points)], up (3,), plane (4,))``.
 
     Objects come from the OSD labels (``scans.segment_objects``), the up vector from a RANSAC fit
-    of the table points (``scans.fit_table_plane``), oriented towards the sensor.
+    of the table points (``scans.fit_table_plane``), oriented towards the sensor. A file without
+    a label field is a ``PCDError``; one with no object label, :class:`NoObjects`.
     """
     import numpy as np
 
     from beo_ros.core import scans
     scene = scans.load_scene(scene_path)
+    if not (scene.labels >= scans.FIRST_OBJECT_LABEL).any():
+        raise NoObjects(f'{scene_path}: no objects (labels >= {scans.FIRST_OBJECT_LABEL})')
     objects = sorted(scans.segment_objects(scene, min_points=min_points).items())
-    up, d = scans.fit_table_plane(scene)
+    try:
+        up, d = scans.fit_table_plane(scene)
+    except ValueError as e:
+        raise ValueError(f'{scene_path}: {e}') from e
     up = np.asarray(up, dtype=np.float64)
     norm = np.linalg.norm(up)
     up, d = up / norm, float(d) / norm
     return objects, up, np.array([up[0], up[1], up[2], d])
+
+
+def _scene_stamps(counts, period: float, object_period: float, t0_ns: int) -> list:
+    """Per scene (``counts``: its number of objects): ``(scene stamp, [object stamps])``."""
+    step = int(round(object_period * 1e9))
+    out, last = [], None
+    for i, n in enumerate(counts):
+        ns = int(t0_ns + round(i * period * 1e9))
+        if last is not None:
+            ns = max(ns, last + max(step, 1))
+        objs = [ns + j * step if step else ns + j for j in range(n)]
+        last = objs[-1] if objs else ns
+        out.append((ns, objs))
+    return out
 
 
 def pcd_to_bag(scenes, bag_path, *, storage: str = 'sqlite3', topic: str = DEFAULT_INPUT_TOPIC,
@@ -826,46 +923,67 @@ def pcd_to_bag(scenes, bag_path, *, storage: str = 'sqlite3', topic: str = DEFAU
     Scene ``i`` starts at ``t0 + i * period`` (or ``object_period`` after the previous scene's last
     object if that is later); its up vector and plane carry that stamp, its objects follow
     ``object_period`` apart (first one at the scene stamp), so every cloud has a unique stamp.
+    Scenes without object labels are skipped (listed in ``'skipped'``); ``ValueError`` if none is
+    left, for a bad scene or topic name, or stamps past int64 nanoseconds. No bag is left behind
+    on any failure (Ctrl-C included).
 
     Returns ``{'bag', 'storage', 'scenes': [{'scene', 'stamp_ns', 'objects': [{'id', 'points',
-    'centroid', 'stamp_ns'}], 'up', 'plane'}], 'topics': {topic: count}}``.
+    'centroid', 'stamp_ns'}], 'up', 'plane'}], 'skipped': [{'scene', 'reason'}],
+    'topics': {topic: count}}``.
     """
     import numpy as np
     from geometry_msgs.msg import Vector3, Vector3Stamped
     from std_msgs.msg import Float64MultiArray, Header
 
     from beo_ros.ros.conversions import xyz_to_cloud
+    if not (math.isfinite(period) and math.isfinite(object_period)):
+        raise ValueError('period and object_period must be finite numbers')
     if period < 0 or object_period < 0:
         raise ValueError('period and object_period must be >= 0')
-    summary = {'bag': str(bag_path), 'storage': storage, 'scenes': [], 'topics': {}}
-    step = int(round(object_period * 1e9))
-    last = None
+    topic = check_topic_name(topic)
+    summary = {'bag': str(bag_path), 'storage': storage, 'scenes': [], 'skipped': [],
+               'topics': {}}
     # every scene is read before the bag is opened: a bad one leaves no half-written bag
-    read = [scene_messages(scene, min_points=min_points) for scene in scenes]
-    with BagWriter(bag_path, storage) as w:
-        w.add_topic(topic, CLOUD_TYPE)
-        w.add_topic(UP_TOPIC, 'geometry_msgs/msg/Vector3Stamped')
-        w.add_topic(PLANE_TOPIC, 'std_msgs/msg/Float64MultiArray')
-        for i, (scene, (objects, up, plane)) in enumerate(zip(scenes, read)):
-            ns = int(t0_ns + round(i * period * 1e9))
-            if last is not None:
-                ns = max(ns, last + max(step, 1))
-            header = Header(stamp=_stamp(ns), frame_id=frame_id)
-            entry = {'scene': str(scene), 'stamp_ns': ns, 'objects': [],
-                     'up': up.tolist(), 'plane': plane.tolist()}
-            w.write(UP_TOPIC, Vector3Stamped(header=header, vector=Vector3(
-                x=float(up[0]), y=float(up[1]), z=float(up[2]))), ns)
-            w.write(PLANE_TOPIC, Float64MultiArray(data=[float(v) for v in plane]), ns)
-            last = ns
-            for j, (obj_id, pts) in enumerate(objects):
-                t = ns + j * step if step else ns + j
-                pts = np.asarray(pts, dtype=np.float32)
-                w.write(topic, xyz_to_cloud(pts, Header(stamp=_stamp(t), frame_id=frame_id)), t)
-                entry['objects'].append({'id': int(obj_id), 'points': int(len(pts)),
-                                         'centroid': pts.mean(axis=0).tolist(), 'stamp_ns': t})
-                last = t
-            summary['scenes'].append(entry)
-        summary['topics'] = dict(w.counts)
+    read = []
+    for scene in scenes:
+        try:
+            read.append((scene, *scene_messages(scene, min_points=min_points)))
+        except NoObjects as e:
+            summary['skipped'].append({'scene': str(scene), 'reason': str(e)})
+    if not read:
+        raise ValueError('no scene with objects: ' + '; '.join(
+            s['reason'] for s in summary['skipped']))
+    stamps = _scene_stamps([len(objects) for _, objects, _, _ in read], period, object_period,
+                           t0_ns)
+    if max(max([ns, *objs]) for ns, objs in stamps) > MAX_NS:
+        raise ValueError(f'--period {period:g} s / --object-period {object_period:g} s put the '
+                         f'stamps of {len(read)} scene(s) past int64 nanoseconds (year 2262)')
+    existed = Path(bag_path).exists()
+    try:
+        with BagWriter(bag_path, storage) as w:
+            w.add_topic(topic, CLOUD_TYPE)
+            w.add_topic(UP_TOPIC, 'geometry_msgs/msg/Vector3Stamped')
+            w.add_topic(PLANE_TOPIC, 'std_msgs/msg/Float64MultiArray')
+            for (scene, objects, up, plane), (ns, obj_ns) in zip(read, stamps):
+                header = Header(stamp=_stamp(ns), frame_id=frame_id)
+                entry = {'scene': str(scene), 'stamp_ns': ns, 'objects': [],
+                         'up': up.tolist(), 'plane': plane.tolist()}
+                w.write(UP_TOPIC, Vector3Stamped(header=header, vector=Vector3(
+                    x=float(up[0]), y=float(up[1]), z=float(up[2]))), ns)
+                w.write(PLANE_TOPIC, Float64MultiArray(data=[float(v) for v in plane]), ns)
+                for (obj_id, pts), t in zip(objects, obj_ns):
+                    pts = np.asarray(pts, dtype=np.float32)
+                    w.write(topic, xyz_to_cloud(pts, Header(stamp=_stamp(t), frame_id=frame_id)),
+                            t)
+                    entry['objects'].append({'id': int(obj_id), 'points': int(len(pts)),
+                                             'centroid': pts.mean(axis=0).tolist(),
+                                             'stamp_ns': t})
+                summary['scenes'].append(entry)
+            summary['topics'] = dict(w.counts)
+    except BaseException:
+        if not existed:   # a half-written bag would only be refused by the next run
+            shutil.rmtree(bag_path, ignore_errors=True)
+        raise
     return summary
 
 
@@ -908,6 +1026,20 @@ def _cli_node(name):
         rclpy.try_shutdown()
 
 
+def _output_problem(path) -> str | None:
+    """Why a new bag cannot be made at ``path`` (it exists, or a parent is a file), or None."""
+    p = Path(path)
+    if p.exists() or p.is_symlink():
+        return f'{path} exists already'
+    for parent in p.parents:   # rosbags makes the missing ones
+        if parent.exists():
+            if not parent.is_dir():
+                return f'cannot create {path}: {parent} is not a directory'
+            break
+    return None
+
+
+@interruptible('beo-replay')
 def replay_main(argv=None) -> int:
     p = argparse.ArgumentParser(
         prog='beo-replay', description='Play the PointCloud2 topics of a rosbag2 bag (sqlite3 or '
@@ -915,7 +1047,7 @@ def replay_main(argv=None) -> int:
     p.add_argument('bag', help='bag directory (or a single .db3 / .mcap file)')
     p.add_argument('-r', '--remap', action='append', default=[], metavar='OLD:=NEW',
                    help='publish bag topic OLD on NEW (repeatable)')
-    p.add_argument('--rate', type=float, default=1.0,
+    p.add_argument('--rate', type=number(0), default=1.0,
                    help='speed factor on the bag timing; 0 = as fast as possible (default 1)')
     p.add_argument('--loop', action='store_true', help='replay until interrupted')
     p.add_argument('--topics', nargs='+', metavar='TOPIC',
@@ -925,29 +1057,22 @@ def replay_main(argv=None) -> int:
                    help='publisher reliability (default reliable; keep-last, volatile); '
                         'topics recorded from transient-local publishers (e.g. /tf_static) '
                         'are played reliable and transient-local, as recorded')
-    p.add_argument('--depth', type=int, default=10, help='publisher history depth (default 10)')
-    p.add_argument('--clock', type=float, nargs='?', const=40.0, default=0.0, metavar='HZ',
+    p.add_argument('--depth', type=count(1), default=10, help='publisher history depth (default 10)')
+    p.add_argument('--clock', type=number(0), nargs='?', const=40.0, default=0.0, metavar='HZ',
                    help='also publish the bag time on /clock, before every message and at HZ '
                         '(default 40) in between, for nodes run with use_sim_time:=true; '
                         'put it after BAG or write --clock=HZ (before BAG, "--clock BAG" '
                         'would read BAG as HZ); with --loop the clock goes back at each pass')
-    p.add_argument('--wait-subscribers', type=int, default=0, metavar='N',
+    p.add_argument('--wait-subscribers', type=count(0), default=0, metavar='N',
                    help='wait until every played topic has N matched subscribers')
-    p.add_argument('--wait-timeout', type=float, default=10.0, metavar='S',
+    p.add_argument('--wait-timeout', type=number(0), default=10.0, metavar='S',
                    help='give up waiting for subscribers after S seconds (default 10; exit 3)')
     p.add_argument('--node-name', default='beo_replay')
     p.add_argument('--json', action='store_true', help='print the report as JSON')
     args = p.parse_args(argv)
-    if not (math.isfinite(args.rate) and args.rate >= 0):
-        p.error(f'--rate must be a finite number >= 0, got {args.rate:g}')
-    if args.depth < 1:
-        p.error(f'--depth must be >= 1, got {args.depth}')
-    if not (math.isfinite(args.clock) and args.clock >= 0):
-        p.error(f'--clock must be a finite number >= 0, got {args.clock:g}')
-    if args.wait_subscribers < 0:
-        p.error(f'--wait-subscribers must be >= 0, got {args.wait_subscribers}')
     try:
         remap = parse_remaps(args.remap)
+        check_node_name(args.node_name)
     except ValueError as e:
         p.error(str(e))
     if not Path(args.bag).exists():
@@ -968,6 +1093,11 @@ def replay_main(argv=None) -> int:
             if stats.messages == 0 and not stats.interrupted:
                 print('beo-replay: nothing to play (no matching topics)', file=sys.stderr)
                 code = 1
+            # Ctrl-C is how a --loop replay ends once it plays; otherwise it cut the replay short
+            if stats.interrupted and not (args.loop and stats.messages):
+                print(f'beo-replay: interrupted after {stats.messages} message(s)',
+                      file=sys.stderr)
+                code = INTERRUPTED
         except TimeoutError as e:
             print(f'beo-replay: {e}', file=sys.stderr)
             code = 3
@@ -980,6 +1110,7 @@ def replay_main(argv=None) -> int:
     return code
 
 
+@interruptible('beo-record')
 def record_main(argv=None) -> int:
     p = argparse.ArgumentParser(
         prog='beo-record', description='Record ROS 2 topics to a new rosbag2 bag (sqlite3 or '
@@ -989,19 +1120,23 @@ def record_main(argv=None) -> int:
                    'beo_interfaces/msg/ObjectEstimate); otherwise discovered from the graph')
     p.add_argument('-o', '--output', required=True, metavar='BAG', help='new bag directory')
     p.add_argument('--storage', choices=STORAGES, default='sqlite3')
-    p.add_argument('--wait', type=float, default=10.0, metavar='S',
+    p.add_argument('--wait', type=number(0), default=10.0, metavar='S',
                    help='seconds to wait for publishers of untyped topics (default 10; exit 2)')
-    p.add_argument('--duration', type=float, metavar='S', help='stop after S seconds')
-    p.add_argument('--count', type=int, metavar='N', help='stop after N messages (all topics)')
+    p.add_argument('--duration', type=number(0, lo_open=True), metavar='S',
+                   help='stop after S seconds')
+    p.add_argument('--count', type=count(1), metavar='N',
+                   help='stop after N messages (all topics)')
     p.add_argument('--node-name', default='beo_record')
     p.add_argument('--json', action='store_true', help='print the report as JSON')
     args = p.parse_args(argv)
     try:
         specs = parse_topic_specs(args.topics)
+        check_node_name(args.node_name)
     except ValueError as e:
         p.error(str(e))
-    if Path(args.output).exists():
-        p.error(f'{args.output} exists already')
+    problem = _output_problem(args.output)
+    if problem:
+        p.error(problem)
     code = 0
     with _cli_node(args.node_name) as (node, stop):
         try:
@@ -1011,9 +1146,19 @@ def record_main(argv=None) -> int:
         except KeyError as e:
             print(f'beo-record: {e.args[0]}', file=sys.stderr)
             code = 2
+        except ValueError as e:   # 'x' and '/x' given different types
+            print(f'beo-record: {e}', file=sys.stderr)
+            code = 2
+        except OSError as e:
+            print(f'beo-record: cannot write {args.output}: {e}', file=sys.stderr)
+            code = 2
+        except KeyboardInterrupt as e:   # before recording started (while waiting for types)
+            print(f'beo-record: {e.args[0] if e.args else "interrupted"}', file=sys.stderr)
+            code = INTERRUPTED
     return code
 
 
+@interruptible('beo-pcd2bag')
 def pcd2bag_main(argv=None) -> int:
     p = argparse.ArgumentParser(
         prog='beo-pcd2bag', description='Labelled organized PCD scenes (OSD format) -> rosbag2 bag '
@@ -1026,19 +1171,25 @@ def pcd2bag_main(argv=None) -> int:
     p.add_argument('--topic', default=DEFAULT_INPUT_TOPIC,
                    help=f'object cloud topic (default {DEFAULT_INPUT_TOPIC})')
     p.add_argument('--frame', default=DEFAULT_FRAME, help=f'frame id (default {DEFAULT_FRAME})')
-    p.add_argument('--period', type=float, default=2.0, metavar='S',
-                   help='seconds between scenes (default 2)')
-    p.add_argument('--object-period', type=float, default=0.25, metavar='S',
-                   help='seconds between the objects of one scene (default 0.25)')
-    p.add_argument('--min-points', type=int, default=50,
+    p.add_argument('--period', type=number(0, MAX_PERIOD_S), default=2.0, metavar='S',
+                   help=f'seconds between scenes (default 2, at most {MAX_PERIOD_S:g})')
+    p.add_argument('--object-period', type=number(0, MAX_PERIOD_S), default=0.25, metavar='S',
+                   help='seconds between the objects of one scene (default 0.25, at most '
+                   f'{MAX_PERIOD_S:g})')
+    p.add_argument('--min-points', type=count(0), default=50,
                    help='skip objects with fewer points (default 50)')
     p.add_argument('--json', action='store_true', help='print the summary as JSON')
     args = p.parse_args(argv)
     missing = [s for s in args.scenes if not Path(s).is_file()]
     if missing:
         p.error(f'no such file: {", ".join(missing)}')
-    if Path(args.output).exists():
-        p.error(f'{args.output} exists already')
+    try:
+        check_topic_name(args.topic)
+    except ValueError as e:
+        p.error(str(e))
+    problem = _output_problem(args.output)
+    if problem:
+        p.error(problem)
     try:
         summary = pcd_to_bag(args.scenes, args.output, storage=args.storage, topic=args.topic,
                              frame_id=args.frame, period=args.period,
@@ -1046,6 +1197,11 @@ def pcd2bag_main(argv=None) -> int:
     except ValueError as e:   # PCDError and bad scenes (no table plane, ...) are ValueErrors
         print(f'beo-pcd2bag: {e}', file=sys.stderr)
         return 2
+    except OSError as e:
+        print(f'beo-pcd2bag: cannot write {args.output}: {e}', file=sys.stderr)
+        return 2
+    for s in summary['skipped']:
+        print(f'beo-pcd2bag: warning: skipped {s["reason"]}', file=sys.stderr)
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
