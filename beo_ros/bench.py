@@ -33,8 +33,9 @@ from pathlib import Path
 
 import numpy as np
 
+from .cli import count, interruptible, number
 from .core.grid import yaw_error
-from .evaluate import json_safe
+from .evaluate import json_safe, out_dir_problem, output_dir
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = 'modelnet10/modelnet10_vox32_train.npz'
@@ -279,14 +280,14 @@ BAG_HZ = 10.0       # message spacing in the bench bag; replay rate factor = rat
 BAG_T0_NS = 1_700_000_000_000_000_000
 
 
-def _node_clouds(X, n, idx, count, rng):
-    """Rendered partial views (points (m, 3) float32, sensor at the origin) of ``count`` objects.
+def _node_clouds(X, n, idx, limit, rng):
+    """Rendered partial views (points (m, 3) float32, sensor at the origin) of ``limit`` objects.
 
     Each cloud is rendered from its own viewpoint; it is translated so its sensor is at the
     origin, which is the node's (fixed) ``sensor_origin``."""
     from beo_ros.core.synthetic import random_partial_view, render_view_points
     clouds = []
-    for i in idx[:count]:
+    for i in idx[:limit]:
         occ = X[i].reshape((n,) * 3) > 0.5
         _, yaw, az, el, _ = random_partial_view(occ, rng)
         pts, origin = render_view_points(occ, yaw, az, el, rng=rng)
@@ -462,8 +463,8 @@ def node_bench(bank, X, y, n, idx, args, rng):
             send(0, 1)
             with cond:
                 cond.wait_for(lambda: bool(got), timeout=0.5)
-        if not got:
-            return {'skipped': 'no estimate from the node within 60 s'}
+        if not got:   # a node that answers nothing: a failure, not a skipped phase
+            raise RuntimeError('no estimate from the node within 60 s')
 
         def settle(timeout=30.0):
             """Wait until the node has accounted for every cloud it received and is idle."""
@@ -726,57 +727,60 @@ def parse_args(argv):
     ap.add_argument('--quick', action='store_true',
                     help='tiny run (< ~60 s): overrides the sizes (classes, objects per class, '
                          'repeats, k, scaling points, node rates and objects) with small ones')
-    ap.add_argument('--seed', type=int, default=0)
-    ap.add_argument('--test-frac', type=float, default=0.2, help='held-out fraction per class')
-    ap.add_argument('--train-per-class', type=int, default=None,
+    ap.add_argument('--seed', type=count(0), default=0)
+    ap.add_argument('--test-frac', type=number(0, 1, lo_open=True, hi_open=True), default=0.2,
+                    help='held-out fraction per class, in (0, 1) (default 0.2)')
+    ap.add_argument('--train-per-class', type=count(1), default=None,
                     help='cap training objects per class (default: all of the split)')
-    ap.add_argument('--queries-per-class', type=int, default=10)
-    ap.add_argument('--repeats', type=int, default=3, help='timing repeats per query (beo)')
-    ap.add_argument('--slow-repeats', type=int, default=1,
+    ap.add_argument('--queries-per-class', type=count(1), default=10,
+                    help='cap held-out queries per class (default 10)')
+    ap.add_argument('--repeats', type=count(1), default=3,
+                    help='timing repeats per query (beo)')
+    ap.add_argument('--slow-repeats', type=count(1), default=1,
                     help='timing repeats per query for paper and icp')
-    ap.add_argument('--k', type=int, default=20)
+    ap.add_argument('--k', type=count(1), default=20, help='components per class')
     ap.add_argument('--model', default=None,
                     help='use this bank for beo (must not have been trained on the queries)')
-    ap.add_argument('--beo-classifier-views', type=int, default=1)
-    ap.add_argument('--beo-verifier-views', type=int, default=6,
+    ap.add_argument('--beo-classifier-views', type=count(0), default=1)
+    ap.add_argument('--beo-verifier-views', type=count(0), default=6,
                     help="views per training object for beo's orientation verifier, as "
                          'beo-train makes it (0: none; --quick: 0)')
-    ap.add_argument('--icp-db-per-class', type=int, default=10)
-    ap.add_argument('--icp-init-yaws', type=int, default=4)
-    ap.add_argument('--paper-yaws', type=int, default=36)
+    ap.add_argument('--icp-db-per-class', type=count(1), default=10)
+    ap.add_argument('--icp-init-yaws', type=count(1), default=4)
+    ap.add_argument('--paper-yaws', type=count(1), default=36)
     ap.add_argument('--no-paper', action='store_true')
     ap.add_argument('--no-icp', action='store_true')
     ap.add_argument('--no-scaling', action='store_true')
     ap.add_argument('--no-node', action='store_true')
     ap.add_argument('--no-plots', action='store_true')
-    ap.add_argument('--scaling-train', type=int, nargs='*', default=[100, 200])
-    ap.add_argument('--scaling-grids', type=int, nargs='*', default=[24, 32, 48, 64])
-    ap.add_argument('--scaling-yaw-steps', type=float, nargs='*', default=[10.0, 5.0, 1.0])
-    ap.add_argument('--scaling-classes', type=int, nargs='*', default=[2, 5, 10])
-    ap.add_argument('--scaling-per-class', type=int, default=8)
-    ap.add_argument('--scaling-queries', type=int, default=6)
-    ap.add_argument('--node-objects', type=int, default=20,
+    ap.add_argument('--scaling-train', type=count(1), nargs='*', default=[100, 200])
+    ap.add_argument('--scaling-grids', type=count(4, 256), nargs='*', default=[24, 32, 48, 64])
+    ap.add_argument('--scaling-yaw-steps', type=number(0, 360, lo_open=True), nargs='*',
+                    default=[10.0, 5.0, 1.0])
+    ap.add_argument('--scaling-classes', type=count(1), nargs='*', default=[2, 5, 10])
+    ap.add_argument('--scaling-per-class', type=count(1), default=8)
+    ap.add_argument('--scaling-queries', type=count(1), default=6)
+    ap.add_argument('--node-objects', type=count(1), default=20,
                     help='rendered clouds in the node bench bag (cycled)')
-    ap.add_argument('--node-rounds', type=int, default=1,
+    ap.add_argument('--node-rounds', type=count(1), default=1,
                     help='closed-loop passes over the clouds (latency without queueing)')
-    ap.add_argument('--node-rates', type=float, nargs='+', default=[10, 15, 20, 25, 30],
-                    help='open-loop bag replay rates (Hz)')
-    ap.add_argument('--node-duration', type=float, default=8.0,
+    ap.add_argument('--node-rates', type=number(0, None, lo_open=True), nargs='+',
+                    default=[10, 15, 20, 25, 30], help='open-loop bag replay rates (Hz)')
+    ap.add_argument('--node-duration', type=number(0, 3600, lo_open=True), default=8.0,
                     help='seconds of replay per rate')
-    ap.add_argument('--node-max-drop', type=float, default=0.05,
+    ap.add_argument('--node-max-drop', type=number(0, 1), default=0.05,
                     help='a replay rate counts as sustained with at most this fraction of its '
                          'clouds dropped as stale (and none lost, rejected or unanswered)')
-    ap.add_argument('--node-workers', type=int, default=0,
-                    help="the node's workers parameter (0: its default)")
-    ap.add_argument('--node-worker-processes', type=int, default=2,
-                    help="the node's worker_processes parameter (default 2, as in "
+    # the ranges of the node's own parameters (a value out of them fails at node start)
+    ap.add_argument('--node-workers', type=count(0, 64), default=0,
+                    help="the node's workers parameter, 1..64 (0: its default)")
+    ap.add_argument('--node-worker-processes', type=count(-1, 64), default=2,
+                    help="the node's worker_processes parameter, 0..64 (default 2, as in "
                          "config/beo.yaml; -1: the node's built-in default, 0)")
-    ap.add_argument('--node-blas-threads', type=int, default=None,
-                    help="the node's blas_threads parameter (default: the node's default; "
-                         "0: the BLAS library's own default)")
+    ap.add_argument('--node-blas-threads', type=count(0, 64), default=None,
+                    help="the node's blas_threads parameter, 0..64 (default: the node's "
+                         "default; 0: the BLAS library's own default)")
     args = ap.parse_args(argv)
-    if not all(math.isfinite(r) and r > 0 for r in args.node_rates):
-        ap.error(f'--node-rates must be finite rates > 0 Hz, got {args.node_rates}')
     if args.quick:
         p = data_path(args.data)
         if p is not None and not args.classes:
@@ -807,6 +811,7 @@ def parse_args(argv):
     return args
 
 
+@interruptible('beo-bench')
 def main(argv=None):
     args = parse_args(argv)
     try:
@@ -817,14 +822,30 @@ def main(argv=None):
 
 
 def run(args):
-    """The bench of parsed ``args``: writes bench.json, bench.md and the PNGs; exit code."""
+    """The bench of parsed ``args``: writes bench.json, bench.md and the PNGs; exit code (0,
+    or 1 when the node benchmark failed: the other results are written all the same)."""
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    problem = out_dir_problem(out)
+    if problem:
+        raise ValueError(f'--out {out}: {problem}')
     rng = np.random.default_rng(args.seed)
     t_all = time.perf_counter()
     X, y, names, n, source = load_data(args, rng)
     tr, te = split(y, args.test_frac, np.random.default_rng(args.seed), args.train_per_class,
                    args.queries_per_class)
+    bank = None
+    if args.model:
+        from beo_ros.core.bank import load_models
+        bank = load_models(args.model)
+        if list(bank.classes) != list(names):
+            raise ValueError(f'--model classes {bank.classes} differ from the data {names}')
+    # the inputs are valid: the work starts (a failure or Ctrl-C leaves no empty --out)
+    with output_dir(out):
+        return _bench(args, out, X, y, names, n, source, tr, te, bank, t_all)
+
+
+def _bench(args, out, X, y, names, n, source, tr, te, bank, t_all):
+    """The peers, scaling and node phases of :func:`run` and their output files; exit code."""
     queries = make_queries(X, y, te, n, np.random.default_rng(args.seed + 1))
     log(f'data: {source}; {len(names)} classes, {len(tr)} training objects, '
         f'{len(queries)} queries')
@@ -840,11 +861,7 @@ def run(args):
 
     # ---- beo
     t0 = time.perf_counter()
-    if args.model:
-        from beo_ros.core.bank import load_models
-        bank = load_models(args.model)
-        if list(bank.classes) != list(names):
-            raise ValueError(f'--model classes {bank.classes} differ from the data {names}')
+    if bank is not None:
         res['setup']['beo_model'] = (f'{args.model} (given: valid only if it was not trained '
                                      'on the query objects)')
     else:
@@ -891,6 +908,7 @@ def run(args):
     res['scaling'] = ({'skipped': '--no-scaling'} if args.no_scaling else
                       scaling(args, X, y, names, n, tr, queries, bank, icp,
                               np.random.default_rng(args.seed + 2)))
+    node_failed = None
     if args.no_node:
         res['node'] = {'skipped': '--no-node'}
     else:
@@ -901,6 +919,7 @@ def run(args):
         except Exception as e:  # noqa: BLE001 - the peers' results are kept and written
             log(f'[node] failed: {type(e).__name__}: {e}')
             res['node'] = {'skipped': f'failed: {type(e).__name__}: {e}'}
+            node_failed = f'{type(e).__name__}: {e}'
     res['setup']['wall_s'] = time.perf_counter() - t_all
 
     res = json_safe(res)
@@ -923,6 +942,10 @@ def run(args):
     else:
         print(f"node: skipped ({node.get('skipped')})")
     print(f'wrote {out / "bench.json"}')
+    if node_failed:
+        print(f'beo-bench: error: the node benchmark failed ({node_failed}); the other '
+              'results are written', file=sys.stderr)
+        return 1
     return 0
 
 

@@ -27,12 +27,40 @@ from pathlib import Path
 
 import numpy as np
 
+from .cli import count, interruptible
 from .core.bank import load_models, parse_class_prior
 from .core.calibration import calibration_sums, metrics_from_sums
 from .core.grid import GridSpec, symmetric_turns, yaw_error, yaw_error_up_to
 from .core.synthetic import random_partial_view
 from .core.training import (fit_bank, load_voxel_npz, progress_bar, select_classes,
                             stratified_folds)
+
+
+def one_fold_parser(description, json_help):
+    """ArgumentParser of the one-fold measurement scripts in scripts/: a voxel npz, --fold of
+    --folds, every n-th held-out object, --k, --seed of the views, --json (``json_help``)."""
+    ap = argparse.ArgumentParser(description=description,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument('data', help='voxel npz (shared format)')
+    ap.add_argument('--fold', type=int, default=0, help='held-out fold (default 0)')
+    ap.add_argument('--folds', type=int, default=5, help='folds, as beo-eval --cv (default 5)')
+    ap.add_argument('--every', type=int, default=1, help='every n-th held-out object')
+    ap.add_argument('--k', type=int, default=20, help='components per class')
+    ap.add_argument('--seed', type=int, default=7, help='seed of the views')
+    ap.add_argument('--json', help=json_help)
+    return ap
+
+
+def held_out_fold(ap, argv=None):
+    """Parse ``one_fold_parser`` arguments and split their npz into the folds of beo-eval --cv
+    (with --seed 0) -> (args, X, y, class names, N, training indices, held-out indices)."""
+    args = ap.parse_args(argv)
+    if not 0 <= args.fold < args.folds or args.folds < 2 or args.every < 1:
+        ap.error('need folds >= 2, 0 <= fold < folds and every >= 1')
+    X, y, names, n = load_voxel_npz(args.data)
+    fold = stratified_folds(y, args.folds, np.random.default_rng(0))
+    tr, te = np.flatnonzero(fold != args.fold), np.flatnonzero(fold == args.fold)[::args.every]
+    return args, X, y, names, n, tr, te
 
 
 def stratified_subset(idx, y, m, rng):
@@ -68,10 +96,11 @@ def evaluate_bank(bank, X, y, names, rng, views=1, examples=6, progress=True, in
         # quarter turns that map the whole object onto itself: a yaw off by one of them is
         # a right answer up to the object's own symmetry (reported beside the plain yaw error)
         turns = symmetric_turns(occ)
+        empty = bool(not occ.any())
         t0 = time.perf_counter()
         e = bank.estimate(occ.astype(np.int8), yaw=0.0)
         rec_c = dict(i=int(index[i]), mode='complete', truth=truth, label=e.label,
-                     latency=time.perf_counter() - t0)
+                     latency=time.perf_counter() - t0, empty_object=empty)
         recs.append(rec_c)
         for _ in range(views):
             grid, yaw, az, el, rotated = random_partial_view(occ, rng)
@@ -92,7 +121,7 @@ def evaluate_bank(bank, X, y, names, rng, views=1, examples=6, progress=True, in
                              yaw_err_sym_deg=float(np.rad2deg(yaw_error_up_to(e.yaw, yaw,
                                                                               turns))),
                              # the rotation lost an object of a few voxels: nothing to see
-                             empty_view=bool(not (grid == 1).any()),
+                             empty_view=bool(not (grid == 1).any()), empty_object=empty,
                              iou=float(inter / union) if union else 1.0,
                              # how well the unknown voxels' probabilities are calibrated
                              voxels=calibration_sums(e.completion[unknown], rotated[unknown]),
@@ -169,7 +198,7 @@ def json_safe(obj):
     return obj
 
 
-def _out_dir_problem(out):
+def out_dir_problem(out):
     """Why ``out`` cannot be the output directory, or None; creates nothing."""
     if out.exists():
         if not out.is_dir():
@@ -182,6 +211,29 @@ def _out_dir_problem(out):
     if not os.access(parent, os.W_OK | os.X_OK):
         return f'cannot make the output directory ({parent} is not writable)'
     return None
+
+
+@contextlib.contextmanager
+def output_dir(out):
+    """Make the directory ``out`` (and missing parents) for the block; if the block fails
+    (an exception, Ctrl-C included), remove the directories it made that are still empty
+    (never one that existed before or holds files)."""
+    out = Path(out)
+    made = [d for d in (out, *out.absolute().parents) if not d.exists()]
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OSError(f'--out {out}: cannot make the output directory ({e.strerror or e})') \
+            from None
+    try:
+        yield out
+    except BaseException:
+        for d in made:   # deepest first
+            try:
+                d.rmdir()
+            except OSError:
+                break
+        raise
 
 
 def print_table(summary, file=None):
@@ -247,6 +299,17 @@ def write_figure(summary, examples, path):
     plt.close(fig)
 
 
+# options only one mode uses (--scans: see below)
+CV_ONLY = ('folds', 'k', 'train_views', 'verifier_views', 'jobs')
+HELD_OUT_ONLY = ('model',)
+
+
+def _given(ap, args, names):
+    """The options of ``names`` set to other than their defaults, as --flags."""
+    return [f"--{n.replace('_', '-')}" for n in names if getattr(args, n) != ap.get_default(n)]
+
+
+@interruptible('beo-eval')
 def main(argv=None):
     ap = argparse.ArgumentParser(prog='beo-eval', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -256,21 +319,22 @@ def main(argv=None):
                     help='K-fold cross-validation on --data (K >= 2; 0: held-out mode)')
     ap.add_argument('--folds', type=int, default=0,
                     help='with --cv: evaluate only this many of the K folds (0: all)')
-    ap.add_argument('--k', type=int, default=None,
+    ap.add_argument('--k', type=count(1), default=None,
                     help='components per class (--cv: default 20; --scans: default 8)')
-    ap.add_argument('--train-views', type=int, default=1,
+    ap.add_argument('--train-views', type=count(0), default=1,
                     help='partial views per object for the OOF classifier (--cv)')
-    ap.add_argument('--max-objects', type=int, default=0,
+    ap.add_argument('--max-objects', type=count(0), default=0,
                     help='evaluate at most this many objects (per fold), stratified: per class '
                          'in proportion, at least one of each when there are enough (0: all)')
-    ap.add_argument('--views', type=int, default=1, help='partial views per evaluated object')
-    ap.add_argument('--seed', type=int, default=0)
+    ap.add_argument('--views', type=count(0), default=1,
+                    help='partial views per evaluated object')
+    ap.add_argument('--seed', type=count(0), default=0)
     ap.add_argument('--out', default='beo_eval_out', help='directory for JSON and PNG')
     ap.add_argument('--scans', nargs='+', help='tabletop PCD scans: leave-one-scene-out CV')
-    ap.add_argument('--verifier-views', type=int, default=6, metavar='N',
+    ap.add_argument('--verifier-views', type=count(0), default=6, metavar='N',
                     help='--cv: random views per object for the orientation verifier of each '
                          "fold's bank, as beo-train makes it (0: none; default: %(default)s)")
-    ap.add_argument('--jobs', type=int, default=1,
+    ap.add_argument('--jobs', type=count(1), default=1,
                     help="--cv: processes that make the verifier's views")
     ap.add_argument('--class-prior', default='', metavar='PRIOR',
                     help="prior over the classes: train, uniform or name=weight,... with every "
@@ -279,12 +343,10 @@ def main(argv=None):
     if args.scans:
         if args.class_prior:
             ap.error('--class-prior is not used with --scans')
-        unused = [name for name in ('data', 'model', 'cv', 'folds', 'train_views',
-                                    'max_objects', 'views', 'seed', 'verifier_views', 'jobs')
-                  if getattr(args, name) != ap.get_default(name)]
+        unused = _given(ap, args, ('data', 'model', 'cv', 'folds', 'train_views', 'max_objects',
+                                   'views', 'seed', 'verifier_views', 'jobs'))
         if unused:
-            ap.error('not used with --scans: ' + ', '.join(f"--{n.replace('_', '-')}"
-                                                        for n in unused))
+            ap.error('not used with --scans: ' + ', '.join(unused))
         from . import scan_eval
         k = [] if args.k is None else ['--k', str(args.k)]
         return scan_eval.main(['--scans', *args.scans, '--out', args.out, *k, *rest])
@@ -292,29 +354,36 @@ def main(argv=None):
         ap.error(f'unrecognized arguments: {" ".join(rest)}')
     if not args.data:
         ap.error('--data is required (or --scans)')
-    if args.verifier_views < 0 or args.jobs < 1:
-        ap.error('--verifier-views must be >= 0 and --jobs >= 1')
     if args.cv < 0 or args.cv == 1:
         ap.error(f'--cv must be 0 (held-out mode) or a number of folds >= 2, got {args.cv}')
     if args.cv and not 0 <= args.folds <= args.cv:
         ap.error(f'--folds must be in [0, --cv] (0: all {args.cv} folds), got {args.folds}')
-    for opt in ('max_objects', 'views', 'train_views'):
-        if getattr(args, opt) < 0:
-            ap.error(f"--{opt.replace('_', '-')} must be >= 0, got {getattr(args, opt)}")
+    # an option the mode does not use is refused rather than silently ignored
+    unused = _given(ap, args, HELD_OUT_ONLY if args.cv else CV_ONLY)
+    if unused:
+        ap.error(('not used with --cv (each fold trains its own bank): ' if args.cv else
+                  'used only with --cv, not in held-out mode: ') + ', '.join(unused))
+    if args.model and Path(args.model).exists() and not Path(args.model).is_dir():
+        ap.error(f'--model {args.model}: is not a directory')
     try:
         class_prior = parse_class_prior(args.class_prior)
     except ValueError as e:
         ap.error(str(e))
     out = Path(args.out)
-    problem = _out_dir_problem(out)   # --out is made once the inputs have loaded
+    problem = out_dir_problem(out)   # --out is made once the inputs have loaded
     if problem:
         ap.error(f'--out {out}: {problem}')
     rng = np.random.default_rng(args.seed)
     try:
         X, y, names, n = load_voxel_npz(args.data)
+        if not len(X):
+            raise ValueError(f'{args.data}: no objects to evaluate')
         if args.cv:
             # classes named by the file but without objects: nothing to train a model on
             present = [names[c] for c in np.unique(y)]
+            if len(present) < 2:
+                raise ValueError(f'--cv needs objects of at least 2 classes to train and test '
+                                 f'a classifier; {args.data} has objects of {present} only')
             if len(present) < len(names):
                 print(f'beo-eval: classes without objects in {args.data} left out: '
                       f'{[c for c in names if c not in present]}', file=sys.stderr)
@@ -331,71 +400,75 @@ def main(argv=None):
             if n != bank.spec.size:
                 raise ValueError(f'{args.data}: objects on a {n}^3 grid, the model '
                                  f'{args.model or "(shipped)"} is for {bank.spec.size}^3')
-    except (ValueError, OSError) as e:
-        print(f'beo-eval: error: {e}', file=sys.stderr)
-        return 2
-    made = not out.exists()
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        ap.error(f'--out {out}: cannot make the output directory ({e.strerror or e})')
-    try:
-        if args.cv:
-            fold = stratified_folds(y, args.cv, rng)
-            recs, examples, info = [], [], []
-            for f in range(args.folds or args.cv):
-                tr, te = np.flatnonzero(fold != f), np.flatnonzero(fold == f)
+        # nothing written yet: a failure or Ctrl-C leaves no empty --out behind
+        with output_dir(out):
+            if args.cv:
+                summary, recs, examples, bank = _cross_validate(args, X, y, names, n,
+                                                                class_prior, rng)
+            else:
+                te = np.arange(len(X))
                 if args.max_objects:
                     te = stratified_subset(te, y, args.max_objects, rng)
-                t0 = time.time()
-                bank = fit_bank(X[tr], y[tr], names, GridSpec(size=n),
-                                k=20 if args.k is None else args.k,
-                                classifier_views=args.train_views, seed=args.seed + f,
-                                verbose=True, class_prior=class_prior or 'train',
-                                verifier_views=args.verifier_views, processes=args.jobs)
-                info.append(dict(fold=f, train=int(len(tr)), test=int(len(te)),
-                                 train_seconds=round(time.time() - t0, 1)))
-                s, r, ex = evaluate_bank(bank, X[te], y[te], names, rng, args.views, index=te)
-                print(f'fold {f}:', file=sys.stderr)
-                print_table(s, file=sys.stderr)
-                recs += r
-                examples = examples or ex
-            summary = summarize(recs, names)
-            summary['folds'] = info
-            summary['protocol'] = f'{args.cv}-fold stratified CV on {args.data}'
-        else:
-            te = np.arange(len(X))
-            if args.max_objects:
-                te = stratified_subset(te, y, args.max_objects, rng)
-            summary, recs, examples = evaluate_bank(bank, X[te], y[te], names, rng, args.views,
-                                                     index=te)
-            summary['protocol'] = f'held-out: model {args.model or "shipped"} on {args.data}'
+                summary, recs, examples = evaluate_bank(bank, X[te], y[te], names, rng,
+                                                         args.views, index=te)
+                summary['protocol'] = f'held-out: model {args.model or "shipped"} on {args.data}'
+            _report(summary, recs, examples, bank, out, argv)
     except (ValueError, OSError) as e:
         print(f'beo-eval: error: {e}', file=sys.stderr)
-        if made:   # nothing written: leave no empty --out behind
-            with contextlib.suppress(OSError):
-                out.rmdir()
         return 2
+    return 0
+
+
+def _cross_validate(args, X, y, names, n, class_prior, rng):
+    """--cv: a bank trained per fold, the held-out fold evaluated -> (summary, records,
+    examples, the last fold's bank)."""
+    fold = stratified_folds(y, args.cv, rng)
+    recs, examples, info = [], [], []
+    for f in range(args.folds or args.cv):
+        tr, te = np.flatnonzero(fold != f), np.flatnonzero(fold == f)
+        if args.max_objects:
+            te = stratified_subset(te, y, args.max_objects, rng)
+        t0 = time.time()
+        bank = fit_bank(X[tr], y[tr], names, GridSpec(size=n),
+                        k=20 if args.k is None else args.k,
+                        classifier_views=args.train_views, seed=args.seed + f,
+                        verbose=True, class_prior=class_prior or 'train',
+                        verifier_views=args.verifier_views, processes=args.jobs)
+        info.append(dict(fold=f, train=int(len(tr)), test=int(len(te)),
+                         train_seconds=round(time.time() - t0, 1)))
+        s, r, ex = evaluate_bank(bank, X[te], y[te], names, rng, args.views, index=te)
+        print(f'fold {f}:', file=sys.stderr)
+        print_table(s, file=sys.stderr)
+        recs += r
+        examples = examples or ex
+    summary = summarize(recs, names)
+    summary['folds'] = info
+    summary['protocol'] = f'{args.cv}-fold stratified CV on {args.data}'
+    return summary, recs, examples, bank
+
+
+def _report(summary, recs, examples, bank, out, argv):
+    """Print the table and write eval.json, records.jsonl and eval.png into ``out``."""
     summary['class_prior'] = bank.class_prior if isinstance(bank.class_prior, str) else \
         dict(zip(bank.classes, map(float, bank.class_prior)))
     summary['command'] = 'beo-eval ' + ' '.join(sys.argv[1:] if argv is None else argv)
     print_table(summary)
-    if summary.get('partial', {}).get('empty_views'):
-        print(f"{summary['partial']['empty_views']} view(s) had no occupied voxel (objects of a "
-              "few voxels lost to the rotation), answered 'unknown', a wrong class")
-    try:
-        # strict JSON: non-finite numbers (a mean over no rows) as null
-        (out / 'eval.json').write_text(json.dumps(json_safe(summary), indent=2,
-                                                  allow_nan=False) + '\n')
-        # one line per complete object and per view (i: the object's index in --data)
-        (out / 'records.jsonl').write_text(''.join(json.dumps(json_safe(r), allow_nan=False)
-                                                   + '\n' for r in recs))
-        write_figure(summary, examples, out / 'eval.png')
-    except OSError as e:
-        print(f'beo-eval: error: {e}', file=sys.stderr)
-        return 2
+    empty = sum(r['empty_object'] for r in recs if r['mode'] == 'complete')
+    if empty:
+        print(f"{empty} object(s) have no occupied voxel at all, answered 'unknown', "
+              "a wrong class")
+    lost = sum(r['empty_view'] and not r['empty_object'] for r in recs if r['mode'] == 'partial')
+    if lost:
+        print(f"{lost} view(s) had no occupied voxel (objects of a few voxels lost to the "
+              "rotation), answered 'unknown', a wrong class")
+    # strict JSON: non-finite numbers (a mean over no rows) as null
+    (out / 'eval.json').write_text(json.dumps(json_safe(summary), indent=2,
+                                              allow_nan=False) + '\n')
+    # one line per complete object and per view (i: the object's index in --data)
+    (out / 'records.jsonl').write_text(''.join(json.dumps(json_safe(r), allow_nan=False)
+                                               + '\n' for r in recs))
+    write_figure(summary, examples, out / 'eval.png')
     print(f'wrote {out / "eval.json"}, {out / "records.jsonl"} and {out / "eval.png"}')
-    return 0
 
 
 if __name__ == '__main__':

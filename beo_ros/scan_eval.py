@@ -35,27 +35,31 @@ from pathlib import Path
 
 import numpy as np
 
+from .cli import count, interruptible, number
+
 
 def add_arguments(ap):
     ap.add_argument('--scans', nargs='+', required=True, help='labelled OSD PCD scenes')
     ap.add_argument('--scan-classes', default='box:0-16,cylinder:33-44',
                     help='class:scene ranges, by the number in learnN.pcd')
     ap.add_argument('--out', default='beo_scan_eval', help='directory for JSON and PNG')
-    ap.add_argument('--k', type=int, default=8, help='upper bound on components per class')
-    ap.add_argument('--max-iter', type=int, default=40, help='VBPCA iterations per refit')
+    ap.add_argument('--k', type=count(1), default=8, help='upper bound on components per class')
+    ap.add_argument('--max-iter', type=count(1), default=40, help='VBPCA iterations per refit')
     ap.add_argument('--no-congeal', dest='congeal', action='store_false',
                     help='do not yaw-align the training objects within each class')
     ap.add_argument('--no-mirror', dest='mirror', action='store_false',
                     help='do not add the mirror image (y flip) of every training grid')
-    ap.add_argument('--voxel-size', type=float, default=0.5 / 32)
-    ap.add_argument('--grid', type=int, default=32)
-    ap.add_argument('--yaw-step', type=float, default=2.0, help='yaw search step (degrees)')
-    ap.add_argument('--scenes', type=int, default=0,
+    ap.add_argument('--voxel-size', type=number(0, None, lo_open=True), default=0.5 / 32,
+                    help='metres per voxel')
+    ap.add_argument('--grid', type=count(4, 256), default=32, help='voxels per grid side')
+    ap.add_argument('--yaw-step', type=number(0, 360, lo_open=True), default=2.0,
+                    help='yaw search step (degrees)')
+    ap.add_argument('--scenes', type=count(0), default=0,
                     help='hold out only this many scenes (spread over the list; 0: all)')
     ap.add_argument('--scene-folds', type=int, default=0,
                     help='hold out groups of scenes: this many folds, every scene held out once '
                          '(0: one fold per scene, leave-one-scene-out)')
-    ap.add_argument('--figures', type=int, default=4, help='objects drawn in the PNG')
+    ap.add_argument('--figures', type=count(0), default=4, help='objects drawn in the PNG')
     ap.add_argument('--from-points', action='store_true',
                     help='estimate every held-out object from its raw camera-frame points with '
                          'bank.estimate_points (the deployment path: its own grid, no table '
@@ -290,12 +294,19 @@ def plot_completions(path, items, spec):
 
 
 def run(args) -> dict:
-    from .core.inference import FEATURE_NAMES
-    from .core.scan_training import load_scan_objects, scan_point_descriptors
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    """The evaluation of parsed ``args``: writes scan_eval.json (and the PNG); the summary."""
+    from .core.scan_training import load_scan_objects
+    from .evaluate import output_dir
     t_start = time.time()
     objs = load_scan_objects(args.scans, args.scan_classes, args.grid, args.voxel_size)
+    # --out is made once the scans have loaded; a failure or Ctrl-C leaves no empty one behind
+    with output_dir(args.out) as out:
+        return _run(args, objs, out, t_start)
+
+
+def _run(args, objs, out, t_start):
+    from .core.inference import FEATURE_NAMES
+    from .core.scan_training import scan_point_descriptors
     names, spec = objs.names, objs.spec
     scenes = list(dict.fromkeys(objs.scenes))
     if args.scenes and args.scenes < len(scenes):
@@ -435,15 +446,18 @@ def print_table(s, file=sys.stdout):
               f'{b["within_10_deg"]:.2f} (n={b["n"]})', file=file)
 
 
+@interruptible('beo-eval')
 def main(argv=None):
     ap = add_arguments(argparse.ArgumentParser(
         prog='beo-eval --scans', description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter))
     args = ap.parse_args(argv)
-    if args.scenes < 0:
-        ap.error(f'--scenes must be >= 0 (0: all), got {args.scenes}')
     if args.scene_folds == 1 or args.scene_folds < 0:
         ap.error(f'--scene-folds must be 0 (leave one scene out) or >= 2, got {args.scene_folds}')
+    from .evaluate import out_dir_problem
+    problem = out_dir_problem(Path(args.out))
+    if problem:
+        ap.error(f'--out {args.out}: {problem}')
     try:
         run(args)
     except (ValueError, OSError) as e:

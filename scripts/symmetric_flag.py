@@ -22,7 +22,6 @@ Usage (from the repository root):
     .venv/bin/python scripts/symmetric_flag.py $BEO_DATA_DIR/modelnet10/modelnet10_vox32_train.npz \\
         [--fold 0] [--folds 5] [--every 1] [--seed 7] [--json out.json]
 """
-import argparse
 import json
 import sys
 import time
@@ -31,7 +30,8 @@ import numpy as np
 
 from beo_ros.core.grid import GridSpec, symmetric_turns
 from beo_ros.core.synthetic import random_partial_view
-from beo_ros.core.training import fit_bank, load_voxel_npz, stratified_folds
+from beo_ros.core.training import fit_bank
+from beo_ros.evaluate import held_out_fold, one_fold_parser
 
 THRESHOLDS = (0.7, 0.8, 0.85, 0.9, 0.95)
 
@@ -50,22 +50,8 @@ def score(rows, key):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument('data', help='voxel npz (shared format)')
-    ap.add_argument('--fold', type=int, default=0, help='held-out fold (default 0)')
-    ap.add_argument('--folds', type=int, default=5, help='folds, as beo-eval --cv (default 5)')
-    ap.add_argument('--every', type=int, default=1, help='every n-th held-out object')
-    ap.add_argument('--k', type=int, default=20, help='components per class')
-    ap.add_argument('--seed', type=int, default=7, help='seed of the views')
-    ap.add_argument('--json', help='write the per-view rows here')
-    args = ap.parse_args(argv)
-    if not 0 <= args.fold < args.folds or args.folds < 2 or args.every < 1:
-        ap.error('need folds >= 2, 0 <= fold < folds and every >= 1')
-    X, y, names, n = load_voxel_npz(args.data)
-    # the same folds as beo-eval --cv with --seed 0
-    fold = stratified_folds(y, args.folds, np.random.default_rng(0))
-    tr, te = np.flatnonzero(fold != args.fold), np.flatnonzero(fold == args.fold)[::args.every]
+    ap = one_fold_parser(__doc__, 'write the per-view rows here')
+    args, X, y, names, n, tr, te = held_out_fold(ap, argv)
     t0 = time.time()
     bank = fit_bank(X[tr], y[tr], names, GridSpec(size=n), k=args.k, classifier_views=1,
                     seed=args.fold, class_prior='train', verifier_views=0)

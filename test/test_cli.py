@@ -367,9 +367,9 @@ def test_train_too_few_objects_explained(tmp_path, capsys, count, extra, message
     (['--cv', '1'], '--cv must be 0 (held-out mode) or a number of folds >= 2'),
     (['--cv', '2', '--folds', '3'], '--folds must be in [0, --cv]'),
     (['--cv', '2', '--folds', '-1'], '--folds must be in [0, --cv]'),
-    (['--max-objects', '-2'], '--max-objects must be >= 0'),
-    (['--views', '-1'], '--views must be >= 0'),
-    (['--cv', '2', '--train-views', '-1'], '--train-views must be >= 0'),
+    (['--max-objects', '-2'], 'argument --max-objects: must be in [0, inf)'),
+    (['--views', '-1'], 'argument --views: must be in [0, inf)'),
+    (['--cv', '2', '--train-views', '-1'], 'argument --train-views: must be in [0, inf)'),
 ])
 def test_eval_bad_arguments_refused(tmp_path, capsys, extra, message):
     write_npz(tmp_path / 'd.npz', count=2)
@@ -532,10 +532,10 @@ def test_eval_scans_forwards_k_and_refuses_what_it_does_not_use(monkeypatch, cap
 
 # ---------------------------------------------------------------------- beo-demo: arguments
 @pytest.mark.parametrize('extra, message', [
-    (['--views-per-class', '0'], '--views-per-class must be >= 1'),
-    (['--views-per-class', '-2'], '--views-per-class must be >= 1'),
-    (['--timeout', '-5'], '--timeout must be a finite number of seconds > 0'),
-    (['--timeout', 'nan'], '--timeout must be a finite number of seconds > 0'),
+    (['--views-per-class', '0'], 'argument --views-per-class: must be in [1, inf)'),
+    (['--views-per-class', '-2'], 'argument --views-per-class: must be in [1, inf)'),
+    (['--timeout', '-5'], 'argument --timeout: must be in (0, inf)'),
+    (['--timeout', 'nan'], 'argument --timeout: must be a finite number'),
     (['--out', 'A_FILE'], 'exists and is not a directory'),
 ])
 def test_demo_bad_arguments_refused_up_front(tmp_path, capsys, extra, message):

@@ -231,7 +231,7 @@ def test_loso_from_points_uses_the_deployment_path(scan_files, tmp_path, monkeyp
 
 
 @pytest.mark.parametrize('argv, message', [
-    (['--scenes', '-1'], '--scenes must be >= 0'),
+    (['--scenes', '-1'], 'argument --scenes: must be in [0, inf)'),
     (['--scene-folds', '1'], '--scene-folds must be 0'),
     (['--scene-folds', '-1'], '--scene-folds must be 0'),
 ])

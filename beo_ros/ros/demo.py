@@ -26,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from beo_ros.cli import count, interruptible, number
+
 FRAME = 'sensor'  # z up, sensor at the origin (see render_inputs)
 TOPIC = '/beo/input'
 
@@ -241,6 +243,7 @@ def plot(inputs, rows, completed_pts, path):
     plt.close(fig)
 
 
+@interruptible('beo-demo')
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(
         prog='beo-demo', description='Render one partial view per class of the shipped model, '
@@ -251,20 +254,21 @@ def main(argv=None) -> int:
                         '(default ./beo_demo_out)')
     p.add_argument('--model', metavar='DIR', help='model bank directory (default: the shipped '
                    'model, as the node resolves it)')
-    p.add_argument('--seed', type=int, default=0, help='random yaws/viewpoints (default 0)')
-    p.add_argument('--views-per-class', type=int, default=1)
+    p.add_argument('--seed', type=count(0), default=0,
+                   help='random yaws/viewpoints (default 0)')
+    p.add_argument('--views-per-class', type=count(1), default=1,
+                   help='rendered views per class (default 1)')
     p.add_argument('--storage', choices=('sqlite3', 'mcap'), default='mcap',
                    help='bag storage of the demo bag (default mcap)')
-    p.add_argument('--keep-bag', action='store_true', help='copy the demo bag into --out')
-    p.add_argument('--timeout', type=float, default=120.0,
+    p.add_argument('--keep-bag', action='store_true',
+                   help='copy the demo bag into --out/demo_bag (replacing an earlier one)')
+    p.add_argument('--timeout', type=number(0, None, lo_open=True), default=120.0,
                    help='seconds to wait for each estimate (default 120)')
     args = p.parse_args(argv)
-    if args.views_per_class < 1:
-        p.error(f'--views-per-class must be >= 1, got {args.views_per_class}')
-    if not (math.isfinite(args.timeout) and args.timeout > 0):
-        p.error(f'--timeout must be a finite number of seconds > 0, got {args.timeout:g}')
-    if Path(args.out).exists() and not Path(args.out).is_dir():
-        p.error(f'--out {args.out}: exists and is not a directory')
+    from beo_ros.evaluate import out_dir_problem, output_dir
+    problem = out_dir_problem(Path(args.out))
+    if problem:
+        p.error(f'--out {args.out}: {problem}')
     t_start = time.monotonic()
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'OFF')
     from beo_ros.ros.env import ensure_ament_prefix
@@ -278,12 +282,17 @@ def main(argv=None) -> int:
         print(f'beo-demo: {e}', file=sys.stderr)
         return 2
     print(f'model: {model_dir} ({len(bank.classes)} classes: {", ".join(bank.classes)})')
-    out = Path(args.out)
     try:
-        out.mkdir(parents=True, exist_ok=True)
+        # a failure or Ctrl-C before anything is written leaves no empty --out behind
+        with output_dir(args.out) as out:
+            return _demo(args, bank, model_dir, out, t_start)
     except OSError as e:
-        p.error(f'--out {out}: cannot make the output directory ({e.strerror or e})')
+        print(f'beo-demo: error: {e}', file=sys.stderr)
+        return 2
 
+
+def _demo(args, bank, model_dir, out, t_start) -> int:
+    """Steps 1-4 of the module docstring into the output directory ``out``; exit code."""
     spec = bank.spec   # render at the model's scale: a metric grid spans size * voxel_size
     size = spec.size * spec.voxel_size if spec.units == 'metric' else 1.0
     inputs = render_inputs(bank, seed=args.seed, views_per_class=args.views_per_class, size=size)
@@ -298,7 +307,13 @@ def main(argv=None) -> int:
         node_s = time.monotonic() - t_node
         if args.keep_bag:
             import shutil
-            shutil.copytree(bag_path, out / 'demo_bag', dirs_exist_ok=True)
+            kept = out / 'demo_bag'
+            # an earlier run's bag (maybe the other storage: demo_bag.mcap beside a new .db3)
+            if kept.is_dir() and not kept.is_symlink():
+                shutil.rmtree(kept)
+            elif kept.exists() or kept.is_symlink():
+                kept.unlink()
+            shutil.copytree(bag_path, kept)
 
     from beo_ros.ros.conversions import cloud_to_xyz, quaternion_to_rotation
     rows, completed_pts = [], {}

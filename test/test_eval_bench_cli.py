@@ -1,0 +1,295 @@
+"""beo-eval, beo-bench and beo-demo on bad input: exit codes, messages, no empty --out left."""
+import json
+import types
+
+import numpy as np
+import pytest
+
+from beo_ros import bench, evaluate, scan_eval
+from beo_ros.core.synthetic import make_tiny_bank, primitive_shapes
+
+N = 16
+QUICK = ['--quick', '--no-paper', '--no-icp', '--no-scaling', '--no-node', '--no-plots']
+
+
+def save_npz(path, X, y, names):
+    """Voxel rows in the shared format (bit-packed)."""
+    np.savez(path, voxels=np.packbits(np.asarray(X, dtype=np.uint8), axis=1),
+             labels=np.asarray(y, dtype=np.uint8), classes=np.array(names),
+             shape=np.array([N, N, N]))
+    return path
+
+
+def write_npz(path, count=3, seed=0):
+    X, y, names = primitive_shapes(N, count, np.random.default_rng(seed))
+    return save_npz(path, X, y, names)
+
+
+@pytest.fixture(scope='module')
+def model(tmp_path_factory):
+    """A tiny bank of boxes and cylinders at 16^3 (the classes of ``write_npz``)."""
+    path = tmp_path_factory.mktemp('eval_model') / 'model'
+    make_tiny_bank(path, n=N, k=2)
+    return path
+
+
+def call(main, argv):
+    """``main(argv)``'s exit code; a KeyboardInterrupt that gets out fails the test (instead of
+    ending the pytest session)."""
+    try:
+        return main(argv)
+    except KeyboardInterrupt:
+        pytest.fail('KeyboardInterrupt escaped main()')
+    except SystemExit as e:
+        return e.code
+
+
+# ---------------------------------------------------------------------- the shared helper
+def test_output_dir_removes_only_what_it_made_and_left_empty(tmp_path):
+    out = tmp_path / 'a' / 'b'
+    with pytest.raises(RuntimeError):
+        with evaluate.output_dir(out):
+            assert out.is_dir()
+            raise RuntimeError
+    assert not (tmp_path / 'a').exists()       # the made parent goes too
+    (tmp_path / 'old').mkdir()
+    with pytest.raises(KeyboardInterrupt):
+        with evaluate.output_dir(tmp_path / 'old'):
+            raise KeyboardInterrupt
+    assert (tmp_path / 'old').is_dir()          # existed before: kept
+    with pytest.raises(RuntimeError):
+        with evaluate.output_dir(tmp_path / 'new') as d:
+            (d / 'partial.json').write_text('{}')
+            raise RuntimeError
+    assert (tmp_path / 'new' / 'partial.json').is_file()   # holds files: kept
+
+
+# ---------------------------------------------------------------------- beo-eval
+def test_eval_zero_objects_refused(model, tmp_path, capsys):
+    X, y, names = primitive_shapes(N, 2, np.random.default_rng(0))
+    data = save_npz(tmp_path / 'none.npz', X[:0], y[:0], names)
+    out = tmp_path / 'e'
+    assert call(evaluate.main, ['--model', str(model), '--data', str(data),
+                                '--out', str(out)]) == 2
+    assert 'no objects to evaluate' in capsys.readouterr().err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize('extra, named', [
+    (['--cv', '2', '--model', 'MODEL'], '--model'),
+    (['--k', '3'], '--k'),
+    (['--verifier-views', '3'], '--verifier-views'),
+    (['--train-views', '4'], '--train-views'),
+    (['--jobs', '3'], '--jobs'),
+    (['--folds', '3'], '--folds'),
+    (['--k', '3', '--jobs', '2'], '--k, --jobs'),
+])
+def test_eval_options_of_the_other_mode_refused(model, tmp_path, capsys, extra, named):
+    extra = [str(model) if a == 'MODEL' else a for a in extra]
+    out = tmp_path / 'e'
+    assert call(evaluate.main, ['--data', str(write_npz(tmp_path / 'd.npz')),
+                                '--out', str(out), *extra]) == 2
+    err = capsys.readouterr().err
+    assert named in err and ('not used with --cv' in err or 'only with --cv' in err)
+    assert not out.exists()
+
+
+def test_eval_held_out_still_takes_its_own_options(model, tmp_path):
+    out = tmp_path / 'e'
+    assert call(evaluate.main, ['--model', str(model), '--data',
+                                str(write_npz(tmp_path / 'd.npz')), '--max-objects', '2',
+                                '--views', '1', '--seed', '3', '--out', str(out)]) == 0
+    assert (out / 'eval.json').is_file()
+
+
+@pytest.mark.parametrize('extra', [
+    ['--cv', '2', '--k', '0'], ['--cv', '2', '--jobs', '0'], ['--seed', '-1'],
+    ['--views', 'nan'], ['--cv', '2', '--verifier-views', '-1'], ['--max-objects', '1.5'],
+])
+def test_eval_numbers_checked_by_the_parser(tmp_path, capsys, extra):
+    with pytest.raises(SystemExit) as ei:
+        evaluate.main(['--data', str(tmp_path / 'missing.npz'), '--out', str(tmp_path / 'e'),
+                       *extra])
+    assert ei.value.code == 2
+    assert f'argument {extra[-2]}' in capsys.readouterr().err
+
+
+def test_eval_model_that_is_a_file(tmp_path, capsys):
+    (tmp_path / 'afile').write_text('x')
+    assert call(evaluate.main, ['--model', str(tmp_path / 'afile'), '--data',
+                                str(write_npz(tmp_path / 'd.npz')),
+                                '--out', str(tmp_path / 'e')]) == 2
+    err = capsys.readouterr().err
+    assert 'afile: is not a directory' in err and 'does not exist' not in err
+    assert not (tmp_path / 'e').exists()
+
+
+def test_eval_objects_without_voxels_are_named_so(model, tmp_path, capsys):
+    X, y, names = primitive_shapes(N, 2, np.random.default_rng(0))
+    data = save_npz(tmp_path / 'blank.npz', np.zeros_like(X), y, names)
+    assert call(evaluate.main, ['--model', str(model), '--data', str(data),
+                                '--out', str(tmp_path / 'e')]) == 0
+    printed = capsys.readouterr().out
+    assert f'{len(X)} object(s) have no occupied voxel at all' in printed
+    assert 'lost to the rotation' not in printed
+    recs = (tmp_path / 'e' / 'records.jsonl').read_text().splitlines()
+    recs = [json.loads(line) for line in recs]
+    assert all(r['empty_object'] for r in recs)
+
+
+def test_eval_cv_needs_two_classes_up_front(tmp_path, capsys, monkeypatch):
+    X, y, names = primitive_shapes(N, 4, np.random.default_rng(0))
+    data = save_npz(tmp_path / 'one.npz', X[y == 0], y[y == 0], names[:1])
+    monkeypatch.setattr(evaluate, 'fit_bank', lambda *a, **k: pytest.fail('trained anyway'))
+    out = tmp_path / 'e'
+    assert call(evaluate.main, ['--cv', '2', '--folds', '1', '--data', str(data),
+                                '--verifier-views', '0', '--out', str(out)]) == 2
+    assert "--cv needs objects of at least 2 classes" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_eval_ctrl_c_one_line_130_and_no_empty_out(model, tmp_path, capsys, monkeypatch):
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(evaluate, 'evaluate_bank', interrupted)
+    out = tmp_path / 'e'
+    assert call(evaluate.main, ['--model', str(model), '--data',
+                                str(write_npz(tmp_path / 'd.npz')), '--out', str(out)]) == 130
+    err = capsys.readouterr().err
+    assert 'beo-eval: interrupted' in err and 'Traceback' not in err
+    assert not out.exists()
+
+
+# ---------------------------------------------------------------------- beo-eval --scans
+@pytest.mark.parametrize('extra', [['--grid', '0'], ['--yaw-step', '0'], ['--max-iter', '0'],
+                                   ['--yaw-step', 'nan'], ['--voxel-size', '-1'],
+                                   ['--figures', '-1'], ['--k', '0']])
+def test_scans_bad_numbers_leave_no_out(tmp_path, capsys, extra):
+    out = tmp_path / 'se'
+    assert call(evaluate.main, ['--scans', str(tmp_path / 'learn1.pcd'), '--out', str(out),
+                                *extra]) == 2
+    assert f'argument {extra[0]}' in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_scans_unreadable_scan_leaves_no_out(tmp_path, capsys):
+    (tmp_path / 'learn1.pcd').write_text('not a point cloud\n')
+    out = tmp_path / 'se'
+    assert call(evaluate.main, ['--scans', str(tmp_path / 'learn1.pcd'), '--out', str(out)]) == 2
+    assert 'beo-eval: error:' in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_scans_ctrl_c_one_line_130_and_no_empty_out(tmp_path, capsys, monkeypatch):
+    import beo_ros.core.scan_training as st
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(st, 'load_scan_objects', lambda *a, **k: None)
+    monkeypatch.setattr(scan_eval, '_run', interrupted)
+    out = tmp_path / 'se'
+    assert call(evaluate.main, ['--scans', 'learn1.pcd', '--out', str(out)]) == 130
+    assert 'beo-eval: interrupted' in capsys.readouterr().err
+    assert not out.exists()
+
+
+# ---------------------------------------------------------------------- beo-bench
+@pytest.mark.parametrize('case', ['data', 'classes', 'k', 'model'])
+def test_bench_bad_input_leaves_no_out(tmp_path, capsys, case):
+    data = str(write_npz(tmp_path / 'd.npz'))
+    extra = {'data': ['--data', str(tmp_path / 'nope.npz')],
+             'classes': ['--data', data, '--classes', 'box', 'sofaa'],
+             'k': ['--data', data, '--k', '0'],
+             'model': ['--data', data, '--model', str(tmp_path / 'no_model')]}[case]
+    out = tmp_path / 'b'
+    assert call(bench.main, QUICK + ['--out', str(out), *extra]) == 2
+    assert 'beo-bench: error' in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_bench_failure_keeps_an_existing_out(tmp_path):
+    (tmp_path / 'b').mkdir()
+    assert call(bench.main, QUICK + ['--data', str(tmp_path / 'nope.npz'),
+                                     '--out', str(tmp_path / 'b')]) == 2
+    assert (tmp_path / 'b').is_dir()
+
+
+@pytest.mark.parametrize('extra', [
+    ['--icp-db-per-class', '0'], ['--paper-yaws', '0'], ['--test-frac', 'nan'],
+    ['--test-frac', '0'], ['--test-frac', '-0.5'], ['--test-frac', '1'],
+    ['--queries-per-class', '0'], ['--node-duration', '0'], ['--node-duration', 'nan'],
+    ['--node-max-drop', 'nan'], ['--node-max-drop', '2'], ['--node-workers', '-3'],
+    ['--node-workers', '65'], ['--node-worker-processes', '-2'], ['--node-objects', '0'],
+    ['--node-rounds', '0'], ['--repeats', '0'], ['--seed', '-1'], ['--k', '0'],
+    ['--scaling-yaw-steps', '0'], ['--scaling-grids', '0'], ['--node-blas-threads', '-1'],
+])
+def test_bench_numbers_checked_by_the_parser(tmp_path, capsys, extra):
+    with pytest.raises(SystemExit) as ei:
+        bench.parse_args(['--out', str(tmp_path / 'b'), *extra])
+    assert ei.value.code == 2
+    assert f'argument {extra[0]}' in capsys.readouterr().err
+    assert not (tmp_path / 'b').exists()
+
+
+def test_bench_failing_node_phase_exit_1_with_results(tmp_path, capsys, monkeypatch):
+    def broken(*a, **k):
+        raise RuntimeError('workers out of range')
+    monkeypatch.setattr(bench, 'node_bench', broken)
+    out = tmp_path / 'b'
+    args = [a for a in QUICK if a != '--no-node']
+    assert call(bench.main, args + ['--data', str(write_npz(tmp_path / 'd.npz')),
+                                    '--out', str(out)]) == 1
+    assert 'node benchmark failed' in capsys.readouterr().err
+    res = json.loads((out / 'bench.json').read_text())
+    assert res['node']['skipped'].startswith('failed: RuntimeError') and 'beo' in res
+
+
+def test_bench_ctrl_c_one_line_130_and_no_empty_out(tmp_path, capsys, monkeypatch):
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(bench, 'make_queries', interrupted)
+    out = tmp_path / 'b'
+    assert call(bench.main, QUICK + ['--data', str(write_npz(tmp_path / 'd.npz')),
+                                     '--out', str(out)]) == 130
+    err = capsys.readouterr().err
+    assert 'beo-bench: interrupted' in err and 'Traceback' not in err
+    assert not out.exists()
+
+
+# ---------------------------------------------------------------------- beo-demo
+@pytest.mark.parametrize('extra', [['--seed', '-1'], ['--views-per-class', '0'],
+                                   ['--timeout', 'inf']])
+def test_demo_numbers_checked_by_the_parser(tmp_path, capsys, extra):
+    from beo_ros.ros import demo
+    with pytest.raises(SystemExit) as ei:
+        demo.main(['--out', str(tmp_path / 'd'), *extra])
+    assert ei.value.code == 2
+    assert f'argument {extra[0]}' in capsys.readouterr().err
+    assert not (tmp_path / 'd').exists()
+
+
+def test_demo_ctrl_c_one_line_130_and_no_empty_out(model, tmp_path, capsys, monkeypatch):
+    from beo_ros.ros import demo
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(demo, 'render_inputs', interrupted)
+    out = tmp_path / 'd'
+    assert call(demo.main, ['--model', str(model), '--out', str(out)]) == 130
+    err = capsys.readouterr().err
+    assert 'beo-demo: interrupted' in err and 'Traceback' not in err
+    assert not out.exists()
+
+
+def test_demo_keep_bag_replaces_the_previous_bag(model, tmp_path, monkeypatch):
+    pytest.importorskip('rosbags')
+    from beo_ros.ros import demo
+    # no node: every input goes without an estimate (exit 1), the bag is kept all the same
+    monkeypatch.setattr(demo, 'run_node_on_bag', lambda *a, **k: (
+        {}, {}, types.SimpleNamespace(to_dict=dict), {}))
+    out = tmp_path / 'd'
+    for storage, suffix in (('mcap', '.mcap'), ('sqlite3', '.db3')):
+        assert call(demo.main, ['--model', str(model), '--out', str(out), '--keep-bag',
+                                '--storage', storage]) == 1
+        bags = sorted(p.suffix for p in (out / 'demo_bag').iterdir() if p.suffix != '.yaml')
+        assert bags == [suffix], bags
