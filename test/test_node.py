@@ -1,5 +1,6 @@
 """In-process tests of BeoNode: streaming, services, bad input, parameters (isolated contexts)."""
 import array
+import contextlib
 import os
 import threading
 import time
@@ -242,6 +243,107 @@ def test_services_answer_while_streaming(harness):
     assert c['received'] >= c['processed'] + c['dropped_stale'] - 1
 
 
+def _until(pred, timeout=TIMEOUT):
+    """Poll ``pred`` every 10 ms until it is true (returns True) or ``timeout`` s pass."""
+    end = time.monotonic() + timeout
+    while not pred():
+        if time.monotonic() >= end:
+            return False
+        time.sleep(0.01)
+    return True
+
+
+@contextlib.contextmanager
+def product_spun(ctx, model_dir, **params):
+    """A BeoNode on '/beo/input' spun by ``make_executor`` (what ``beo-node`` spins it with)
+    and a client node spun by an executor of its own -> (node, client)."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    from beo_ros.ros.node import BeoNode, drain_executor, make_executor
+    overrides = {'model_dir': model_dir, 'input_topics': ['/beo/input'], **params}
+    node = BeoNode(context=ctx, parameter_overrides=[
+        Parameter(k, value=v) for k, v in overrides.items()])
+    client = rclpy.create_node('beo_test_client', context=ctx)
+    executors = [make_executor(ctx), SingleThreadedExecutor(context=ctx)]
+    executors[0].add_node(node)
+    executors[1].add_node(client)
+    stop = threading.Event()
+
+    def spin(ex):
+        while not stop.is_set():
+            ex.spin_once(timeout_sec=0.05)
+
+    threads = [threading.Thread(target=spin, args=(ex,), daemon=True) for ex in executors]
+    for t in threads:
+        t.start()
+    try:
+        yield node, client
+    finally:
+        stop.set()
+        for t in threads:
+            t.join(timeout=5.0)
+        for ex in executors:
+            drain_executor(ex)
+        node.destroy_node()
+        client.destroy_node()
+
+
+def test_clouds_are_taken_while_a_service_call_is_served(ros_context, ros_tiny_model_dir):
+    """Spun by its own (single-threaded) executor, the node keeps taking clouds while a service
+    call is estimated: none overflows the subscription's queue of 5 uncounted."""
+    from beo_interfaces.srv import Classify
+    with product_spun(ros_context, ros_tiny_model_dir) as (node, client):
+        in_call = threading.Event()
+        estimate = node._estimate
+
+        def slow_service_estimate(*args, priority=False, **kwargs):
+            if priority:   # a service call: hold it for 2 s
+                in_call.set()
+                time.sleep(2.0)
+            return estimate(*args, priority=priority, **kwargs)
+
+        node._estimate = slow_service_estimate
+        pub = client.create_publisher(PointCloud2, '/beo/input', qos_profile_sensor_data)
+        classify = client.create_client(Classify, '/beo/classify')
+        assert classify.wait_for_service(timeout_sec=TIMEOUT)
+        assert _until(lambda: pub.get_subscription_count() >= 1)
+        req = Classify.Request()
+        req.cloud = cloud(box_view())
+        future = classify.call_async(req)
+        assert in_call.wait(TIMEOUT)
+        before = node.counters()['received']
+        msg = cloud(box_view(n=300))
+        for _ in range(30):   # 0.6 s of clouds, all within the call's 2 s
+            pub.publish(msg)
+            time.sleep(0.02)
+        _until(future.done)
+        assert future.done() and future.result().success, future.result()
+        _until(lambda: node.counters()['received'] - before >= 30, 10.0)
+        c = node.counters()
+        assert c['received'] - before == 30, c
+        assert c['service_calls'] == 1 and c['service_failures'] == 0, c
+
+
+def test_reliable_input_takes_reliable_publishers_and_counts_the_others(ros_context,
+                                                                        ros_tiny_model_dir):
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    with product_spun(ros_context, ros_tiny_model_dir,
+                      input_reliability='reliable') as (node, client):
+        reliable = client.create_publisher(
+            PointCloud2, '/beo/input', QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE))
+        assert _until(lambda: reliable.get_subscription_count() >= 1)
+        msg = cloud(box_view(n=300))
+        for _ in range(3):
+            reliable.publish(msg)
+            time.sleep(0.05)
+        _until(lambda: node.counters()['received'] >= 3)
+        assert node.counters()['received'] == 3
+        client.create_publisher(PointCloud2, '/beo/input', qos_profile_sensor_data)
+        _until(lambda: node.counters()['incompatible_publishers'] >= 1)
+        assert node.counters()['incompatible_publishers'] == 1, node.counters()
+
+
 def _bad_clouds():
     good = cloud(box_view())
     no_z = cloud(box_view())
@@ -303,6 +405,11 @@ def test_bad_inputs_are_rejected_and_node_keeps_answering(harness):
     assert c['rejected_format'] >= 10 and c['rejected_too_few_points'] >= 6
     # the stream still works after all that
     harness.wait('estimates', republish=cloud(box_view()))
+    # every topic cloud is accounted for (the README's identity: rejected and errors count
+    # the failed service calls too, each once)
+    c = harness.wait_counter(lambda c: c['received'] == c['processed'] + c['dropped_stale'] + (
+        c['rejected'] + c['errors'] - c['service_failures']))
+    assert c['service_failures'] > 0 and c['rejected'] > c['service_failures'], c
 
 
 def test_parameters_validated_and_runtime_changeable(harness, tmp_path):
@@ -312,6 +419,9 @@ def test_parameters_validated_and_runtime_changeable(harness, tmp_path):
         return node.set_parameters([Parameter(name, value=value)])[0]
 
     for name, value, why in (('yaw_step_deg', 100.0, ''), ('yaw_step_deg', 0.01, ''),
+                             # within rclpy's 1e-6 tolerance of the range, outside the core's
+                             ('yaw_step_deg', 0.04999996, '[0.05, 90]'),
+                             ('min_points', 5, ''),   # the core needs 10 points
                              ('completion_threshold', 1.5, ''),
                              ('up_vector', [0.0, 0.0, 0.0], 'non-zero'),
                              ('up_vector', [0.0, 1.0], '3 elements'),
@@ -614,10 +724,17 @@ def test_bad_parameter_override_refuses_to_start(ros_context, ros_tiny_model_dir
               Parameter('worker_processes', value=-1), Parameter('worker_processes', value=65),
               Parameter('class_prior', value='flat'),
               Parameter('completion_threshold', value=0.0),
+              Parameter('yaw_step_deg', value=0.0499999999), Parameter('min_points', value=5),
+              Parameter('input_reliability', value='reliable '),
               Parameter('input_topics', value=['/bad topic'])):
         extra = [Parameter('max_points', value=50)] if p.name == 'min_points' else []
         with pytest.raises(StartupError, match=p.name):
             BeoNode(context=ros_context, parameter_overrides=base + [p] + extra)
+    # an empty array on the command line leaves the parameter without a value
+    for name in ('input_topics', 'sensor_origin', 'up_vector'):
+        with pytest.raises(StartupError, match=f'invalid parameter: .*{name}.*empty array'):
+            BeoNode(context=ros_context, parameter_overrides=base,
+                    cli_args=['--ros-args', '-p', f'{name}:=[]'])
 
 
 def test_duplicate_input_topics_are_subscribed_once(ros_context, ros_tiny_model_dir):
@@ -725,8 +842,8 @@ def test_failed_reload_keeps_the_old_worker_processes(harness_procs, tmp_path, m
     shutil.copytree(model_dir, tmp_path / 'copy')
     assert node.set_parameters([Parameter('model_dir', value=str(tmp_path / 'copy'))])[0] \
         .successful
-    harness.wait_counter(lambda c: c['errors'] == 1)
-    assert list(node._pool.pids) == old
+    harness.wait_counter(lambda c: c['reload_failures'] == 1)
+    assert list(node._pool.pids) == old and node.counters()['errors'] == 0
     assert harness.call(harness.classify, harness.good_request()).success
     # a prior is checked against the models answering
     classes = node._bank.classes
@@ -738,10 +855,10 @@ def test_failed_reload_keeps_the_old_worker_processes(harness_procs, tmp_path, m
     assert node.get_parameter('model_dir').value == str(tmp_path / 'copy')
     assert node.set_parameters([Parameter('model_dir', value=str(tmp_path / 'copy'))])[0] \
         .successful
-    harness.wait_counter(lambda c: c['errors'] == 2)
+    harness.wait_counter(lambda c: c['reload_failures'] == 2)
     # and back to the models answering: nothing to reload
     assert node.set_parameters([Parameter('model_dir', value=model_dir)])[0].successful
-    assert list(node._pool.pids) == old and node.counters()['errors'] == 2
+    assert list(node._pool.pids) == old and node.counters()['reload_failures'] == 2
 
 
 def test_killed_worker_process_is_replaced(harness_procs):

@@ -34,7 +34,8 @@ class Estimate:
             where seen, calibrated for the unknown voxels when the bank has an
             ``occupancy_calibration`` (``beo_ros.core.calibration``).
         variance: float32 (N,N,N) predictive variance of the linear-Gaussian occupancy (0
-            where seen).
+            where seen). The model's own quantity, not a good uncertainty: on ModelNet10 views
+            it ranks the wrong voxels little better than chance (see ``occupancy_variance``).
         hypotheses: top (class, yaw) hypotheses: ``(label, yaw)`` first, then the chosen
             class's other yaw modes, then the other classes' best. When the orientation
             verifier turned the yaw by a quarter turn, the first one's score can be below the
@@ -92,6 +93,17 @@ class Estimate:
     classifier_note: str = ''
     symmetric_yaws: list = field(default_factory=list)   # last: positional use stays as it was
     heading_offset: float | None = None
+
+    @property
+    def occupancy_variance(self) -> np.ndarray | None:
+        """float32 (N,N,N) variance p (1 - p) of each 0/1 voxel under ``completion`` (0 where
+        seen): the per-voxel uncertainty to use. With a calibrated completion it ranks the
+        wrong voxels far better than ``variance`` (AUROC 0.85 against 0.63 on held-out
+        ModelNet10 views, ``scripts/uncertainty.py``). None when ``completion`` is None."""
+        if self.completion is None:
+            return None
+        p = np.asarray(self.completion, dtype=np.float32)
+        return p * (1 - p)
 
     @property
     def probability(self) -> float:

@@ -33,16 +33,20 @@ from geometry_msgs.msg import PoseStamped
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 ParameterType, SetParametersResult)
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.exceptions import ParameterUninitializedException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import qos_profile_sensor_data
+from rclpy.qos import (HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_policy_name_from_kind,
+                       qos_profile_sensor_data)
+from rclpy.task import Future
 from rclpy.time import Time
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 from visualization_msgs.msg import Marker, MarkerArray
 
-from beo_ros.core.bank import parse_class_prior
-from beo_ros.core.voxelize import MAX_COORDINATE
+from beo_ros.core.bank import check_step, parse_class_prior
+from beo_ros.core.voxelize import MAX_COORDINATE, MIN_POINTS
 from beo_ros.ros.conversions import (CloudFormatError, cloud_to_xyz, completed_cloud,
                                      estimate_to_msg, interfaces, object_dimensions)
 from beo_ros.ros.procpool import (BrokenProcessPool, EstimateTimeout, EstimatorPool, PoolRetired,
@@ -56,6 +60,9 @@ except ImportError:  # tf2_ros is not on PyPI; parameters are used instead
 DEFAULT_MODEL = 'modelnet10_32'
 LOG_THROTTLE_SEC = 5.0
 LATENCY_WINDOW = 200  # samples kept per stage for the p50 in diagnostics
+INPUT_RELIABILITY = ('best_effort', 'reliable')
+BASE_FRAME_WITHOUT_TF = ('base_frame is set but tf2_ros is not installed; using the '
+                         'sensor_origin and up_vector parameters')
 
 
 class StartupError(RuntimeError):
@@ -165,6 +172,8 @@ class BeoNode(Node):
         self._reload_gen = 0   # the latest model_dir reload (a newer one wins)
         self._pool_closed = False
         self._destroyed = False
+        self._svc_threads = set()   # service calls being served (each in a thread of its own)
+        self._svc_threads_lock = threading.Lock()
         try:
             self._setup(bank)
         except BaseException:
@@ -186,13 +195,21 @@ class BeoNode(Node):
             self._declare_parameters()
         except Exception as e:  # out-of-range / wrong-type overrides
             raise StartupError(f'invalid parameter: {type(e).__name__}: {e}') from e
+        try:
+            params = self._params()
+            input_topics = self.get_parameter('input_topics').value
+        except ParameterUninitializedException as e:
+            # an empty array override ('[]') leaves the parameter without a type or value
+            raise StartupError(f'invalid parameter: {e} (an empty array is not a value: give '
+                               'at least one element)') from None
         for name in ('sensor_origin', 'up_vector', 'min_points', 'max_points', 'workers',
-                     'worker_processes', 'completion_threshold'):
-            reason = self._check(name, self.get_parameter(name).value, self._params())
+                     'worker_processes', 'completion_threshold', 'yaw_step_deg',
+                     'input_reliability'):
+            reason = self._check(name, params[name], params)
             if reason:
                 raise StartupError(f'invalid parameter: {reason}')
         topics = []   # resolved before the models load: a bad name fails fast
-        for topic in self.get_parameter('input_topics').value:
+        for topic in input_topics:
             try:
                 resolved = self.resolve_topic_name(topic)
             except Exception as e:  # rclpy raises RCLError / ValueError types of its own
@@ -245,7 +262,8 @@ class BeoNode(Node):
             'rejected_format',
             'rejected_too_few_points', 'errors', 'downsampled', 'nonfinite_points',
             'service_calls', 'service_failures', 'worker_restarts', 'worker_timeouts',
-            'dropped_shutdown')})
+            'reload_failures', 'dropped_shutdown', 'incompatible_publishers',
+            'middleware_lost')})
         self._latency = collections.defaultdict(lambda: collections.deque(maxlen=LATENCY_WINDOW))
         self._last_diag = (time.monotonic(), collections.Counter(self._counters))
 
@@ -253,8 +271,7 @@ class BeoNode(Node):
         self._tf_listener = None
         self._tf_lock = threading.Lock()
         if self.get_parameter('base_frame').value and tf2_ros is None:
-            self.get_logger().warning('base_frame is set but tf2_ros is not installed; using the '
-                                      'sensor_origin and up_vector parameters')
+            self.get_logger().warning(BASE_FRAME_WITHOUT_TF)
         elif self.get_parameter('base_frame').value:
             # listening from the start: created on the first cloud, the buffer would still be
             # empty for it and the next few (rejected: no transform)
@@ -284,10 +301,17 @@ class BeoNode(Node):
         # for the warm-up and the next replace it as stale)
         self._warm_up()
         self._topics = []
+        qos = qos_profile_sensor_data
+        if params['input_reliability'] == 'reliable':
+            qos = QoSProfile(depth=qos_profile_sensor_data.depth, history=HistoryPolicy.KEEP_LAST,
+                             reliability=ReliabilityPolicy.RELIABLE)
         for topic in topics:
+            events = SubscriptionEventCallbacks(
+                incompatible_qos=lambda e, t=topic: self._on_incompatible_qos(e, t),
+                message_lost=lambda e: self._count('middleware_lost', e.total_count_change))
             self.create_subscription(
                 PointCloud2, topic, lambda msg, t=topic: self._on_cloud(msg, t),
-                qos_profile_sensor_data, callback_group=sub_group)
+                qos, callback_group=sub_group, event_callbacks=events)
             self._topics.append(topic)
         self._topic_index = {t: i for i, t in enumerate(self._topics)}
 
@@ -343,6 +367,12 @@ class BeoNode(Node):
         d('input_topics', ['/beo/input'], ParameterDescriptor(
             description='PointCloud2 topics of segmented objects (one object per cloud)',
             type=ParameterType.PARAMETER_STRING_ARRAY, read_only=True))
+        d('input_reliability', 'best_effort', ParameterDescriptor(
+            description="QoS reliability of the input_topics subscriptions (depth 5 either "
+                        "way): 'best_effort' (sensor-data QoS; matches every publisher) or "
+                        "'reliable' (needs reliable publishers; with Fast DDS, clouds of more "
+                        'than about 0.5 MB between processes arrive only this way). Read-only',
+            type=ParameterType.PARAMETER_STRING, read_only=True))
         d('base_frame', '', ParameterDescriptor(
             description="Gravity-aligned frame (z up) looked up in TF to get the up vector; "
                         "'' uses the up_vector parameter (TF only when tf2_ros is installed)",
@@ -356,7 +386,7 @@ class BeoNode(Node):
         d('yaw_step_deg', 1.0, _fdesc('Resolution of the returned yaw (degrees); the search '
                                       'over all classes runs at max(2, this)', 0.05, 45.0))
         d('min_points', 30, _idesc('Fewer finite points than this: the cloud is rejected',
-                                   1, 1_000_000))
+                                   MIN_POINTS, 1_000_000))
         d('max_points', 50000, _idesc('More points than this: random downsampling (fixed seed)',
                                       10, 100_000_000))
         d('completion_threshold', 0.5, _fdesc(
@@ -389,7 +419,8 @@ class BeoNode(Node):
 
     def _params(self) -> dict:
         return {p: self.get_parameter(p).value for p in (
-            'model_dir', 'base_frame', 'sensor_origin', 'up_vector', 'yaw_step_deg',
+            'model_dir', 'input_reliability', 'base_frame', 'sensor_origin', 'up_vector',
+            'yaw_step_deg',
             'min_points', 'max_points', 'completion_threshold', 'publish_completed',
             'class_prior', 'diagnostics_period', 'workers', 'worker_processes', 'blas_threads',
             'estimate_timeout')}
@@ -404,6 +435,14 @@ class BeoNode(Node):
         if name in ('min_points', 'max_points') and merged['min_points'] > merged['max_points']:
             return (f"min_points ({merged['min_points']}) must not exceed max_points "
                     f"({merged['max_points']})")
+        if name == 'input_reliability' and value not in INPUT_RELIABILITY:
+            return f'input_reliability must be one of {INPUT_RELIABILITY}, got {value!r}'
+        if name == 'yaw_step_deg':
+            # rclpy's range check lets values within 1e-6 (relative) of a bound pass
+            try:
+                check_step(name, value)
+            except ValueError as e:
+                return str(e)
         if name == 'completion_threshold' and not 0 < value <= 1:
             return f'completion_threshold must be in (0, 1], got {value!r}'
         if name == 'workers' and not (isinstance(value, int) and 1 <= value <= 64):
@@ -463,6 +502,8 @@ class BeoNode(Node):
                 self._serving_dir = want_dir
                 self.get_logger().info(f"reloaded models from '{new['model_dir']}'")
             self.get_logger().info(f'class prior: {prior_text(bank)}')
+        if new.get('base_frame') and tf2_ros is None:
+            self.get_logger().warning(BASE_FRAME_WITHOUT_TF)
         if 'diagnostics_period' in new:  # re-timing (not re-creating) is safe while spinning
             self._diag_timer.timer_period_ns = int(new['diagnostics_period'] * 1e9)
             self._diag_timer.reset()
@@ -472,6 +513,16 @@ class BeoNode(Node):
     def _count(self, key, n=1):
         with self._stats_lock:
             self._counters[key] += n
+
+    def _on_incompatible_qos(self, event, topic):
+        """A publisher on ``topic`` whose QoS cannot match the subscription's (e.g. a
+        best-effort one with input_reliability 'reliable'): none of its clouds arrive."""
+        self._count('incompatible_publishers', max(int(event.total_count_change), 1))
+        self.get_logger().warning(
+            f"a publisher on '{topic}' offers QoS incompatible with the subscription "
+            f"(input_reliability '{self.get_parameter('input_reliability').value}'; policy "
+            f'{qos_policy_name_from_kind(event.last_policy_kind)}): its clouds are not '
+            'received')
 
     def _on_cloud(self, msg, topic):
         """Subscription callback: keep only the latest cloud per topic."""
@@ -695,12 +746,12 @@ class BeoNode(Node):
         """Thread: start worker processes for the models ``base``, then switch to them (with the
         class prior of that moment) unless a newer reload came meanwhile; estimates already sent
         to the old processes finish there. A failure keeps the old processes (logged, counted
-        in errors)."""
+        in reload_failures)."""
         t0 = time.monotonic()
         try:
             new = self._new_pool(base)
         except Exception as e:  # noqa: BLE001 - reported, the old processes keep serving
-            self._count('errors')
+            self._count('reload_failures')   # not 'errors': those count clouds
             self.get_logger().error(f"worker processes cannot load the models of '{model_dir}' "
                                     f'({type(e).__name__}: {e}); the models of '
                                     f"'{self._serving_dir}' still answer (set model_dir again "
@@ -804,11 +855,49 @@ class BeoNode(Node):
         return MarkerArray(markers=[box, text])
 
     # ------------------------------------------------------------------ services
-    def _on_classify(self, request, response):
-        return self._serve(request, response, complete=False)
+    async def _on_classify(self, request, response):
+        return await self._serve_aside(request, response, complete=False)
 
-    def _on_complete(self, request, response):
-        return self._serve(request, response, complete=True)
+    async def _on_complete(self, request, response):
+        return await self._serve_aside(request, response, complete=True)
+
+    async def _serve_aside(self, request, response, complete):
+        """Serve a call in a thread of its own while the executor goes on: the clouds that
+        arrive meanwhile are taken (and counted, and dropped as stale by the node's own rule)
+        instead of overflowing the subscription's queue unseen, and parameters stay settable.
+        """
+        executor = self.executor
+        if executor is None:   # not spun by an executor
+            return self._serve(request, response, complete)
+        done = Future(executor=executor)
+        # a done callback makes set_result wake the executor, which then resumes this call
+        done.add_done_callback(lambda _: None)
+
+        def run():
+            try:
+                result = self._serve(request, response, complete)
+            except BaseException as e:  # noqa: BLE001 - _serve reports its own; not expected
+                result = e
+            finally:
+                with self._svc_threads_lock:
+                    self._svc_threads.discard(threading.current_thread())
+            try:
+                if isinstance(result, BaseException):
+                    done.set_exception(result)
+                else:
+                    done.set_result(result)
+            except Exception:  # the executor is shut down: nobody waits for the answer
+                pass
+
+        thread = threading.Thread(target=run, name='beo_service', daemon=True)
+        with self._svc_threads_lock:
+            if self._destroyed:
+                response.success = False
+                response.message = 'the node is shutting down'
+                return response
+            self._svc_threads.add(thread)
+        thread.start()
+        return await done
 
     def _serve(self, request, response, complete):
         t0 = time.monotonic()
@@ -879,6 +968,9 @@ class BeoNode(Node):
         level, message = DiagnosticStatus.OK, 'ok'
         if delta['errors']:
             level, message = DiagnosticStatus.ERROR, f"{delta['errors']} estimation errors"
+        elif delta['reload_failures']:
+            level, message = (DiagnosticStatus.ERROR,
+                              f"{delta['reload_failures']} model reload(s) failed")
         elif delta['worker_restarts']:
             level, message = (DiagnosticStatus.ERROR,
                               f"worker processes restarted {delta['worker_restarts']}x")
@@ -909,14 +1001,17 @@ class BeoNode(Node):
 
     # ------------------------------------------------------------------ teardown
     def _shutdown_worker(self):
-        """Stop the worker threads; each finishes (and publishes) the cloud it is working on."""
+        """Stop the worker threads; each finishes (and publishes) the cloud it is working on.
+        Service calls being served are waited for too (within the same 30 s)."""
         cond = getattr(self, '_cond', None)
         if cond is not None:
             with cond:
                 self._stop = True
                 cond.notify_all()
         deadline = time.monotonic() + 30.0
-        for worker in self._workers:
+        with self._svc_threads_lock:
+            threads = list(self._workers) + list(self._svc_threads)
+        for worker in threads:
             if worker.is_alive() and worker is not threading.current_thread():
                 worker.join(timeout=max(deadline - time.monotonic(), 0.1))
 
@@ -947,7 +1042,8 @@ def make_executor(context=None):
     """The executor ``main`` spins the node with: single-threaded.
 
     The node's own worker threads (and processes) do the heavy work; the executor only hands
-    over clouds and serves the services (one at a time, each waiting for an estimation slot).
+    over clouds, sets parameters and starts each service call in a thread of its own (which
+    waits for an estimation slot), resuming it when the thread is done.
     rclpy's MultiThreadedExecutor took ~0.7 of a core of Python at 20 clouds/s in the node
     bench, starving the estimates and delaying the clouds until the DDS queue dropped them.
     """
