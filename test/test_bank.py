@@ -3,6 +3,7 @@ exact posterior formula, load errors, classifier and the point-cloud entry point
 import dataclasses
 import json
 import shutil
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -385,6 +386,22 @@ def test_stage2_windows_find_the_exhaustive_full_component_optimum(pose_case):
     assert np.mean(same) >= 0.9, same
 
 
+def test_rotation_map_cache_keeps_within_its_budget(monkeypatch):
+    from beo_ros.core import inference
+    eng = make_tiny_bank().engine
+    P = eng.pooled(views()[0])
+    eng.scores(P, np.deg2rad(np.arange(0, 360, 5.0)))
+    size = eng._maps_bytes
+    assert len(eng._maps) == 1 and size > 0
+    monkeypatch.setattr(inference, 'MAP_CACHE_BYTES', int(2.5 * size))
+    eng.scores(P, np.deg2rad(np.arange(1, 361, 5.0)))
+    eng.scores(P, np.deg2rad(np.arange(2, 362, 5.0)))   # would pass the budget: not kept
+    assert len(eng._maps) == 2 and eng._maps_bytes <= 2.5 * size
+    ref = make_tiny_bank().engine.scores(P, np.deg2rad(np.arange(2, 362, 5.0)))
+    np.testing.assert_allclose(eng.scores(P, np.deg2rad(np.arange(2, 362, 5.0))), ref,
+                               rtol=1e-6)
+
+
 def test_rotation_map_cache_does_not_confuse_yaw_sets():
     fresh = make_tiny_bank().engine
     eng = make_tiny_bank().engine
@@ -526,6 +543,8 @@ def test_load_missing_dir_and_manifest(tmp_path, tiny_dir):
     (dict(format='other'), 'format'),
     (dict(version=99), 'version'),
     (dict(grid=None), 'manifest.json'),
+    (dict(grid=[['size', 16]]), 'grid must be an object'),
+    (dict(grid='16'), 'grid must be an object'),
 ])
 def test_load_bad_manifest(tmp_path, tiny_dir, change, msg):
     p = _copy(tiny_dir, tmp_path)
@@ -638,6 +657,32 @@ def test_load_models_and_public_api(tiny_dir):
     assert issubclass(beo_ros.ModelError, ValueError)
 
 
+def test_load_refuses_a_file_path_and_names_it(tmp_path):
+    f = tmp_path / 'model.npz'
+    f.write_bytes(b'x')
+    with pytest.raises(ModelError, match='model.npz is a file'):
+        ModelBank.load(f)
+
+
+@pytest.mark.parametrize('name', ['../outside.npz', 'sub/x.npz', '..'])
+def test_load_refuses_files_outside_the_model_directory(tmp_path, tiny_dir, name):
+    p = _copy(tiny_dir, tmp_path)
+    m = _manifest(p)
+    m['files'][name] = '0' * 64
+    _write_manifest(p, m)
+    with pytest.raises(ModelError, match='files must name files in the model directory'):
+        ModelBank.load(p)
+
+
+@pytest.mark.parametrize('name', ['classifier.npz', 'verifier.npz', 'calibration.npz'])
+def test_load_refuses_an_optional_part_present_but_not_listed(tmp_path, tiny_dir, name):
+    # the bank would otherwise run without it (a classifier: max likelihood) and not say so
+    p = _copy(tiny_dir, tmp_path)
+    (p / name).write_bytes(b'whatever')
+    with pytest.raises(ModelError, match=f'{name} is present but not listed'):
+        ModelBank.load(p)
+
+
 # ---------------------------------------------------------------------- the point-cloud path
 def test_estimate_points_pose_and_points(tiny):
     occ = tiny.models[0].mean.reshape((N,) * 3) > 0.5
@@ -675,6 +720,21 @@ def test_estimate_points_heading_is_the_same_from_every_side(tiny):
     assert np.sum(np.rad2deg(off) < 15) >= 3, np.rad2deg(headings).round()
     # while the grid-frame yaws follow the sensor around
     assert np.ptp(np.rad2deg(np.mod(yaws, np.pi))) > 60
+
+
+def test_estimate_points_takes_up_at_any_positive_scale(points_bank):
+    # up is a direction: 1e300 x up (accepted by the voxelization) gives the same heading and
+    # point descriptors as the unit vector, not an overflowed norm
+    bank, pts, origin, *_ = points_bank
+    a = bank.estimate_points(pts, sensor_origin=origin, up=(0.0, 0.0, 1.0))
+    with warnings.catch_warnings():
+        warnings.simplefilter('error', RuntimeWarning)
+        b = bank.estimate_points(pts, sensor_origin=origin, up=(0.0, 0.0, 1e300))
+    assert b.classifier_mode == a.classifier_mode == 'points'
+    np.testing.assert_allclose(b.point_features, a.point_features, rtol=1e-9)
+    assert b.heading_offset == pytest.approx(a.heading_offset)
+    assert b.yaw == pytest.approx(a.yaw)
+    np.testing.assert_allclose(b.pose, a.pose, atol=1e-9)
 
 
 def test_heading_offset_for_a_camera_frame():
@@ -834,6 +894,12 @@ def test_estimate_takes_array_probes_and_no_stage2_window(pose_case):
     g, *_ = cases[0]
     ref = bank.estimate(g, probe_deg=(10, 20))
     assert bank.estimate(g, probe_deg=np.array([10, 20])).yaw == pytest.approx(ref.yaw)
+    # one offset may be given as a number
+    assert bank.estimate(g, probe_deg=10).yaw == pytest.approx(
+        bank.estimate(g, probe_deg=(10,)).yaw)
+    for bad in (object(), 'x', -5, np.nan, True):
+        with pytest.raises(ValueError, match='probe_deg'):
+            bank.estimate(g, probe_deg=bad)
     # no window: stage 2 scores every yaw, as with stage2_modes=None
     assert bank.estimate(g, stage2_window_deg=None).yaw == pytest.approx(
         bank.estimate(g, stage2_modes=None).yaw)

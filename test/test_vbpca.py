@@ -121,6 +121,14 @@ def test_score_samples_matches_dense_gaussian():
     (dict(n_components=-1), None, 'n_components'),
     (dict(max_iter=0), None, 'max_iter'),
     (dict(init='bogus'), None, 'init'),
+    (dict(n_components=True), None, 'n_components'),
+    (dict(max_iter=True), None, 'max_iter'),
+    (dict(tol='1e-5'), None, 'tol'),
+    (dict(tol=0.0), None, 'tol'),
+    (dict(tol=float('nan')), None, 'tol'),
+    (dict(mean_prior_variance=None), None, 'mean_prior_variance'),
+    (dict(mean_prior_variance='1'), None, 'mean_prior_variance'),
+    (dict(mean_prior_variance=-1.0), None, 'mean_prior_variance'),
 ])
 def test_parameter_validation(kwargs, args, msg):
     X, _, _ = planted(n=20, d=6)
@@ -269,6 +277,19 @@ def test_fit_refuses_numerical_overflow():
         with np.errstate(all='ignore'), pytest.raises(
                 ValueError, match='non-finite.*rescale X or use dtype=np.float64'):
             VBPCA(3).fit(X, mask=mask)
+
+
+def test_fit_names_values_beyond_float32_and_complex_data():
+    # finite float64 values that the float32 cast turns into inf are not "NaN or Inf"
+    X, _, _ = planted(n=30, d=8)
+    for mask in (None, np.ones(X.shape, dtype=bool) & (np.arange(8) > 0)):
+        with np.errstate(all='ignore'), pytest.raises(
+                ValueError, match='beyond the range of float32; rescale X or use dtype'):
+            VBPCA(3).fit(X * 1e39, mask=mask)
+    with pytest.raises(ValueError, match='real numbers'):
+        VBPCA(3).fit(X + 1j)
+    with pytest.raises(ValueError, match='real numbers'):
+        VBPCA(3).fit(X.astype(str))
 
 
 def test_fit_refuses_no_features():

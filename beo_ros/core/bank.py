@@ -46,6 +46,7 @@ VERSION = 1
 CLASS_KEYS = ('W', 'mean', 'noise_variance', 'coarse_noise_variance', 'loading_covariance',
               'mean_variance', 'component_variance')
 OPTIONAL_CLASS_KEYS = ('coarse_noise_map',)
+OPTIONAL_FILES = ('classifier.npz', 'verifier.npz', 'calibration.npz')
 MODES = ('complete', 'partial')
 # optional classifier of estimate_points: inputs are feats[:, 0] (the C per-class exact
 # log-likelihoods per known voxel) followed by the descriptors of beo_ros.core.normals
@@ -670,7 +671,8 @@ class ModelBank:
         path = Path(path)
         mf = path / 'manifest.json'
         if not path.is_dir():
-            raise ModelError(f'model directory {path} does not exist')
+            raise ModelError(f'model directory {path} '
+                             + ('is a file' if path.exists() else 'does not exist'))
         if not mf.is_file():
             raise ModelError(f'{mf} is missing: not a beo_ros model directory')
         try:
@@ -682,12 +684,24 @@ class ModelBank:
         if manifest.get('version') != VERSION:
             raise ModelError(f'{mf}: version {manifest.get("version")!r} is not supported '
                              f'(this beo_ros reads version {VERSION})')
+        if not isinstance(manifest.get('grid'), dict):
+            raise ModelError(f'{mf}: grid must be an object (size, units, ...), got '
+                             f'{manifest.get("grid")!r}')
         try:
             spec = GridSpec.from_dict(manifest['grid'])
             classes = list(manifest['classes'])
             files = dict(manifest['files'])
         except (KeyError, TypeError, ValueError) as e:
             raise ModelError(f'{mf}: bad or missing entry: {e}') from None
+        for fn in files:
+            if not isinstance(fn, str) or fn in ('', '.', '..') or Path(fn).name != fn:
+                raise ModelError(f'{mf}: files must name files in the model directory, got '
+                                 f'{fn!r}')
+        for fn in OPTIONAL_FILES:
+            # a model saved with it lists it; present but unlisted, the model was tampered with
+            # and would silently lose a part
+            if fn not in files and (path / fn).exists():
+                raise ModelError(f'{path / fn} is present but not listed in the manifest')
         check_class_names(classes, str(mf))   # the rule save applies: train and load agree
         if manifest['grid'].get('up', '+z') != '+z' or manifest['grid'].get('axes', 'xyz') != 'xyz':
             raise ModelError(f'{mf}: only axes xyz with up +z are supported')
@@ -1045,9 +1059,15 @@ class ModelBank:
             check_step('search_step_deg', search_step_deg)
         if probe_deg is None:
             probe_deg = ()
+        elif np.ndim(probe_deg) == 0:
+            probe_deg = (probe_deg.item() if isinstance(probe_deg, np.ndarray) else probe_deg,)
         elif isinstance(probe_deg, np.ndarray):
             probe_deg = probe_deg.ravel().tolist()
-        probe_deg = tuple(probe_deg)
+        try:
+            probe_deg = tuple(probe_deg)
+        except TypeError:
+            raise ValueError(f'probe_deg must be offsets in (0, 180] degrees, got '
+                             f'{probe_deg!r}') from None
         if stage2_window_deg is None:
             stage2_window_deg = 0.0
         if not all(isinstance(p, (int, float, np.floating, np.integer))
@@ -1154,7 +1174,7 @@ class ModelBank:
         With a 'points' classifier the side-normal descriptors of the (finite) points are
         computed too (``timings['point_descriptors']``) and passed to :meth:`estimate`.
         """
-        from .voxelize import grid_to_points, voxelize_view
+        from .voxelize import grid_to_points, unit_direction, voxelize_view
         if not 0 < threshold <= 1:   # also refuses NaN
             raise ValueError(f'threshold must be an occupancy probability in (0, 1], got '
                              f'{threshold}')
@@ -1163,6 +1183,7 @@ class ModelBank:
                              dtype=np.float64), np.asarray(up, dtype=np.float64), self.spec,
                              center=center)
         t1 = time.perf_counter()
+        up = unit_direction(up, 'up')   # valid: voxelize_view has checked it
         point_features = None
         if self.has_point_classifier:
             from .normals import side_normal_descriptors
@@ -1209,6 +1230,7 @@ def heading_offset(grid_rotation, up) -> float:
     when x is within 25 degrees of ``up``) to the grid's x axis. ``grid_rotation`` (3, 3):
     the grid axes in the input frame, z = up."""
     u = np.asarray(up, dtype=np.float64)
+    u = u / np.abs(u).max()   # first: the norm of a huge vector overflows
     u = u / np.linalg.norm(u)
     ref = np.eye(3)[0] - u * u[0]
     if np.linalg.norm(ref) < np.sin(np.deg2rad(25.0)):

@@ -29,6 +29,7 @@ from .grid import yaw_column_index, yaw_source_index
 
 LOG2PI = float(np.log(2 * np.pi))
 FEATURE_NAMES = ('loglik', 'coarse_loglik', 'rmse', 'recall', 'false_occupied', 'dt_error')
+MAP_CACHE_BYTES = 256 * 2**20   # pooled-grid rotation maps kept per engine (the default search: ~20 MB)
 
 
 def batched_cholesky_terms(G, b):
@@ -131,6 +132,7 @@ class InferenceEngine:
         self._col_terms = [self._column_terms(c) for c in range(self.C)]
         self._supp_cols = self.support.reshape(self.C, n * n, n).sum(axis=2).astype(np.float64)
         self._maps = {}
+        self._maps_bytes = 0
         self._full_maps = {}
         self._col_counts = {}
         self._yaw_terms = {}
@@ -255,8 +257,13 @@ class InferenceEngine:
             sel = inside & (rank == r)
             extra.append((pos[sel].astype(np.intp), src[sel].astype(np.intp)))
         out = (first.reshape(Y, dc), extra)
-        if len(self._maps) < 16 and len(yaws) >= 36:   # keep the regular search grids only
+        size = first.nbytes + sum(p.nbytes + c.nbytes for p, c in extra)
+        # keep the regular search grids only, within a memory budget: a user sweeping fine
+        # steps would otherwise pin hundreds of MB per step (0.1 deg: about 350 MB)
+        if (len(self._maps) < 16 and len(yaws) >= 36
+                and self._maps_bytes + size <= MAP_CACHE_BYTES):
             self._maps[key] = out
+            self._maps_bytes += size
         return out
 
     def _full_map(self, yaw):

@@ -41,8 +41,9 @@ def _check(points, up, sensor_origin):
     if not np.isfinite(pts).all():
         raise ValueError('points contain NaN or Inf (drop the non-finite rows first)')
     up = np.asarray(up, dtype=np.float64)
-    if up.shape != (3,) or not np.isfinite(up).all() or np.linalg.norm(up) < 1e-9:
+    if up.shape != (3,) or not np.isfinite(up).all() or np.abs(up).max() < 1e-9:
         raise ValueError(f'up must be a finite non-zero (3,) vector, got {up!r}')
+    up = up / np.abs(up).max()   # first: the norm of a huge vector overflows
     origin = np.asarray(sensor_origin, dtype=np.float64)
     if origin.shape != (3,) or not np.isfinite(origin).all():
         raise ValueError(f'sensor_origin must be a finite (3,) vector, got {origin!r}')
@@ -51,7 +52,9 @@ def _check(points, up, sensor_origin):
 
 def horizontal_basis(up):
     """(unit up, e1, e2): a right-handed orthonormal basis with e1, e2 horizontal."""
-    up = np.asarray(up, float) / np.linalg.norm(up)
+    up = np.asarray(up, float)
+    up = up / np.abs(up).max()
+    up = up / np.linalg.norm(up)
     a = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     e1 = a - (a @ up) * up
     e1 /= np.linalg.norm(e1)

@@ -66,14 +66,17 @@ class VBPCA(TransformerMixin, BaseEstimator):
 
     # ------------------------------------------------------------------ validation
     def _validate(self, X, mask):
-        if not isinstance(self.n_components, (int, np.integer)) or self.n_components < 1:
-            raise ValueError(f'n_components must be a positive integer, got {self.n_components!r}')
-        if not isinstance(self.max_iter, (int, np.integer)) or self.max_iter < 1:
-            raise ValueError(f'max_iter must be a positive integer, got {self.max_iter!r}')
-        if not (self.tol > 0):
-            raise ValueError(f'tol must be > 0, got {self.tol!r}')
-        if not (np.isfinite(self.mean_prior_variance) and self.mean_prior_variance > 0):
-            raise ValueError(f'mean_prior_variance must be > 0, got {self.mean_prior_variance!r}')
+        for name in ('n_components', 'max_iter'):
+            value = getattr(self, name)
+            if (isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer))
+                    or value < 1):
+                raise ValueError(f'{name} must be a positive integer, got {value!r}')
+        for name in ('tol', 'mean_prior_variance'):
+            value = getattr(self, name)
+            if (isinstance(value, (bool, np.bool_))
+                    or not isinstance(value, (int, float, np.integer, np.floating))
+                    or not (np.isfinite(value) and value > 0)):
+                raise ValueError(f'{name} must be a finite number > 0, got {value!r}')
         if self.init not in ('pca', 'random'):
             raise ValueError(f"init must be 'pca' or 'random', got {self.init!r}")
         pt = self.prune_tol
@@ -88,6 +91,9 @@ class VBPCA(TransformerMixin, BaseEstimator):
         if dt is None or dt.type not in (np.float32, np.float64):
             raise ValueError(f'dtype must be np.float32 or np.float64, got {self.dtype!r}')
         X = np.asarray(X)
+        if np.iscomplexobj(X) or not (np.issubdtype(X.dtype, np.number)
+                                      or X.dtype == np.bool_):
+            raise ValueError(f'X must hold real numbers, got dtype {X.dtype}')
         if X.ndim != 2:
             raise ValueError(f'X must be 2-D (n_samples, n_features), got shape {X.shape}')
         n, d = X.shape
@@ -95,7 +101,7 @@ class VBPCA(TransformerMixin, BaseEstimator):
             raise ValueError(f'VBPCA needs at least 2 samples, got {n}')
         if d < 1:
             raise ValueError(f'X needs at least 1 feature, got shape {X.shape}')
-        X = X.astype(self.dtype, copy=False)
+        X_in, X = X, X.astype(self.dtype, copy=False)
         if mask is not None:
             mask = np.asarray(mask, dtype=bool)
             if mask.shape != X.shape:
@@ -104,6 +110,10 @@ class VBPCA(TransformerMixin, BaseEstimator):
                 mask = None
         finite = np.isfinite(X) if mask is None else np.isfinite(np.where(mask, X, 0))
         if not finite.all():
+            raw = np.asarray(X_in if mask is None else np.where(mask, X_in, 0))
+            if np.issubdtype(raw.dtype, np.floating) and np.isfinite(raw).all():
+                raise ValueError(f'X has values beyond the range of {np.dtype(self.dtype).name}; '
+                                 'rescale X or use dtype=np.float64')
             raise ValueError('X has NaN or Inf in observed entries; mark them missing in mask')
         if mask is not None and (~mask.any(axis=1)).any():
             raise ValueError('every sample needs at least one observed entry')

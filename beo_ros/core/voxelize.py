@@ -63,6 +63,12 @@ def _check_points(points, min_points: int) -> np.ndarray:
     return pts
 
 
+def unit_direction(v, name: str = 'up') -> np.ndarray:
+    """(3,) unit vector along ``v`` (finite, largest component at least MIN_DIRECTION); no
+    overflow for huge components. ValueError naming ``name`` otherwise."""
+    return _check_vec(v, name, unit=True)
+
+
 def _check_vec(v, name: str, unit: bool = False) -> np.ndarray:
     v = np.asarray(v, dtype=np.float64)
     if v.shape != (3,) or not np.isfinite(v).all():
