@@ -970,6 +970,123 @@ def test_worker_processes_stop_with_the_node(ros_context, ros_tiny_model_dir):
     node.destroy_node()  # idempotent
 
 
+def _gated_reloads(node, gate):
+    """Make node's model reloads wait for ``gate`` before starting their processes; returns
+    the list of pools they start (appended as they are made)."""
+    real, made = node._new_pool, []
+
+    def gated(bank):
+        assert gate.wait(TIMEOUT)
+        made.append(real(bank))
+        return made[-1]
+    node._new_pool = gated
+    return made
+
+
+def _reloading():
+    return any(t.name == 'beo_reload' for t in threading.enumerate())
+
+
+def _wait(pred, timeout=TIMEOUT):
+    end = time.monotonic() + timeout
+    while not pred() and time.monotonic() < end:
+        time.sleep(0.02)
+    return pred()
+
+
+def test_superseded_reloads_start_no_processes(ros_context, ros_tiny_model_dir, tmp_path):
+    """model_dir set three times while the first reload is starting its processes: the second
+    never starts any, the third takes over (a storm of changes used to start a full set of
+    processes for each: 16 processes and 5 GB for 8 changes)."""
+    import shutil
+    from beo_ros.ros.node import BeoNode
+    node = BeoNode(context=ros_context, parameter_overrides=[
+        Parameter('model_dir', value=ros_tiny_model_dir),
+        Parameter('worker_processes', value=1), Parameter('workers', value=1)])
+    try:
+        gate = threading.Event()
+        made = _gated_reloads(node, gate)
+        dirs = []
+        for i in range(3):
+            dirs.append(str(tmp_path / f'm{i}'))
+            shutil.copytree(ros_tiny_model_dir, dirs[-1])
+            assert node.set_parameters([Parameter('model_dir', value=dirs[-1])])[0].successful
+        gate.set()
+        assert _wait(lambda: node._serving_dir == dirs[-1] and not _reloading())
+        assert len(made) == 2 and node._pool is made[-1]
+        assert node.counters()['reload_failures'] == 0
+    finally:
+        node.destroy_node()
+
+
+@pytest.mark.parametrize('fails', [False, True])
+def test_shutdown_during_a_reload_is_quiet_and_leaves_no_process(ros_context,
+                                                                  ros_tiny_model_dir, tmp_path,
+                                                                  fails):
+    """destroy_node while a reload starts its processes: they are gone when it returns, and a
+    reload that fails because of the shutdown is not reported as a model that cannot load."""
+    import shutil
+    from beo_ros.ros.node import BeoNode
+    node = BeoNode(context=ros_context, parameter_overrides=[
+        Parameter('model_dir', value=ros_tiny_model_dir),
+        Parameter('worker_processes', value=1), Parameter('workers', value=1)])
+    gate = threading.Event()
+    made = _gated_reloads(node, gate)
+    if fails:
+        def cannot(bank):
+            assert gate.wait(TIMEOUT)
+            raise RuntimeError('cannot schedule new futures after shutdown')
+        node._new_pool = cannot
+    shutil.copytree(ros_tiny_model_dir, tmp_path / 'copy')
+    assert node.set_parameters([Parameter('model_dir', value=str(tmp_path / 'copy'))])[0] \
+        .successful
+    done = threading.Thread(target=node.destroy_node)
+    done.start()
+    assert _wait(lambda: node._pool_closed)
+    gate.set()
+    done.join(TIMEOUT)
+    assert not done.is_alive()
+    assert not _reloading()
+    assert not any(_alive(pid) for pool in made for pid in pool.pids)
+    assert len(made) == (0 if fails else 1)
+    assert node.counters()['reload_failures'] == 0
+
+
+def test_unknown_parameter_overrides_are_named(ros_context, ros_tiny_model_dir):
+    from beo_ros.ros.node import BeoNode
+    node = BeoNode(context=ros_context, parameter_overrides=[
+        Parameter('model_dir', value=ros_tiny_model_dir),
+        Parameter('yaw_stepdeg', value=5.0), Parameter('yaw_step_deg', value=2.0)])
+    try:
+        assert node.ignored_parameters == ['yaw_stepdeg']
+    finally:
+        node.destroy_node()
+
+
+def test_arguments_before_ros_args_and_bad_ros_args_refused(capsys, monkeypatch):
+    from beo_ros.ros import node as node_mod
+    real_init = node_mod.rclpy.init
+
+    def no_init(*a, **k):
+        raise AssertionError('must not start ROS')
+    monkeypatch.setattr(node_mod.rclpy, 'init', no_init)
+    for argv in (['-p', 'model_dir:=/x'], ['--params-file', 'p.yaml'], ['--bogus']):
+        with pytest.raises(SystemExit) as ei:
+            node_mod.main(argv)
+        assert ei.value.code == 2
+        err = capsys.readouterr().err
+        assert 'unrecognized arguments' in err and '--ros-args' in err
+    monkeypatch.setattr(node_mod.rclpy, 'init', real_init)
+    from rclpy.context import Context
+    monkeypatch.setattr(node_mod.rclpy, 'init', lambda args: real_init(args=args,
+                                                                        context=Context()))
+    with pytest.raises(SystemExit) as ei:
+        node_mod.main(['--ros-args', '--params-file', '/nonexistent/beo.yaml'])
+    assert ei.value.code == 1
+    err = capsys.readouterr().err
+    assert err.startswith('beo-node: cannot start:') and 'Traceback' not in err
+
+
 def test_help_prints_usage_without_starting_the_node(capsys, monkeypatch):
     from beo_ros.ros import node as node_mod
 

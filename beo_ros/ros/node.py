@@ -170,6 +170,8 @@ class BeoNode(Node):
         self._pool_cond = threading.Condition(self._pool_lock)
         self._replacing = None   # the broken pool being replaced (outside the lock)
         self._reload_gen = 0   # the latest model_dir reload (a newer one wins)
+        self._reload_lock = threading.Lock()   # one reload starts processes at a time
+        self._reload_threads = set()
         self._pool_closed = False
         self._destroyed = False
         self._svc_threads = set()   # service calls being served (each in a thread of its own)
@@ -195,6 +197,14 @@ class BeoNode(Node):
             self._declare_parameters()
         except Exception as e:  # out-of-range / wrong-type overrides
             raise StartupError(f'invalid parameter: {type(e).__name__}: {e}') from e
+        # a typo (-p yaw_stepdeg:=5.0) would otherwise be ignored unseen
+        self.ignored_parameters = sorted(
+            n for n in getattr(self, '_parameter_overrides', {})
+            if not self.has_parameter(n) and not n.startswith('qos_overrides.'))
+        if self.ignored_parameters:
+            self.get_logger().warning(
+                f"ignoring unknown parameter(s) {', '.join(self.ignored_parameters)} (see "
+                'config/beo.yaml for the parameters)')
         try:
             params = self._params()
             input_topics = self.get_parameter('input_topics').value
@@ -262,7 +272,8 @@ class BeoNode(Node):
             'rejected_format',
             'rejected_too_few_points', 'errors', 'downsampled', 'nonfinite_points',
             'service_calls', 'service_failures', 'worker_restarts', 'worker_timeouts',
-            'reload_failures', 'dropped_shutdown', 'incompatible_publishers',
+            'reload_failures', 'dropped_shutdown', 'service_dropped_shutdown',
+            'incompatible_publishers',
             'middleware_lost')})
         self._latency = collections.defaultdict(lambda: collections.deque(maxlen=LATENCY_WINDOW))
         self._last_diag = (time.monotonic(), collections.Counter(self._counters))
@@ -488,8 +499,12 @@ class BeoNode(Node):
                     # and service calls would wait, and the middleware drop clouds uncounted);
                     # the old ones serve until the new ones are ready
                     self._reload_gen += 1
-                    threading.Thread(target=self._reload_pool, name='beo_reload', daemon=True,
-                                     args=(base, self._reload_gen, want_dir)).start()
+                    thread = threading.Thread(target=self._reload_pool, name='beo_reload',
+                                              daemon=True,
+                                              args=(base, self._reload_gen, want_dir))
+                    with self._svc_threads_lock:
+                        self._reload_threads.add(thread)
+                    thread.start()
                 else:   # worker processes get the prior with each estimate: no new ones
                     serving = self._serving_base if self._n_procs else base
                     with self._pool_lock:
@@ -727,8 +742,10 @@ class BeoNode(Node):
                 return
             self._replacing = broken
             self._count('worker_restarts')
-            self.get_logger().error(f'a worker process died ({err}); restarting the '
-                                    f'{self._n_procs} worker process(es)')
+            what = ('an estimate took longer than estimate_timeout' if isinstance(
+                err, EstimateTimeout) else 'a worker process died')
+            self.get_logger().error(f'{what} ({err}); restarting the {self._n_procs} worker '
+                                    'process(es)')
         new = None
         try:
             broken.shutdown(timeout=1.0)
@@ -746,11 +763,28 @@ class BeoNode(Node):
         """Thread: start worker processes for the models ``base``, then switch to them (with the
         class prior of that moment) unless a newer reload came meanwhile; estimates already sent
         to the old processes finish there. A failure keeps the old processes (logged, counted
-        in reload_failures)."""
+        in reload_failures). Reloads start their processes one at a time, and one superseded
+        by a newer reload (or by shutdown) before its turn starts none."""
+        try:
+            with self._reload_lock:
+                if self._pool_closed or gen != self._reload_gen:
+                    self.get_logger().info(f"reload of '{model_dir}' skipped: "
+                                           + ('shutting down' if self._pool_closed
+                                              else 'model_dir changed again'))
+                    return
+                self._reload_now(base, gen, model_dir)
+        finally:
+            with self._svc_threads_lock:
+                self._reload_threads.discard(threading.current_thread())
+
+    def _reload_now(self, base, gen, model_dir):
         t0 = time.monotonic()
         try:
             new = self._new_pool(base)
         except Exception as e:  # noqa: BLE001 - reported, the old processes keep serving
+            if self._pool_closed:   # shut down meanwhile: the failure is the shutdown's
+                self.get_logger().info(f"reload of '{model_dir}' abandoned: shutting down")
+                return
             self._count('reload_failures')   # not 'errors': those count clouds
             self.get_logger().error(f"worker processes cannot load the models of '{model_dir}' "
                                     f'({type(e).__name__}: {e}); the models of '
@@ -762,7 +796,8 @@ class BeoNode(Node):
                     self._base_bank = self._serving_base
             return
         with self._pool_lock:
-            if self._pool_closed or gen != self._reload_gen:
+            closed = self._pool_closed
+            if closed or gen != self._reload_gen:
                 old = new    # shut down, or superseded by a newer reload
             else:
                 try:
@@ -771,8 +806,8 @@ class BeoNode(Node):
                     bank = base
                 old, self._pool, self._bank, self._serving_base = self._pool, new, bank, base
                 self._serving_dir = model_dir
-        if old is not None:
-            old.shutdown(timeout=None)
+        if old is not None:   # at shutdown, gone before destroy_node returns
+            old.shutdown(timeout=5.0 if closed else None)
         if old is not new:
             self.get_logger().info(f"reloaded models from '{model_dir}' "
                                    f'({self._n_procs} new worker process(es) in '
@@ -887,7 +922,7 @@ class BeoNode(Node):
                 else:
                     done.set_result(result)
             except Exception:  # the executor is shut down: nobody waits for the answer
-                pass
+                self._count('service_dropped_shutdown')
 
         thread = threading.Thread(target=run, name='beo_service', daemon=True)
         with self._svc_threads_lock:
@@ -1028,13 +1063,25 @@ class BeoNode(Node):
         if self._destroyed:
             return
         self._destroyed = True
-        self._shutdown_worker()
+        log = rclpy.logging.get_logger(f'{self.get_name()}.shutdown')
+        try:
+            self._shutdown_worker()
+        except KeyboardInterrupt:   # a second Ctrl-C: do not wait for the estimates in flight
+            log.warning('interrupted again: not waiting for the estimates in flight')
         self._shutdown_pool()
+        with self._svc_threads_lock:
+            reloads = list(self._reload_threads)
+        for thread in reloads:   # each shuts down the processes it was starting
+            thread.join(timeout=30.0)
         self._restore_blas()
+        # not on the node's logger: its /rosout publisher may be gone with the context
         lost = self._counters['dropped_shutdown']
-        if lost:   # not on the node's logger: its /rosout publisher may be gone with the context
-            rclpy.logging.get_logger(f'{self.get_name()}.shutdown').info(
-                f'{lost} cloud(s) estimated while shutting down were not published')
+        if lost:
+            log.info(f'{lost} cloud(s) estimated while shutting down were not published')
+        lost = self._counters['service_dropped_shutdown']
+        if lost:
+            log.info(f'{lost} service answer(s) computed while shutting down could not be '
+                     'sent')
         super().destroy_node()
 
 
@@ -1076,7 +1123,15 @@ def main(args=None):
     if '-h' in own or '--help' in own:
         print(USAGE + '\n' + __doc__)
         return
-    rclpy.init(args=args)
+    if own:   # e.g. '-p model_dir:=...' without --ros-args would be ignored unseen
+        print(f"{USAGE}\nbeo-node: error: unrecognized arguments: {' '.join(own)} (ROS "
+              'arguments go after --ros-args)', file=sys.stderr)
+        sys.exit(2)
+    try:
+        rclpy.init(args=args)
+    except Exception as e:  # e.g. --params-file of a missing or malformed file
+        print(f'beo-node: cannot start: {type(e).__name__}: {e}', file=sys.stderr)
+        sys.exit(1)
     node = None
     executor = None
     failed = False
