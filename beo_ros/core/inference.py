@@ -29,7 +29,8 @@ from .grid import yaw_column_index, yaw_source_index
 
 LOG2PI = float(np.log(2 * np.pi))
 FEATURE_NAMES = ('loglik', 'coarse_loglik', 'rmse', 'recall', 'false_occupied', 'dt_error')
-MAP_CACHE_BYTES = 256 * 2**20   # pooled-grid rotation maps kept per engine (the default search: ~20 MB)
+# pooled-grid rotation maps kept per engine (those of the default search take ~20 MB)
+MAP_CACHE_BYTES = 256 * 2**20
 
 
 def batched_cholesky_terms(G, b):

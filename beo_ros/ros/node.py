@@ -171,7 +171,7 @@ class BeoNode(Node):
         self._replacing = None   # the broken pool being replaced (outside the lock)
         self._reload_gen = 0   # the latest model_dir reload (a newer one wins)
         self._reload_lock = threading.Lock()   # one reload starts processes at a time
-        self._reload_threads = set()
+        self._reload_threads = set()   # under _svc_threads_lock, as the service threads
         self._pool_closed = False
         self._destroyed = False
         self._svc_threads = set()   # service calls being served (each in a thread of its own)
