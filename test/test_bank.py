@@ -764,7 +764,7 @@ def test_pose_centre_is_the_middle_of_a_short_object_on_a_bottom_grid():
     assert np.linalg.norm(e.pose[:2, 3]) < 0.03, e.pose[:3, 3]
 
 
-@pytest.mark.parametrize('threshold', [float('nan'), 0.0, -1.0, 1.5])
+@pytest.mark.parametrize('threshold', [float('nan'), 0.0, -1.0, 1.5, True])
 def test_estimate_points_refuses_a_threshold_that_is_no_probability(tiny, threshold):
     occ = tiny.models[0].mean.reshape((N,) * 3) > 0.5
     pts, origin = render_view_points(occ, 0.5, 0.3, np.deg2rad(30), distance=2.0, size=0.4)
@@ -900,6 +900,9 @@ def test_estimate_takes_array_probes_and_no_stage2_window(pose_case):
     for bad in (object(), 'x', -5, np.nan, True):
         with pytest.raises(ValueError, match='probe_deg'):
             bank.estimate(g, probe_deg=bad)
+    for name in ('refine_deg', 'stage2_window_deg'):
+        with pytest.raises(ValueError, match=name):
+            bank.estimate(g, **{name: True})
     # no window: stage 2 scores every yaw, as with stage2_modes=None
     assert bank.estimate(g, stage2_window_deg=None).yaw == pytest.approx(
         bank.estimate(g, stage2_modes=None).yaw)

@@ -1074,7 +1074,7 @@ class ModelBank:
                    and not isinstance(p, bool) and 0 < p <= 180 for p in probe_deg):
             raise ValueError(f'probe_deg must be offsets in (0, 180] degrees, got {probe_deg}')
         for name, value in (('refine_deg', refine_deg), ('stage2_window_deg', stage2_window_deg)):
-            if not 0 <= value <= 180:   # also refuses NaN
+            if isinstance(value, (bool, np.bool_)) or not 0 <= value <= 180:   # and NaN
                 raise ValueError(f'{name} must be in [0, 180] degrees, got {value}')
         check_count('n_hypotheses', n_hypotheses)
         if stage2_modes is not None:
@@ -1175,7 +1175,7 @@ class ModelBank:
         computed too (``timings['point_descriptors']``) and passed to :meth:`estimate`.
         """
         from .voxelize import grid_to_points, unit_direction, voxelize_view
-        if not 0 < threshold <= 1:   # also refuses NaN
+        if isinstance(threshold, (bool, np.bool_)) or not 0 < threshold <= 1:   # and NaN
             raise ValueError(f'threshold must be an occupancy probability in (0, 1], got '
                              f'{threshold}')
         t0 = time.perf_counter()
