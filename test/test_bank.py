@@ -1585,7 +1585,7 @@ def test_exact_is_consistent_at_yaws_whose_rotation_has_ties():
 
 
 @pytest.mark.parametrize('yaw', [float('nan'), float('inf'), -np.inf, '0.5', True, [0.1],
-                                 1j])
+                                 1j, 10 ** 400])
 def test_estimate_refuses_a_yaw_that_is_not_a_finite_number(tiny, yaw):
     bank = tiny
     n = bank.spec.size
@@ -1597,6 +1597,10 @@ def test_estimate_refuses_a_yaw_that_is_not_a_finite_number(tiny, yaw):
         bank.features(grid, yaw=yaw)
     for ok in (np.float32(0.5), np.array(0.5), 0):
         assert bank.estimate(grid, yaw=ok).yaw == pytest.approx(float(ok), abs=1e-6)
+    # an integer beyond int64 is a number too (numpy would hold it as an object), as 1e300 is
+    from beo_ros.core.grid import wrap_yaw
+    for big in (2 ** 70, 1e300):
+        assert bank.estimate(grid, yaw=big).yaw == pytest.approx(wrap_yaw(float(big)))
 
 
 @pytest.mark.parametrize('kw', [dict(refine_deg=float('nan')), dict(refine_deg=-1),

@@ -434,7 +434,8 @@ def test_parameters_validated_and_runtime_changeable(harness, tmp_path):
                              ('model_dir', str(tmp_path / 'nope'), 'nope'),
                              ('input_topics', ['/other'], ''),
                              ('workers', 2, ''), ('workers', 0, ''), ('blas_threads', 2, ''),
-                             ('worker_processes', 1, '')):
+                             ('worker_processes', 1, ''),
+                             ('estimate_timeout', 0.01, 'at least 1 s')):
         r = set_(name, value)
         assert not r.successful, (name, value)
         assert why in r.reason
@@ -463,6 +464,34 @@ def test_parameters_validated_and_runtime_changeable(harness, tmp_path):
         shutil.copytree(model_dir, copy)
         assert set_('model_dir', str(copy)).successful
         assert harness.call(harness.classify, harness.good_request()).success
+
+
+def _dims(r):
+    assert r.success, r.message
+    d = r.estimate.dimensions
+    return np.array([d.x, d.y, d.z])
+
+
+def test_stray_points_are_removed_and_counted(harness):
+    node = harness.node
+    req = harness.good_request()
+    clean = _dims(harness.call(harness.classify, req))
+    before = node.counters()['outlier_points']
+    req.cloud = cloud(np.r_[box_view(), [[300.0, 0.0, 0.0]]])
+    np.testing.assert_allclose(_dims(harness.call(harness.classify, req)), clean, atol=1e-6)
+    assert node.counters()['outlier_points'] > before
+    # the stream path counts them too
+    before = node.counters()['outlier_points']
+    harness.pub.publish(req.cloud)
+    harness.wait_counter(lambda c: c['outlier_points'] > before)
+    # off: the stray point sets the grid (normalized: the object shrinks to a few voxels)
+    for name, bad in (('outlier_mads', -1.0), ('outlier_neighbors', 0)):
+        assert not node.set_parameters([Parameter(name, value=bad)])[0].successful
+    assert node.set_parameters([Parameter('outlier_mads', value=0.0)])[0].successful
+    before = node.counters()['outlier_points']
+    spoilt = _dims(harness.call(harness.classify, req))
+    assert node.counters()['outlier_points'] == before
+    assert spoilt.max() > 10 * clean.max(), (spoilt, clean)
 
 
 def test_class_prior_parameter_is_checked_and_applied_to_the_estimates(harness):
@@ -726,6 +755,7 @@ def test_bad_parameter_override_refuses_to_start(ros_context, ros_tiny_model_dir
               Parameter('completion_threshold', value=0.0),
               Parameter('yaw_step_deg', value=0.0499999999), Parameter('min_points', value=5),
               Parameter('input_reliability', value='reliable '),
+              Parameter('estimate_timeout', value=0.01), Parameter('outlier_mads', value=-1.0),
               Parameter('input_topics', value=['/bad topic'])):
         extra = [Parameter('max_points', value=50)] if p.name == 'min_points' else []
         with pytest.raises(StartupError, match=p.name):
@@ -789,6 +819,16 @@ def test_worker_processes_estimate_like_in_process(harness_procs, tmp_path):
     req.cloud = cloud(box_view()[:5])
     r = harness.call(harness.classify, req)
     assert not r.success and 'points' in r.message
+    # the outlier removal runs in the processes, with the node's parameters, and is counted
+    req.cloud = cloud(np.r_[box_view(), [[300.0, 0.0, 0.0]]])
+    before = node.counters()['outlier_points']
+    r = harness.call(harness.classify, req)
+    assert r.success and node.counters()['outlier_points'] > before, r.message
+    np.testing.assert_allclose(pose_to_matrix(r.estimate.pose), ref.pose, atol=1e-6)
+    assert node.set_parameters([Parameter('outlier_mads', value=0.0)])[0].successful
+    r = harness.call(harness.classify, req)
+    assert r.success and not np.allclose(pose_to_matrix(r.estimate.pose), ref.pose, atol=1e-3)
+    assert node.set_parameters([Parameter('outlier_mads', value=8.0)])[0].successful
     diag = harness.wait('diag', pred=lambda m: any(
         kv.key == 'worker_processes' for kv in m.status[0].values))[-1].status[0]
     values = {kv.key: kv.value for kv in diag.values}

@@ -37,6 +37,7 @@ from .calibration import OccupancyCalibration, check_arrays as check_calibration
 from .estimate import UNKNOWN_LABEL, Estimate, Hypothesis
 from .grid import GridSpec, symmetric_turns, wrap_yaw as _wrap, yaw_matrix
 from .inference import FEATURE_NAMES, InferenceEngine, observed_edt, top_modes, top_yaw_modes
+from .outliers import OUTLIER_MADS, OUTLIER_NEIGHBORS, statistical_outliers
 from .shape import BASIC_NAMES as BASIC_SHAPE_DESCRIPTORS, DESCRIPTOR_NAMES as SHAPE_DESCRIPTORS
 from .shape import shape_descriptors
 from .verifier import TURNS, OrientationVerifier, check_arrays, quarter_turned_features
@@ -815,7 +816,7 @@ class ModelBank:
         """
         grid = self.check_grid(grid)
         check_step('yaw_step_deg', yaw_step_deg)
-        check_yaw(yaw)
+        yaw = check_yaw(yaw)
         if not (grid == 1).any():   # all free or all unknown: every class would "fit"
             raise ValueError('grid has no occupied voxel: there is no object to estimate')
         eng = self.engine
@@ -1081,7 +1082,7 @@ class ModelBank:
             check_count('stage2_modes', stage2_modes)
         if search_step_deg is None:
             search_step_deg = max(SEARCH_STEP_DEG, yaw_step_deg)
-        check_yaw(yaw)
+        yaw = check_yaw(yaw)
         if not (grid == 1).any():
             return self._no_object(grid, yaw, t0)
         feats, per = self.features(grid, yaw, search_step_deg, exhaustive)
@@ -1167,29 +1168,38 @@ class ModelBank:
                         classifier_note='grid has no occupied voxel: no object to estimate')
 
     def estimate_points(self, points, sensor_origin=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0),
-                        yaw_step_deg=1.0, threshold=0.5, center=None):
+                        yaw_step_deg=1.0, threshold=0.5, center=None,
+                        outlier_mads=OUTLIER_MADS, outlier_neighbors=OUTLIER_NEIGHBORS):
         """Estimate from an (n, 3) cloud in metres (any frame; the sensor at ``sensor_origin``).
 
         The pose and completed points come back in the input frame (see :class:`Estimate`).
-        With a 'points' classifier the side-normal descriptors of the (finite) points are
-        computed too (``timings['point_descriptors']``) and passed to :meth:`estimate`.
+        Non-finite points are dropped, then statistical outliers
+        (:func:`beo_ros.core.outliers.statistical_outliers` with ``outlier_neighbors`` and
+        ``outlier_mads``; None: none removed; ``Estimate.n_outliers`` counts them), as the
+        extent of the points places and scales the grid. With a 'points' classifier the
+        side-normal descriptors of the remaining points are computed too
+        (``timings['point_descriptors']``) and passed to :meth:`estimate`.
         """
-        from .voxelize import grid_to_points, unit_direction, voxelize_view
+        from .voxelize import MIN_POINTS, _check_points, grid_to_points, unit_direction, voxelize_view
         if isinstance(threshold, (bool, np.bool_)) or not 0 < threshold <= 1:   # and NaN
             raise ValueError(f'threshold must be an occupancy probability in (0, 1], got '
                              f'{threshold}')
         t0 = time.perf_counter()
-        view = voxelize_view(np.asarray(points, dtype=np.float64), np.asarray(sensor_origin,
-                             dtype=np.float64), np.asarray(up, dtype=np.float64), self.spec,
-                             center=center)
+        pts_in = _check_points(points, MIN_POINTS)   # finite rows only
+        n_outliers = 0
+        if outlier_mads is not None:
+            out = statistical_outliers(pts_in, outlier_neighbors, outlier_mads)
+            n_outliers = int(out.sum())
+            pts_in = pts_in[~out]
+        t_out = time.perf_counter()
+        view = voxelize_view(pts_in, np.asarray(sensor_origin, dtype=np.float64),
+                             np.asarray(up, dtype=np.float64), self.spec, center=center)
         t1 = time.perf_counter()
         up = unit_direction(up, 'up')   # valid: voxelize_view has checked it
         point_features = None
         if self.has_point_classifier:
             from .normals import side_normal_descriptors
-            pts_in = np.asarray(points, dtype=np.float64)
-            point_features = side_normal_descriptors(
-                pts_in[np.isfinite(pts_in).all(axis=1)], up, sensor_origin)
+            point_features = side_normal_descriptors(pts_in, up, sensor_origin)
         t2 = time.perf_counter()
         est = self.estimate(view.grid, yaw_step_deg=yaw_step_deg, point_features=point_features)
         T = np.asarray(view.grid_to_input, dtype=np.float64)
@@ -1205,7 +1215,9 @@ class ModelBank:
         est.grid_to_input = T
         est.completed_points = np.asarray(pts, dtype=np.float32)
         est.completed_probability = np.asarray(prob, dtype=np.float32)
-        est.timings['voxelize'] = t1 - t0
+        est.n_outliers = n_outliers
+        est.timings['outliers'] = t_out - t0
+        est.timings['voxelize'] = t1 - t_out
         if point_features is not None:
             est.timings['point_descriptors'] = t2 - t1
         est.timings['total'] = time.perf_counter() - t0
@@ -1241,15 +1253,23 @@ def heading_offset(grid_rotation, up) -> float:
 
 
 def check_yaw(yaw):
-    """Raise ValueError unless ``yaw`` is None (search it) or a finite real number (radians)."""
+    """``yaw`` as a float (radians), or None (search it); ValueError unless it is a finite
+    real number or None."""
     if yaw is None:
-        return
+        return None
+    if isinstance(yaw, int) and not isinstance(yaw, bool):   # beyond int64 numpy makes objects
+        try:
+            yaw = float(yaw)
+        except OverflowError:
+            raise ValueError(f'yaw must be finite, got an integer of {yaw.bit_length()} '
+                             'bits') from None
     a = np.asarray(yaw) if not isinstance(yaw, (str, bytes)) else None
     if a is None or a.ndim != 0 or a.dtype == bool or not np.issubdtype(a.dtype, np.number) \
             or np.iscomplexobj(a):
         raise ValueError(f'yaw must be None or a number of radians, got {yaw!r}')
     if not np.isfinite(a):
         raise ValueError(f'yaw must be finite, got {yaw}')
+    return float(a)
 
 
 def check_step(name, value):

@@ -71,6 +71,8 @@ class Estimate:
             the bearing from the sensor; add this to compare them across views.
         grid_to_input: float64 (4,4) maps homogeneous grid index coordinates to the input frame
             (only from ``estimate_points``).
+        n_outliers: points removed as statistical outliers before the voxelization (only from
+            ``estimate_points``; see :mod:`beo_ros.core.outliers`).
         completed_points: float32 (m,3) centres of voxels with probability >= threshold, input frame
             (only from ``estimate_points``), and ``completed_probability`` float32 (m,).
     """
@@ -93,6 +95,7 @@ class Estimate:
     classifier_note: str = ''
     symmetric_yaws: list = field(default_factory=list)   # last: positional use stays as it was
     heading_offset: float | None = None
+    n_outliers: int = 0
 
     @property
     def occupancy_variance(self) -> np.ndarray | None:

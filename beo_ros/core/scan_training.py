@@ -223,10 +223,16 @@ def load_scan_training_set(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32,
 def scan_point_descriptors(objs) -> np.ndarray:
     """(m, 2) side-normal descriptors (r4, frac10) of every object of a :class:`ScanObjects`
     from its camera-frame points (sensor at the origin) and its scene's table normal, as
-    ``ModelBank.estimate_points`` computes them (:mod:`beo_ros.core.normals`)."""
+    ``ModelBank.estimate_points`` computes them with its default outlier removal
+    (:mod:`beo_ros.core.normals`, :mod:`beo_ros.core.outliers`)."""
     from .normals import side_normal_descriptors
-    return np.array([side_normal_descriptors(p, u, np.zeros(3))
-                     for p, u in zip(objs.points, objs.ups)], dtype=np.float64).reshape(-1, 2)
+    from .outliers import statistical_outliers
+    out = []
+    for p, u in zip(objs.points, objs.ups):
+        p = np.asarray(p, dtype=np.float64)
+        p = p[np.isfinite(p).all(axis=1)]
+        out.append(side_normal_descriptors(p[~statistical_outliers(p)], u, np.zeros(3)))
+    return np.array(out, dtype=np.float64).reshape(-1, 2)
 
 
 def train_point_classifier(loglik, descriptors, y, n_classes, C=1.0):

@@ -46,6 +46,7 @@ from std_msgs.msg import Header
 from visualization_msgs.msg import Marker, MarkerArray
 
 from beo_ros.core.bank import check_step, parse_class_prior
+from beo_ros.core.outliers import OUTLIER_MADS, OUTLIER_NEIGHBORS
 from beo_ros.core.voxelize import MAX_COORDINATE, MIN_POINTS
 from beo_ros.ros.conversions import (CloudFormatError, cloud_to_xyz, completed_cloud,
                                      estimate_to_msg, interfaces, object_dimensions)
@@ -58,6 +59,7 @@ except ImportError:  # tf2_ros is not on PyPI; parameters are used instead
     tf2_ros = None
 
 DEFAULT_MODEL = 'modelnet10_32'
+MIN_ESTIMATE_TIMEOUT = 1.0  # s; an estimate takes 0.03-0.1 s
 LOG_THROTTLE_SEC = 5.0
 LATENCY_WINDOW = 200  # samples kept per stage for the p50 in diagnostics
 INPUT_RELIABILITY = ('best_effort', 'reliable')
@@ -214,7 +216,7 @@ class BeoNode(Node):
                                'at least one element)') from None
         for name in ('sensor_origin', 'up_vector', 'min_points', 'max_points', 'workers',
                      'worker_processes', 'completion_threshold', 'yaw_step_deg',
-                     'input_reliability'):
+                     'input_reliability', 'estimate_timeout'):
             reason = self._check(name, params[name], params)
             if reason:
                 raise StartupError(f'invalid parameter: {reason}')
@@ -271,6 +273,7 @@ class BeoNode(Node):
             'received', 'processed', 'dropped_stale', 'order_waits', 'rejected',
             'rejected_format',
             'rejected_too_few_points', 'errors', 'downsampled', 'nonfinite_points',
+            'outlier_points',
             'service_calls', 'service_failures', 'worker_restarts', 'worker_timeouts',
             'reload_failures', 'dropped_shutdown', 'service_dropped_shutdown',
             'incompatible_publishers',
@@ -400,6 +403,13 @@ class BeoNode(Node):
                                    MIN_POINTS, 1_000_000))
         d('max_points', 50000, _idesc('More points than this: random downsampling (fixed seed)',
                                       10, 100_000_000))
+        d('outlier_mads', OUTLIER_MADS, _fdesc(
+            'Statistical outlier removal before the voxelization (the extent of the points '
+            'places the grid, so one stray point far away spoils it): a point whose mean '
+            'distance to its outlier_neighbors nearest points is more than this many scaled '
+            'MADs above the median is removed (counted in outlier_points); 0: off', 0.0, 1000.0))
+        d('outlier_neighbors', OUTLIER_NEIGHBORS, _idesc(
+            'Neighbours per point of the outlier removal', 1, 100))
         d('completion_threshold', 0.5, _fdesc(
             'Occupancy probability for a voxel to be in the completed cloud (0 refused)',
             0.0, 1.0))
@@ -423,7 +433,8 @@ class BeoNode(Node):
         d('estimate_timeout', 30.0, _fdesc(
             'Seconds a worker process may take for one estimate (worker_processes > 0 only): '
             'after that its processes are taken for hung, killed and restarted, and the cloud '
-            'counted in errors and worker_timeouts; 0: no limit', 0.0, 3600.0))
+            f'counted in errors and worker_timeouts; 0: no limit, else at least '
+            f'{MIN_ESTIMATE_TIMEOUT:g}', 0.0, 3600.0))
         d('blas_threads', 1, _idesc('Threads of the BLAS library for the node process and '
                                     'each worker process (0: leave its default); parallelism '
                                     'comes from the workers. Read-only', 0, 64, read_only=True))
@@ -432,7 +443,8 @@ class BeoNode(Node):
         return {p: self.get_parameter(p).value for p in (
             'model_dir', 'input_reliability', 'base_frame', 'sensor_origin', 'up_vector',
             'yaw_step_deg',
-            'min_points', 'max_points', 'completion_threshold', 'publish_completed',
+            'min_points', 'max_points', 'outlier_mads', 'outlier_neighbors',
+            'completion_threshold', 'publish_completed',
             'class_prior', 'diagnostics_period', 'workers', 'worker_processes', 'blas_threads',
             'estimate_timeout')}
 
@@ -454,6 +466,11 @@ class BeoNode(Node):
                 check_step(name, value)
             except ValueError as e:
                 return str(e)
+        if name == 'estimate_timeout' and 0 < value < MIN_ESTIMATE_TIMEOUT:
+            # each timeout kills and restarts the worker processes (seconds): a limit below
+            # what an estimate takes would restart them for every cloud
+            return (f'estimate_timeout must be 0 (no limit) or at least '
+                    f'{MIN_ESTIMATE_TIMEOUT:g} s, got {value!r}')
         if name == 'completion_threshold' and not 0 < value <= 1:
             return f'completion_threshold must be in (0, 1], got {value!r}'
         if name == 'workers' and not (isinstance(value, int) and 1 <= value <= 64):
@@ -684,18 +701,25 @@ class BeoNode(Node):
                 time.sleep(0.001)
             self._est_slots.acquire()
         try:
+            outliers = (p['outlier_mads'] or None, p['outlier_neighbors'])
             if self._n_procs:
                 try:
-                    return self._pool_estimate(pts, origin, up, p['yaw_step_deg'], threshold,
-                                               timeout=p['estimate_timeout'] or None)
+                    est, classes = self._pool_estimate(
+                        pts, origin, up, p['yaw_step_deg'], threshold, outliers,
+                        timeout=p['estimate_timeout'] or None)
                 except ValueError as e:
                     raise InputRejected(f'estimator rejected the cloud: {e}') from e
+                self._count('outlier_points', est.n_outliers)
+                return est, classes
             bank = self._bank  # one bank per estimate, even if model_dir is reloaded meanwhile
             try:
                 est = bank.estimate_points(pts, sensor_origin=origin, up=up,
-                                           yaw_step_deg=p['yaw_step_deg'], threshold=threshold)
+                                           yaw_step_deg=p['yaw_step_deg'], threshold=threshold,
+                                           outlier_mads=outliers[0],
+                                           outlier_neighbors=outliers[1])
             except ValueError as e:
                 raise InputRejected(f'estimator rejected the cloud: {e}') from e
+            self._count('outlier_points', est.n_outliers)
             return est, list(bank.classes)
         finally:
             self._est_slots.release()
