@@ -625,6 +625,26 @@ def test_cloud_in_flight_when_rclpy_shuts_down_is_counted_not_an_error(harness1)
         node._pool = None
 
 
+def test_service_answer_too_late_at_shutdown_is_counted(harness1, capfd):
+    """A service call in flight when the executor shuts down: the answer cannot be sent; it
+    is counted in service_dropped_shutdown (and logged at destroy_node), not lost unseen."""
+    harness = harness1
+    node, gated, _ = _gated_node(harness, 1)
+    assert harness.classify.wait_for_service(timeout_sec=TIMEOUT)
+    try:
+        harness.classify.call_async(harness.good_request())
+        gated.wait(lambda g: len(g.entered) == 1)
+        harness.stop.set()        # the executor stops spinning and shuts down, as main's would
+        harness.thread.join(timeout=5.0)
+        harness.executor.shutdown(timeout_sec=1.0)
+    finally:
+        gated.gate.set()
+    c = harness.wait_counter(lambda c: c['service_dropped_shutdown'] == 1)
+    assert c['service_calls'] == 1 and c['errors'] == 0
+    node.destroy_node()
+    assert 'service answer' in capfd.readouterr().err
+
+
 def test_two_workers_keep_latest_cloud_and_in_flight_limit(harness2):
     """Two workers busy with two clouds of one topic: a third waits, newer ones replace it."""
     harness = harness2
@@ -934,9 +954,10 @@ def test_killed_worker_process_is_replaced(harness_procs):
     assert c['errors'] == 0 and c['service_failures'] == 0 and not any(map(_alive, new))
 
 
-def test_hung_worker_process_times_out_and_is_replaced(harness_procs):
+def test_hung_worker_process_times_out_and_is_replaced(harness_procs, capfd):
     """A worker process that stops answering (SIGSTOP): after estimate_timeout its processes
-    are killed and restarted, the cloud counted as an error, and the stream goes on."""
+    are killed and restarted (logged as a timeout, not a death), the cloud counted as an
+    error, and the stream goes on."""
     import signal
     harness = harness_procs
     node = harness.node
@@ -949,6 +970,9 @@ def test_hung_worker_process_times_out_and_is_replaced(harness_procs):
     c = harness.wait_counter(lambda c: c['worker_timeouts'] == 1 and c['worker_restarts'] == 1
                              and c['errors'] == 1)
     assert c['processed'] == 0
+    err = capfd.readouterr().err
+    assert 'an estimate took longer than estimate_timeout' in err, err
+    assert 'a worker process died' not in err
     new = list(node._pool.pids)
     assert len(new) == 2 and set(new).isdisjoint(old)
     end = time.monotonic() + TIMEOUT
