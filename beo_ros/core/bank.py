@@ -1180,12 +1180,12 @@ class ModelBank:
         side-normal descriptors of the remaining points are computed too
         (``timings['point_descriptors']``) and passed to :meth:`estimate`.
         """
-        from .voxelize import MIN_POINTS, _check_points, grid_to_points, unit_direction, voxelize_view
+        from .voxelize import finite_points, grid_to_points, unit_direction, voxelize_view
         if isinstance(threshold, (bool, np.bool_)) or not 0 < threshold <= 1:   # and NaN
             raise ValueError(f'threshold must be an occupancy probability in (0, 1], got '
                              f'{threshold}')
         t0 = time.perf_counter()
-        pts_in = _check_points(points, MIN_POINTS)   # finite rows only
+        pts_in = finite_points(points)
         n_outliers = 0
         if outlier_mads is not None:
             out = statistical_outliers(pts_in, outlier_neighbors, outlier_mads)

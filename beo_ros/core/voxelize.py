@@ -63,6 +63,12 @@ def _check_points(points, min_points: int) -> np.ndarray:
     return pts
 
 
+def finite_points(points, min_points: int = MIN_POINTS) -> np.ndarray:
+    """float64 (m, 3) finite rows of (n, 3) ``points``; ValueError for a wrong shape, fewer than
+    ``min_points`` finite rows or coordinates beyond +-MAX_COORDINATE."""
+    return _check_points(points, min_points)
+
+
 def unit_direction(v, name: str = 'up') -> np.ndarray:
     """(3,) unit vector along ``v`` (finite, largest component at least MIN_DIRECTION); no
     overflow for huge components. ValueError naming ``name`` otherwise."""
