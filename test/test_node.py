@@ -645,6 +645,53 @@ def test_service_answer_too_late_at_shutdown_is_counted(harness1, capfd):
     assert 'service answer' in capfd.readouterr().err
 
 
+def test_second_ctrl_c_during_shutdown_does_not_wait_for_estimates(harness1, capfd):
+    """destroy_node waits up to 30 s for the estimates in flight; a SIGINT during that wait
+    (the user's second Ctrl-C) ends the wait at once, with a warning, and the node is still
+    destroyed (worker processes, BLAS threads) instead of the KeyboardInterrupt escaping."""
+    import signal
+    harness = harness1
+    node, gated, msg = _gated_node(harness, 1)
+    main_ident = threading.main_thread().ident
+    if threading.get_ident() != main_ident:
+        pytest.skip('signals reach the main thread only')
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    def second_ctrl_c():   # once destroy_node waits for the held estimate
+        while not node._stop:
+            time.sleep(0.01)
+        time.sleep(0.2)
+        signal.pthread_kill(main_ident, signal.SIGINT)
+
+    saved = signal.signal(signal.SIGINT, interrupt)
+    killer = threading.Thread(target=second_ctrl_c, daemon=True)
+    try:
+        node._on_cloud(msg, '/beo/input')
+        gated.wait(lambda g: len(g.entered) == 1)
+        harness.stop.set()
+        harness.thread.join(timeout=5.0)
+        killer.start()
+        t0 = time.monotonic()
+        try:
+            node.destroy_node()   # would wait for the gate (up to 30 s) without the signal
+        except KeyboardInterrupt:   # would end the whole pytest session
+            pytest.fail('KeyboardInterrupt escaped destroy_node')
+        waited = time.monotonic() - t0
+        killer.join(timeout=5.0)
+        assert not killer.is_alive()
+        assert gated.entered == [len(box_view())] and not gated.done
+    finally:
+        gated.gate.set()
+        signal.signal(signal.SIGINT, saved)
+    assert waited < 10.0
+    assert 'interrupted again' in capfd.readouterr().err
+    assert not list(node.publishers) and not list(node.services)   # destroyed all the same
+    node._workers[0].join(timeout=TIMEOUT)   # the held estimate ends, nothing is published
+    assert not node._workers[0].is_alive()
+
+
 def test_two_workers_keep_latest_cloud_and_in_flight_limit(harness2):
     """Two workers busy with two clouds of one topic: a third waits, newer ones replace it."""
     harness = harness2
