@@ -494,6 +494,28 @@ def test_stray_points_are_removed_and_counted(harness):
     assert spoilt.max() > 10 * clean.max(), (spoilt, clean)
 
 
+def test_cluster_tolerance_keeps_the_largest_cluster_and_counts_the_rest(harness):
+    node = harness.node
+    req = harness.good_request()
+    clean = _dims(harness.call(harness.classify, req))
+    # a dense blob beside the box (another object the segment caught) is not an outlier
+    blob = np.random.default_rng(3).normal([2.0, 1.5, 0.4], 0.01, size=(60, 3))
+    req.cloud = cloud(np.r_[box_view(), blob])
+    assert node.get_parameter('cluster_tolerance').value == 0.0   # off by default
+    before = node.counters()['off_cluster_points']
+    spoilt = _dims(harness.call(harness.classify, req))
+    assert node.counters()['off_cluster_points'] == before
+    assert spoilt.max() > clean.max() + 0.5, (spoilt, clean)
+    for bad in (-0.1, float('nan'), 1000.0, 'x'):
+        assert not node.set_parameters([Parameter('cluster_tolerance', value=bad)])[0].successful
+    assert node.set_parameters([Parameter('cluster_tolerance', value=0.1)])[0].successful
+    np.testing.assert_allclose(_dims(harness.call(harness.classify, req)), clean, atol=1e-6)
+    assert node.counters()['off_cluster_points'] == before + 60
+    harness.pub.publish(req.cloud)   # the stream path counts them too
+    harness.wait_counter(lambda c: c['off_cluster_points'] == before + 120)
+    assert node.set_parameters([Parameter('cluster_tolerance', value=0.0)])[0].successful
+
+
 def test_class_prior_parameter_is_checked_and_applied_to_the_estimates(harness):
     node = harness.node
 
@@ -896,6 +918,14 @@ def test_worker_processes_estimate_like_in_process(harness_procs, tmp_path):
     r = harness.call(harness.classify, req)
     assert r.success and not np.allclose(pose_to_matrix(r.estimate.pose), ref.pose, atol=1e-3)
     assert node.set_parameters([Parameter('outlier_mads', value=8.0)])[0].successful
+    # so does the largest-cluster filter
+    blob = np.random.default_rng(3).normal([2.0, 1.5, 0.4], 0.01, size=(60, 3))
+    req.cloud = cloud(np.r_[box_view(), blob])
+    assert node.set_parameters([Parameter('cluster_tolerance', value=0.1)])[0].successful
+    before = node.counters()['off_cluster_points']
+    r = harness.call(harness.classify, req)
+    assert r.success and node.counters()['off_cluster_points'] == before + 60, r.message
+    np.testing.assert_allclose(pose_to_matrix(r.estimate.pose), ref.pose, atol=1e-6)
     diag = harness.wait('diag', pred=lambda m: any(
         kv.key == 'worker_processes' for kv in m.status[0].values))[-1].status[0]
     values = {kv.key: kv.value for kv in diag.values}

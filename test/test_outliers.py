@@ -1,9 +1,10 @@
-"""Statistical outlier removal (beo_ros.core.outliers) and its use by estimate_points."""
+"""Outlier removal (beo_ros.core.outliers: statistical, largest cluster) and its use by
+estimate_points."""
 import numpy as np
 import pytest
 
 from beo_ros.core.bank import ModelBank
-from beo_ros.core.outliers import statistical_outliers
+from beo_ros.core.outliers import outside_largest_cluster, statistical_outliers
 from beo_ros.core.synthetic import make_tiny_bank, render_view_points
 
 
@@ -128,3 +129,91 @@ def test_estimate_points_on_a_metric_grid_keeps_a_stray_point_out_of_the_placeme
     with pytest.raises(ValueError, match='none of the'):
         bank.estimate_points(np.r_[pts, [[3.0, 0.0, 0.05]]], sensor_origin=(-0.8, 0.0, 0.5),
                              outlier_mads=None)
+
+
+# ---------------------------------------------------------------- largest cluster
+
+def test_the_largest_cluster_is_kept_and_a_dense_cluster_of_strays_goes():
+    # the cluster the statistical removal keeps (see test_a_cluster_of_strays_stays)
+    rng = np.random.default_rng(1)
+    cluster = rng.normal([5.0, 0, 0], 0.003, size=(20, 3))
+    pts = np.r_[_patch(), cluster]
+    off = outside_largest_cluster(pts, 0.02)
+    assert off[-20:].all() and not off[:-20].any()
+    # order does not matter: the largest wins, wherever it is
+    off = outside_largest_cluster(np.r_[cluster, _patch()], 0.02)
+    assert off[:20].all() and not off[20:].any()
+
+
+def test_cluster_tolerance_bounds():
+    # two lines of points 1 cm apart along x; the lines are `gap` apart along y
+    line = np.c_[np.arange(0, 1, 0.01), np.zeros(100), np.zeros(100)]
+    small = np.c_[np.arange(0, 0.3, 0.01), np.zeros(30), np.zeros(30)]
+    tol = 0.02
+    # closer than the tolerance: joined; beyond 2 sqrt(3) tolerances (0.0693), in any
+    # direction: apart
+    for shift, joined in (([0, 0.0199, 0], True), ([0, 0.0694, 0], False),
+                          ([0, 0.04, 0.057], False), ([0.0401, 0.0401, 0.0401], False),
+                          ([0, 0.1, 0], False)):
+        assert joined or np.linalg.norm(shift) > 2 * np.sqrt(3) * tol
+        off = outside_largest_cluster(np.r_[line, small + shift], tol)
+        assert not off[:100].any()
+        assert (not off[100:].any()) if joined else off[100:].all(), shift
+    # a chain of points each closer than the tolerance is one cluster, however long
+    chain = np.c_[np.arange(0, 10, 0.019), np.zeros(527), np.zeros(527)]
+    assert not outside_largest_cluster(chain, tol).any()
+
+
+def test_equal_clusters_keep_the_one_with_the_first_point():
+    a = np.zeros((10, 3))
+    b = np.full((10, 3), 5.0)
+    off = outside_largest_cluster(np.r_[b, a], 0.1)
+    assert not off[:10].any() and off[10:].all()
+    off = outside_largest_cluster(np.r_[a[:5], b, a[5:]], 0.1)
+    assert off[5:15].all() and not off[:5].any() and not off[15:].any()
+
+
+def test_cluster_of_few_points_and_one_place():
+    assert outside_largest_cluster(np.zeros((0, 3)), 0.1).shape == (0,)
+    assert not outside_largest_cluster(np.zeros((1, 3)), 0.1).any()
+    assert not outside_largest_cluster(np.zeros((7, 3)), 0.1).any()
+    assert outside_largest_cluster(np.array([[0, 0, 0], [1.0, 0, 0]]), 0.1).tolist() == \
+        [False, True]
+
+
+@pytest.mark.parametrize('tol', [0, -1.0, float('nan'), float('inf'), True, 'x', None,
+                                 [0.1, 0.2], 1j])
+def test_bad_cluster_tolerance_is_named(tol):
+    with pytest.raises(ValueError, match='tolerance must be'):
+        outside_largest_cluster(_patch(100), tol)
+
+
+def test_a_tolerance_too_small_for_the_extent_is_named():
+    with pytest.raises(ValueError, match='too small'):
+        outside_largest_cluster(np.array([[0, 0, 0], [1e3, 0, 0]]), 1e-300)
+
+
+@pytest.mark.parametrize('pts', [np.zeros((10, 2)), np.full((10, 3), np.inf), np.zeros(3)])
+def test_bad_points_are_named_by_the_clustering(pts):
+    with pytest.raises(ValueError, match='finite'):
+        outside_largest_cluster(pts, 0.1)
+
+
+def test_estimate_points_keeps_the_largest_cluster_on_request(tiny):
+    # a dense blob 1 m beside the object survives the statistical removal and spoils the
+    # grid; with a cluster_tolerance the answer is the clean cloud's
+    pts, origin = _view(tiny)
+    clean = tiny.estimate_points(pts, sensor_origin=origin)
+    rng = np.random.default_rng(3)
+    blob = rng.normal(pts.mean(axis=0) + [0.0, 1.0, 0.0], 0.005, size=(40, 3))
+    spoilt = tiny.estimate_points(np.r_[pts, blob], sensor_origin=origin)
+    assert spoilt.n_off_cluster == 0 and not np.allclose(spoilt.grid_to_input,
+                                                         clean.grid_to_input)
+    e = tiny.estimate_points(np.r_[pts, blob], sensor_origin=origin, cluster_tolerance=0.05)
+    assert e.n_off_cluster == 40 and e.n_outliers == clean.n_outliers
+    assert clean.n_off_cluster == 0
+    assert e.label == clean.label and e.yaw == pytest.approx(clean.yaw)
+    np.testing.assert_allclose(e.grid_to_input, clean.grid_to_input, atol=1e-9)
+    np.testing.assert_allclose(e.pose, clean.pose, atol=1e-9)
+    with pytest.raises(ValueError, match='tolerance must be'):
+        tiny.estimate_points(pts, sensor_origin=origin, cluster_tolerance=0.0)

@@ -37,7 +37,8 @@ from .calibration import OccupancyCalibration, check_arrays as check_calibration
 from .estimate import UNKNOWN_LABEL, Estimate, Hypothesis
 from .grid import GridSpec, symmetric_turns, wrap_yaw as _wrap, yaw_matrix
 from .inference import FEATURE_NAMES, InferenceEngine, observed_edt, top_modes, top_yaw_modes
-from .outliers import OUTLIER_MADS, OUTLIER_NEIGHBORS, statistical_outliers
+from .outliers import (OUTLIER_MADS, OUTLIER_NEIGHBORS, outside_largest_cluster,
+                       statistical_outliers)
 from .shape import BASIC_NAMES as BASIC_SHAPE_DESCRIPTORS, DESCRIPTOR_NAMES as SHAPE_DESCRIPTORS
 from .shape import shape_descriptors
 from .verifier import TURNS, OrientationVerifier, check_arrays, quarter_turned_features
@@ -1169,14 +1170,19 @@ class ModelBank:
 
     def estimate_points(self, points, sensor_origin=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0),
                         yaw_step_deg=1.0, threshold=0.5, center=None,
-                        outlier_mads=OUTLIER_MADS, outlier_neighbors=OUTLIER_NEIGHBORS):
+                        outlier_mads=OUTLIER_MADS, outlier_neighbors=OUTLIER_NEIGHBORS,
+                        cluster_tolerance=None):
         """Estimate from an (n, 3) cloud in metres (any frame; the sensor at ``sensor_origin``).
 
         The pose and completed points come back in the input frame (see :class:`Estimate`).
         Non-finite points are dropped, then statistical outliers
         (:func:`beo_ros.core.outliers.statistical_outliers` with ``outlier_neighbors`` and
         ``outlier_mads``; None: none removed; ``Estimate.n_outliers`` counts them), as the
-        extent of the points places and scales the grid. With a 'points' classifier the
+        extent of the points places and scales the grid. With a ``cluster_tolerance`` (same
+        unit as the points; None: off) only the largest cluster of the remaining points is
+        kept (:func:`beo_ros.core.outliers.outside_largest_cluster`; counted in
+        ``Estimate.n_off_cluster``): for segments that caught part of another surface or
+        object. With a 'points' classifier the
         side-normal descriptors of the remaining points are computed too
         (``timings['point_descriptors']``) and passed to :meth:`estimate`.
         """
@@ -1191,6 +1197,11 @@ class ModelBank:
             out = statistical_outliers(pts_in, outlier_neighbors, outlier_mads)
             n_outliers = int(out.sum())
             pts_in = pts_in[~out]
+        n_off_cluster = 0
+        if cluster_tolerance is not None:
+            off = outside_largest_cluster(pts_in, cluster_tolerance)
+            n_off_cluster = int(off.sum())
+            pts_in = pts_in[~off]
         t_out = time.perf_counter()
         view = voxelize_view(pts_in, np.asarray(sensor_origin, dtype=np.float64),
                              np.asarray(up, dtype=np.float64), self.spec, center=center)
@@ -1216,6 +1227,7 @@ class ModelBank:
         est.completed_points = np.asarray(pts, dtype=np.float32)
         est.completed_probability = np.asarray(prob, dtype=np.float32)
         est.n_outliers = n_outliers
+        est.n_off_cluster = n_off_cluster
         est.timings['outliers'] = t_out - t0
         est.timings['voxelize'] = t1 - t_out
         if point_features is not None:

@@ -73,6 +73,8 @@ class Estimate:
             (only from ``estimate_points``).
         n_outliers: points removed as statistical outliers before the voxelization (only from
             ``estimate_points``; see :mod:`beo_ros.core.outliers`).
+        n_off_cluster: points removed after them as outside the largest cluster (only from
+            ``estimate_points`` with a ``cluster_tolerance``).
         completed_points: float32 (m,3) centres of voxels with probability >= threshold, input frame
             (only from ``estimate_points``), and ``completed_probability`` float32 (m,).
     """
@@ -96,6 +98,7 @@ class Estimate:
     symmetric_yaws: list = field(default_factory=list)   # last: positional use stays as it was
     heading_offset: float | None = None
     n_outliers: int = 0
+    n_off_cluster: int = 0
 
     @property
     def occupancy_variance(self) -> np.ndarray | None:

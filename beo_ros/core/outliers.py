@@ -1,13 +1,17 @@
-"""Statistical outlier removal for segmented clouds (ROS-free, arrays in and out).
+"""Outlier removal for segmented clouds (ROS-free, arrays in and out).
 
 The grid of :func:`beo_ros.core.voxelize.voxelize_view` is placed (and for 'normalized' grids
 scaled) by the extent of the points, so one stray point far away shrinks the object to a voxel
 or pushes it out of a metric grid; :meth:`beo_ros.core.bank.ModelBank.estimate_points` removes
-such points first.
+such points first (:func:`statistical_outliers`), and on request every cluster of points but
+the largest (:func:`outside_largest_cluster`: a segment that also caught part of something
+else).
 """
 from __future__ import annotations
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 OUTLIER_NEIGHBORS = 8   # neighbours per point
@@ -55,3 +59,49 @@ def statistical_outliers(points, neighbors: int = OUTLIER_NEIGHBORS,
     med = np.median(spread)
     scale = max(1.4826 * np.median(np.abs(spread - med)), MIN_SCALE * med)
     return d > med + cut * scale
+
+
+def outside_largest_cluster(points, tolerance: float) -> np.ndarray:
+    """bool (n,) mask of the (n, 3) finite ``points`` outside their largest cluster.
+
+    Euclidean clustering on cells: the points are binned into cubes of side ``tolerance``
+    (the points' unit, e.g. metres) and cubes that touch (26-neighbourhood) join one cluster.
+    So points closer than ``tolerance`` are always in one cluster, and a gap wider than
+    2 sqrt(3) ``tolerance`` (3.5x) always separates two. The cluster with the most points is
+    kept (on a tie, the one that holds the earliest point); the mask marks all others. Cost:
+    one sort of the cells and a k-d tree over the occupied cells (about 10 ms per 10 000
+    points).
+
+    Raises ValueError for points that are not a finite (n, 3) array or a ``tolerance`` that is
+    not a positive finite number.
+    """
+    try:
+        tol = float(tolerance) if np.ndim(tolerance) == 0 else np.nan
+    except (TypeError, ValueError):
+        tol = np.nan
+    if isinstance(tolerance, (bool, np.bool_, str, bytes)) or not (np.isfinite(tol) and tol > 0):
+        raise ValueError(f'tolerance must be a positive finite number, got {tolerance!r}')
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or not np.isfinite(pts).all():
+        raise ValueError(f'points must be a finite (n, 3) array, got shape {pts.shape}')
+    if len(pts) < 2:
+        return np.zeros(len(pts), dtype=bool)
+    cells = np.floor((pts - pts.min(axis=0)) / tol)
+    if not np.isfinite(cells).all() or cells.max() >= 2.0 ** 52:   # tolerance tiny for the extent
+        raise ValueError(f'tolerance {tol!r} is too small for points spanning '
+                         f'{np.ptp(pts, axis=0).max():.6g}')
+    uniq, cell_of = np.unique(cells, axis=0, return_inverse=True)
+    cell_of = cell_of.reshape(-1)
+    if len(uniq) == 1:
+        return np.zeros(len(pts), dtype=bool)
+    # 26-neighbours are at most sqrt(3) apart in cell units; the next cells are 2 apart
+    pairs = cKDTree(uniq).query_pairs(1.75, output_type='ndarray')
+    graph = coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])),
+                       shape=(len(uniq), len(uniq)))
+    _, comp = connected_components(graph, directed=False)
+    point_comp = comp[cell_of]
+    sizes = np.bincount(point_comp)
+    first = np.full(len(sizes), len(pts))
+    np.minimum.at(first, point_comp, np.arange(len(pts)))
+    largest = np.flatnonzero(sizes == sizes.max())
+    return point_comp != largest[np.argmin(first[largest])]

@@ -273,7 +273,7 @@ class BeoNode(Node):
             'received', 'processed', 'dropped_stale', 'order_waits', 'rejected',
             'rejected_format',
             'rejected_too_few_points', 'errors', 'downsampled', 'nonfinite_points',
-            'outlier_points',
+            'outlier_points', 'off_cluster_points',
             'service_calls', 'service_failures', 'worker_restarts', 'worker_timeouts',
             'reload_failures', 'dropped_shutdown', 'service_dropped_shutdown',
             'incompatible_publishers',
@@ -410,6 +410,11 @@ class BeoNode(Node):
             'MADs above the median is removed (counted in outlier_points); 0: off', 0.0, 1000.0))
         d('outlier_neighbors', OUTLIER_NEIGHBORS, _idesc(
             'Neighbours per point of the outlier removal', 1, 100))
+        d('cluster_tolerance', 0.0, _fdesc(
+            'After the outlier removal keep only the largest cluster of points (m; points '
+            'closer than this are always in one cluster, a gap of 3.5x this always separates '
+            'two), for segments that caught part of another surface or object; the others '
+            'are counted in off_cluster_points; 0: off', 0.0, 100.0))
         d('completion_threshold', 0.5, _fdesc(
             'Occupancy probability for a voxel to be in the completed cloud (0 refused)',
             0.0, 1.0))
@@ -443,7 +448,7 @@ class BeoNode(Node):
         return {p: self.get_parameter(p).value for p in (
             'model_dir', 'input_reliability', 'base_frame', 'sensor_origin', 'up_vector',
             'yaw_step_deg',
-            'min_points', 'max_points', 'outlier_mads', 'outlier_neighbors',
+            'min_points', 'max_points', 'outlier_mads', 'outlier_neighbors', 'cluster_tolerance',
             'completion_threshold', 'publish_completed',
             'class_prior', 'diagnostics_period', 'workers', 'worker_processes', 'blas_threads',
             'estimate_timeout')}
@@ -545,6 +550,12 @@ class BeoNode(Node):
     def _count(self, key, n=1):
         with self._stats_lock:
             self._counters[key] += n
+
+    def _count_removed(self, est):
+        """Count the points the estimator removed before the voxelization."""
+        with self._stats_lock:
+            self._counters['outlier_points'] += est.n_outliers
+            self._counters['off_cluster_points'] += est.n_off_cluster
 
     def _on_incompatible_qos(self, event, topic):
         """A publisher on ``topic`` whose QoS cannot match the subscription's (e.g. a
@@ -701,7 +712,8 @@ class BeoNode(Node):
                 time.sleep(0.001)
             self._est_slots.acquire()
         try:
-            outliers = (p['outlier_mads'] or None, p['outlier_neighbors'])
+            outliers = (p['outlier_mads'] or None, p['outlier_neighbors'],
+                        p['cluster_tolerance'] or None)
             if self._n_procs:
                 try:
                     est, classes = self._pool_estimate(
@@ -709,17 +721,18 @@ class BeoNode(Node):
                         timeout=p['estimate_timeout'] or None)
                 except ValueError as e:
                     raise InputRejected(f'estimator rejected the cloud: {e}') from e
-                self._count('outlier_points', est.n_outliers)
+                self._count_removed(est)
                 return est, classes
             bank = self._bank  # one bank per estimate, even if model_dir is reloaded meanwhile
             try:
                 est = bank.estimate_points(pts, sensor_origin=origin, up=up,
                                            yaw_step_deg=p['yaw_step_deg'], threshold=threshold,
                                            outlier_mads=outliers[0],
-                                           outlier_neighbors=outliers[1])
+                                           outlier_neighbors=outliers[1],
+                                           cluster_tolerance=outliers[2])
             except ValueError as e:
                 raise InputRejected(f'estimator rejected the cloud: {e}') from e
-            self._count('outlier_points', est.n_outliers)
+            self._count_removed(est)
             return est, list(bank.classes)
         finally:
             self._est_slots.release()

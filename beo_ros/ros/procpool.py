@@ -70,14 +70,16 @@ def _ready(delay):
 
 def _estimate(points, origin, up, yaw_step_deg, threshold, outliers, class_prior=None):
     """Estimate in this worker process -> (Estimate without its grids, class names).
-    ``outliers``: (outlier_mads, outlier_neighbors) of ``estimate_points``. ``class_prior``:
+    ``outliers``: (outlier_mads, outlier_neighbors[, cluster_tolerance]) of
+    ``estimate_points``. ``class_prior``:
     the node's current prior (None: the bank's own), so that changing it needs no new
     processes."""
     if class_prior is not None:
         _bank.class_prior = class_prior
     est = _bank.estimate_points(points, sensor_origin=origin, up=up, yaw_step_deg=yaw_step_deg,
                                 threshold=threshold, outlier_mads=outliers[0],
-                                outlier_neighbors=outliers[1])
+                                outlier_neighbors=outliers[1],
+                                cluster_tolerance=outliers[2] if len(outliers) > 2 else None)
     if dataclasses.is_dataclass(est):
         # the node needs neither the (N,N,N) grids nor the features: ~0.3 MB less per result
         est = dataclasses.replace(est, completion=None, variance=None, grid=None, features=None)
@@ -160,7 +162,8 @@ class EstimatorPool:
     def estimate(self, points, origin, up, yaw_step_deg, threshold,
                  outliers=(OUTLIER_MADS, OUTLIER_NEIGHBORS), class_prior=None, timeout=None):
         """Estimate one cloud in a worker process (blocks) -> (Estimate, class names);
-        ``outliers``: (outlier_mads, outlier_neighbors) of ``ModelBank.estimate_points``;
+        ``outliers``: (outlier_mads, outlier_neighbors[, cluster_tolerance]) of
+        ``ModelBank.estimate_points``;
         ``class_prior`` as for ``ModelBank.class_prior`` (None: the bank's own).
 
         Raises ValueError from the core as is, BrokenProcessPool when a process died while the
