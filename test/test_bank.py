@@ -622,6 +622,58 @@ def test_truncated_npz_with_a_matching_checksum_is_named(tmp_path, tiny_dir, cut
             ModelBank.load(q)
 
 
+def test_a_single_array_under_an_npz_name_is_named(tmp_path, tiny_dir):
+    # np.load returns a bare array for an np.save file (it has no context manager): TypeError
+    from beo_ros.core.bank import _sha256
+    p = _copy(tiny_dir, tmp_path)
+    names = sorted(f.name for f in p.glob('class_*.npz')) + ['classifier.npz', 'verifier.npz']
+    for name in names:
+        q = _copy(p, tmp_path / name)
+        with open(q / name, 'wb') as f:
+            np.save(f, np.zeros(3))
+        m = _manifest(q)
+        m['files'][name] = _sha256(q / name)
+        _write_manifest(q, m)
+        with pytest.raises(ModelError, match=f'{name}: unreadable: .*single array'):
+            ModelBank.load(q)
+
+
+@pytest.mark.parametrize('text', ['{"format": ' + '9' * 5000 + '}', '[' * 100000 + ']' * 100000])
+def test_a_manifest_json_cannot_parse_is_named(tmp_path, tiny_dir, text):
+    # an integer of over 4300 digits (ValueError) and deep nesting (RecursionError)
+    from beo_ros.core.bank import is_model_dir
+    p = _copy(tiny_dir, tmp_path)
+    (p / 'manifest.json').write_text(text)
+    with pytest.raises(ModelError, match='manifest.json is not valid JSON'):
+        ModelBank.load(p)
+    assert not is_model_dir(p)
+
+
+@pytest.mark.parametrize('size', ['1e400', 'NaN', '-Infinity', '"16"'])
+def test_a_grid_size_that_is_no_finite_number_is_named(tmp_path, tiny_dir, size):
+    p = _copy(tiny_dir, tmp_path)
+    m = _manifest(p)
+    m['grid']['size'] = '@SIZE@'
+    (p / 'manifest.json').write_text(json.dumps(m).replace('"@SIZE@"', size))
+    with pytest.raises(ModelError, match='manifest.json.*GridSpec.size'):
+        ModelBank.load(p)
+
+
+def test_a_subnormal_noise_variance_is_refused(tmp_path, tiny_dir):
+    # it passed "> 0" and became 0 in float32: NaN scores and completions
+    from beo_ros.core.bank import _sha256
+    p = _copy(tiny_dir, tmp_path)
+    fn = sorted(p.glob('class_00_*.npz'))[0]
+    with np.load(fn) as z:
+        arr = {k: z[k] for k in z.files}
+    np.savez(fn, **dict(arr, noise_variance=np.array(1e-320)))
+    m = _manifest(p)
+    m['files'][fn.name] = _sha256(fn)
+    _write_manifest(p, m)
+    with pytest.raises(ModelError, match=fn.name + '.*noise variances must be positive'):
+        ModelBank.load(p)
+
+
 @pytest.mark.parametrize('noise_map,ok', [(None, True), ('short', False), ('zero', False)])
 def test_optional_noise_map_is_checked(tmp_path, tiny_dir, noise_map, ok):
     # model directories without the per-voxel pose noise (older ones) still load; a bad map is

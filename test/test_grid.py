@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from beo_ros.core.grid import (GridSpec, rotate_grid, symmetric_turns, yaw_error_up_to, yaw_matrix,
-                                yaw_source_index)
+                                wrap_yaw, yaw_source_index)
 
 
 def test_rotate_90_moves_x_to_y_odd_grid():
@@ -113,10 +113,23 @@ def test_rotate_grid_rejects_non_cubes():
     dict(units='metric'), dict(units='metric', voxel_size=-0.1),
     dict(units='metric', voxel_size=float('nan')), dict(fill=0.0), dict(fill=1.5),
     dict(anchor='top'),
+    # not numbers, or not finite: named ValueErrors, not TypeError / OverflowError
+    dict(size=float('inf')), dict(size=float('nan')), dict(size=10 ** 400), dict(size='32'),
+    dict(size=True), dict(fill='1'), dict(fill=None), dict(voxel_size=None),
+    dict(voxel_size=float('nan')), dict(units='metric', voxel_size='0.1'),
 ])
 def test_gridspec_validation(kwargs):
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match='GridSpec'):
         GridSpec(**kwargs)
+
+
+def test_wrap_yaw_stays_below_pi():
+    # np.mod rounds the float just below -pi up to 2 pi: the wrapped yaw came out as +pi
+    just_below = np.nextafter(-np.pi, -np.inf)
+    for y in (just_below, np.deg2rad(-180.00000000000003), np.pi, -np.pi, 3 * np.pi):
+        w = wrap_yaw(y)
+        assert -np.pi <= w < np.pi and w == pytest.approx(-np.pi), y
+    assert wrap_yaw(0.5) == 0.5 and wrap_yaw(-0.5 - 2 * np.pi) == pytest.approx(-0.5)
 
 
 @pytest.mark.parametrize('spec', [

@@ -149,7 +149,7 @@ def is_model_dir(path):
     ``ModelBank.save`` may replace as a whole."""
     try:
         manifest = json.loads((Path(path) / 'manifest.json').read_text())
-    except (OSError, UnicodeDecodeError, ValueError):
+    except (OSError, ValueError, RecursionError):   # ValueError: UnicodeDecodeError too
         return False
     return isinstance(manifest, dict) and manifest.get('format') == FORMAT
 
@@ -417,8 +417,11 @@ def check_class_arrays(arr, d, where, size):
                              f'(W has {k} components)')
     if not all(np.isfinite(a).all() for a in arr.values()):
         raise ModelError(f'{where}: contains NaN or Inf')
-    if not (arr['noise_variance'] > 0 and arr['coarse_noise_variance'] > 0):
-        raise ModelError(f'{where}: noise variances must be positive')
+    tiny = np.finfo(np.float32).tiny   # the model is used in float32: a subnormal becomes 0
+    if not (arr['noise_variance'] >= tiny and arr['coarse_noise_variance'] >= tiny):
+        raise ModelError(f'{where}: noise variances must be positive (at least {tiny:.3g}), got '
+                         f"{float(arr['noise_variance']):.3g} and "
+                         f"{float(arr['coarse_noise_variance']):.3g}")
     if (arr['mean_variance'] < 0).any() or (arr['component_variance'] < 0).any():
         raise ModelError(f'{where}: mean_variance and component_variance must be >= 0')
     C = arr['loading_covariance'].astype(np.float64)
@@ -433,6 +436,15 @@ def check_class_arrays(arr, d, where, size):
 UNREADABLE = (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error)
 
 
+def _load_npz(fp):
+    """``np.load`` of an npz archive (no pickles); ValueError (in UNREADABLE) for a single
+    array saved with ``np.save``, which ``np.load`` returns as is."""
+    z = np.load(fp, allow_pickle=False)
+    if not isinstance(z, np.lib.npyio.NpzFile):
+        raise ValueError('a single array (an .npy file?), not an npz archive')
+    return z
+
+
 def _optional_arrays(path, files, name, check):
     """The arrays of the optional file ``name`` of model directory ``path``, or None when the
     manifest's ``files`` do not list it; ModelError when it is unreadable or when
@@ -441,7 +453,7 @@ def _optional_arrays(path, files, name, check):
         return None
     fp = path / name
     try:
-        with np.load(fp, allow_pickle=False) as z:
+        with _load_npz(fp) as z:
             arrays = {k: z[k] for k in z.files}
     except UNREADABLE as e:
         raise ModelError(f'{fp}: unreadable: {type(e).__name__}: {e}') from None
@@ -679,8 +691,10 @@ class ModelBank:
             raise ModelError(f'{mf} is missing: not a beo_ros model directory')
         try:
             manifest = json.loads(mf.read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-            raise ModelError(f'{mf} is not valid JSON: {e}') from None
+        except (OSError, ValueError, RecursionError) as e:
+            # ValueError: JSONDecodeError, UnicodeDecodeError, integers of over 4300 digits;
+            # RecursionError: arrays nested thousands deep
+            raise ModelError(f'{mf} is not valid JSON: {type(e).__name__}: {e}') from None
         if not isinstance(manifest, dict) or manifest.get('format') != FORMAT:
             raise ModelError(f'{mf}: format is not {FORMAT!r}')
         if manifest.get('version') != VERSION:
@@ -720,7 +734,7 @@ class ModelBank:
             if fp.name not in files:
                 raise ModelError(f'{fp} for class {name!r} is not listed in the manifest')
             try:
-                with np.load(fp, allow_pickle=False) as z:
+                with _load_npz(fp) as z:
                     arr = {k: z[k] for k in CLASS_KEYS}
                     arr.update({k: z[k] for k in OPTIONAL_CLASS_KEYS if k in z.files})
             except KeyError as e:
@@ -745,7 +759,7 @@ class ModelBank:
         if 'classifier.npz' in files:
             fp = path / 'classifier.npz'
             try:
-                with np.load(fp, allow_pickle=False) as z:
+                with _load_npz(fp) as z:
                     classifier = {}
                     for key in z.files:
                         mode, name = key.split('__', 1)

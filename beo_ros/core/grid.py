@@ -38,15 +38,19 @@ class GridSpec:
     anchor: str = 'center'
 
     def __post_init__(self):
-        if (isinstance(self.size, (bool, np.bool_)) or not isinstance(self.size, (int, np.integer, float))
-                or int(self.size) != self.size or not 4 <= self.size <= 256):
+        size = _real(self.size)
+        if not (isinstance(self.size, (int, np.integer)) or np.isfinite(size)) \
+                or not 4 <= size <= 256 or int(size) != size:
             raise ValueError(f'GridSpec.size must be an integer in [4, 256], got {self.size!r}')
-        object.__setattr__(self, 'size', int(self.size))   # 32.0 from a manifest -> 32
+        object.__setattr__(self, 'size', int(size))   # 32.0 from a manifest -> 32
         if self.units not in UNITS:
             raise ValueError(f'GridSpec.units must be one of {UNITS}, got {self.units!r}')
-        if self.units == 'metric' and not (np.isfinite(self.voxel_size) and self.voxel_size > 0):
+        voxel_size = _real(self.voxel_size)
+        if self.units == 'metric' and not (np.isfinite(voxel_size) and voxel_size > 0):
             raise ValueError(f'metric GridSpec needs voxel_size > 0, got {self.voxel_size!r}')
-        if not 0 < self.fill <= 1:
+        if np.isnan(voxel_size):
+            raise ValueError(f'GridSpec.voxel_size must be a number, got {self.voxel_size!r}')
+        if not 0 < _real(self.fill) <= 1:
             raise ValueError(f'GridSpec.fill must be in (0, 1], got {self.fill!r}')
         if self.anchor not in ANCHORS:
             raise ValueError(f'GridSpec.anchor must be one of {ANCHORS}, got {self.anchor!r}')
@@ -64,6 +68,16 @@ class GridSpec:
         return cls(**known)
 
 
+def _real(value) -> float:
+    """``value`` as a float when it is a real number (not a bool or string), else NaN."""
+    if isinstance(value, (bool, np.bool_, str, bytes)) or np.ndim(value) != 0:
+        return np.nan
+    try:
+        return float(value)
+    except (TypeError, ValueError, OverflowError):   # OverflowError: an int beyond float
+        return np.nan
+
+
 def yaw_matrix(yaw: float) -> np.ndarray:
     """(3, 3) right-handed rotation by ``yaw`` radians about +z."""
     c, s = np.cos(yaw), np.sin(yaw)
@@ -72,7 +86,8 @@ def yaw_matrix(yaw: float) -> np.ndarray:
 
 def wrap_yaw(yaw) -> float:
     """A yaw in radians as a float in [-pi, pi)."""
-    return float(np.mod(yaw + np.pi, 2 * np.pi) - np.pi)
+    y = float(np.mod(yaw + np.pi, 2 * np.pi) - np.pi)
+    return -np.pi if y >= np.pi else y   # np.mod rounds a yaw just below -pi up to 2 pi
 
 
 def yaw_error(a, b):
