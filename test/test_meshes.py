@@ -77,6 +77,33 @@ def test_load_mesh_formats_and_errors(tmp_path):
     assert issubclass(MeshError, ValueError)
 
 
+def test_vertices_no_triangle_uses_do_not_count(tmp_path):
+    # many ModelNet OFF files keep such vertices; one far away shrank the object to 2 voxels
+    box = trimesh.creation.box((1, 2, 4))
+    ref = voxelize_mesh(box)
+    with_far = trimesh.Trimesh(np.r_[box.vertices, [[1e9, 1e9, 1e9]]], box.faces, process=False)
+    np.testing.assert_array_equal(voxelize_mesh(with_far), ref)
+    np.testing.assert_allclose(mesh_to_grid_transform(with_far), mesh_to_grid_transform(box))
+    path = tmp_path / 'far.off'
+    with_far.export(path)
+    m = load_mesh(path)
+    assert len(m.vertices) == 8
+    np.testing.assert_array_equal(voxelize_mesh(m), ref)
+    # a NaN vertex that no triangle uses does not matter either; a used one is refused
+    path.write_text('OFF\n4 1 0\n0 0 0\n1 0 0\n0 1 1\nnan nan nan\n3 0 1 2\n')
+    assert len(load_mesh(path).vertices) == 3
+    path.write_text('OFF\n3 1 0\n0 0 0\n1 0 0\nnan 1 1\n3 0 1 2\n')
+    with pytest.raises(MeshError, match='non-finite'):
+        load_mesh(path)
+
+
+@pytest.mark.parametrize('kw', [dict(density=float('nan')), dict(density=-1.0), dict(density=0),
+                                dict(density='32'), dict(seed='a'), dict(seed=1.5)])
+def test_voxelize_mesh_names_bad_density_and_seed(kw):
+    with pytest.raises(ValueError, match=next(iter(kw)) + ' must be'):
+        voxelize_mesh(trimesh.creation.box((1, 1, 1)), 16, **kw)
+
+
 @pytest.mark.skipif(not MESHES, reason=f'shared meshes not found under {DATA}')
 @pytest.mark.parametrize('path', MESHES, ids=[p.stem for p in MESHES])
 def test_modelnet_meshes(path):

@@ -217,3 +217,14 @@ def test_estimate_points_keeps_the_largest_cluster_on_request(tiny):
     np.testing.assert_allclose(e.pose, clean.pose, atol=1e-9)
     with pytest.raises(ValueError, match='tolerance must be'):
         tiny.estimate_points(pts, sensor_origin=origin, cluster_tolerance=0.0)
+
+
+@pytest.mark.parametrize('name, value', [
+    ('sensor_origin', 'abc'), ('sensor_origin', None), ('sensor_origin', [0, 0]),
+    ('up', [1, 'x', 2]), ('up', (0, 0, 10 ** 400)), ('up', (0, 0, 0))])
+def test_estimate_points_names_a_bad_sensor_origin_or_up(tiny, name, value):
+    # 'abc' was numpy's "could not convert string to float", naming neither
+    pts, origin = _view(tiny)
+    kw = {'sensor_origin': origin, name: value}
+    with pytest.raises(ValueError, match=name + ' must be'):
+        tiny.estimate_points(pts, **kw)

@@ -117,6 +117,33 @@ def test_malformed_files(tmp_path, content, match):
         read_pcd(path)
 
 
+def test_tab_separated_header_is_read(tmp_path):
+    # PCL splits header lines on any whitespace
+    path = tmp_path / 'tabs.pcd'
+    path.write_bytes(HEADER.replace(' ', '\t').encode() + b'DATA\tascii\n1 2 3\n4 5 6\n')
+    np.testing.assert_array_equal(read_pcd(path).xyz(), [[1, 2, 3], [4, 5, 6]])
+
+
+@pytest.mark.parametrize('count', ['100000000000', '65537', '0', '-1'])
+def test_implausible_count_is_named(tmp_path, count):
+    # COUNT 1e11 made numpy raise "dimension does not fit into a C int"
+    path = tmp_path / 'count.pcd'
+    path.write_bytes(HEADER.replace('COUNT 1 1 1', f'COUNT {count} 1 1').encode()
+                     + b'DATA binary\n' + b'\x00' * 24)
+    with pytest.raises(PCDError, match="field 'x' has COUNT"):
+        read_pcd(path)
+
+
+def test_xyz_of_a_field_with_count_2_is_named(tmp_path):
+    path = tmp_path / 'c2.pcd'
+    path.write_bytes(HEADER.replace('COUNT 1 1 1', 'COUNT 2 1 1').encode()
+                     + b'DATA ascii\n1 1 2 3\n4 4 5 6\n')
+    pcd = read_pcd(path)
+    assert pcd['x'].shape == (2, 2)
+    with pytest.raises(PCDError, match="'x' has COUNT 2"):
+        pcd.xyz()
+
+
 def test_missing_file_and_bad_write(tmp_path):
     with pytest.raises(PCDError, match='no such file'):
         read_pcd(tmp_path / 'nope.pcd')

@@ -72,6 +72,34 @@ def test_load_scene_from_pcd(tmp_path):
         load_scene(tmp_path / 'bad.pcd')
 
 
+@pytest.mark.parametrize('label_type,values,match', [
+    ('I', b'-1', 'not integers'),          # a cast wrapped it to 4294967295: an object label
+    ('F', b'nan', 'not integers'), ('F', b'20.5', 'not integers'), ('F', b'-3', 'not integers'),
+])
+def test_load_scene_refuses_labels_that_are_not_label_numbers(tmp_path, label_type, values,
+                                                               match):
+    path = tmp_path / 'lab.pcd'
+    path.write_bytes(b'FIELDS x y z label\nSIZE 4 4 4 4\nTYPE F F F ' + label_type.encode()
+                     + b'\nCOUNT 1 1 1 1\nWIDTH 2\nHEIGHT 1\nDATA ascii\n0 0 1 20\n0 0 1 '
+                     + values + b'\n')
+    with pytest.raises(PCDError, match=r'lab\.pcd: label field .*' + match):
+        load_scene(path)
+    # float labels that are whole numbers are fine
+    path.write_bytes(b'FIELDS x y z label\nSIZE 4 4 4 4\nTYPE F F F F\nCOUNT 1 1 1 1\n'
+                     b'WIDTH 2\nHEIGHT 1\nDATA ascii\n0 0 1 20\n0 0 1 31.0\n')
+    assert load_scene(path).labels.tolist() == [20, 31]
+
+
+@pytest.mark.parametrize('field', ['x', 'label'])
+def test_load_scene_refuses_fields_with_count_2(tmp_path, field):
+    counts = {'x': b'2 1 1 1', 'label': b'1 1 1 2'}[field]
+    path = tmp_path / 'c2.pcd'
+    path.write_bytes(b'FIELDS x y z label\nSIZE 4 4 4 4\nTYPE F F F U\nCOUNT ' + counts
+                     + b'\nWIDTH 1\nHEIGHT 1\nDATA ascii\n0 0 1 1 20\n')
+    with pytest.raises(PCDError, match=rf"c2\.pcd: field '{field}' has COUNT 2"):
+        load_scene(path)
+
+
 def test_segment_objects():
     scene, _, _ = synthetic_scene()
     objs = segment_objects(scene)

@@ -1217,8 +1217,7 @@ class ModelBank:
             n_off_cluster = int(off.sum())
             pts_in = pts_in[~off]
         t_out = time.perf_counter()
-        view = voxelize_view(pts_in, np.asarray(sensor_origin, dtype=np.float64),
-                             np.asarray(up, dtype=np.float64), self.spec, center=center)
+        view = voxelize_view(pts_in, sensor_origin, up, self.spec, center=center)
         t1 = time.perf_counter()
         up = unit_direction(up, 'up')   # valid: voxelize_view has checked it
         point_features = None

@@ -38,6 +38,8 @@ def load_mesh(path) -> trimesh.Trimesh:
         raise MeshError(f'{path}: cannot parse mesh ({type(exc).__name__}: {exc})') from exc
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise MeshError(f'{path}: mesh has no triangles')
+    # vertices no triangle uses (left over in many ModelNet files) would set the extent
+    mesh.remove_unreferenced_vertices()
     v = np.asarray(mesh.vertices)
     if not np.isfinite(v).all():
         raise MeshError(f'{path}: mesh has non-finite vertices')
@@ -46,9 +48,18 @@ def load_mesh(path) -> trimesh.Trimesh:
     return mesh
 
 
-def mesh_to_grid_transform(mesh, size: int = 32) -> np.ndarray:
-    """float64 (4, 4) mapping mesh coordinates to continuous grid index coordinates."""
+def _used_vertices(mesh) -> np.ndarray:
+    """float64 (m, 3) vertices of ``mesh`` that a triangle uses."""
     v = np.asarray(mesh.vertices, dtype=np.float64)
+    return v[np.unique(np.asarray(mesh.faces))] if len(mesh.faces) else v[:0]
+
+
+def mesh_to_grid_transform(mesh, size: int = 32) -> np.ndarray:
+    """float64 (4, 4) mapping mesh coordinates to continuous grid index coordinates (the
+    extent of the vertices the triangles use fills the grid's largest side)."""
+    v = _used_vertices(mesh)
+    if len(v) == 0:
+        raise MeshError('mesh has no triangles')
     lo, hi = v.min(axis=0), v.max(axis=0)
     largest = float((hi - lo).max())
     if not np.isfinite(largest) or largest <= 0:
@@ -76,12 +87,17 @@ def voxelize_mesh(mesh, size: int = 32, fill: bool = True, density: float = 32.0
             and int(size) == size and size >= 2):
         raise ValueError(f'size must be an integer >= 2, got {size!r}')
     size = int(size)
+    if not (isinstance(density, numbers.Real) and not isinstance(density, bool)
+            and np.isfinite(density) and density > 0):
+        raise ValueError(f'density must be a positive finite number, got {density!r}')
+    if not (isinstance(seed, numbers.Integral) and not isinstance(seed, bool)) and seed is not None:
+        raise ValueError(f'seed must be an integer or None, got {seed!r}')
     t = mesh_to_grid_transform(mesh, size)
     v = np.asarray(mesh.vertices, dtype=np.float64) @ t[:3, :3].T + t[:3, 3]
     scaled = trimesh.Trimesh(v, np.asarray(mesh.faces), process=False)
     count = int(min(max(scaled.area * density, 1000), 4_000_000))
     samples, _ = trimesh.sample.sample_surface(scaled, count, seed=seed)
-    pts = np.concatenate([samples, v])
+    pts = np.concatenate([samples, _used_vertices(scaled)])
     # points exactly on a voxel boundary go to the voxel nearer the grid centre, so an
     # axis-aligned box of extent k voxels fills exactly k voxels
     bias = 1e-6 * np.sign(pts - (size - 1) / 2.0)

@@ -18,6 +18,7 @@ _TYPES = {('I', 1): 'i1', ('I', 2): '<i2', ('I', 4): '<i4', ('I', 8): '<i8',
           ('U', 1): 'u1', ('U', 2): '<u2', ('U', 4): '<u4', ('U', 8): '<u8',
           ('F', 4): '<f4', ('F', 8): '<f8'}
 _MAX_HEADER_LINES = 64
+MAX_COUNT = 1 << 16   # values per field and point (PCL descriptors have a few hundred)
 PADDING = '_'   # PCL's name for padding fields; may repeat, never returned
 
 
@@ -54,7 +55,12 @@ class PCDData:
         return self.width * self.height
 
     def xyz(self) -> np.ndarray:
-        """(n, 3) float array of the x, y, z fields."""
+        """(n, 3) float array of the x, y, z fields; PCDError unless each has COUNT 1."""
+        for k in 'xyz':
+            if k not in self.fields:
+                raise PCDError(f'no {k!r} field')
+            if self.fields[k].ndim != 1:
+                raise PCDError(f'field {k!r} has COUNT {self.fields[k].shape[1]}, not 1')
         return np.stack([self.fields[k] for k in 'xyz'], axis=1)
 
 
@@ -161,8 +167,8 @@ def _parse_header(f, path) -> tuple:
             raise PCDError(f'{path}: header is not ASCII text (not a PCD file?)') from None
         if not line or line.startswith('#'):
             continue
-        key, _, rest = line.partition(' ')
-        header[key.upper()] = rest.split()
+        key, *rest = line.split()   # spaces or tabs, as PCL reads it
+        header[key.upper()] = rest
         if key.upper() == 'DATA':
             return header
     raise PCDError(f'{path}: no DATA line in the first {_MAX_HEADER_LINES} header lines')
@@ -194,8 +200,8 @@ def _layout(header: dict, path) -> tuple:
     for name, t, s, c in zip(names, types, sizes, counts):
         if (t, s) not in _TYPES:
             raise PCDError(f'{path}: field {name!r} has unsupported TYPE {t} SIZE {s}')
-        if c < 1:
-            raise PCDError(f'{path}: field {name!r} has COUNT {c} < 1')
+        if not 1 <= c <= MAX_COUNT:
+            raise PCDError(f'{path}: field {name!r} has COUNT {c}, not in [1, {MAX_COUNT}]')
         dtypes.append(np.dtype(_TYPES[(t, s)]))
     if width < 0 or height < 0:
         raise PCDError(f'{path}: bad WIDTH {width} / HEIGHT {height}')
@@ -267,7 +273,11 @@ def read_pcd(path) -> PCDData:
                 fields[name] = _shape(values, c)
             col += c
     elif kind == 'binary':
-        rec = np.dtype([(f'f{i}', dt, (c,)) for i, (dt, c) in enumerate(zip(dtypes, counts))])
+        try:
+            rec = np.dtype([(f'f{i}', dt, (c,)) for i, (dt, c) in enumerate(zip(dtypes, counts))])
+        except (ValueError, OverflowError) as e:   # a point record beyond numpy's limits
+            raise PCDError(f'{path}: the header describes points numpy cannot hold: {e}') \
+                from None
         need = rec.itemsize * n
         if len(body) < need:
             raise PCDError(f'{path}: binary data has {len(body)} bytes, expected {need}')

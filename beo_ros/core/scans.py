@@ -53,17 +53,39 @@ def load_scene(path, require_labels: bool = True) -> Scene:
         raise PCDError(f'{path}: no label field (a segmented scene is needed: labels 1-9 the '
                        f'table, >= {FIRST_OBJECT_LABEL} the objects)')
     n = pcd.n_points
-    pts = pcd.xyz().astype(np.float32)
-    labels = pcd['label'].astype(np.uint32).reshape(n) if 'label' in pcd else np.zeros(n, np.uint32)
+    try:
+        pts = pcd.xyz().astype(np.float32)
+    except PCDError as e:
+        raise PCDError(f'{path}: {e}') from None
+    for key in ('label', 'rgba', 'rgb'):
+        if key in pcd and pcd[key].ndim != 1:
+            raise PCDError(f'{path}: field {key!r} has COUNT {pcd[key].shape[1]}, not 1')
+    labels = _labels(pcd['label'], path) if 'label' in pcd else np.zeros(n, np.uint32)
     rgb = np.zeros((n, 3), np.uint8)
     for key in ('rgba', 'rgb'):
         if key in pcd:
-            v = pcd[key].reshape(n)
+            v = pcd[key]
             v = v.view(np.uint32) if v.dtype.itemsize == 4 else v.astype(np.uint32)
             rgb = np.stack([(v >> 16) & 255, (v >> 8) & 255, v & 255], axis=1).astype(np.uint8)
             break
     return Scene(points=pts, labels=labels, rgb=rgb, width=pcd.width, height=pcd.height,
                  path=os.fspath(path))
+
+
+def _labels(values, path) -> np.ndarray:
+    """uint32 labels from a label field of any numeric type; PCDError for values that are not
+    integers in [0, 2^32) (a cast would wrap -1 to 4294967295, an object label)."""
+    v = np.asarray(values)
+    if v.dtype.kind == 'f':
+        bad = ~np.isfinite(v) | (v != np.round(v))
+    else:
+        bad = np.zeros(v.shape, bool)
+    with np.errstate(invalid='ignore'):
+        bad |= (v < 0) | (v > np.iinfo(np.uint32).max)
+    if bad.any():
+        raise PCDError(f'{path}: label field has {int(bad.sum())} value(s) that are not integers '
+                       f'in [0, 2^32), e.g. {v[bad][0]!r}')
+    return v.astype(np.uint32)
 
 
 def _finite(points) -> np.ndarray:

@@ -76,7 +76,10 @@ def unit_direction(v, name: str = 'up') -> np.ndarray:
 
 
 def _check_vec(v, name: str, unit: bool = False) -> np.ndarray:
-    v = np.asarray(v, dtype=np.float64)
+    try:
+        v = np.asarray(v, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError):   # e.g. 'abc', [1, 'x', 2], None
+        raise ValueError(f'{name} must be a finite 3-vector, got {v!r}') from None
     if v.shape != (3,) or not np.isfinite(v).all():
         raise ValueError(f'{name} must be a finite 3-vector, got {np.asarray(v)!r}')
     if unit:
