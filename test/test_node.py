@@ -325,6 +325,23 @@ def test_clouds_are_taken_while_a_service_call_is_served(ros_context, ros_tiny_m
         assert c['service_calls'] == 1 and c['service_failures'] == 0, c
 
 
+def test_a_burst_of_service_calls_is_answered_in_full(ros_context, ros_tiny_model_dir):
+    """40 calls at once: with the default service QoS (the last 10 requests kept) the
+    middleware dropped most of them before the executor took them: unanswered, uncounted."""
+    from beo_interfaces.srv import Classify
+    with product_spun(ros_context, ros_tiny_model_dir) as (node, client):
+        classify = client.create_client(Classify, '/beo/classify')
+        assert classify.wait_for_service(timeout_sec=TIMEOUT)
+        req = Classify.Request()
+        req.cloud = cloud(box_view(n=600))
+        futures = [classify.call_async(req) for _ in range(40)]
+        _until(lambda: all(f.done() for f in futures), 60.0)
+        assert sum(f.done() for f in futures) == 40, node.counters()
+        assert all(f.result().success for f in futures)
+        c = node.counters()
+        assert c['service_calls'] == 40 and c['service_failures'] == 0, c
+
+
 def test_reliable_input_takes_reliable_publishers_and_counts_the_others(ros_context,
                                                                         ros_tiny_model_dir):
     from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -665,6 +682,28 @@ def test_service_answer_too_late_at_shutdown_is_counted(harness1, capfd):
     assert c['service_calls'] == 1 and c['errors'] == 0
     node.destroy_node()
     assert 'service answer' in capfd.readouterr().err
+
+
+def test_a_cloud_waiting_at_shutdown_is_counted(harness1, capfd):
+    """A cloud no worker has taken when the node shuts down is counted in dropped_shutdown
+    and logged, so the counters still add up (it stayed in its slot, uncounted)."""
+    harness = harness1
+    node, gated, msg = _gated_node(harness, 1)
+    node._on_cloud(msg, '/beo/input')
+    gated.wait(lambda g: len(g.entered) == 1)   # the one worker is busy with it
+    node._on_cloud(msg, '/beo/input2')          # waits for a worker
+    harness.stop.set()
+    harness.thread.join(timeout=5.0)
+    threading.Timer(0.3, gated.gate.set).start()   # the busy worker finishes meanwhile
+    try:
+        node.destroy_node()
+    finally:
+        gated.gate.set()
+    c = node.counters()
+    assert c['received'] == 2 and not node._slots, c
+    assert c['dropped_shutdown'] >= 1, c
+    assert c['processed'] + c['dropped_shutdown'] + c['errors'] == 2, c
+    assert 'received but not published' in capfd.readouterr().err
 
 
 def test_second_ctrl_c_during_shutdown_does_not_wait_for_estimates(harness1, capfd):

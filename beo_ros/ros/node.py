@@ -329,9 +329,14 @@ class BeoNode(Node):
             self._topics.append(topic)
         self._topic_index = {t: i for i, t in enumerate(self._topics)}
 
+        # the default service QoS keeps the last 10 requests: of a burst of 40 calls the
+        # middleware dropped 29 before the executor took them, unanswered and uncounted
+        svc_qos = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
         self._srv_classify = self.create_service(srvs.Classify, '~/classify', self._on_classify,
+                                                 qos_profile=svc_qos,
                                                  callback_group=self._svc_group)
         self._srv_complete = self.create_service(srvs.Complete, '~/complete', self._on_complete,
+                                                 qos_profile=svc_qos,
                                                  callback_group=self._svc_group)
         self._diag_timer = self.create_timer(self.get_parameter('diagnostics_period').value,
                                              self._publish_diagnostics,
@@ -595,7 +600,7 @@ class BeoNode(Node):
                 while not self._slots and not self._stop:
                     self._cond.wait()
                 if self._stop:
-                    return
+                    return   # clouds still waiting are counted by destroy_node
                 topic = min(self._slots, key=lambda t: self._slots[t][1])  # oldest first
                 msg, t_recv = self._slots.pop(topic)
                 ticket = self._tickets[topic]
@@ -1080,6 +1085,9 @@ class BeoNode(Node):
             with cond:
                 self._stop = True
                 cond.notify_all()
+                waiting = len(self._slots)   # taken by no worker: they stop before the next
+                self._slots.clear()
+            self._count('dropped_shutdown', waiting)
         deadline = time.monotonic() + 30.0
         with self._svc_threads_lock:
             threads = list(self._workers) + list(self._svc_threads)
@@ -1114,7 +1122,8 @@ class BeoNode(Node):
         # not on the node's logger: its /rosout publisher may be gone with the context
         lost = self._counters['dropped_shutdown']
         if lost:
-            log.info(f'{lost} cloud(s) estimated while shutting down were not published')
+            log.info(f'{lost} cloud(s) received but not published: waiting for a worker or '
+                     'estimated while shutting down')
         lost = self._counters['service_dropped_shutdown']
         if lost:
             log.info(f'{lost} service answer(s) computed while shutting down could not be '
