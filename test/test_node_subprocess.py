@@ -111,6 +111,58 @@ def test_node_process_streams_and_stops_on_sigint(ros_tiny_model_dir, ros_domain
     assert '2 worker process(es)' in err, err     # config/beo.yaml's workers, namespaced
 
 
+@pytest.mark.usefixtures('ros_interfaces')
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
+def test_signal_to_the_group_while_worker_processes_start(ros_domain_id, sig):
+    """Ctrl-C (or docker stop's SIGTERM) reaches the whole process group while the worker
+    processes import and read their copy of the models: the node exits, quietly. (They died
+    half-way through reading, and the node waited for ever writing the rest of the models.)
+    The shipped model: its pickle is larger than a pipe's buffer, the tiny one's is not."""
+    proc = subprocess.Popen(
+        node_command() + ['--ros-args', '--params-file', str(CONFIG)],
+        env=node_env(ros_domain_id), cwd=ROOT, stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE, text=True, start_new_session=True)
+    lines = []
+    spawning = threading.Event()
+
+    def read():
+        for line in proc.stderr:
+            lines.append(line)
+            if 'class prior' in line:   # the next step spawns the processes
+                spawning.set()
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    try:
+        assert spawning.wait(60), ''.join(lines)
+        time.sleep(0.5)   # the processes are importing (seconds)
+        assert proc.poll() is None, ''.join(lines)
+        os.killpg(proc.pid, sig)
+        rc = proc.wait(timeout=30)
+    except subprocess.TimeoutExpired:
+        pytest.fail('the node did not exit:\n' + ''.join(lines))
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    reader.join(timeout=5)
+    err = ''.join(lines)
+    assert rc == 0, err
+    assert 'Traceback' not in err, err
+    assert 'worker process(es) ready' not in err   # it was stopped while they started
+    end = time.monotonic() + 10
+    while time.monotonic() < end:   # the processes go with it
+        try:
+            os.killpg(proc.pid, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.1)
+    else:
+        ps = subprocess.run(['ps', '-o', 'pid,stat,etime,args', '-g', str(proc.pid)],
+                            capture_output=True, text=True).stdout
+        pytest.fail(f'processes of the node outlived it:\n{ps}')
+
+
 def test_config_lists_every_parameter_with_its_default():
     cfg = yaml.safe_load(CONFIG.read_text())['/**/beo']['ros__parameters']
     src = (ROOT / 'beo_ros' / 'ros' / 'node.py').read_text()

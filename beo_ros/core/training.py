@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import signal
 import sys
 import time
 import warnings
@@ -97,6 +99,12 @@ def _verifier_chunk(args):
     return np.vstack(F), np.array(turn), np.array(obj)
 
 
+def _quiet_on_sigint():
+    """Process-pool initializer: Ctrl-C (sent to the whole process group) ends the worker at
+    once and without a traceback; the parent reports the interruption in one line."""
+    signal.signal(signal.SIGINT, lambda signum, frame: os._exit(128 + signal.SIGINT))
+
+
 def verifier_training_set(X, n, views=6, seed=0, processes=1, verbose=False):
     """Rows for the orientation verifier from objects X (m, n^3) in their canonical pose:
     ``views`` random partial views of each (the evaluation protocol), each turned into the
@@ -110,7 +118,7 @@ def verifier_training_set(X, n, views=6, seed=0, processes=1, verbose=False):
               for i in range(0, len(X), VERIFIER_CHUNK)]
     if processes > 1:
         from concurrent.futures import ProcessPoolExecutor
-        with ProcessPoolExecutor(processes) as ex:
+        with ProcessPoolExecutor(processes, initializer=_quiet_on_sigint) as ex:
             parts = list(progress_bar(ex.map(_verifier_chunk, chunks), 'verifier views',
                                       total=len(chunks), disable=not verbose))
     else:

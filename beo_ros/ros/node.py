@@ -260,6 +260,8 @@ class BeoNode(Node):
             try:
                 self._pool = self._new_pool(bank)
             except Exception as e:
+                if not self.context.ok():   # e.g. a SIGTERM to the group ended the processes
+                    raise ExternalShutdownException() from None
                 raise StartupError(f'cannot start {self._n_procs} worker process(es) '
                                    f'({type(e).__name__}: {e}); a script that creates the '
                                    "node needs the if __name__ == '__main__': guard") from e

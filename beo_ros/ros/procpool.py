@@ -7,6 +7,7 @@ Everything here is picklable and ROS-free: the processes import only ``beo_ros.c
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import multiprocessing
 import os
@@ -46,10 +47,28 @@ def warm_up_points() -> np.ndarray:
     return pts
 
 
-def _init(bank, blas_threads):
+def _die_with(parent_pid):
+    """End this process within a second of the node (``parent_pid``) ending, however it ends:
+    a process the node had not registered yet when it was interrupted would otherwise wait
+    for tasks for ever. (Not PR_SET_PDEATHSIG: that fires when the *thread* that spawned the
+    process ends, and model reloads spawn from threads that end.)"""
+    def watch():
+        while os.getppid() == parent_pid:
+            time.sleep(1.0)
+        os._exit(0)
+
+    threading.Thread(target=watch, name='beo_parent_watch', daemon=True).start()
+
+
+def _init(bank, blas_threads, parent_pid=None):
     """Process initializer: BLAS threads, the bank, one throw-away estimate."""
     global _bank, _blas_limits
+    if parent_pid is not None:
+        _die_with(parent_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the node's: it shuts us down
+    # spawned with SIGINT and SIGTERM blocked (see _spawning): a Ctrl-C meanwhile is dropped
+    # now, a SIGTERM meanwhile ends the process now, after it has read all its start-up data
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, _START_SIGNALS)
     if blas_threads > 0:
         try:
             from threadpoolctl import threadpool_limits
@@ -61,6 +80,28 @@ def _init(bank, blas_threads):
         _bank.estimate_points(warm_up_points())
     except Exception:  # noqa: BLE001 - warm-up is best effort
         pass
+
+
+_START_SIGNALS = {signal.SIGINT, signal.SIGTERM}
+
+
+@contextlib.contextmanager
+def _spawning():
+    """Block SIGINT and SIGTERM in this thread while it spawns processes; they inherit the
+    block until ``_init``.
+
+    Why: the parent writes each new process its start-up data (the pickled bank, MBs) through
+    a pipe whose read end it holds itself until the write is done (CPython 3.11
+    ``popen_spawn_posix``), and the process reads it while it imports open3d (seconds). A
+    Ctrl-C or SIGTERM to the process group (a terminal, ``docker stop``) killed the process
+    half-way, and the parent then waited for ever in that write: the node never exited (and
+    each process printed a KeyboardInterrupt traceback). The parent's own handlers run in
+    its other threads meanwhile (rclpy's shut the context down)."""
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, _START_SIGNALS)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 def _ready(delay):
@@ -110,7 +151,7 @@ class EstimatorPool:
         self._closed = False
         self._pool = ProcessPoolExecutor(
             self.n, mp_context=multiprocessing.get_context('spawn'), initializer=_init,
-            initargs=(bank, int(blas_threads)))
+            initargs=(bank, int(blas_threads), os.getpid()))
         try:
             self.pids = self._wait_ready(timeout)
         except BaseException:
@@ -154,7 +195,8 @@ class EstimatorPool:
         while len(pids) < self.n:
             # the first n submissions spawn the n processes (spawned on demand, one per task
             # while none is idle); a process answers only after its initializer
-            futures = [self._pool.submit(_ready, 0.05) for _ in range(self.n)]
+            with _spawning():
+                futures = [self._pool.submit(_ready, 0.05) for _ in range(self.n)]
             for f in futures:
                 pids.add(f.result(timeout=max(deadline - time.monotonic(), 0.01)))
         return sorted(pids)
