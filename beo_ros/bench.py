@@ -723,7 +723,7 @@ def parse_args(argv):
     ap.add_argument('--data', default='', help="voxel npz (default: $BEO_DATA_DIR/"
                     f"{DEFAULT_DATA}, or generated boxes/cylinders when that file is "
                     "missing); 'none' = generated boxes/cylinders")
-    ap.add_argument('--classes', nargs='*', default=None, help='class subset')
+    ap.add_argument('--classes', nargs='+', default=None, help='class subset')
     ap.add_argument('--quick', action='store_true',
                     help='tiny run (< ~60 s): overrides the sizes (classes, objects per class, '
                          'repeats, k, scaling points, node rates and objects) with small ones')
@@ -753,11 +753,11 @@ def parse_args(argv):
     ap.add_argument('--no-scaling', action='store_true')
     ap.add_argument('--no-node', action='store_true')
     ap.add_argument('--no-plots', action='store_true')
-    ap.add_argument('--scaling-train', type=count(1), nargs='*', default=[100, 200])
-    ap.add_argument('--scaling-grids', type=count(4, 256), nargs='*', default=[24, 32, 48, 64])
-    ap.add_argument('--scaling-yaw-steps', type=number(0, 360, lo_open=True), nargs='*',
+    ap.add_argument('--scaling-train', type=count(1), nargs='+', default=[100, 200])
+    ap.add_argument('--scaling-grids', type=count(4, 256), nargs='+', default=[24, 32, 48, 64])
+    ap.add_argument('--scaling-yaw-steps', type=number(0, 360, lo_open=True), nargs='+',
                     default=[10.0, 5.0, 1.0])
-    ap.add_argument('--scaling-classes', type=count(1), nargs='*', default=[2, 5, 10])
+    ap.add_argument('--scaling-classes', type=count(1), nargs='+', default=[2, 5, 10])
     ap.add_argument('--scaling-per-class', type=count(1), default=8)
     ap.add_argument('--scaling-queries', type=count(1), default=6)
     ap.add_argument('--node-objects', type=count(1), default=20,

@@ -10,11 +10,19 @@ from __future__ import annotations
 import argparse
 import functools
 import math
+import signal
 import sys
+import threading
 
-__all__ = ['INTERRUPTED', 'count', 'interruptible', 'number']
+__all__ = ['INTERRUPTED', 'TERMINATED', 'Terminated', 'count', 'interruptible', 'number']
 
 INTERRUPTED = 130   # the shell's code for a process ended by SIGINT
+TERMINATED = 143    # ... and by SIGTERM
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill``, ``docker stop``) raised as an exception in the main thread, so that
+    a command cleans up (temporary files, an empty output directory) as for Ctrl-C."""
 
 
 def number(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False,
@@ -58,16 +66,37 @@ def _range(lo, hi, lo_open, hi_open):
     return f"{'(' if lo_open or lo is None else '['}{left}, {right}{')' if hi_open or hi is None else ']'}"
 
 
+def _raise_terminated(signum, frame):
+    raise Terminated
+
+
 def interruptible(prog: str):
     """Decorator for a command's ``main``: Ctrl-C ends it with one line on stderr and exit
-    code 130 instead of a traceback (the command cleans up in its own ``finally`` blocks)."""
+    code 130 instead of a traceback, SIGTERM likewise with exit code 143 (the command cleans
+    up in its own ``finally`` blocks; while it runs, SIGTERM raises :class:`Terminated`)."""
     def wrap(main):
         @functools.wraps(main)
         def run(*args, **kwargs):
+            old = None
+            if threading.current_thread() is threading.main_thread():
+                old = signal.signal(signal.SIGTERM, _raise_terminated)
             try:
-                return main(*args, **kwargs)
+                try:
+                    return main(*args, **kwargs)
+                except ImportError as e:
+                    # interrupted while a compiled module initialised (open3d's, seconds):
+                    # pybind11 reports it as "ImportError: initialization failed"
+                    if isinstance(e.__cause__, KeyboardInterrupt):
+                        raise e.__cause__ from None
+                    raise
+            except Terminated:
+                print(f'{prog}: terminated', file=sys.stderr)
+                return TERMINATED
             except KeyboardInterrupt:
                 print(f'{prog}: interrupted', file=sys.stderr)
                 return INTERRUPTED
+            finally:
+                if old is not None:
+                    signal.signal(signal.SIGTERM, old)
         return run
     return wrap

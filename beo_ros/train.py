@@ -72,7 +72,7 @@ def main(argv=None):
                     help='leading components per class used by the coarse pose search (>= 1; '
                          "at most the class model's components are used; --mirror banks always "
                          'use 8; default: %(default)s)')
-    ap.add_argument('--seed', type=int, default=0)
+    ap.add_argument('--seed', type=count(0), default=0)
     ap.add_argument('--oof-out', help='also save the out-of-fold features and records (npz)')
     ap.add_argument('--row-standardize', choices=tuple(AUTO_ON_OFF), default='auto',
                     help='standardise every feature across the classes of its row before the '
@@ -234,6 +234,14 @@ def _check_out(args):
     """Refuse an output directory that cannot be written before any training: -o may be new,
     empty or hold a model (replaced as a whole). ValueError otherwise; True when it holds a
     model."""
+    if args.oof_out:   # written after all the training: checked first
+        oof = Path(args.oof_out)
+        if oof.is_dir():
+            raise ValueError(f'--oof-out {oof} is a directory (give a file name)')
+        parent = next(d for d in oof.absolute().parents if d.exists())
+        if not (parent.is_dir() and os.access(parent, os.W_OK | os.X_OK)):
+            raise ValueError(f'cannot write --oof-out {oof}: {parent} is not a writable '
+                             'directory')
     if args.calibrate_only:   # rewrites the model it loads (ModelBank.load checks it)
         return False
     check_save_target(args.out)

@@ -55,3 +55,47 @@ def test_interruptible(capsys):
     def ok(argv=None):
         return 3
     assert ok() == 3
+
+
+def test_interruptible_turns_sigterm_into_a_clean_exit(capsys):
+    import os
+    import signal
+    import time
+
+    from beo_ros.cli import TERMINATED
+    before = signal.getsignal(signal.SIGTERM)
+    cleaned = []
+
+    @interruptible('beo-x')
+    def main(argv=None):
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)   # the handler raises in the main thread at once
+            return 0
+        finally:
+            cleaned.append(True)
+
+    t0 = time.monotonic()
+    assert main() == TERMINATED and time.monotonic() - t0 < 4
+    assert cleaned == [True]
+    assert capsys.readouterr().err.strip() == 'beo-x: terminated'
+    assert signal.getsignal(signal.SIGTERM) is before   # restored
+
+
+def test_interruptible_unwraps_an_import_cut_short_by_ctrl_c(capsys):
+    # pybind11 turns a KeyboardInterrupt during a module's init into an ImportError
+    @interruptible('beo-x')
+    def main(argv=None):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as e:
+            raise ImportError('initialization failed') from e
+
+    assert main() == INTERRUPTED
+    assert capsys.readouterr().err.strip() == 'beo-x: interrupted'
+
+    @interruptible('beo-x')
+    def other(argv=None):
+        raise ImportError('no module named x')
+    with pytest.raises(ImportError, match='no module'):
+        other()

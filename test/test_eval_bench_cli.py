@@ -222,6 +222,9 @@ def test_bench_failure_keeps_an_existing_out(tmp_path):
     ['--node-workers', '65'], ['--node-worker-processes', '-2'], ['--node-objects', '0'],
     ['--node-rounds', '0'], ['--repeats', '0'], ['--seed', '-1'], ['--k', '0'],
     ['--scaling-yaw-steps', '0'], ['--scaling-grids', '0'], ['--node-blas-threads', '-1'],
+    # empty lists (ran with the defaults)
+    ['--classes'], ['--scaling-train'], ['--scaling-grids'], ['--scaling-yaw-steps'],
+    ['--scaling-classes'],
 ])
 def test_bench_numbers_checked_by_the_parser(tmp_path, capsys, extra):
     with pytest.raises(SystemExit) as ei:

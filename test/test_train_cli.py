@@ -211,6 +211,7 @@ def test_objects_without_occupied_voxels_are_dropped_with_a_warning(tmp_path, ca
     (['--scan-classes', 'junk'], '--scan-classes is for --scans only'),
     (['--scans', '--classes', 'box'], '--classes is for npz and mesh input'),
     (['--k', '0'], '--k: must be in [1, inf)'),
+    (['--seed', '-1'], '--seed: must be in [0, inf)'),
 ])
 def test_options_that_do_not_apply_or_are_out_of_range_refused(tmp_path, capsys, extra,
                                                                message):
@@ -221,6 +222,42 @@ def test_options_that_do_not_apply_or_are_out_of_range_refused(tmp_path, capsys,
     assert ei.value.code == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / 'm').exists()
+
+
+@pytest.mark.parametrize('where', ['under_a_file', 'a_directory'])
+def test_oof_out_checked_before_training(tmp_path, capsys, monkeypatch, where):
+    # it is written after all the training (minutes on the shared data)
+    from beo_ros.core import training
+    p = write_npz(tmp_path / 'd.npz', count=2)
+    (tmp_path / 'afile').write_text('x')
+    (tmp_path / 'adir').mkdir()
+    oof = {'under_a_file': tmp_path / 'afile' / 'oof.npz',
+           'a_directory': tmp_path / 'adir'}[where]
+
+    def no_training(*a, **k):
+        raise AssertionError('trained before checking --oof-out')
+    monkeypatch.setattr(training, 'fit_class_models', no_training)
+    rc = main_no_escape([str(p), '-o', str(tmp_path / 'm'), '--views', '1',
+                         '--verifier-views', '0', '--oof-out', str(oof)])
+    assert rc == 2
+    assert '--oof-out' in capsys.readouterr().err
+    assert not (tmp_path / 'm').exists()
+
+
+def test_pool_workers_end_quietly_on_ctrl_c():
+    # the verifier views' process pool: Ctrl-C reaches every process of the group; each
+    # worker printed a KeyboardInterrupt traceback under the parent's one-line message
+    import subprocess
+    import sys
+    code = ('import os, signal, time\n'
+            'from beo_ros.core.training import _quiet_on_sigint\n'
+            '_quiet_on_sigint()\n'
+            'os.kill(os.getpid(), signal.SIGINT)\n'
+            'time.sleep(10)\n'
+            'print("still running")\n')
+    p = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                       timeout=60)
+    assert p.returncode == 130 and p.stdout == '' and 'Traceback' not in p.stderr, p
 
 
 def test_grid_must_match_the_npz(tmp_path, capsys):

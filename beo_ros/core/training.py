@@ -608,6 +608,10 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
     y = np.asarray(y)
     check_class_counts(y, names, folds if classifier_views > 0 or calibration_views else 0)
     t0 = time.time()
+    if verbose:   # minutes with missing data (scans), and no bar of its own
+        print(f'fitting {len(names)} class models on {len(X)} objects (k {k}'
+              f'{", unknown voxels as missing data" if masks is not None else ""}) ...',
+              file=sys.stderr, flush=True)
     models = fit_class_models(X, y, names, spec, k, masks)
     info = dict(training or {}, k=k, n_objects=int(len(X)), folds=folds, seed=seed,
                 classifier_views=classifier_views, fit_seconds=round(time.time() - t0, 1))
