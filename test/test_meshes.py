@@ -132,3 +132,8 @@ def test_matches_training_grid_statistics():
         train = np.unpackbits(z['voxels'][sel], axis=1).reshape(-1, 32, 32, 32) > 0
         iou = (train & g).sum(axis=(1, 2, 3)) / (train | g).sum(axis=(1, 2, 3))
         assert iou.max() > 0.5  # a similar toilet exists among the training grids
+
+
+def test_a_directory_is_called_so(tmp_path):
+    with pytest.raises(MeshError, match='a directory, not a mesh file'):
+        load_mesh(tmp_path)

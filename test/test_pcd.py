@@ -229,3 +229,8 @@ def test_ascii_64_bit_integers_round_trip_exactly(tmp_path):
     (tmp_path / 'f.pcd').write_bytes(b'FIELDS a\nSIZE 4\nTYPE I\nWIDTH 2\nHEIGHT 1\n'
                                      b'DATA ascii\n3.0\n-1e3\n')
     np.testing.assert_array_equal(read_pcd(tmp_path / 'f.pcd')['a'], [3, -1000])
+
+
+def test_a_directory_is_called_so(tmp_path):
+    with pytest.raises(PCDError, match='a directory, not a PCD file'):
+        read_pcd(tmp_path)

@@ -28,7 +28,8 @@ def load_mesh(path) -> trimesh.Trimesh:
     """
     path = os.fspath(path)
     if not os.path.isfile(path):
-        raise MeshError(f'{path}: no such mesh file')
+        raise MeshError(f'{path}: ' + ('a directory, not a mesh file' if os.path.isdir(path)
+                                       else 'no such mesh file'))
     ext = os.path.splitext(path)[1].lower()
     if ext not in MESH_EXTENSIONS:
         raise MeshError(f'{path}: unsupported mesh format {ext!r} (expected {MESH_EXTENSIONS})')

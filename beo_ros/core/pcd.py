@@ -247,7 +247,8 @@ def read_pcd(path) -> PCDData:
     """Read a PCD file (ascii, binary or binary_compressed). Raises :class:`PCDError`."""
     path = os.fspath(path)
     if not os.path.isfile(path):
-        raise PCDError(f'{path}: no such file')
+        raise PCDError(f'{path}: ' + ('a directory, not a PCD file' if os.path.isdir(path)
+                                      else 'no such file'))
     with open(path, 'rb') as f:
         header = _parse_header(f, path)
         body = f.read()
