@@ -32,7 +32,7 @@ def statistical_outliers(points, neighbors: int = OUTLIER_NEIGHBORS,
     It removes isolated points (flying pixels, a stray return metres away); a *cluster* of
     stray points (or one point repeated more than ``neighbors`` times) explains itself and
     stays. With ``neighbors`` or fewer points (with d > 0) nothing is an outlier. About 12 ms
-    for 10 000 points (k-d tree, one thread).
+    for 10 000 points (k-d tree, one thread), 0.24 s for 100 000, 5 s for a million.
 
     Raises ValueError for points that are not a finite (n, 3) array, ``neighbors`` that is
     not a positive integer or ``mads`` that is not a positive finite number.
