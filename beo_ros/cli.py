@@ -77,8 +77,8 @@ def interruptible(prog: str):
     def wrap(main):
         @functools.wraps(main)
         def run(*args, **kwargs):
-            old = None
-            if threading.current_thread() is threading.main_thread():
+            main_thread = threading.current_thread() is threading.main_thread()
+            if main_thread:
                 old = signal.signal(signal.SIGTERM, _raise_terminated)
             try:
                 try:
@@ -96,7 +96,7 @@ def interruptible(prog: str):
                 print(f'{prog}: interrupted', file=sys.stderr)
                 return INTERRUPTED
             finally:
-                if old is not None:
-                    signal.signal(signal.SIGTERM, old)
+                if main_thread:   # None: a handler not set from Python; the default then
+                    signal.signal(signal.SIGTERM, signal.SIG_DFL if old is None else old)
         return run
     return wrap

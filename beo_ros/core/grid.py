@@ -39,8 +39,7 @@ class GridSpec:
 
     def __post_init__(self):
         size = _real(self.size)
-        if not (isinstance(self.size, (int, np.integer)) or np.isfinite(size)) \
-                or not 4 <= size <= 256 or int(size) != size:
+        if not (4 <= size <= 256 and int(size) == size):   # NaN for non-numbers
             raise ValueError(f'GridSpec.size must be an integer in [4, 256], got {self.size!r}')
         object.__setattr__(self, 'size', int(size))   # 32.0 from a manifest -> 32
         if self.units not in UNITS:

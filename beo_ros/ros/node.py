@@ -333,7 +333,8 @@ class BeoNode(Node):
 
         # the default service QoS keeps the last 10 requests: of a burst of 40 calls the
         # middleware dropped 29 before the executor took them, unanswered and uncounted
-        svc_qos = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
+        svc_qos = QoSProfile(history=HistoryPolicy.KEEP_ALL,
+                             reliability=ReliabilityPolicy.RELIABLE)
         self._srv_classify = self.create_service(srvs.Classify, '~/classify', self._on_classify,
                                                  qos_profile=svc_qos,
                                                  callback_group=self._svc_group)
