@@ -659,17 +659,22 @@ def test_a_grid_size_that_is_no_finite_number_is_named(tmp_path, tiny_dir, size)
         ModelBank.load(p)
 
 
-def test_a_subnormal_noise_variance_is_refused(tmp_path, tiny_dir):
-    # it passed "> 0" and became 0 in float32: NaN scores and completions
+def _rewrite_signed(p, fn, **changes):
+    """Rewrite class file ``fn`` of model dir ``p`` with ``changes`` and a matching checksum."""
     from beo_ros.core.bank import _sha256
-    p = _copy(tiny_dir, tmp_path)
-    fn = sorted(p.glob('class_00_*.npz'))[0]
     with np.load(fn) as z:
         arr = {k: z[k] for k in z.files}
-    np.savez(fn, **dict(arr, noise_variance=np.array(1e-320)))
+    np.savez(fn, **dict(arr, **changes))
     m = _manifest(p)
     m['files'][fn.name] = _sha256(fn)
     _write_manifest(p, m)
+
+
+def test_a_subnormal_noise_variance_is_refused(tmp_path, tiny_dir):
+    # it passed "> 0" and became 0 in float32: NaN scores and completions
+    p = _copy(tiny_dir, tmp_path)
+    fn = sorted(p.glob('class_00_*.npz'))[0]
+    _rewrite_signed(p, fn, noise_variance=np.array(1e-320))
     with pytest.raises(ModelError, match=fn.name + '.*noise variances must be positive'):
         ModelBank.load(p)
 

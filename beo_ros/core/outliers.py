@@ -19,6 +19,25 @@ OUTLIER_MADS = 8.0      # the cut: this many scaled MADs above the median neighb
 MIN_SCALE = 0.1         # the scale is at least this fraction of the median (MAD 0 on a lattice)
 
 
+def _positive(value, name) -> float:
+    """``value`` as a positive finite float; ValueError naming ``name`` otherwise."""
+    try:
+        x = float(value) if np.ndim(value) == 0 else np.nan
+    except (TypeError, ValueError):
+        x = np.nan
+    if isinstance(value, (bool, np.bool_, str, bytes)) or not (np.isfinite(x) and x > 0):
+        raise ValueError(f'{name} must be a positive finite number, got {value!r}')
+    return x
+
+
+def _points(points) -> np.ndarray:
+    """float64 (n, 3) finite ``points``; ValueError otherwise."""
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or not np.isfinite(pts).all():
+        raise ValueError(f'points must be a finite (n, 3) array, got shape {pts.shape}')
+    return pts
+
+
 def statistical_outliers(points, neighbors: int = OUTLIER_NEIGHBORS,
                          mads: float = OUTLIER_MADS) -> np.ndarray:
     """bool (n,) mask of the outliers among (n, 3) finite ``points`` (any frame and unit).
@@ -40,15 +59,8 @@ def statistical_outliers(points, neighbors: int = OUTLIER_NEIGHBORS,
     if isinstance(neighbors, (bool, np.bool_)) or not isinstance(neighbors, (int, np.integer)) \
             or neighbors < 1:
         raise ValueError(f'neighbors must be a positive integer, got {neighbors!r}')
-    try:
-        cut = float(mads) if np.ndim(mads) == 0 else np.nan
-    except (TypeError, ValueError):
-        cut = np.nan
-    if isinstance(mads, (bool, np.bool_, str, bytes)) or not (np.isfinite(cut) and cut > 0):
-        raise ValueError(f'mads must be a positive finite number, got {mads!r}')
-    pts = np.asarray(points, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3 or not np.isfinite(pts).all():
-        raise ValueError(f'points must be a finite (n, 3) array, got shape {pts.shape}')
+    cut = _positive(mads, 'mads')
+    pts = _points(points)
     if len(pts) <= neighbors:
         return np.zeros(len(pts), dtype=bool)
     dist, _ = cKDTree(pts).query(pts, k=int(neighbors) + 1)   # the first is the point itself
@@ -75,15 +87,8 @@ def outside_largest_cluster(points, tolerance: float) -> np.ndarray:
     Raises ValueError for points that are not a finite (n, 3) array or a ``tolerance`` that is
     not a positive finite number.
     """
-    try:
-        tol = float(tolerance) if np.ndim(tolerance) == 0 else np.nan
-    except (TypeError, ValueError):
-        tol = np.nan
-    if isinstance(tolerance, (bool, np.bool_, str, bytes)) or not (np.isfinite(tol) and tol > 0):
-        raise ValueError(f'tolerance must be a positive finite number, got {tolerance!r}')
-    pts = np.asarray(points, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3 or not np.isfinite(pts).all():
-        raise ValueError(f'points must be a finite (n, 3) array, got shape {pts.shape}')
+    tol = _positive(tolerance, 'tolerance')
+    pts = _points(points)
     if len(pts) < 2:
         return np.zeros(len(pts), dtype=bool)
     cells = np.floor((pts - pts.min(axis=0)) / tol)
