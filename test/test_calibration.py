@@ -270,3 +270,13 @@ def test_train_calibration_arguments_refused(tmp_path, capsys, extra, message):
                     '0'] + extra)
     assert ei.value.code == 2
     assert message in capsys.readouterr().err
+
+
+def test_refit_leaves_no_map_of_the_earlier_fit():
+    rng = np.random.default_rng(0)
+    p = rng.random(500)
+    cal = OccupancyCalibration().fit(p, rng.random(500) < p)
+    cal.predict([0.1, 0.9])
+    cal.fit(np.full(50, 0.3), np.zeros(50, bool))   # one distinct probability: no map
+    with pytest.raises(ValueError):
+        cal.predict([0.1, 0.9])

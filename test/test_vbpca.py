@@ -382,3 +382,23 @@ def test_query_requires_fitted_model(method):
     from sklearn.exceptions import NotFittedError
     with pytest.raises(NotFittedError, match='not fitted'):
         getattr(VBPCA(3), method)(np.zeros((2, 8)))
+
+
+def test_fit_transform_uses_the_mask():
+    # TransformerMixin.fit_transform passed the mask to fit only, not to transform
+    rng = np.random.default_rng(0)
+    X = rng.normal(size=(60, 3)) @ rng.normal(size=(3, 12)) + 0.05 * rng.normal(size=(60, 12))
+    M = rng.random(X.shape) > 0.3
+    Xn = np.where(M, X, np.nan)
+    Z = VBPCA(5, random_state=0).fit_transform(Xn, mask=M)
+    ref = VBPCA(5, random_state=0).fit(Xn, mask=M).transform(Xn, mask=M)
+    np.testing.assert_allclose(Z, ref)
+    np.testing.assert_allclose(VBPCA(5, random_state=0).fit_transform(X),
+                               VBPCA(5, random_state=0).fit(X).transform(X))
+
+
+def test_a_numerical_failure_of_the_fit_is_named():
+    rng = np.random.default_rng(0)
+    X = rng.normal(size=(20, 8)) * 1e200
+    with pytest.raises(ValueError, match='numerically'):
+        VBPCA(3, dtype=np.float64).fit(X)

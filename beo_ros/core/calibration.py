@@ -53,7 +53,8 @@ class OccupancyCalibration:
 
     def fit(self, p, occupied):
         """p: probabilities (any shape), occupied: the truth of the same voxels. Returns self."""
-        self.__dict__.pop('counts_', None)
+        for name in ('counts_', 'probability_', 'frequency_'):   # no map of an earlier fit
+            self.__dict__.pop(name, None)
         return self.partial_fit(p, occupied)
 
     def partial_fit(self, p, occupied):

@@ -125,11 +125,19 @@ class VBPCA(TransformerMixin, BaseEstimator):
         X, mask = self._validate(X, mask)
         n, d = X.shape
         k = int(min(self.n_components, n - 1, d))
-        if mask is None:
-            self._fit_full(X, k)
-        else:
-            self._fit_missing(X, mask, k)
+        try:
+            if mask is None:
+                self._fit_full(X, k)
+            else:
+                self._fit_missing(X, mask, k)
+        except np.linalg.LinAlgError as e:   # e.g. values near the dtype's range
+            raise ValueError(f'the fit failed numerically ({e}); rescale X') from None
         return self
+
+    def fit_transform(self, X, y=None, mask=None):
+        """``fit(X, mask=mask).transform(X, mask=mask)``: posterior mean scores (n, k)
+        (TransformerMixin's would drop the mask)."""
+        return self.fit(X, mask=mask).transform(X, mask=mask)
 
     def _init_params(self, X, mask, k):
         n, d = X.shape

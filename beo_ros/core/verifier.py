@@ -69,7 +69,9 @@ def quarter_turned_features(grid, yaw):
     """(4, 1536) verifier features of ``grid`` turned into the model's frame by ``yaw`` and by
     ``yaw`` + 90, 180, 270°: one resampling, then exact quarter turns of the pooled fractions
     (the same as :func:`turned_features` of the four yaws: nearest-neighbour rotation by a
-    further 90° is a permutation of the centred grid)."""
+    further 90° is a permutation of the centred grid; except at yaws of exactly 45° + k 90°,
+    where voxel centres tie and rounding half to even breaks the ties differently per turn:
+    a few of the 1536 features differ there)."""
     P = verifier_features(rotate_grid(grid, -float(yaw), fill=-1)).reshape(3, 8, 8, 8)
     return np.stack([np.rot90(P, k, axes=(2, 1)).ravel() for k in range(TURNS)])
 
