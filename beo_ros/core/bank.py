@@ -37,8 +37,7 @@ from .calibration import OccupancyCalibration, check_arrays as check_calibration
 from .estimate import UNKNOWN_LABEL, Estimate, Hypothesis
 from .grid import GridSpec, symmetric_turns, wrap_yaw as _wrap, yaw_matrix
 from .inference import FEATURE_NAMES, InferenceEngine, observed_edt, top_modes, top_yaw_modes
-from .outliers import (OUTLIER_MADS, OUTLIER_NEIGHBORS, outside_largest_cluster,
-                       statistical_outliers)
+from .outliers import OUTLIER_MADS, OUTLIER_NEIGHBORS, clean_points
 from .shape import BASIC_NAMES as BASIC_SHAPE_DESCRIPTORS, DESCRIPTOR_NAMES as SHAPE_DESCRIPTORS
 from .shape import shape_descriptors
 from .verifier import TURNS, OrientationVerifier, check_arrays, quarter_turned_features
@@ -1207,17 +1206,8 @@ class ModelBank:
             raise ValueError(f'threshold must be an occupancy probability in (0, 1], got '
                              f'{threshold}')
         t0 = time.perf_counter()
-        pts_in = finite_points(points)
-        n_outliers = 0
-        if outlier_mads is not None:
-            out = statistical_outliers(pts_in, outlier_neighbors, outlier_mads)
-            n_outliers = int(out.sum())
-            pts_in = pts_in[~out]
-        n_off_cluster = 0
-        if cluster_tolerance is not None:
-            off = outside_largest_cluster(pts_in, cluster_tolerance)
-            n_off_cluster = int(off.sum())
-            pts_in = pts_in[~off]
+        pts_in, n_outliers, n_off_cluster = clean_points(
+            finite_points(points), outlier_mads, outlier_neighbors, cluster_tolerance)
         t_out = time.perf_counter()
         view = voxelize_view(pts_in, sensor_origin, up, self.spec, center=center)
         t1 = time.perf_counter()

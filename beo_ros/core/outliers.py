@@ -110,3 +110,23 @@ def outside_largest_cluster(points, tolerance: float) -> np.ndarray:
     np.minimum.at(first, point_comp, np.arange(len(pts)))
     largest = np.flatnonzero(sizes == sizes.max())
     return point_comp != largest[np.argmin(first[largest])]
+
+
+def clean_points(points, outlier_mads=OUTLIER_MADS, outlier_neighbors=OUTLIER_NEIGHBORS,
+                 cluster_tolerance=None) -> tuple:
+    """The points ``ModelBank.estimate_points`` voxelizes (and its 'points' classifier
+    describes): finite (n, 3) ``points`` without :func:`statistical_outliers` (``outlier_mads``
+    None: none removed) and, with a ``cluster_tolerance``, only their largest cluster
+    (:func:`outside_largest_cluster`). -> (float64 (m, 3) points, number of outliers, number
+    of points outside the largest cluster)."""
+    pts = _points(points)
+    n_outliers = n_off_cluster = 0
+    if outlier_mads is not None:
+        out = statistical_outliers(pts, outlier_neighbors, outlier_mads)
+        n_outliers = int(out.sum())
+        pts = pts[~out]
+    if cluster_tolerance is not None:
+        off = outside_largest_cluster(pts, cluster_tolerance)
+        n_off_cluster = int(off.sum())
+        pts = pts[~off]
+    return pts, n_outliers, n_off_cluster

@@ -226,12 +226,12 @@ def scan_point_descriptors(objs) -> np.ndarray:
     ``ModelBank.estimate_points`` computes them with its default outlier removal
     (:mod:`beo_ros.core.normals`, :mod:`beo_ros.core.outliers`)."""
     from .normals import side_normal_descriptors
-    from .outliers import statistical_outliers
+    from .outliers import clean_points
     out = []
     for p, u in zip(objs.points, objs.ups):
         p = np.asarray(p, dtype=np.float64)
-        p = p[np.isfinite(p).all(axis=1)]
-        out.append(side_normal_descriptors(p[~statistical_outliers(p)], u, np.zeros(3)))
+        out.append(side_normal_descriptors(clean_points(p[np.isfinite(p).all(axis=1)])[0], u,
+                                           np.zeros(3)))
     return np.array(out, dtype=np.float64).reshape(-1, 2)
 
 

@@ -720,12 +720,13 @@ class BeoNode(Node):
                 time.sleep(0.001)
             self._est_slots.acquire()
         try:
-            outliers = (p['outlier_mads'] or None, p['outlier_neighbors'],
-                        p['cluster_tolerance'] or None)
+            cleaning = dict(outlier_mads=p['outlier_mads'] or None,   # 0: off
+                            outlier_neighbors=p['outlier_neighbors'],
+                            cluster_tolerance=p['cluster_tolerance'] or None)
             if self._n_procs:
                 try:
                     est, classes = self._pool_estimate(
-                        pts, origin, up, p['yaw_step_deg'], threshold, outliers,
+                        pts, origin, up, p['yaw_step_deg'], threshold, cleaning,
                         timeout=p['estimate_timeout'] or None)
                 except ValueError as e:
                     raise InputRejected(f'estimator rejected the cloud: {e}') from e
@@ -735,9 +736,7 @@ class BeoNode(Node):
             try:
                 est = bank.estimate_points(pts, sensor_origin=origin, up=up,
                                            yaw_step_deg=p['yaw_step_deg'], threshold=threshold,
-                                           outlier_mads=outliers[0],
-                                           outlier_neighbors=outliers[1],
-                                           cluster_tolerance=outliers[2])
+                                           **cleaning)
             except ValueError as e:
                 raise InputRejected(f'estimator rejected the cloud: {e}') from e
             self._count_removed(est)

@@ -20,8 +20,6 @@ from multiprocessing.connection import wait as wait_ready
 
 import numpy as np
 
-from beo_ros.core.outliers import OUTLIER_MADS, OUTLIER_NEIGHBORS
-
 __all__ = ['BrokenProcessPool', 'EstimateTimeout', 'EstimatorPool', 'PoolRetired',
            'warm_up_points']
 
@@ -109,18 +107,15 @@ def _ready(delay):
     return os.getpid()
 
 
-def _estimate(points, origin, up, yaw_step_deg, threshold, outliers, class_prior=None):
+def _estimate(points, origin, up, yaw_step_deg, threshold, cleaning, class_prior=None):
     """Estimate in this worker process -> (Estimate without its grids, class names).
-    ``outliers``: (outlier_mads, outlier_neighbors[, cluster_tolerance]) of
-    ``estimate_points``. ``class_prior``:
-    the node's current prior (None: the bank's own), so that changing it needs no new
-    processes."""
+    ``cleaning``: keyword arguments of ``estimate_points`` (outlier_mads, outlier_neighbors,
+    cluster_tolerance). ``class_prior``: the node's current prior (None: the bank's own), so
+    that changing it needs no new processes."""
     if class_prior is not None:
         _bank.class_prior = class_prior
     est = _bank.estimate_points(points, sensor_origin=origin, up=up, yaw_step_deg=yaw_step_deg,
-                                threshold=threshold, outlier_mads=outliers[0],
-                                outlier_neighbors=outliers[1],
-                                cluster_tolerance=outliers[2] if len(outliers) > 2 else None)
+                                threshold=threshold, **cleaning)
     if dataclasses.is_dataclass(est):
         # the node needs neither the (N,N,N) grids nor the features: ~0.3 MB less per result
         est = dataclasses.replace(est, completion=None, variance=None, grid=None, features=None)
@@ -201,12 +196,12 @@ class EstimatorPool:
                 pids.add(f.result(timeout=max(deadline - time.monotonic(), 0.01)))
         return sorted(pids)
 
-    def estimate(self, points, origin, up, yaw_step_deg, threshold,
-                 outliers=(OUTLIER_MADS, OUTLIER_NEIGHBORS), class_prior=None, timeout=None):
+    def estimate(self, points, origin, up, yaw_step_deg, threshold, cleaning=None,
+                 class_prior=None, timeout=None):
         """Estimate one cloud in a worker process (blocks) -> (Estimate, class names);
-        ``outliers``: (outlier_mads, outlier_neighbors[, cluster_tolerance]) of
-        ``ModelBank.estimate_points``;
-        ``class_prior`` as for ``ModelBank.class_prior`` (None: the bank's own).
+        ``cleaning``: keyword arguments of ``ModelBank.estimate_points`` (outlier_mads,
+        outlier_neighbors, cluster_tolerance; None: its defaults); ``class_prior`` as for
+        ``ModelBank.class_prior`` (None: the bank's own).
 
         Raises ValueError from the core as is, BrokenProcessPool when a process died while the
         estimate was queued or running, PoolRetired when it could not be sent,
@@ -217,8 +212,8 @@ class EstimatorPool:
         try:
             future = self._pool.submit(_estimate, np.ascontiguousarray(points, np.float64),
                                        np.asarray(origin, np.float64), np.asarray(up, np.float64),
-                                       float(yaw_step_deg), float(threshold), tuple(outliers),
-                                       class_prior)
+                                       float(yaw_step_deg), float(threshold),
+                                       dict(cleaning or {}), class_prior)
         except BrokenProcessPool as e:
             raise PoolRetired('the estimator pool is broken') from e
         except RuntimeError as e:
