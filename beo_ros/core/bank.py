@@ -35,7 +35,7 @@ import numpy as np
 
 from .calibration import OccupancyCalibration, check_arrays as check_calibration_arrays
 from .estimate import UNKNOWN_LABEL, Estimate, Hypothesis
-from .grid import GridSpec, symmetric_turns, wrap_yaw as _wrap, yaw_matrix
+from .grid import GridSpec, symmetric_turns, unit_vector, wrap_yaw as _wrap, yaw_matrix
 from .inference import FEATURE_NAMES, InferenceEngine, observed_edt, top_modes, top_yaw_modes
 from .outliers import OUTLIER_MADS, OUTLIER_NEIGHBORS, clean_points
 from .shape import BASIC_NAMES as BASIC_SHAPE_DESCRIPTORS, DESCRIPTOR_NAMES as SHAPE_DESCRIPTORS
@@ -1258,9 +1258,7 @@ def heading_offset(grid_rotation, up) -> float:
     the angle from the input frame's x axis projected on the plane normal to ``up`` (its y axis
     when x is within 25 degrees of ``up``) to the grid's x axis. ``grid_rotation`` (3, 3):
     the grid axes in the input frame, z = up."""
-    u = np.asarray(up, dtype=np.float64)
-    u = u / np.abs(u).max()   # first: the norm of a huge vector overflows
-    u = u / np.linalg.norm(u)
+    u = unit_vector(up)
     ref = np.eye(3)[0] - u * u[0]
     if np.linalg.norm(ref) < np.sin(np.deg2rad(25.0)):
         ref = np.eye(3)[1] - u * u[1]

@@ -77,6 +77,14 @@ def _real(value) -> float:
         return np.nan
 
 
+def unit_vector(v) -> np.ndarray:
+    """float64 ``v`` / |v| for a finite non-zero vector, without overflow for huge components
+    (divided by the largest component first)."""
+    v = np.asarray(v, dtype=np.float64)
+    v = v / np.abs(v).max()
+    return v / np.linalg.norm(v)
+
+
 def yaw_matrix(yaw: float) -> np.ndarray:
     """(3, 3) right-handed rotation by ``yaw`` radians about +z."""
     c, s = np.cos(yaw), np.sin(yaw)

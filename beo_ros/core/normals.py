@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .grid import unit_vector
+
 RADIUS = 0.02          # metres: neighbourhood radius of a normal
 MAX_NN = 30            # at most this many nearest neighbours per normal
 SIDE_COS = float(np.cos(np.radians(45.0)))
@@ -43,18 +45,15 @@ def _check(points, up, sensor_origin):
     up = np.asarray(up, dtype=np.float64)
     if up.shape != (3,) or not np.isfinite(up).all() or np.abs(up).max() < 1e-9:
         raise ValueError(f'up must be a finite non-zero (3,) vector, got {up!r}')
-    up = up / np.abs(up).max()   # first: the norm of a huge vector overflows
     origin = np.asarray(sensor_origin, dtype=np.float64)
     if origin.shape != (3,) or not np.isfinite(origin).all():
         raise ValueError(f'sensor_origin must be a finite (3,) vector, got {origin!r}')
-    return pts, up / np.linalg.norm(up), origin
+    return pts, unit_vector(up), origin
 
 
 def horizontal_basis(up):
     """(unit up, e1, e2): a right-handed orthonormal basis with e1, e2 horizontal."""
-    up = np.asarray(up, float)
-    up = up / np.abs(up).max()
-    up = up / np.linalg.norm(up)
+    up = unit_vector(up)
     a = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     e1 = a - (a @ up) * up
     e1 /= np.linalg.norm(e1)

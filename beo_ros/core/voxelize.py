@@ -17,7 +17,7 @@ import numpy as np
 import open3d as o3d
 from scipy import ndimage
 
-from .grid import FREE, OCCUPIED, UNKNOWN, GridSpec
+from .grid import FREE, OCCUPIED, UNKNOWN, GridSpec, unit_vector
 
 MIN_POINTS = 10
 MIN_EXTENT = 1e-6  # input units (m): points spanning no more than this are refused
@@ -87,9 +87,7 @@ def _check_vec(v, name: str, unit: bool = False) -> np.ndarray:
         if big < MIN_DIRECTION:
             raise ValueError(f'{name} must be non-zero (largest component at least '
                              f'{MIN_DIRECTION:g}), got {v!r}')
-        if big > 1e100:   # the norm would overflow
-            v = v / big
-        v = v / np.linalg.norm(v)
+        v = unit_vector(v)
     elif np.abs(v).max() > MAX_COORDINATE:
         raise ValueError(f'{name} must lie within +-{MAX_COORDINATE:g} (input units, m), got '
                          f'{v!r}')
