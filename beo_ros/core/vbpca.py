@@ -10,7 +10,10 @@ through a shared offset of the scores, which biases completions towards empty sp
 Two paths:
 - fully observed data: every row of W shares one (k, k) covariance and every sample shares one,
   so an iteration is a few (n, d) x (d, k) products: seconds for a thousand 32^3 grids;
-- missing data (``mask``): per-sample and per-row covariances, as in Ilin and Raiko section 3.
+- missing data (``mask``): per-sample and per-row covariances, as in Ilin and Raiko section 3,
+  plus, each iteration, the change of latent basis that the bound prefers (Ilin and Raiko's
+  rotation, without their shift of the mean, which would change the likelihood): the fit is
+  unchanged by it, and on a planted problem it converges in 50-80 iterations instead of 400-750.
 """
 from __future__ import annotations
 
@@ -29,8 +32,8 @@ class VBPCA(TransformerMixin, BaseEstimator):
     Parameters:
         n_components: upper bound k on the number of components (ARD prunes the surplus).
         max_iter: maximum number of VB iterations.
-        tol: stop when the relative change of the bound (or, without the bound, the largest change
-            of the principal subspace angle cosine) falls below ``tol``.
+        tol: stop when the relative change of the variational lower bound in one iteration falls
+            below ``tol``.
         prune_tol: a column whose ARD variance falls below ``prune_tol * max(alpha)`` is inactive;
             0 <= prune_tol < 1, so the column of largest variance is always kept.
         init: 'pca' (SVD of the mean-imputed data) or 'random'.
@@ -49,7 +52,7 @@ class VBPCA(TransformerMixin, BaseEstimator):
             (fully observed path; for the missing path the average over rows).
         mean_variance_: (d,) posterior variance of mu.
         n_components_: k_eff, the number of columns ARD kept.
-        n_iter_, converged_, lower_bound_ (last bound value; nan for the missing path).
+        n_iter_, converged_, lower_bound_ (the bound at the last iteration).
     """
 
     def __init__(self, n_components=20, *, max_iter=200, tol=1e-5, prune_tol=1e-3, init='pca',
@@ -245,7 +248,8 @@ class VBPCA(TransformerMixin, BaseEstimator):
         iu = np.triu_indices(k)
         n_obs = M.sum()
         converged = False
-        prev_W = None
+        prev = -np.inf
+        bound = np.nan
         for it in range(1, self.max_iter + 1):
             # q(x_j): Sx_j = (I + sum_{i in O_j} <w_i w_i^T> / v)^-1
             ww = (W[:, :, None] * W[:, None, :] + Sw)[:, iu[0], iu[1]]     # (d, k(k+1)/2)
@@ -278,16 +282,37 @@ class VBPCA(TransformerMixin, BaseEstimator):
             v = max(sq / n_obs, 1e-8)
             if not np.isfinite(v):          # overflow: stop early, _finish raises
                 break
+            # without this step the bound creeps for hundreds of iterations along directions
+            # (scale and rotation of the scores) that barely change the fit (Ilin and Raiko 2010)
+            W, Sw, Xm, Sx = _rotate_to_pca(W, Sw, Xm, Sx)
             alpha = np.maximum(((W ** 2).sum(axis=0) + Sw[:, range(k), range(k)].sum(axis=0)) / d,
                                _EPS)
+            bound = self._bound_missing(n_obs, k, v, sq, Sx, Xm, Sw, W, alpha, mu, mu_var, v_mu)
             if self.verbose:
-                print(f'VBPCA(missing) iter {it}: v {v:.5g}')
-            if prev_W is not None and _subspace_change(prev_W, W) < self.tol:
+                print(f'VBPCA(missing) iter {it}: bound {bound:.8g} v {v:.5g}')
+            if np.isfinite(prev) and abs(bound - prev) <= self.tol * abs(bound):
                 converged = True
                 break
-            prev_W = W.copy()
+            prev = bound
         self._finish(W.astype(self.dtype), mu.astype(self.dtype), v, alpha, Sw.mean(axis=0),
-                     mu_var.astype(np.float32), it, converged, np.nan)
+                     mu_var.astype(np.float32), it, converged, bound)
+
+    @staticmethod
+    def _bound_missing(n_obs, k, v, sq, Sx, Xm, Sw, W, alpha, mu, mu_var, v_mu):
+        """Variational lower bound of log p(observed Y) for the missing-data path.
+
+        Sx: (n, k, k) and Sw: (d, k, k), one posterior covariance per row of X and of W.
+        """
+        n, d = Xm.shape[0], W.shape[0]
+        ll = -0.5 * n_obs * np.log(2 * np.pi * v) - 0.5 * sq / v
+        _, ldx = np.linalg.slogdet(Sx)
+        kl_x = 0.5 * ((Xm ** 2).sum() + np.trace(Sx, axis1=1, axis2=2).sum() - n * k - ldx.sum())
+        _, ldw = np.linalg.slogdet(Sw)
+        sw_diag = Sw[:, range(k), range(k)].sum(axis=0)
+        kl_w = 0.5 * ((((W ** 2).sum(axis=0) + sw_diag) / alpha).sum() - d * k - ldw.sum()
+                      + d * np.log(alpha).sum())
+        kl_mu = 0.5 * (((mu ** 2 + mu_var) / v_mu).sum() - d - np.log(mu_var / v_mu).sum())
+        return float(ll - kl_x - kl_w - kl_mu)
 
     def _finish(self, W, mu, v, alpha, Sw, mu_var, n_iter, converged, bound):
         # overflow (e.g. float32 products of data of large magnitude) turns the whole model into
@@ -410,9 +435,25 @@ class VBPCA(TransformerMixin, BaseEstimator):
         return -0.5 * (nobs * np.log(2 * np.pi * v) - lds + quad)
 
 
-def _subspace_change(W0, W1):
-    """1 - smallest cosine of the principal angles between the column spaces of W0 and W1."""
-    q0, _ = np.linalg.qr(W0)
-    q1, _ = np.linalg.qr(W1)
-    s = np.linalg.svd(q0.T @ q1, compute_uv=False)
-    return float(1.0 - s.min()) if len(s) else 0.0
+def _rotate_to_pca(W, Sw, Xm, Sx):
+    """The linear change of latent basis x -> R x, W -> W R^-1 that maximises the bound.
+
+    W: (d, k), Sw: (d, k, k), Xm: (n, k), Sx: (n, k, k). The expected likelihood is invariant
+    under it (W x and every variance term are), and of the priors' terms, with the ARD variances
+    re-estimated after it, the best R whitens the scores' second moment and then turns W to
+    orthogonal columns (Hadamard's inequality). Returns the new (W, Sw, Xm, Sx).
+    """
+    n, d = Xm.shape[0], W.shape[0]
+    D, VS = np.linalg.eigh((Xm.T @ Xm + Sx.sum(axis=0)) / n)
+    D = np.maximum(D, 1e-12)
+    RA = VS * np.sqrt(D)
+    W = W @ RA
+    Sw = np.einsum('ab,ibc,cd->iad', RA.T, Sw, RA, optimize=True)
+    _, VA = np.linalg.eigh((W.T @ W + Sw.sum(axis=0)) / d)
+    VA = VA[:, ::-1]
+    W = W @ VA
+    Sw = np.einsum('ab,ibc,cd->iad', VA.T, Sw, VA, optimize=True)
+    R = VA.T @ (VS / np.sqrt(D)).T
+    Xm = Xm @ R.T
+    Sx = np.einsum('ab,jbc,dc->jad', R, Sx, R, optimize=True)
+    return W, Sw, Xm, Sx
