@@ -1701,3 +1701,19 @@ def test_occupancy_variance_is_none_without_a_completion(tiny):
     # what the node's worker processes send back: the grids are dropped
     e = dataclasses.replace(tiny.estimate(views()[0]), completion=None, variance=None)
     assert e.occupancy_variance is None
+
+
+def test_load_models_takes_a_shipped_models_name(tmp_path, monkeypatch):
+    from beo_ros.core.bank import default_model_dir, resolve_model_dir, shipped_models
+    assert {'modelnet10_32', 'tabletop_32'} <= set(shipped_models())
+    monkeypatch.chdir(tmp_path)
+    assert load_models('tabletop_32').classes == ['box', 'cylinder']
+    assert resolve_model_dir('') == resolve_model_dir(None) == default_model_dir()
+    # a path that exists here wins over the shipped name, and paths are never renamed
+    (tmp_path / 'tabletop_32').mkdir()
+    with pytest.raises(ModelError, match='manifest.json is missing'):
+        load_models('tabletop_32')
+    for text in ('./modelnet10_32', 'sub/tabletop_32', 'no_such_model'):
+        assert resolve_model_dir(text) == Path(text)
+        with pytest.raises(ModelError, match='does not exist'):
+            load_models(text)

@@ -871,6 +871,30 @@ def test_bad_model_dir_refuses_to_start(ros_context, tmp_path):
                 parameter_overrides=[Parameter('model_dir', value=str(corrupt))])
 
 
+def test_model_dir_takes_a_shipped_models_name(ros_context, tmp_path, monkeypatch):
+    from beo_ros.core.bank import default_model_dir
+    from beo_ros.ros.node import BeoNode, StartupError
+    if not (default_model_dir('tabletop_32') / 'manifest.json').is_file():
+        pytest.skip('no shipped tabletop_32')
+    monkeypatch.chdir(tmp_path)      # not a clone: 'models/tabletop_32' would not exist here
+    node = BeoNode(context=ros_context,
+                   parameter_overrides=[Parameter('model_dir', value='tabletop_32')])
+    try:
+        assert node._bank.classes == ['box', 'cylinder']
+        assert node._serving_dir == str(default_model_dir('tabletop_32'))
+        r = node.set_parameters([Parameter('model_dir', value='modelnet10_32')])[0]
+        assert r.successful, r.reason
+        assert len(node._bank.classes) == 10
+        assert node._serving_dir == str(default_model_dir('modelnet10_32'))
+        r = node.set_parameters([Parameter('model_dir', value='no_such_model')])[0]
+        assert not r.successful and 'tabletop_32' in r.reason    # names what is shipped
+    finally:
+        node.destroy_node()
+    with pytest.raises(StartupError, match='modelnet10_32, tabletop_32'):
+        BeoNode(context=ros_context,
+                parameter_overrides=[Parameter('model_dir', value='tabletop_3')])
+
+
 def test_bad_parameter_override_refuses_to_start(ros_context, ros_tiny_model_dir):
     from beo_ros.ros.node import BeoNode, StartupError
     model_dir = ros_tiny_model_dir

@@ -1303,11 +1303,10 @@ def check_count(name, value):
 
 
 def load_models(path=None, class_prior=None):
-    """Load a model directory (default: the shipped ``models/modelnet10_32``); ``class_prior``
+    """Load a model directory (default: the shipped ``models/modelnet10_32``; a shipped model's
+    bare name such as 'tabletop_32' also works, see :func:`resolve_model_dir`); ``class_prior``
     overrides the manifest's (see :class:`ModelBank`)."""
-    if path is None:
-        path = default_model_dir()
-    return ModelBank.load(path, class_prior)
+    return ModelBank.load(resolve_model_dir(path), class_prior)
 
 
 def default_model_dir(name='modelnet10_32'):
@@ -1320,3 +1319,23 @@ def default_model_dir(name='modelnet10_32'):
     except Exception:  # not installed through ament, or ament_index missing
         pass
     return Path(__file__).resolve().parents[2] / 'models' / name
+
+
+def resolve_model_dir(text) -> Path:
+    """A model directory as a user names it: '' or None is the shipped default; a path that
+    exists is itself; a bare name that is not a path here (e.g. 'tabletop_32') is that shipped
+    model, so an installed package needs no share path. Anything else comes back as given
+    (loading it then names it as missing)."""
+    if not text:
+        return default_model_dir()
+    path = Path(text).expanduser()
+    if path.exists() or len(path.parts) != 1 or str(text).startswith(('.', '~')):
+        return path
+    shipped = default_model_dir(str(text))
+    return shipped if shipped.is_dir() else path
+
+
+def shipped_models() -> list:
+    """Names of the shipped model directories (those with a manifest)."""
+    root = default_model_dir().parent
+    return sorted(p.parent.name for p in root.glob('*/manifest.json'))

@@ -24,7 +24,6 @@ import math
 import sys
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 import rclpy
@@ -45,7 +44,8 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 from visualization_msgs.msg import Marker, MarkerArray
 
-from beo_ros.core.bank import check_step, parse_class_prior
+from beo_ros.core.bank import check_step, parse_class_prior, resolve_model_dir, shipped_models
+from beo_ros.core.bank import default_model_dir as shipped_model_dir
 from beo_ros.core.outliers import OUTLIER_MADS, OUTLIER_NEIGHBORS
 from beo_ros.core.voxelize import MAX_COORDINATE, MIN_POINTS
 from beo_ros.ros.conversions import (CloudFormatError, cloud_to_xyz, completed_cloud,
@@ -81,14 +81,7 @@ class InputRejected(ValueError):
 
 def default_model_dir() -> str:
     """Shipped model dir: the installed share dir when present, else the package source tree."""
-    try:
-        from ament_index_python.packages import get_package_share_directory
-        p = Path(get_package_share_directory('beo_ros')) / 'models' / DEFAULT_MODEL
-        if p.is_dir():
-            return str(p)
-    except Exception:  # not installed through ament (PackageNotFoundError, no prefix path)
-        pass
-    return str(Path(__file__).resolve().parents[2] / 'models' / DEFAULT_MODEL)
+    return str(shipped_model_dir(DEFAULT_MODEL))
 
 
 def with_class_prior(bank, text: str):
@@ -108,9 +101,10 @@ def prior_text(bank) -> str:
 
 def load_bank(model_dir: str):
     """Load a model bank, turning every failure into a StartupError naming the path."""
-    path = Path(model_dir or default_model_dir()).expanduser()
+    path = resolve_model_dir(model_dir)
     if not path.exists():
-        raise StartupError(f"model_dir '{path}' does not exist")
+        raise StartupError(f"model_dir '{path}' does not exist (shipped models, by name: "
+                           f"{', '.join(shipped_models()) or 'none'})")
     if not path.is_dir():
         raise StartupError(f"model_dir '{path}' is not a directory")
     try:
@@ -242,13 +236,13 @@ class BeoNode(Node):
         self._svc_waiting = 0
         self._svc_lock = threading.Lock()
         if bank is None:
-            model_dir = self.get_parameter('model_dir').value or default_model_dir()
+            model_dir = str(resolve_model_dir(self.get_parameter('model_dir').value))
             bank = load_bank(model_dir)
             self.get_logger().info(f"loaded models from '{model_dir}': classes {bank.classes}")
         self._base_bank = bank  # as loaded: the class_prior parameter is applied to a copy
         self._serving_base = bank   # the models the estimates use now (a reload may be pending)
         # the directory they came from ('' resolved: diagnostics name it)
-        self._serving_dir = self.get_parameter('model_dir').value or default_model_dir()
+        self._serving_dir = str(resolve_model_dir(self.get_parameter('model_dir').value))
         try:
             bank = with_class_prior(bank, self.get_parameter('class_prior').value)
         except ValueError as e:
@@ -384,7 +378,8 @@ class BeoNode(Node):
         d = self.declare_parameter
         d('model_dir', default_model_dir(), ParameterDescriptor(
             description="Directory of the trained BEO model bank ('' = the shipped "
-                        f"models/{DEFAULT_MODEL}); changing it reloads the models",
+                        f"models/{DEFAULT_MODEL}; a shipped model's name such as 'tabletop_32' "
+                        "is that model); changing it reloads the models",
             type=ParameterType.PARAMETER_STRING))
         d('input_topics', ['/beo/input'], ParameterDescriptor(
             description='PointCloud2 topics of segmented objects (one object per cloud)',
@@ -403,8 +398,9 @@ class BeoNode(Node):
             description='Sensor position in the cloud frame (m), for free-space carving',
             type=ParameterType.PARAMETER_DOUBLE_ARRAY))
         d('up_vector', [0.0, 0.0, 1.0], ParameterDescriptor(
-            description='Gravity-up direction in the cloud frame (e.g. [0, -1, 0] for a camera '
-                        'optical frame held level)', type=ParameterType.PARAMETER_DOUBLE_ARRAY))
+            description='Gravity-up direction in the cloud frame (e.g. [0.0, -1.0, 0.0] for a '
+                        'camera optical frame held level; floats, with a decimal point)',
+            type=ParameterType.PARAMETER_DOUBLE_ARRAY))
         d('yaw_step_deg', 1.0, _fdesc('Resolution of the returned yaw (degrees); the search '
                                       'over all classes runs at max(2, this)', 0.05, 45.0))
         d('min_points', 30, _idesc('Fewer finite points than this: the cloud is rejected',
@@ -501,7 +497,7 @@ class BeoNode(Node):
                 return SetParametersResult(successful=False, reason=reason)
         new = {p.name: p.value for p in params}
         # against the models answering (a failed background reload leaves the old ones)
-        want_dir = (new.get('model_dir') or default_model_dir()) if 'model_dir' in new else None
+        want_dir = str(resolve_model_dir(new['model_dir'])) if 'model_dir' in new else None
         reload = want_dir is not None and want_dir != self._serving_dir
         reprior = ('class_prior' in new
                    and new['class_prior'] != self.get_parameter('class_prior').value)
@@ -545,7 +541,7 @@ class BeoNode(Node):
                             pass            # it applies the prior when it switches
             if reload and not self._n_procs:
                 self._serving_dir = want_dir
-                self.get_logger().info(f"reloaded models from '{new['model_dir']}'")
+                self.get_logger().info(f"reloaded models from '{want_dir}'")
             self.get_logger().info(f'class prior: {prior_text(bank)}')
         if new.get('base_frame') and tf2_ros is None:
             self.get_logger().warning(BASE_FRAME_WITHOUT_TF)
