@@ -137,7 +137,7 @@ def test_metric_bottom_anchor_floor_and_center_override():
     v = voxelize_view(pts, np.zeros(3), [0, 0, 1], GridSpec(N, units='metric', voxel_size=0.02),
                       center=[1.0, 0.1, 0.2])
     np.testing.assert_allclose(v.grid_to_input @ [C, C, C, 1], [1.0, 0.1, 0.2, 1], atol=1e-9)
-    # points outside a small metric grid are dropped and not counted
+    # points outside a small metric grid are not voxelized and not counted
     v = voxelize_view(pts, np.zeros(3), [0, 0, 1], GridSpec(8, units='metric', voxel_size=0.04))
     assert 0 < v.n_points < len(pts)
 
@@ -169,6 +169,31 @@ def test_occluders_hide_space_behind_them():
     # far-away occluders behind the sensor change nothing
     c = voxelize_view(pts, np.zeros(3), [0, 0, 1], spec, occluders=wall * [-1, 1, 1] - [5, 0, 0])
     np.testing.assert_array_equal(c.grid, a.grid)
+
+
+def test_points_outside_the_grid_still_hide_what_is_behind_them():
+    # a 0.3 x 0.3 x 0.8 m box standing at x = 1 m, seen from (0, 0, 1.6): its top face and the
+    # upper part of its front lie above the 0.64 m metric grid. They must still block the rays,
+    # or the inside of the box reads as seen-free (before: 1235 of its voxels did).
+    s = np.arange(-0.15, 0.1501, 0.005)
+    h = np.arange(0.0, 0.8001, 0.005)
+    front = np.array([(0.85, y, z) for y in s for z in h])
+    top = np.array([(1.0 + x, y, 0.8) for x in s for y in s])
+    pts = np.r_[front, top]
+    sensor = np.array([0.0, 0.0, 1.6])
+    v = voxelize_view(pts, sensor, [0, 0, 1], GridSpec(N, units='metric', voxel_size=0.02,
+                                                          anchor='bottom'))
+    assert v.n_points < len(front)          # part of the object is outside the grid
+    centres = np.indices(v.grid.shape).reshape(3, -1).T
+    xyz = centres @ v.grid_to_input[:3, :3].T + v.grid_to_input[:3, 3]
+    inside = ((np.abs(xyz[:, 0] - 1.0) < 0.13) & (np.abs(xyz[:, 1]) < 0.13)
+              & (xyz[:, 2] > 0.02) & (xyz[:, 2] < 0.78))
+    labels = v.grid.reshape(-1)[inside]
+    assert len(labels) > 2000
+    assert (labels == FREE).sum() == 0, (labels == FREE).sum()
+    # and the space in front of the box, in the grid, is still seen free
+    before = (xyz[:, 0] < 0.8) & (xyz[:, 0] > v.grid_to_input[0, 3] + 0.05)
+    assert (v.grid.reshape(-1)[before] == FREE).mean() > 0.9
 
 
 def test_label_free_unknown_single_voxel_and_hole_closing():

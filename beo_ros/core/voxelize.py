@@ -281,7 +281,8 @@ def voxelize_view(points, sensor_origin, up, spec: GridSpec, center=None, floor=
     z range (from ``floor`` for 'bottom' when given). That box's centre goes to the grid centre
     ('center'), or its bottom-face centre to the grid floor centre ('bottom'). 'normalized' scales
     the box's largest extent to ``spec.fill * N`` voxels (it equals the observed largest extent);
-    'metric' uses ``spec.voxel_size``. Points falling outside the grid are dropped.
+    'metric' uses ``spec.voxel_size``. Points falling outside the grid are not voxelized, but
+    block rays like ``occluders``.
 
     Occupied voxels are those containing a point; the rest are free/unknown by ray casting from
     the sensor (see :func:`label_free_unknown`).
@@ -342,11 +343,14 @@ def voxelize_view(points, sensor_origin, up, spec: GridSpec, center=None, floor=
     occ = np.zeros(spec.shape, dtype=bool)
     occ[idx[:, 0], idx[:, 1], idx[:, 2]] = True
     origin_grid = (origin - g2i[:3, 3]) @ rot / voxel
-    occ_vox = None
+    # the object's own points outside the grid (e.g. the top of an object taller than a metric
+    # grid) still hide what lies behind them: without them, the inside of the object reads free
+    blockers = [g[~inside]]
     if o_pts is not None:
         o_pts = o_pts[np.isfinite(o_pts).all(axis=1)]
-        if len(o_pts):
-            occ_vox = _relevant_occluders((o_pts - g2i[:3, 3]) @ rot / voxel, origin_grid, n)
+        blockers.append((o_pts - g2i[:3, 3]) @ rot / voxel)
+    blockers = np.concatenate(blockers)
+    occ_vox = _relevant_occluders(blockers, origin_grid, n) if len(blockers) else None
     grid = label_free_unknown(occ, origin_grid, close_holes=close_holes, occluder_voxels=occ_vox)
     return ViewGrid(grid=grid, grid_to_input=g2i, voxel_size_m=float(voxel),
                     n_points=int(inside.sum()))
