@@ -1,0 +1,82 @@
+"""Static checks of the packaging files: package.xml declares what beo_ros imports, setup.py
+installs the model directories, launch/beo.launch.py and scripts/setup keep their fixes."""
+import ast
+import pathlib
+import sys
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+# top-level import -> rosdep key in package.xml (ROS packages are their own key)
+IMPORT_KEYS = {
+    'numpy': 'python3-numpy',
+    'scipy': 'python3-scipy',
+    'sklearn': 'python3-sklearn',
+    'open3d': 'python3-open3d-pip',
+    'trimesh': 'python3-trimesh-pip',
+    'rosbags': 'python3-rosbags-pip',
+    'matplotlib': 'python3-matplotlib',
+    'tqdm': 'python3-tqdm',
+    'threadpoolctl': 'python3-threadpoolctl',
+    'yaml': 'python3-yaml',
+    'pytest': 'python3-pytest',
+    'tf2_ros': 'tf2_ros_py',
+}
+# the package itself and the test modules (tests import helpers from each other)
+OWN = {'beo_ros', 'conftest', 'test'} | {p.stem for p in (ROOT / 'test').glob('*.py')}
+
+
+def _package():
+    catkin_pkg = pytest.importorskip('catkin_pkg.package')
+    pkg = catkin_pkg.parse_package(str(ROOT))
+    pkg.validate()
+    return pkg
+
+
+def _top_level_imports(paths):
+    """{module: first file importing it} for every absolute import in ``paths``."""
+    found = {}
+    for path in paths:
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names = [node.module]
+            else:
+                continue
+            for name in names:
+                found.setdefault(name.split('.')[0], path.relative_to(ROOT))
+    return {m: p for m, p in found.items()
+            if m not in sys.stdlib_module_names and m not in OWN}
+
+
+def test_package_xml_is_valid_format3():
+    pkg = _package()
+    assert pkg.package_format == 3
+    assert pkg.name == 'beo_ros'
+    assert [e.content for e in pkg.exports if e.tagname == 'build_type'] == ['ament_python']
+
+
+def test_package_xml_declares_every_import():
+    pkg = _package()
+    runtime = {d.name for d in pkg.exec_depends}
+    tests = {d.name for d in pkg.test_depends} | runtime
+    code = _top_level_imports(sorted((ROOT / 'beo_ros').rglob('*.py'))
+                              + sorted((ROOT / 'launch').glob('*.py')))
+    for module, where in code.items():
+        key = IMPORT_KEYS.get(module, module)
+        assert key in runtime, f'{where} imports {module}: add <exec_depend>{key}</exec_depend>'
+    for module, where in _top_level_imports(sorted((ROOT / 'test').rglob('*.py'))).items():
+        key = IMPORT_KEYS.get(module, module)
+        assert key in tests, f'{where} imports {module}: add <test_depend>{key}</test_depend>'
+
+
+def test_package_xml_tooling_deps():
+    pkg = _package()
+    runtime = {d.name for d in pkg.exec_depends}
+    # the package ships a launch file: `ros2 launch` needs ros2launch, launch and launch_ros
+    assert {'launch', 'launch_ros', 'ros2launch'} <= runtime
+    # setup.cfg configures pytest-timeout (timeout = ..., timeout_method = ...)
+    if 'timeout' in (ROOT / 'setup.cfg').read_text():
+        assert 'python3-pytest-timeout' in {d.name for d in pkg.test_depends}
