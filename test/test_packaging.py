@@ -80,3 +80,50 @@ def test_package_xml_tooling_deps():
     # setup.cfg configures pytest-timeout (timeout = ..., timeout_method = ...)
     if 'timeout' in (ROOT / 'setup.cfg').read_text():
         assert 'python3-pytest-timeout' in {d.name for d in pkg.test_depends}
+
+
+# --- setup.py installs the model directories, nested files included ----------------------
+
+def _model_files(monkeypatch, cwd):
+    """setup.py's model_files() run in ``cwd`` (without running setup() itself)."""
+    tree = ast.parse((ROOT / 'setup.py').read_text())
+    keep = [n for n in tree.body
+            if (isinstance(n, (ast.Import, ast.ImportFrom)) and 'setuptools' not in ast.dump(n))
+            or (isinstance(n, ast.Assign) and ast.unparse(n.targets[0]) == 'package_name')
+            or (isinstance(n, ast.FunctionDef) and n.name == 'model_files')]
+    ns = {}
+    exec(compile(ast.Module(body=keep, type_ignores=[]), 'setup.py', 'exec'), ns)
+    monkeypatch.chdir(cwd)
+    return ns['model_files']()
+
+
+def test_model_files_flat_layout_unchanged(monkeypatch):
+    """Today's flat models/<name>/* layout: one entry per model dir with its files."""
+    import glob
+    import os
+    got = _model_files(monkeypatch, ROOT)
+    want = []
+    for d in sorted(glob.glob('models/*/')):
+        files = sorted(f for f in glob.glob(os.path.join(d, '*')) if os.path.isfile(f))
+        want.append((os.path.join('share', 'beo_ros', d.rstrip('/')), files))
+    # the models/<name> entries are what the old top-level-only version gave; anything else
+    # comes from subdirectories
+    assert [e for e in got if e[0].count('/') == 3] == want
+    assert any(d == 'share/beo_ros/models/tabletop_32' for d, _ in got)
+
+
+def test_model_files_nested(monkeypatch, tmp_path):
+    for rel in ('models/a/top.npz', 'models/a/sub/mid.json', 'models/a/sub/deep/low.npz',
+                'models/a/.hidden/skip', 'models/a/.skip', 'models/b/only.npz'):
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_text('x')
+    (tmp_path / 'models' / 'empty').mkdir()
+    (tmp_path / 'models' / 'README').write_text('not a model dir')
+    got = _model_files(monkeypatch, tmp_path)
+    assert got == [
+        ('share/beo_ros/models/a', ['models/a/top.npz']),
+        ('share/beo_ros/models/a/sub', ['models/a/sub/mid.json']),
+        ('share/beo_ros/models/a/sub/deep', ['models/a/sub/deep/low.npz']),
+        ('share/beo_ros/models/b', ['models/b/only.npz']),
+        ('share/beo_ros/models/empty', []),
+    ]
