@@ -127,3 +127,73 @@ def test_model_files_nested(monkeypatch, tmp_path):
         ('share/beo_ros/models/b', ['models/b/only.npz']),
         ('share/beo_ros/models/empty', []),
     ]
+
+
+# --- launch/beo.launch.py, run against stand-ins for launch / launch_ros -----------------
+
+def _fake_launch_modules(monkeypatch):
+    """Minimal stand-ins recording how the launch file calls the launch/launch_ros API."""
+    import types
+
+    class Recorder:
+        def __init__(self, *args, **kwargs):
+            self.args, self.kwargs = args, kwargs
+
+    class LaunchConfiguration(Recorder):
+        def perform(self, context):
+            return context[self.args[0]]
+
+    mods = {name: types.ModuleType(name) for name in (
+        'launch', 'launch.actions', 'launch.substitutions', 'launch_ros', 'launch_ros.actions',
+        'launch_ros.parameter_descriptions')}
+    mods['launch'].LaunchDescription = type('LaunchDescription', (Recorder,), {})
+    mods['launch.actions'].DeclareLaunchArgument = type('DeclareLaunchArgument', (Recorder,), {})
+    mods['launch.actions'].OpaqueFunction = type('OpaqueFunction', (Recorder,), {})
+    mods['launch.substitutions'].LaunchConfiguration = LaunchConfiguration
+    mods['launch_ros.actions'].Node = type('Node', (Recorder,), {})
+    mods['launch_ros.parameter_descriptions'].ParameterValue = type('ParameterValue',
+                                                                     (Recorder,), {})
+    for name, mod in mods.items():
+        monkeypatch.setitem(sys.modules, name, mod)
+
+
+def _launch_node(monkeypatch, **context):
+    _fake_launch_modules(monkeypatch)
+    path = ROOT / 'launch' / 'beo.launch.py'
+    ns = {'__file__': str(path), '__name__': 'beo_launch'}
+    exec(compile(path.read_text(), str(path), 'exec'), ns)
+    desc = ns['generate_launch_description']()
+    entities = desc.args[0]
+    declared = {e.args[0]: e.kwargs for e in entities
+                if type(e).__name__ == 'DeclareLaunchArgument'}
+    (opaque,) = [e for e in entities if type(e).__name__ == 'OpaqueFunction']
+    ctx = {name: kw['default_value'] for name, kw in declared.items()}
+    ctx.update(context)
+    (node,) = opaque.kwargs['function'](ctx)
+    return declared, node.kwargs
+
+
+def test_launch_arguments(monkeypatch):
+    declared, node = _launch_node(monkeypatch)
+    assert set(declared) == {'params_file', 'namespace', 'log_level', 'input_topic',
+                             'model_dir'}
+    assert declared['model_dir']['default_value'] == ''
+    desc = declared['input_topic']['description']
+    assert '/beo/input' in desc and '~/input' in desc and 'input_topics' in desc
+    assert node['package'] == 'beo_ros' and node['executable'] == 'beo_node'
+    assert [(a, b.args[0]) for a, b in node['remappings']] == [('/beo/input', 'input_topic')]
+    # the log level goes through ros_arguments (launch_ros adds --ros-args ... --)
+    assert node['ros_arguments'][0] == '--log-level'
+    assert node['ros_arguments'][1].args == ('log_level',)
+    assert '--ros-args' not in [a for a in node.get('arguments', []) if isinstance(a, str)]
+
+
+def test_launch_model_dir_override_only_when_given(monkeypatch):
+    _, node = _launch_node(monkeypatch)
+    (params_file,) = node['parameters']  # '' keeps the params file's model_dir
+    assert params_file.args == ('params_file',)
+    _, node = _launch_node(monkeypatch, model_dir='/data/models/2024')
+    params_file, override = node['parameters']  # after the params file: it wins
+    assert params_file.args == ('params_file',)
+    value = override['model_dir']
+    assert value.args == ('/data/models/2024',) and value.kwargs == {'value_type': str}
