@@ -1,6 +1,7 @@
 """Static checks of the packaging files: package.xml declares what beo_ros imports, setup.py
 installs the model directories, launch/beo.launch.py and scripts/setup keep their fixes."""
 import ast
+import os
 import pathlib
 import sys
 
@@ -197,3 +198,169 @@ def test_launch_model_dir_override_only_when_given(monkeypatch):
     assert params_file.args == ('params_file',)
     value = override['model_dir']
     assert value.args == ('/data/models/2024',) and value.kwargs == {'value_type': str}
+
+
+# --- scripts/setup: snippets run in a scratch tree ----------------------------------------
+
+SETUP = ROOT / 'scripts' / 'setup'
+PRELUDE = '''set -Eeuo pipefail
+die() { printf '[setup] ERROR: %s\\n' "$*" >&2; exit 1; }
+step() { :; }
+'''
+
+
+def _snippet(start, end):
+    """Lines of scripts/setup from the one starting with ``start`` to the next one equal to
+    ``end`` (both included)."""
+    lines = SETUP.read_text().splitlines()
+    i = next(n for n, ln in enumerate(lines) if ln.startswith(start))
+    j = next(n for n in range(i, len(lines)) if lines[n] == end)
+    return '\n'.join(lines[i:j + 1]) + '\n'
+
+
+def _bash(script, **env):
+    import shutil
+    import subprocess
+    bash = shutil.which('bash')
+    if bash is None:
+        pytest.skip('no bash')
+    return subprocess.run([bash, '-c', PRELUDE + script], capture_output=True, text=True,
+                          env={'PATH': os.environ.get('PATH', '/usr/bin:/bin'), **env},
+                          timeout=60)
+
+
+def _share_tree(tmp_path):
+    root, venv = tmp_path / 'clone', tmp_path / 'venv'
+    for rel in ('package.xml', 'config/beo.yaml', 'launch/beo.launch.py', 'models/m/a.npz'):
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        (root / rel).write_text(rel)
+    share = venv / 'share' / 'beo_ros'
+    share.mkdir(parents=True)
+    script = (f'ROOT={root}\nSHARE={share}\n'
+              + _snippet('for item in package.xml models config launch; do', 'done'))
+    return root, share, script
+
+
+def test_setup_share_links_idempotent(tmp_path):
+    root, share, script = _share_tree(tmp_path)
+    for _ in range(2):
+        r = _bash(script)
+        assert r.returncode == 0, r.stderr
+        for item in ('package.xml', 'models', 'config', 'launch'):
+            assert (share / item).is_symlink()
+            assert os.readlink(share / item) == str(root / item)
+        assert not (root / 'models' / 'models').exists()  # no link inside the target
+
+
+def test_setup_share_replaces_installed_copy(tmp_path):
+    import shutil
+    root, share, script = _share_tree(tmp_path)
+    shutil.copytree(root / 'models', share / 'models')  # what `pip install .` leaves
+    (share / 'models' / 'm' / 'a.npz').write_text('older copy')
+    r = _bash(script)
+    assert r.returncode == 0, r.stderr
+    assert (share / 'models').is_symlink()
+    assert os.readlink(share / 'models') == str(root / 'models')
+    assert (root / 'models' / 'm' / 'a.npz').read_text() == 'models/m/a.npz'
+
+
+def test_setup_share_keeps_foreign_files(tmp_path):
+    import shutil
+    root, share, script = _share_tree(tmp_path)
+    shutil.copytree(root / 'models', share / 'models')
+    (share / 'models' / 'mine').mkdir()
+    (share / 'models' / 'mine' / 'b.npz').write_text('user data')
+    r = _bash(script)
+    assert r.returncode != 0
+    assert 'not in' in r.stderr and 'mine' in r.stderr
+    assert (share / 'models' / 'mine' / 'b.npz').read_text() == 'user data'
+    assert not (share / 'models').is_symlink()
+
+
+LDD_CHECK = ('# an unmatched glob must not pass', 'echo "    ok"')
+
+
+def test_setup_ldd_check_fails_clearly_without_libraries(tmp_path):
+    venv = tmp_path / 'venv'
+    (venv / 'lib' / 'python3.11' / 'site-packages' / 'beo_interfaces').mkdir(parents=True)
+    r = _bash(f'VENV={venv}\nLOG=/dev/null\n' + _snippet(*LDD_CHECK))
+    assert r.returncode != 0
+    assert 'libbeo_interfaces__*.so' in r.stderr
+
+
+def test_setup_ldd_check_reports_missing_dependency(tmp_path):
+    import shutil
+    if shutil.which('ldd') is None:
+        pytest.skip('no ldd')
+    venv = tmp_path / 'venv'
+    pkg = venv / 'lib' / 'python3.11' / 'site-packages' / 'beo_interfaces'
+    pkg.mkdir(parents=True)
+    # stand-in libraries: copies of a real shared library, one with a fake ldd result
+    libc_user = next((p for p in map(pathlib.Path, ('/usr/lib/x86_64-linux-gnu/libz.so.1',
+                                                     '/lib/x86_64-linux-gnu/libz.so.1'))
+                      if p.exists()), None)
+    if libc_user is None:
+        pytest.skip('no libz.so.1 to stand in for a library')
+    shutil.copy(libc_user, venv / 'lib' / 'libbeo_interfaces__a.so')
+    shutil.copy(libc_user, pkg / 'ext.so')
+    ok = _bash(f'VENV={venv}\nLOG=/dev/null\n' + _snippet(*LDD_CHECK))
+    assert ok.returncode == 0, ok.stderr
+    # an ldd that reports a missing library first and then writes on: with `ldd | grep -q`
+    # under pipefail, grep's early exit kills ldd with SIGPIPE and the miss went unreported
+    fake = tmp_path / 'bin'
+    fake.mkdir()
+    (fake / 'ldd').write_text('#!/bin/sh\necho "\tlibmissing.so.1 => not found"\n'
+                              'for i in $(seq 1 50000); do echo "\tlibok$i.so => /x"; done\n')
+    (fake / 'ldd').chmod(0o755)
+    r = _bash(f'PATH={fake}:$PATH\nVENV={venv}\nLOG=/dev/null\n' + _snippet(*LDD_CHECK))
+    assert r.returncode != 0
+    assert 'libmissing.so.1' in r.stderr and 'unresolved shared libraries' in r.stderr
+
+
+def _apt_pkgs():
+    line = next(ln for ln in SETUP.read_text().splitlines() if ln.startswith('APT_PKGS=('))
+    return set(line[len('APT_PKGS=('):line.index(')')].split())
+
+
+def test_setup_apt_packages_cover_open3d_libraries():
+    """Every system library that open3d's libOpen3D.so needs (readelf NEEDED) comes from a
+    package scripts/setup installs (or from the base system)."""
+    import shutil
+    import subprocess
+    pkgs = _apt_pkgs()
+    assert {'libegl1', 'libgl1', 'libx11-6', 'libusb-1.0-0', 'libudev1', 'libidn2-0',
+            'cmake', 'g++', 'make'} <= pkgs
+    if not all(shutil.which(t) for t in ('readelf', 'ldd', 'dpkg')):
+        pytest.skip('needs readelf, ldd and dpkg')
+    try:
+        import importlib.util
+        spec = importlib.util.find_spec('open3d')
+    except ImportError:
+        spec = None
+    if spec is None or not spec.submodule_search_locations:
+        pytest.skip('open3d not installed')
+    libs = sorted(pathlib.Path(spec.submodule_search_locations[0]).glob('libOpen3D.so*'))
+    if not libs:
+        pytest.skip('no libOpen3D.so in the open3d package')
+    base = {'libc6', 'libgcc-s1', 'libstdc++6', 'zlib1g'}  # base system / pulled in by g++
+    needed = set()
+    for lib in libs:
+        out = subprocess.run(['readelf', '-d', str(lib)], capture_output=True, text=True).stdout
+        needed |= {ln.split('[')[1].rstrip(']') for ln in out.splitlines() if '(NEEDED)' in ln}
+        resolved = subprocess.run(['ldd', str(lib)], capture_output=True, text=True).stdout
+        for ln in resolved.splitlines():
+            parts = ln.split()
+            if len(parts) >= 3 and parts[0] in needed and parts[1] == '=>':
+                path = os.path.realpath(parts[2])
+                if not path.startswith(('/lib', '/usr/lib')):
+                    continue  # shipped inside the wheel
+                owner = None
+                for cand in (path, path.replace('/usr/lib/', '/lib/', 1),
+                             path.replace('/lib/', '/usr/lib/', 1)):
+                    q = subprocess.run(['dpkg', '-S', cand], capture_output=True, text=True)
+                    if q.returncode == 0:
+                        owner = q.stdout.split(':')[0]
+                        break
+                assert owner is not None, f'{parts[0]} ({path}) belongs to no package'
+                assert owner in pkgs | base, (
+                    f'{lib.name} needs {parts[0]} from {owner}: add it to APT_PKGS')
