@@ -8,11 +8,20 @@ package_name = 'beo_ros'
 
 
 def model_files():
-    """(install dir, [files]) pairs for every shipped model directory."""
+    """(install dir, [files]) pairs for every shipped model directory models/<name>/, nested
+    directories included: models/<name>/<sub>/f installs to share/beo_ros/models/<name>/<sub>/f.
+
+    Hidden files and directories are skipped (as glob('*') does); every models/<name>/ gets
+    an entry, even when empty, so its share directory exists.
+    """
     out = []
-    for d in sorted(glob('models/*/')):
-        files = [f for f in glob(os.path.join(d, '*')) if os.path.isfile(f)]
-        out.append((os.path.join('share', package_name, d.rstrip('/')), files))
+    for top in sorted(glob('models/*/')):
+        for d, dirs, names in os.walk(top, followlinks=True):
+            dirs[:] = sorted(n for n in dirs if not n.startswith('.'))
+            files = sorted(os.path.join(d, n) for n in names
+                           if not n.startswith('.') and os.path.isfile(os.path.join(d, n)))
+            if files or d == top:
+                out.append((os.path.join('share', package_name, os.path.normpath(d)), files))
     return out
 
 

@@ -1,7 +1,7 @@
 """Launch the beo_ros node with config/beo.yaml.
 
     ros2 launch beo_ros beo.launch.py [params_file:=...] [namespace:=...] [log_level:=info]
-        [input_topic:=/camera/object_cloud]
+        [input_topic:=/camera/object_cloud] [model_dir:=/path/to/model_bank]
 
 Needs the ``launch`` and ``launch_ros`` packages (a full ROS 2 install); without them run
 ``beo-node --ros-args --params-file config/beo.yaml`` instead.
@@ -10,9 +10,10 @@ import os
 
 try:
     from launch import LaunchDescription
-    from launch.actions import DeclareLaunchArgument
+    from launch.actions import DeclareLaunchArgument, OpaqueFunction
     from launch.substitutions import LaunchConfiguration
     from launch_ros.actions import Node
+    from launch_ros.parameter_descriptions import ParameterValue
 except ImportError:  # launch / launch_ros are not installed (e.g. the pip-wheel venv)
     LaunchDescription = None
 
@@ -29,6 +30,30 @@ def default_params_file():
     return os.path.join(os.path.dirname(os.path.abspath(__file__)), '..', 'config', 'beo.yaml')
 
 
+def node_parameters(model_dir):
+    """The node's parameters: the params file, then ``model_dir`` as an override only when
+    it is given (non-empty), so a model_dir set in the params file is kept otherwise."""
+    params = [LaunchConfiguration('params_file')]
+    if model_dir:
+        # value_type=str: a directory name that looks like a number stays a string
+        params.append({'model_dir': ParameterValue(model_dir, value_type=str)})
+    return params
+
+
+def _beo_node(context):
+    return [Node(
+        package='beo_ros',
+        executable='beo_node',
+        name='beo',
+        namespace=LaunchConfiguration('namespace'),
+        parameters=node_parameters(LaunchConfiguration('model_dir').perform(context)),
+        remappings=[('/beo/input', LaunchConfiguration('input_topic'))],
+        ros_arguments=['--log-level', LaunchConfiguration('log_level')],
+        output='screen',
+        emulate_tty=True,
+    )]
+
+
 def generate_launch_description():
     if LaunchDescription is None:
         raise RuntimeError('launch/launch_ros are not installed; run '
@@ -41,17 +66,13 @@ def generate_launch_description():
         DeclareLaunchArgument('log_level', default_value='info',
                               description='debug, info, warn, error or fatal'),
         DeclareLaunchArgument('input_topic', default_value='/beo/input',
-                              description='Remap the default input topic /beo/input'),
+                              description='Topic to read instead of /beo/input: remaps /beo/input '
+                                          "(the node's default input topic, the ~/input of a node "
+                                          "named beo without namespace, and the only input_topics "
+                                          'entry of config/beo.yaml). Other topics listed in the '
+                                          'input_topics parameter are not remapped by this'),
+        DeclareLaunchArgument('model_dir', default_value='',
+                              description="Model bank directory; '' keeps the params file's "
+                                          'model_dir (there, empty means the shipped models)'),
     ]
-    node = Node(
-        package='beo_ros',
-        executable='beo_node',
-        name='beo',
-        namespace=LaunchConfiguration('namespace'),
-        parameters=[LaunchConfiguration('params_file')],
-        remappings=[('/beo/input', LaunchConfiguration('input_topic'))],
-        arguments=['--ros-args', '--log-level', LaunchConfiguration('log_level')],
-        output='screen',
-        emulate_tty=True,
-    )
-    return LaunchDescription(args + [node])
+    return LaunchDescription(args + [OpaqueFunction(function=_beo_node)])
