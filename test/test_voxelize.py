@@ -196,6 +196,68 @@ def test_points_outside_the_grid_still_hide_what_is_behind_them():
     assert (v.grid.reshape(-1)[before] == FREE).mean() > 0.9
 
 
+def _sparse_box_view(spacing):
+    """Points on the faces of a 8 x 6 x 10 cm box at 3 m (yawed 0.5 rad) that face the sensor
+    at (0, 0, 0.8), on a regular grid of ``spacing`` m per face; -> points, sensor, inside()."""
+    c0, half, yaw = np.array([3.0, 0.2, 0.05]), np.array([0.04, 0.03, 0.05]), 0.5
+    R = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+    sensor = np.array([0.0, 0.0, 0.8])
+    pts = []
+    for axis in range(3):
+        for sign in (-1, 1):
+            normal = R[:, axis] * sign
+            if normal @ (sensor - (c0 + normal * half[axis])) <= 0:
+                continue
+            a, b = [i for i in range(3) if i != axis]
+            ua = np.arange(-half[a], half[a] + 1e-9, spacing)
+            ub = np.arange(-half[b], half[b] + 1e-9, spacing)
+            A, B = np.meshgrid(ua, ub)
+            local = np.zeros((A.size, 3))
+            local[:, axis], local[:, a], local[:, b] = sign * half[axis], A.ravel(), B.ravel()
+            pts.append(local @ R.T + c0)
+
+    def inside(xyz, margin):
+        return np.all(np.abs((xyz - c0) @ R) < half - margin, axis=1)
+    return np.concatenate(pts), sensor, inside
+
+
+def test_sparsely_sampled_surfaces_do_not_leak_free_space(monkeypatch):
+    # a small object far away in a normalized grid: its points are ~1.4 voxels apart, and the
+    # one-voxel closing left gaps through which the inside of the box read as seen-free
+    import beo_ros.core.voxelize as vx
+    pts, sensor, inside = _sparse_box_view(0.0045)
+    spec = GridSpec(N)
+
+    def inside_labels():
+        v = voxelize_view(pts, sensor, [0, 0, 1], spec)
+        centres = np.indices(v.grid.shape).reshape(3, -1).T
+        xyz = centres @ v.grid_to_input[:3, :3].T + v.grid_to_input[:3, 3]
+        spacing = vx.point_spacing((pts - v.grid_to_input[:3, 3]) @ v.input_to_grid[:3, :3].T)
+        return v.grid.reshape(-1)[inside(xyz, 1.5 * v.voxel_size_m)], spacing
+
+    labels, spacing = inside_labels()
+    assert 1.2 < spacing < 1.6
+    assert len(labels) > 5000 and (labels == FREE).sum() == 0
+    monkeypatch.setattr(vx, 'SPARSE_SPACING', np.inf)       # the closing alone
+    before, _ = inside_labels()
+    assert (before == FREE).sum() > 500
+
+
+def test_point_spacing_and_facing_squares():
+    from beo_ros.core.voxelize import facing_squares, point_spacing
+    g = np.stack(np.meshgrid(np.arange(10.0), np.arange(10.0) * 2, [0.0]), -1).reshape(-1, 3)
+    assert point_spacing(g) == 1.0
+    assert point_spacing(np.r_[g, g]) == 1.0           # duplicates are not neighbours
+    assert point_spacing(g[:1]) == np.inf
+    v, t = facing_squares(np.array([[5.0, 0, 0], [0, 0, 3.0]]), np.zeros(3), 0.5)
+    assert v.shape == (8, 3) and t.shape == (4, 3)
+    for k, p in enumerate(([5.0, 0, 0], [0, 0, 3.0])):
+        quad = v[4 * k:4 * k + 4].astype(float)
+        normal = np.asarray(p) / np.linalg.norm(p)
+        np.testing.assert_allclose((quad - p) @ normal, 0, atol=1e-6)   # faces the origin
+        np.testing.assert_allclose(np.abs(quad - p).max(axis=0).max(), 0.5, atol=1e-6)
+
+
 def test_label_free_unknown_single_voxel_and_hole_closing():
     occ = np.zeros((8, 8, 8), bool)
     occ[3, 4, 4] = True
