@@ -1256,8 +1256,8 @@ def object_centre(points, rotation, fallback) -> np.ndarray:
 def heading_offset(grid_rotation, up) -> float:
     """Radians to add to a grid-frame yaw to get the heading about ``up`` in the input frame:
     the angle from the input frame's x axis projected on the plane normal to ``up`` (its y axis
-    when x is within 25 degrees of ``up``) to the grid's x axis. ``grid_rotation`` (3, 3):
-    the grid axes in the input frame, z = up."""
+    when x is within 25 degrees of ``up`` or of down) to the grid's x axis.
+    ``grid_rotation`` (3, 3): the grid axes in the input frame, z = up."""
     u = unit_vector(up)
     ref = np.eye(3)[0] - u * u[0]
     if np.linalg.norm(ref) < np.sin(np.deg2rad(25.0)):

@@ -66,9 +66,9 @@ class Estimate:
             from the sensor towards the object) turned by ``yaw`` about up.
         heading_offset: radians (only from ``estimate_points``): ``yaw`` + heading_offset is
             the object's heading about up in the input frame, measured from the input x axis
-            projected on the horizontal plane (the y axis if x is within 25° of up). ``yaw``,
-            the hypotheses' and the symmetric yaws are in the grid frame, whose x axis follows
-            the bearing from the sensor; add this to compare them across views.
+            projected on the horizontal plane (the y axis if x is within 25° of up or down).
+            ``yaw``, the hypotheses' and the symmetric yaws are in the grid frame, whose x axis
+            follows the bearing from the sensor; add this to compare them across views.
         grid_to_input: float64 (4,4) maps homogeneous grid index coordinates to the input frame
             (only from ``estimate_points``).
         n_outliers: points removed as statistical outliers before the voxelization (only from

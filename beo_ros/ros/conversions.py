@@ -224,7 +224,10 @@ def pose_to_matrix(pose: Pose) -> np.ndarray:
 
 
 def yaw_quaternion(yaw: float, up=(0.0, 0.0, 1.0)) -> Quaternion:
-    """Rotation by ``yaw`` radians (right-handed) about the axis ``up`` (normalized here)."""
+    """Rotation by ``yaw`` radians (right-handed) about the axis ``up`` (normalized here).
+
+    Not the published object orientation unless ``up`` is the frame's z axis: that one turns
+    the frame's z onto up as well (``Estimate.pose``, the object frame: z up, x the heading)."""
     axis = np.asarray(up, dtype=np.float64)
     norm = np.linalg.norm(axis)
     if not np.isfinite(norm) or norm == 0:
