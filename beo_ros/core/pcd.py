@@ -295,7 +295,10 @@ def read_pcd(path) -> PCDData:
             raise PCDError(f'{path}: uncompressed size {usize} != {need} expected from the header')
         if len(body) - 8 < csize:
             raise PCDError(f'{path}: compressed data truncated ({len(body) - 8} < {csize} bytes)')
-        raw = lzf_decompress(body[8:8 + csize], usize) if usize else b''
+        try:
+            raw = lzf_decompress(body[8:8 + csize], usize) if usize else b''
+        except PCDError as e:   # the codec does not know the file: name it like the others
+            raise PCDError(f'{path}: {e}') from None
         pos = 0  # structure of arrays: all values of field 0, then field 1, ...
         for name, dt, c in zip(names, dtypes, counts):
             nbytes = dt.itemsize * c * n
