@@ -119,6 +119,27 @@ def test_malformed_files(tmp_path, content, match):
     assert str(e.value).startswith(f'{path}: ')
 
 
+def test_header_comments_do_not_count_and_may_hold_any_bytes(tmp_path):
+    # 70 comment lines (open3d reads this) and a UTF-8 comment were refused as 'no DATA line in
+    # the first 64 header lines' / 'not a PCD file'; only keyword lines count toward the limit
+    path = tmp_path / 'comments.pcd'
+    path.write_bytes(b'# c\n' * 70 + '# Messung: Tisch \u00fcber Boden\n'.encode()
+                     + HEADER.encode() + b'# \xff\xfe latin-1 bytes\nDATA ascii\n1 2 3\n4 5 6\n')
+    np.testing.assert_array_equal(read_pcd(path).xyz(), [[1, 2, 3], [4, 5, 6]])
+    # keyword lines stay bounded, and so does a header of comments without end
+    path.write_bytes(b'VERSION 0.7\n' * 65 + HEADER.encode() + b'DATA ascii\n1 2 3\n4 5 6\n')
+    with pytest.raises(PCDError, match='first 64 header lines'):
+        read_pcd(path)
+    path.write_bytes(b'#' * (1 << 20) + b'\n' + HEADER.encode() + b'DATA ascii\n')
+    with pytest.raises(PCDError, match='no DATA line in the first 1048576 bytes'):
+        read_pcd(path)
+    # a keyword line with non-ASCII bytes is still not a PCD header
+    path.write_bytes(HEADER.replace('VERSION 0.7', 'VERSION 0.7\u00fc').encode()
+                     + b'DATA ascii\n1 2 3\n4 5 6\n')
+    with pytest.raises(PCDError, match='not ASCII'):
+        read_pcd(path)
+
+
 def test_tab_separated_header_is_read(tmp_path):
     # PCL splits header lines on any whitespace
     path = tmp_path / 'tabs.pcd'

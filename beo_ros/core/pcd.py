@@ -17,7 +17,8 @@ DATA_KINDS = ('ascii', 'binary', 'binary_compressed')
 _TYPES = {('I', 1): 'i1', ('I', 2): '<i2', ('I', 4): '<i4', ('I', 8): '<i8',
           ('U', 1): 'u1', ('U', 2): '<u2', ('U', 4): '<u4', ('U', 8): '<u8',
           ('F', 4): '<f4', ('F', 8): '<f8'}
-_MAX_HEADER_LINES = 64
+_MAX_HEADER_LINES = 64   # keyword lines; comments and blank lines are not counted
+_MAX_HEADER_BYTES = 1 << 20   # the whole header, comments included
 MAX_COUNT = 1 << 16   # values per field and point (PCL descriptors have a few hundred)
 PADDING = '_'   # PCL's name for padding fields; may repeat, never returned
 
@@ -157,21 +158,29 @@ def lzf_compress(data: bytes) -> bytes:
 
 def _parse_header(f, path) -> tuple:
     header = {}
-    for _ in range(_MAX_HEADER_LINES):
-        raw = f.readline()
+    n_keys = n_bytes = 0
+    while True:
+        raw = f.readline(_MAX_HEADER_BYTES - n_bytes + 1)
         if not raw:
             raise PCDError(f'{path}: end of file inside the header (no DATA line)')
+        n_bytes += len(raw)
+        if n_bytes > _MAX_HEADER_BYTES:
+            raise PCDError(f'{path}: no DATA line in the first {_MAX_HEADER_BYTES} bytes (not a '
+                           'PCD file?)')
+        stripped = raw.strip()
+        if not stripped or stripped.startswith(b'#'):
+            continue   # blank lines and comments (any bytes, as PCL skips them) do not count
         try:
             line = raw.decode('ascii').strip()
         except UnicodeDecodeError:
             raise PCDError(f'{path}: header is not ASCII text (not a PCD file?)') from None
-        if not line or line.startswith('#'):
-            continue
+        n_keys += 1
+        if n_keys > _MAX_HEADER_LINES:
+            raise PCDError(f'{path}: no DATA line in the first {_MAX_HEADER_LINES} header lines')
         key, *rest = line.split()   # spaces or tabs, as PCL reads it
         header[key.upper()] = rest
         if key.upper() == 'DATA':
             return header
-    raise PCDError(f'{path}: no DATA line in the first {_MAX_HEADER_LINES} header lines')
 
 
 def _layout(header: dict, path) -> tuple:
