@@ -140,6 +140,31 @@ def test_header_comments_do_not_count_and_may_hold_any_bytes(tmp_path):
         read_pcd(path)
 
 
+@pytest.mark.parametrize('name', ['rgb', 'rgba'])
+def test_ascii_packed_colour_typed_f_as_integer_or_float_text(tmp_path, name):
+    # 'rgb F 4' holding the integer colour ("16744455" = 0xFF8007) was parsed as the float
+    # 16744455.0, whose bits read back as [127, 128, 7] instead of [255, 128, 7]
+    colours = np.array([0xFF8007, 0xFF000000 | 0x102030, 0], dtype=np.uint32)
+    as_float = colours.view(np.float32)
+    head = (f'FIELDS x {name}\nSIZE 4 4\nTYPE F {{t}}\nCOUNT 1 1\nWIDTH 4\nHEIGHT 1\n'
+            'DATA ascii\n')
+    path = tmp_path / 'c.pcd'
+    for t, texts in (('F', [str(int(v)) for v in colours]),            # integer text under F
+                     ('U', [str(int(v)) for v in colours]),            # PCL >= 1.8: TYPE U
+                     ('F', [repr(float(v)) for v in as_float])):       # packed float text
+        path.write_text(head.format(t=t) + ''.join(f'{i} {c}\n' for i, c in
+                                                   enumerate(texts + [texts[0]])))
+        got = read_pcd(path)[name]
+        assert got.dtype == np.dtype('<f4' if t == 'F' else '<u4')
+        np.testing.assert_array_equal(got.view(np.uint32), np.r_[colours, colours[0]])
+    # a float-text column stays floats, also with an integral-looking cell and nan
+    path.write_text(head.format(t='F') + '0 4.2108e+06\n1 nan\n2 3\n3 1.5\n')
+    np.testing.assert_array_equal(read_pcd(path)[name], np.float32([4.2108e6, np.nan, 3, 1.5]))
+    # the integer text is only special for colour fields: elsewhere F text is a float
+    path.write_text(head.replace(name, 'intensity').format(t='F') + '0 16744455\n' * 4)
+    np.testing.assert_array_equal(read_pcd(path)['intensity'], np.float32([16744455.0] * 4))
+
+
 def test_tab_separated_header_is_read(tmp_path):
     # PCL splits header lines on any whitespace
     path = tmp_path / 'tabs.pcd'
