@@ -72,6 +72,38 @@ def test_load_scene_from_pcd(tmp_path):
         load_scene(tmp_path / 'bad.pcd')
 
 
+def test_load_scene_applies_the_viewpoint(tmp_path):
+    # VIEWPOINT (the sensor's pose in the file's frame) was read and dropped: the points stayed in
+    # the file's frame while the table plane and the grids assumed the sensor at the origin
+    # (up flipped, other grids). The points are now moved into the sensor frame.
+    from beo_ros.core.scans import quaternion_matrix
+    scene, up, d = synthetic_scene()
+    q = np.array([0.8, 0.3, -0.4, 0.33])
+    q /= np.linalg.norm(q)
+    t = np.array([0.4, -1.0, 2.0])
+    moved = scene.points.astype(np.float64) @ quaternion_matrix(q).T + t   # R p + t
+    fields = {'x': moved[:, 0].astype(np.float32), 'y': moved[:, 1].astype(np.float32),
+              'z': moved[:, 2].astype(np.float32), 'label': scene.labels}
+    write_pcd(tmp_path / 'vp.pcd', fields, viewpoint=(*t, *q))
+    s = load_scene(tmp_path / 'vp.pcd')
+    np.testing.assert_allclose(s.points, scene.points, atol=1e-5)   # NaN where they were
+    np.testing.assert_array_equal(s.viewpoint, [*t, *q])
+    n, dd = fit_table_plane(s)
+    assert n @ up > 0.9999 and abs(dd - d) < 1e-3
+    for oid, pts in segment_objects(s).items():
+        a = object_view(pts, n, dd, occluders=scene_occluders(s, oid)).grid
+        b = object_view(segment_objects(scene)[oid], up, d,
+                        occluders=scene_occluders(scene, oid)).grid
+        assert (a != b).mean() < 0.001
+    # the identity VIEWPOINT leaves the points bit for bit; a zero quaternion is refused
+    write_pcd(tmp_path / 'id.pcd', {**fields, 'x': scene.points[:, 0], 'y': scene.points[:, 1],
+                                    'z': scene.points[:, 2]})
+    np.testing.assert_array_equal(load_scene(tmp_path / 'id.pcd').points, scene.points)
+    write_pcd(tmp_path / 'zero.pcd', fields, viewpoint=(0, 0, 0, 0, 0, 0, 0))
+    with pytest.raises(PCDError, match=r'zero\.pcd: VIEWPOINT .* not a pose'):
+        load_scene(tmp_path / 'zero.pcd')
+
+
 @pytest.mark.parametrize('label_type,values,match', [
     ('I', b'-1', 'not integers'),          # a cast wrapped it to 4294967295: an object label
     ('F', b'nan', 'not integers'), ('F', b'20.5', 'not integers'), ('F', b'-3', 'not integers'),

@@ -393,7 +393,7 @@ def write_pcd(path, fields: dict, width: int | None = None, height: int = 1,
     if width * height != n:
         raise PCDError(f'width*height = {width}*{height} != {n} points')
     types = [_pcd_type(a.dtype) for _, a in arrays]
-    vp = ' '.join(f'{float(v):g}' for v in viewpoint)
+    vp = ' '.join(repr(float(v)) for v in viewpoint)   # exact, not 6 digits
     header = ('# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\n'
               f'FIELDS {" ".join(nm for nm, _ in arrays)}\n'
               f'SIZE {" ".join(str(s) for _, s in types)}\n'
