@@ -138,7 +138,28 @@ def test_segment_objects():
     assert list(objs) == [2, 3]
     assert len(objs[2]) == 3000 and len(objs[3]) == 1000  # labels 30 and 31 are one object
     assert all(np.isfinite(p).all() and p.dtype == np.float64 for p in objs.values())
-    assert list(segment_objects(scene, min_points=2000)) == [2]
+    with pytest.warns(UserWarning, match=r'left out 1 object\(s\) .* \(id: points 3: 1000\)'):
+        assert list(segment_objects(scene, min_points=2000)) == [2]
+
+
+def test_segment_objects_and_table_fit_say_what_they_leave_out():
+    # small objects, labels 10-19 and a table fit without table labels were silent
+    scene, _, _ = synthetic_scene()
+    scene.labels[:7] = 50            # object 5: 7 table points, below MIN_POINTS (10)
+    scene.labels[7:30] = 15          # neither table nor object
+    with pytest.warns(UserWarning, match=r'scene: left out 1 object\(s\) with fewer than 10 '
+                      r'points \(id: points 5: 7\); ignored 23 points with labels 10-19'):
+        objs = segment_objects(scene)
+    assert list(objs) == [2, 3]
+    from beo_ros.core.scans import ScanWarning, label_summary
+    assert label_summary(scene) == dict(small_objects={5: 7}, unassigned_points=23,
+                                        table_points=4000 - 30)
+    scene.path = '/x/learn0.pcd'
+    scene.labels[(scene.labels >= 1) & (scene.labels <= 9)] = 0
+    scene.labels[30:32] = 1          # 2 table points: the dominant plane of all points
+    with pytest.warns(ScanWarning, match=r'/x/learn0\.pcd: 2 table points \(labels 1-9\), '
+                      r'fewer than 3: the table is the dominant plane of all 8000 finite'):
+        fit_table_plane(scene)
 
 
 def test_fit_table_plane_orientation():

@@ -9,6 +9,7 @@ OSD labels: 0 invalid, 1-9 the supporting table, >= 20 object parts with object 
 from __future__ import annotations
 
 import os
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -23,6 +24,11 @@ MIN_VIEW_ANGLE_DEG = 5.0  # a support plane seen at a shallower angle is refused
 FIRST_OBJECT_LABEL = 20
 TABLETOP_SPEC = GridSpec(size=32, units='metric', voxel_size=0.5 / 32, anchor='bottom')
 IDENTITY_VIEWPOINT = np.array([0, 0, 0, 1, 0, 0, 0], dtype=np.float64)
+
+
+class ScanWarning(UserWarning):
+    """Part of a scan is left out (small objects, labels 10-19, points outside a grid) or the
+    table is not fitted from table labels."""
 
 
 @dataclass
@@ -125,10 +131,29 @@ def _finite(points) -> np.ndarray:
     return np.isfinite(points).all(axis=1)
 
 
+def label_summary(scene: Scene, min_points: int = MIN_POINTS) -> dict:
+    """What :func:`segment_objects` and :func:`fit_table_plane` leave out of ``scene``:
+    dict(small_objects={object id: finite points} of the objects with fewer than ``min_points``,
+    unassigned_points=finite points with labels 10-19 (neither table nor object),
+    table_points=finite points with table labels 1-9)."""
+    ok = _finite(scene.points)
+    lab = scene.labels[ok]
+    ids, counts = np.unique(lab[lab >= FIRST_OBJECT_LABEL] // 10, return_counts=True)
+    return dict(small_objects={int(i): int(c) for i, c in zip(ids, counts) if c < min_points},
+                unassigned_points=int(((lab >= 10) & (lab < FIRST_OBJECT_LABEL)).sum()),
+                table_points=int(((lab >= TABLE_LABELS[0]) & (lab <= TABLE_LABELS[1])).sum()))
+
+
+def _name(scene) -> str:
+    return scene.path or 'scene'
+
+
 def segment_objects(scene: Scene, min_points: int = MIN_POINTS) -> dict:
     """Object id (label // 10) -> float64 (n, 3) finite camera-frame points, ids ascending.
 
-    Objects with fewer than ``min_points`` finite points are left out.
+    Objects with fewer than ``min_points`` finite points are left out, and points with labels
+    10-19 (neither table nor object) are ignored; both with a :class:`ScanWarning` naming the
+    scene and the numbers (:func:`label_summary` returns them).
     """
     ok = _finite(scene.points) & (scene.labels >= FIRST_OBJECT_LABEL)
     ids = scene.labels[ok] // 10
@@ -138,6 +163,17 @@ def segment_objects(scene: Scene, min_points: int = MIN_POINTS) -> dict:
         sel = pts[ids == oid]
         if len(sel) >= min_points:
             out[int(oid)] = sel
+    info = label_summary(scene, min_points)
+    notes = []
+    if info['small_objects']:
+        notes.append(f"left out {len(info['small_objects'])} object(s) with fewer than "
+                     f'{min_points} points (id: points ' + ', '.join(
+                         f'{k}: {v}' for k, v in info['small_objects'].items()) + ')')
+    if info['unassigned_points']:
+        notes.append(f"ignored {info['unassigned_points']} points with labels 10-19 (neither "
+                     'table nor object)')
+    if notes:
+        warnings.warn(f'{_name(scene)}: ' + '; '.join(notes), ScanWarning, stacklevel=2)
     return out
 
 
@@ -147,8 +183,9 @@ def fit_table_plane(scene_or_points, labels=None, distance_threshold: float = 0.
 
     Args:
         scene_or_points: a :class:`Scene`, or (n, 3) points (camera frame).
-        labels: (n,) labels for raw points; table points are labels 1-9. With no table labels
-            (or no labels) all finite points are used and the dominant plane is taken.
+        labels: (n,) labels for raw points; table points are labels 1-9. With no labels all
+            finite points are used and the dominant plane is taken; so too, with a
+            :class:`ScanWarning`, when the labels hold fewer than 3 finite table points.
         sensor_origin: finite (3,) sensor position, same frame as the points.
 
     Returns (up float64 (3,), d float): unit plane normal oriented toward the sensor side and
@@ -175,6 +212,11 @@ def fit_table_plane(scene_or_points, labels=None, distance_threshold: float = 0.
         table = ok & (labels >= TABLE_LABELS[0]) & (labels <= TABLE_LABELS[1])
         if table.sum() >= 3:
             ok = table
+        else:
+            where = _name(scene_or_points) if isinstance(scene_or_points, Scene) else 'points'
+            warnings.warn(f'{where}: {int(table.sum())} table points (labels 1-9), fewer than '
+                          f'3: the table is the dominant plane of all {int(ok.sum())} finite '
+                          'points', ScanWarning, stacklevel=2)
     sel = pts[ok]
     if len(sel) < 3:
         raise ValueError(f'need at least 3 finite points to fit a plane, got {len(sel)}')
