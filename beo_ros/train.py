@@ -197,6 +197,9 @@ def main(argv=None):
                              f'{len(names)} ({names}): add a class, or train no classifier '
                              'with --views 0 (the maximum-likelihood rule)')
         training = dict(inputs=[str(p) for p in args.inputs], congeal=args.congeal)
+        if args.scans:   # which scenes made which class, as the --mirror manifest says
+            training.update(scan_classes=str(args.scan_classes),
+                            voxel_size=float(args.voxel_size))
         if masks is None:   # whole objects: --calibrate-only can tell other data apart
             training['data_sha256'] = training_data_hash(X, y, names)
         grids = None
@@ -221,6 +224,11 @@ def main(argv=None):
                         classifier_kind=args.classifier,
                         calibration_views=('auto' if args.calibration_views is None
                                            else args.calibration_views))
+        if args.scans and args.views == 0:
+            # no out-of-fold classifier, calibration or verifier (none with --scans): the
+            # folds and the seed drew nothing, so the manifest does not claim them
+            for unused in ('folds', 'seed'):
+                bank.training.pop(unused, None)
         _save(bank, args.out, replace)
     except (ValueError, OSError) as e:
         print(f'beo-train: error: {e}', file=sys.stderr)

@@ -113,8 +113,56 @@ HEADER = ('VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n'
 def test_malformed_files(tmp_path, content, match):
     path = tmp_path / 'bad.pcd'
     path.write_bytes(content)
-    with pytest.raises(PCDError, match=match):
+    with pytest.raises(PCDError, match=match) as e:
         read_pcd(path)
+    # every message names the file (the LZF codec's did not: 'LZF: literal run past end ...')
+    assert str(e.value).startswith(f'{path}: ')
+
+
+def test_header_comments_do_not_count_and_may_hold_any_bytes(tmp_path):
+    # 70 comment lines (open3d reads this) and a UTF-8 comment were refused as 'no DATA line in
+    # the first 64 header lines' / 'not a PCD file'; only keyword lines count toward the limit
+    path = tmp_path / 'comments.pcd'
+    path.write_bytes(b'# c\n' * 70 + '# Messung: Tisch \u00fcber Boden\n'.encode()
+                     + HEADER.encode() + b'# \xff\xfe latin-1 bytes\nDATA ascii\n1 2 3\n4 5 6\n')
+    np.testing.assert_array_equal(read_pcd(path).xyz(), [[1, 2, 3], [4, 5, 6]])
+    # keyword lines stay bounded, and so does a header of comments without end
+    path.write_bytes(b'VERSION 0.7\n' * 65 + HEADER.encode() + b'DATA ascii\n1 2 3\n4 5 6\n')
+    with pytest.raises(PCDError, match='first 64 header lines'):
+        read_pcd(path)
+    path.write_bytes(b'#' * (1 << 20) + b'\n' + HEADER.encode() + b'DATA ascii\n')
+    with pytest.raises(PCDError, match='no DATA line in the first 1048576 bytes'):
+        read_pcd(path)
+    # a keyword line with non-ASCII bytes is still not a PCD header
+    path.write_bytes(HEADER.replace('VERSION 0.7', 'VERSION 0.7\u00fc').encode()
+                     + b'DATA ascii\n1 2 3\n4 5 6\n')
+    with pytest.raises(PCDError, match='not ASCII'):
+        read_pcd(path)
+
+
+@pytest.mark.parametrize('name', ['rgb', 'rgba'])
+def test_ascii_packed_colour_typed_f_as_integer_or_float_text(tmp_path, name):
+    # 'rgb F 4' holding the integer colour ("16744455" = 0xFF8007) was parsed as the float
+    # 16744455.0, whose bits read back as [127, 128, 7] instead of [255, 128, 7]
+    colours = np.array([0xFF8007, 0xFF000000 | 0x102030, 0], dtype=np.uint32)
+    as_float = colours.view(np.float32)
+    head = (f'FIELDS x {name}\nSIZE 4 4\nTYPE F {{t}}\nCOUNT 1 1\nWIDTH 4\nHEIGHT 1\n'
+            'DATA ascii\n')
+    path = tmp_path / 'c.pcd'
+    for t, texts in (('F', [str(int(v)) for v in colours]),            # integer text under F
+                     ('U', [str(int(v)) for v in colours]),            # PCL >= 1.8: TYPE U
+                     ('F', [repr(float(v)) for v in as_float])):       # packed float text
+        path.write_text(head.format(t=t) + ''.join(f'{i} {c}\n' for i, c in
+                                                   enumerate(texts + [texts[0]])))
+        got = read_pcd(path)[name]
+        assert got.dtype == np.dtype('<f4' if t == 'F' else '<u4')
+        np.testing.assert_array_equal(got.view(np.uint32), np.r_[colours, colours[0]])
+    # a float-text column stays floats, also with an integral-looking cell and nan
+    path.write_text(head.format(t='F') + '0 4.2108e+06\n1 nan\n2 3\n3 1.5\n')
+    np.testing.assert_array_equal(read_pcd(path)[name], np.float32([4.2108e6, np.nan, 3, 1.5]))
+    # the integer text is only special for colour fields: elsewhere F text is a float
+    path.write_text(head.replace(name, 'intensity').format(t='F') + '0 16744455\n' * 4)
+    np.testing.assert_array_equal(read_pcd(path)['intensity'], np.float32([16744455.0] * 4))
 
 
 def test_tab_separated_header_is_read(tmp_path):

@@ -72,6 +72,38 @@ def test_load_scene_from_pcd(tmp_path):
         load_scene(tmp_path / 'bad.pcd')
 
 
+def test_load_scene_applies_the_viewpoint(tmp_path):
+    # VIEWPOINT (the sensor's pose in the file's frame) was read and dropped: the points stayed in
+    # the file's frame while the table plane and the grids assumed the sensor at the origin
+    # (up flipped, other grids). The points are now moved into the sensor frame.
+    from beo_ros.core.scans import quaternion_matrix
+    scene, up, d = synthetic_scene()
+    q = np.array([0.8, 0.3, -0.4, 0.33])
+    q /= np.linalg.norm(q)
+    t = np.array([0.4, -1.0, 2.0])
+    moved = scene.points.astype(np.float64) @ quaternion_matrix(q).T + t   # R p + t
+    fields = {'x': moved[:, 0].astype(np.float32), 'y': moved[:, 1].astype(np.float32),
+              'z': moved[:, 2].astype(np.float32), 'label': scene.labels}
+    write_pcd(tmp_path / 'vp.pcd', fields, viewpoint=(*t, *q))
+    s = load_scene(tmp_path / 'vp.pcd')
+    np.testing.assert_allclose(s.points, scene.points, atol=1e-5)   # NaN where they were
+    np.testing.assert_array_equal(s.viewpoint, [*t, *q])
+    n, dd = fit_table_plane(s)
+    assert n @ up > 0.9999 and abs(dd - d) < 1e-3
+    for oid, pts in segment_objects(s).items():
+        a = object_view(pts, n, dd, occluders=scene_occluders(s, oid)).grid
+        b = object_view(segment_objects(scene)[oid], up, d,
+                        occluders=scene_occluders(scene, oid)).grid
+        assert (a != b).mean() < 0.001
+    # the identity VIEWPOINT leaves the points bit for bit; a zero quaternion is refused
+    write_pcd(tmp_path / 'id.pcd', {**fields, 'x': scene.points[:, 0], 'y': scene.points[:, 1],
+                                    'z': scene.points[:, 2]})
+    np.testing.assert_array_equal(load_scene(tmp_path / 'id.pcd').points, scene.points)
+    write_pcd(tmp_path / 'zero.pcd', fields, viewpoint=(0, 0, 0, 0, 0, 0, 0))
+    with pytest.raises(PCDError, match=r'zero\.pcd: VIEWPOINT .* not a pose'):
+        load_scene(tmp_path / 'zero.pcd')
+
+
 @pytest.mark.parametrize('label_type,values,match', [
     ('I', b'-1', 'not integers'),          # a cast wrapped it to 4294967295: an object label
     ('F', b'nan', 'not integers'), ('F', b'20.5', 'not integers'), ('F', b'-3', 'not integers'),
@@ -106,7 +138,28 @@ def test_segment_objects():
     assert list(objs) == [2, 3]
     assert len(objs[2]) == 3000 and len(objs[3]) == 1000  # labels 30 and 31 are one object
     assert all(np.isfinite(p).all() and p.dtype == np.float64 for p in objs.values())
-    assert list(segment_objects(scene, min_points=2000)) == [2]
+    with pytest.warns(UserWarning, match=r'left out 1 object\(s\) .* \(id: points 3: 1000\)'):
+        assert list(segment_objects(scene, min_points=2000)) == [2]
+
+
+def test_segment_objects_and_table_fit_say_what_they_leave_out():
+    # small objects, labels 10-19 and a table fit without table labels were silent
+    scene, _, _ = synthetic_scene()
+    scene.labels[:7] = 50            # object 5: 7 table points, below MIN_POINTS (10)
+    scene.labels[7:30] = 15          # neither table nor object
+    with pytest.warns(UserWarning, match=r'scene: left out 1 object\(s\) with fewer than 10 '
+                      r'points \(id: points 5: 7\); ignored 23 points with labels 10-19'):
+        objs = segment_objects(scene)
+    assert list(objs) == [2, 3]
+    from beo_ros.core.scans import ScanWarning, label_summary
+    assert label_summary(scene) == dict(small_objects={5: 7}, unassigned_points=23,
+                                        table_points=4000 - 30)
+    scene.path = '/x/learn0.pcd'
+    scene.labels[(scene.labels >= 1) & (scene.labels <= 9)] = 0
+    scene.labels[30:32] = 1          # 2 table points: the dominant plane of all points
+    with pytest.warns(ScanWarning, match=r'/x/learn0\.pcd: 2 table points \(labels 1-9\), '
+                      r'fewer than 3: the table is the dominant plane of all 8000 finite'):
+        fit_table_plane(scene)
 
 
 def test_fit_table_plane_orientation():

@@ -318,6 +318,28 @@ def test_point_classifier_npz_checked_before_the_scans(tmp_path, monkeypatch, ca
     assert calls == []
 
 
+def test_scans_manifest_records_scan_classes_and_no_unused_folds(tmp_path, monkeypatch):
+    # the non-mirror --scans manifest had no scan_classes and claimed folds 5 / seed 0, which
+    # --views 0 never uses
+    from beo_ros.core import scan_training
+    from beo_ros.core.grid import GridSpec
+    rng = np.random.default_rng(0)
+    X = (rng.random((6, 8 ** 3)) < 0.3).astype(np.float32)
+    masks = rng.random(X.shape) < 0.8
+    X[~masks] = 0
+    spec = GridSpec(size=8, units='metric', voxel_size=0.05, anchor='bottom')
+    seen = []
+    monkeypatch.setattr(scan_training, 'load_scan_training_set', lambda *a, **k: seen.append(a)
+                        or (X, np.array([0, 0, 0, 1, 1, 1]), ['box', 'can'], masks, spec))
+    assert train.main(['learn0.pcd', 'learn33.pcd', '--scans', '--scan-classes',
+                       'box:0-16,can:33-44', '--views', '0', '--k', '1', '--grid', '8',
+                       '-o', str(tmp_path / 'm')]) == 0
+    assert seen[0][1] == 'box:0-16,can:33-44'
+    info = json.loads((tmp_path / 'm' / 'manifest.json').read_text())['training']
+    assert info['scan_classes'] == 'box:0-16,can:33-44' and info['voxel_size'] == 0.5 / 32
+    assert 'folds' not in info and 'seed' not in info and info['classifier_views'] == 0
+
+
 # ---------------------------------------------------------------------- 10: a bare array
 def test_an_npy_named_npz_is_refused_by_every_loader(tmp_path, capsys):
     p = tmp_path / 'bare.npz'

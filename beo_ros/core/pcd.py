@@ -4,6 +4,13 @@ Supports ``DATA ascii``, ``binary`` and ``binary_compressed`` (LZF, decoded in p
 any field layout (TYPE I/U/F, SIZE 1/2/4/8, COUNT >= 1). Organized clouds keep their
 ``width``/``height``; arrays are flat in row-major order (index = row * width + col). Padding
 fields named ``_`` (PCL's, possibly several) are read past but not returned.
+
+Packed colours (``rgb``/``rgba``, SIZE 4) keep their 32 bits whatever the TYPE. In ascii files
+typed ``F`` they are read as float text ("4.2108e+06", the float whose bits are the colour) or,
+when the whole column is plain unsigned integers, as the integer colour value ("16744455"): PCL's
+ascii writers print the colour as that integer (since PCL 1.8 under ``TYPE U``, which needs no
+special case), and files that keep the point type's ``F`` over that integer text exist. PCL's own
+reader parses any ``F`` text as a float, which turns such integer text into another colour.
 """
 from __future__ import annotations
 
@@ -17,9 +24,11 @@ DATA_KINDS = ('ascii', 'binary', 'binary_compressed')
 _TYPES = {('I', 1): 'i1', ('I', 2): '<i2', ('I', 4): '<i4', ('I', 8): '<i8',
           ('U', 1): 'u1', ('U', 2): '<u2', ('U', 4): '<u4', ('U', 8): '<u8',
           ('F', 4): '<f4', ('F', 8): '<f8'}
-_MAX_HEADER_LINES = 64
+_MAX_HEADER_LINES = 64   # keyword lines; comments and blank lines are not counted
+_MAX_HEADER_BYTES = 1 << 20   # the whole header, comments included
 MAX_COUNT = 1 << 16   # values per field and point (PCL descriptors have a few hundred)
 PADDING = '_'   # PCL's name for padding fields; may repeat, never returned
+COLOUR_FIELDS = ('rgb', 'rgba')   # packed 0xAARRGGBB colours, often typed F 4 (PCL's habit)
 
 
 class PCDError(ValueError):
@@ -157,21 +166,29 @@ def lzf_compress(data: bytes) -> bytes:
 
 def _parse_header(f, path) -> tuple:
     header = {}
-    for _ in range(_MAX_HEADER_LINES):
-        raw = f.readline()
+    n_keys = n_bytes = 0
+    while True:
+        raw = f.readline(_MAX_HEADER_BYTES - n_bytes + 1)
         if not raw:
             raise PCDError(f'{path}: end of file inside the header (no DATA line)')
+        n_bytes += len(raw)
+        if n_bytes > _MAX_HEADER_BYTES:
+            raise PCDError(f'{path}: no DATA line in the first {_MAX_HEADER_BYTES} bytes (not a '
+                           'PCD file?)')
+        stripped = raw.strip()
+        if not stripped or stripped.startswith(b'#'):
+            continue   # blank lines and comments (any bytes, as PCL skips them) do not count
         try:
             line = raw.decode('ascii').strip()
         except UnicodeDecodeError:
             raise PCDError(f'{path}: header is not ASCII text (not a PCD file?)') from None
-        if not line or line.startswith('#'):
-            continue
+        n_keys += 1
+        if n_keys > _MAX_HEADER_LINES:
+            raise PCDError(f'{path}: no DATA line in the first {_MAX_HEADER_LINES} header lines')
         key, *rest = line.split()   # spaces or tabs, as PCL reads it
         header[key.upper()] = rest
         if key.upper() == 'DATA':
             return header
-    raise PCDError(f'{path}: no DATA line in the first {_MAX_HEADER_LINES} header lines')
 
 
 def _layout(header: dict, path) -> tuple:
@@ -243,6 +260,27 @@ def _ascii_values(cells, dt, name, path, ncol) -> np.ndarray:
     return np.array(ints, dtype=dt)
 
 
+def _ascii_packed_colour(cells) -> np.ndarray | None:
+    """Cells of an ascii ``rgb``/``rgba`` field typed ``F 4`` whose text is the packed colour as
+    an unsigned integer ("16744455" for 0xFF8007) -> float32 array holding those bits, or None
+    when the column is float text (a packed float such as "4.2108e+06" or "2.35e-38", which the
+    float parse keeps). Parsed as a float, "16744455" became 16744455.0, whose bits are another
+    colour ([127, 128, 7] for [255, 128, 7]). Only a column of plain digits (and "nan") in
+    [0, 2^32) is taken as integers: a packed float is printed with a '.', an exponent, or is
+    "nan", unless its alpha byte is 0x4b or more, which the writers of float colours (alpha 0
+    or 255) do not produce."""
+    digits = np.char.isdigit(cells)
+    nan = np.char.lower(cells) == 'nan'
+    if not digits.any() or not (digits | nan).all():
+        return None
+    ints = [int(v) for v in cells[digits]]
+    if max(ints) > 0xFFFFFFFF:
+        return None
+    out = np.full(len(cells), np.nan, dtype=np.float32)
+    out[digits] = np.array(ints, dtype=np.uint32).view(np.float32)
+    return out
+
+
 def read_pcd(path) -> PCDData:
     """Read a PCD file (ascii, binary or binary_compressed). Raises :class:`PCDError`."""
     path = os.fspath(path)
@@ -270,7 +308,11 @@ def read_pcd(path) -> PCDData:
         col = 0
         for name, dt, c in zip(names, dtypes, counts):
             if name != PADDING:
-                values = _ascii_values(table[:, col:col + c].ravel(), dt, name, path, ncol)
+                cells = table[:, col:col + c].ravel()
+                values = _ascii_packed_colour(cells) if name in COLOUR_FIELDS and \
+                    dt == np.dtype('<f4') else None
+                if values is None:
+                    values = _ascii_values(cells, dt, name, path, ncol)
                 fields[name] = _shape(values, c)
             col += c
     elif kind == 'binary':
@@ -295,7 +337,10 @@ def read_pcd(path) -> PCDData:
             raise PCDError(f'{path}: uncompressed size {usize} != {need} expected from the header')
         if len(body) - 8 < csize:
             raise PCDError(f'{path}: compressed data truncated ({len(body) - 8} < {csize} bytes)')
-        raw = lzf_decompress(body[8:8 + csize], usize) if usize else b''
+        try:
+            raw = lzf_decompress(body[8:8 + csize], usize) if usize else b''
+        except PCDError as e:   # the codec does not know the file: name it like the others
+            raise PCDError(f'{path}: {e}') from None
         pos = 0  # structure of arrays: all values of field 0, then field 1, ...
         for name, dt, c in zip(names, dtypes, counts):
             nbytes = dt.itemsize * c * n
@@ -348,7 +393,7 @@ def write_pcd(path, fields: dict, width: int | None = None, height: int = 1,
     if width * height != n:
         raise PCDError(f'width*height = {width}*{height} != {n} points')
     types = [_pcd_type(a.dtype) for _, a in arrays]
-    vp = ' '.join(f'{float(v):g}' for v in viewpoint)
+    vp = ' '.join(repr(float(v)) for v in viewpoint)   # exact, not 6 digits
     header = ('# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\n'
               f'FIELDS {" ".join(nm for nm, _ in arrays)}\n'
               f'SIZE {" ".join(str(s) for _, s in types)}\n'

@@ -13,13 +13,15 @@ from __future__ import annotations
 
 import re
 import sys
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from .grid import GridSpec
-from .scans import fit_table_plane, load_scene, object_view, scene_occluders, segment_objects
+from .scans import (ScanWarning, fit_table_plane, label_summary, load_scene, object_view,
+                    scene_occluders, segment_objects)
 
 DEFAULT_SCAN_CLASSES = 'box:0-16,cylinder:33-44'
 
@@ -81,6 +83,10 @@ class ScanObjects:
         ups: float64 (m, 3) table normal (camera frame) of each object's scene.
         plane_d: float64 (m,) table offsets (up . p + d = 0).
         grid_to_input: float64 (m, 4, 4) grid index coords -> camera frame.
+        n_outside: int (m,) points of each object outside its grid (not voxelized).
+        scene_notes: scene name -> :func:`~beo_ros.core.scans.label_summary`
+            (objects too small to use, points with labels 10-19, table points) of each scene
+            of the classes.
     """
 
     X: np.ndarray
@@ -94,6 +100,8 @@ class ScanObjects:
     ups: np.ndarray = None
     plane_d: np.ndarray = None
     grid_to_input: np.ndarray = None
+    n_outside: np.ndarray = None
+    scene_notes: dict = field(default_factory=dict)
 
     @property
     def grids(self) -> np.ndarray:
@@ -108,7 +116,9 @@ class ScanObjects:
         return ScanObjects(self.X[idx], self.y[idx], list(self.names), self.masks[idx], self.spec,
                            self.scenes[idx], self.object_ids[idx],
                            [self.points[i] for i in idx], self.ups[idx], self.plane_d[idx],
-                           self.grid_to_input[idx])
+                           self.grid_to_input[idx],
+                           None if self.n_outside is None else self.n_outside[idx],
+                           dict(self.scene_notes))
 
     def __len__(self):
         return len(self.X)
@@ -128,7 +138,8 @@ def load_scan_objects(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32, voxel_s
     """
     names, table = parse_scan_classes(scan_classes)
     spec = grid_spec(grid, voxel_size)
-    X, M, y, scenes, oids, pts_all, ups, ds, T = [], [], [], [], [], [], [], [], []
+    X, M, y, scenes, oids, pts_all, ups, ds, T, outside = [], [], [], [], [], [], [], [], [], []
+    notes = {}
     for p in sorted(paths, key=lambda q: (scene_number(q) is None, scene_number(q) or 0, str(q))):
         num = scene_number(p)
         if num not in table:
@@ -136,7 +147,8 @@ def load_scan_objects(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32, voxel_s
                 print(f'{p}: scene {num} is in no class, skipped', file=sys.stderr)
             continue
         scene = load_scene(p)
-        objs = segment_objects(scene)
+        objs = segment_objects(scene)   # warns of small objects and labels 10-19
+        notes[Path(p).stem] = label_summary(scene)
         if not objs:   # said even when not verbose: a scene of the classes is not used
             print(f'{p}: no objects (labels >= 20), skipped', file=sys.stderr)
             continue
@@ -159,6 +171,14 @@ def load_scan_objects(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32, voxel_s
             ups.append(up)
             ds.append(d)
             T.append(view.grid_to_input)
+            outside.append(len(pts) - view.n_points)
+        cut = {oid: n for oid, n in zip(oids[-len(objs):], outside[-len(objs):]) if n}
+        if cut:   # a grid too small for the objects (e.g. --grid 16 at the default voxel size)
+            warnings.warn(f'{p}: points outside the {spec.size}^3 grid of '
+                          f'{spec.voxel_size:g} m voxels, not voxelized (object id: points '
+                          'outside/all ' + ', '.join(f'{k}: {n}/{len(objs[k])}'
+                                                     for k, n in cut.items()) + ')',
+                          ScanWarning, stacklevel=2)
         if verbose:
             print(f'{p}: {names[table[num]]}, {len(objs)} objects', file=sys.stderr)
     if not X:
@@ -171,7 +191,7 @@ def load_scan_objects(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32, voxel_s
     return ScanObjects(np.array(X, dtype=np.float32), y, names, np.array(M, dtype=bool), spec,
                        np.array(scenes), np.array(oids, dtype=int), pts_all,
                        np.array(ups, dtype=np.float64), np.array(ds, dtype=np.float64),
-                       np.array(T, dtype=np.float64))
+                       np.array(T, dtype=np.float64), np.array(outside, dtype=int), notes)
 
 
 def mirror_augment(X, y, masks, n, groups=None) -> tuple:

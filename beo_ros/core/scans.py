@@ -1,13 +1,16 @@
 """Tabletop scenes (OSD-style organized PCD scans): load, segment objects, fit the table, voxelize.
 
 Camera frame (PCL/Kinect optical): x right, y down, z forward, sensor at the origin, metres.
+A file whose ``VIEWPOINT`` (the sensor's pose in the cloud's frame, ``tx ty tz qw qx qy qz``) is
+not the identity has its points moved into that sensor frame by :func:`load_scene`.
 OSD labels: 0 invalid, 1-9 the supporting table, >= 20 object parts with object id = label // 10
 (so the first object has id 2).
 """
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+import warnings
+from dataclasses import dataclass, field
 
 import numpy as np
 import open3d as o3d
@@ -20,6 +23,12 @@ TABLE_LABELS = (1, 9)  # inclusive range
 MIN_VIEW_ANGLE_DEG = 5.0  # a support plane seen at a shallower angle is refused
 FIRST_OBJECT_LABEL = 20
 TABLETOP_SPEC = GridSpec(size=32, units='metric', voxel_size=0.5 / 32, anchor='bottom')
+IDENTITY_VIEWPOINT = np.array([0, 0, 0, 1, 0, 0, 0], dtype=np.float64)
+
+
+class ScanWarning(UserWarning):
+    """Part of a scan is left out (small objects, labels 10-19, points outside a grid) or the
+    table is not fitted from table labels."""
 
 
 @dataclass
@@ -32,6 +41,8 @@ class Scene:
         rgb: uint8 (H*W, 3), zeros where the file has no colour.
         width, height: W, H.
         path: file it came from ('' if built in memory).
+        viewpoint: float64 (7,) the file's VIEWPOINT ``tx ty tz qw qx qy qz`` (the sensor's
+            pose in the file's frame), already applied to ``points``.
     """
 
     points: np.ndarray
@@ -40,11 +51,17 @@ class Scene:
     width: int
     height: int
     path: str = ''
+    viewpoint: np.ndarray = field(default_factory=lambda: IDENTITY_VIEWPOINT.copy())
 
 
 def load_scene(path, require_labels: bool = True) -> Scene:
     """Read an OSD-style PCD (fields x y z, label, optional rgba/rgb). Raises PCDError, also
-    for a file without a label field unless ``require_labels`` is False (labels then 0)."""
+    for a file without a label field unless ``require_labels`` is False (labels then 0).
+
+    The points are returned in the sensor frame: a VIEWPOINT ``t, q`` other than the identity
+    (the sensor at ``t`` with orientation ``q`` in the file's frame, as PCL writes it) maps a
+    file point ``p`` to ``R(q)^T (p - t)``, so the sensor is at the origin like in OSD files.
+    """
     pcd = read_pcd(path)
     if not all(k in pcd for k in 'xyz'):
         raise PCDError(f'{path}: no x/y/z fields')
@@ -60,6 +77,9 @@ def load_scene(path, require_labels: bool = True) -> Scene:
     for key in ('label', 'rgba', 'rgb'):
         if key in pcd and pcd[key].ndim != 1:
             raise PCDError(f'{path}: field {key!r} has COUNT {pcd[key].shape[1]}, not 1')
+    viewpoint = np.asarray(pcd.viewpoint, dtype=np.float64)
+    if not (viewpoint == IDENTITY_VIEWPOINT).all():   # identity: the points as they are
+        pts = _to_sensor_frame(pts, viewpoint, path)
     labels = _labels(pcd['label'], path) if 'label' in pcd else np.zeros(n, np.uint32)
     rgb = np.zeros((n, 3), np.uint8)
     for key in ('rgba', 'rgb'):
@@ -69,7 +89,26 @@ def load_scene(path, require_labels: bool = True) -> Scene:
             rgb = np.stack([(v >> 16) & 255, (v >> 8) & 255, v & 255], axis=1).astype(np.uint8)
             break
     return Scene(points=pts, labels=labels, rgb=rgb, width=pcd.width, height=pcd.height,
-                 path=os.fspath(path))
+                 path=os.fspath(path), viewpoint=viewpoint)
+
+
+def quaternion_matrix(q) -> np.ndarray:
+    """float64 (3, 3) rotation of the unit quaternion ``q = (w, x, y, z)``."""
+    w, x, y, z = np.asarray(q, dtype=np.float64)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+def _to_sensor_frame(points, viewpoint, path) -> np.ndarray:
+    """float32 (n, 3) file points -> the frame of the sensor whose pose is ``viewpoint``."""
+    t, q = viewpoint[:3], viewpoint[3:]
+    norm = float(np.linalg.norm(q))
+    if not np.isfinite(viewpoint).all() or norm < 1e-6:
+        raise PCDError(f'{path}: VIEWPOINT {viewpoint.tolist()} is not a pose (non-finite '
+                       'numbers or a zero quaternion)')
+    R = quaternion_matrix(q / norm)   # sensor axes in the file's frame (columns)
+    return ((points.astype(np.float64) - t) @ R).astype(np.float32)   # rows: R^T (p - t)
 
 
 def _labels(values, path) -> np.ndarray:
@@ -92,10 +131,29 @@ def _finite(points) -> np.ndarray:
     return np.isfinite(points).all(axis=1)
 
 
+def label_summary(scene: Scene, min_points: int = MIN_POINTS) -> dict:
+    """What :func:`segment_objects` and :func:`fit_table_plane` leave out of ``scene``:
+    dict(small_objects={object id: finite points} of the objects with fewer than ``min_points``,
+    unassigned_points=finite points with labels 10-19 (neither table nor object),
+    table_points=finite points with table labels 1-9)."""
+    ok = _finite(scene.points)
+    lab = scene.labels[ok]
+    ids, counts = np.unique(lab[lab >= FIRST_OBJECT_LABEL] // 10, return_counts=True)
+    return dict(small_objects={int(i): int(c) for i, c in zip(ids, counts) if c < min_points},
+                unassigned_points=int(((lab >= 10) & (lab < FIRST_OBJECT_LABEL)).sum()),
+                table_points=int(((lab >= TABLE_LABELS[0]) & (lab <= TABLE_LABELS[1])).sum()))
+
+
+def _name(scene) -> str:
+    return scene.path or 'scene'
+
+
 def segment_objects(scene: Scene, min_points: int = MIN_POINTS) -> dict:
     """Object id (label // 10) -> float64 (n, 3) finite camera-frame points, ids ascending.
 
-    Objects with fewer than ``min_points`` finite points are left out.
+    Objects with fewer than ``min_points`` finite points are left out, and points with labels
+    10-19 (neither table nor object) are ignored; both with a :class:`ScanWarning` naming the
+    scene and the numbers (:func:`label_summary` returns them).
     """
     ok = _finite(scene.points) & (scene.labels >= FIRST_OBJECT_LABEL)
     ids = scene.labels[ok] // 10
@@ -105,6 +163,17 @@ def segment_objects(scene: Scene, min_points: int = MIN_POINTS) -> dict:
         sel = pts[ids == oid]
         if len(sel) >= min_points:
             out[int(oid)] = sel
+    info = label_summary(scene, min_points)
+    notes = []
+    if info['small_objects']:
+        notes.append(f"left out {len(info['small_objects'])} object(s) with fewer than "
+                     f'{min_points} points (id: points ' + ', '.join(
+                         f'{k}: {v}' for k, v in info['small_objects'].items()) + ')')
+    if info['unassigned_points']:
+        notes.append(f"ignored {info['unassigned_points']} points with labels 10-19 (neither "
+                     'table nor object)')
+    if notes:
+        warnings.warn(f'{_name(scene)}: ' + '; '.join(notes), ScanWarning, stacklevel=2)
     return out
 
 
@@ -114,8 +183,9 @@ def fit_table_plane(scene_or_points, labels=None, distance_threshold: float = 0.
 
     Args:
         scene_or_points: a :class:`Scene`, or (n, 3) points (camera frame).
-        labels: (n,) labels for raw points; table points are labels 1-9. With no table labels
-            (or no labels) all finite points are used and the dominant plane is taken.
+        labels: (n,) labels for raw points; table points are labels 1-9. With no labels all
+            finite points are used and the dominant plane is taken; so too, with a
+            :class:`ScanWarning`, when the labels hold fewer than 3 finite table points.
         sensor_origin: finite (3,) sensor position, same frame as the points.
 
     Returns (up float64 (3,), d float): unit plane normal oriented toward the sensor side and
@@ -142,6 +212,11 @@ def fit_table_plane(scene_or_points, labels=None, distance_threshold: float = 0.
         table = ok & (labels >= TABLE_LABELS[0]) & (labels <= TABLE_LABELS[1])
         if table.sum() >= 3:
             ok = table
+        else:
+            where = _name(scene_or_points) if isinstance(scene_or_points, Scene) else 'points'
+            warnings.warn(f'{where}: {int(table.sum())} table points (labels 1-9), fewer than '
+                          f'3: the table is the dominant plane of all {int(ok.sum())} finite '
+                          'points', ScanWarning, stacklevel=2)
     sel = pts[ok]
     if len(sel) < 3:
         raise ValueError(f'need at least 3 finite points to fit a plane, got {len(sel)}')
