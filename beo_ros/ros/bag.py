@@ -388,6 +388,9 @@ class ReplayStats:
     skipped: dict = field(default_factory=dict)  # bag topic -> type not installed (all_topics)
     latched: list = field(default_factory=list)  # published topics played transient-local
     clock_messages: int = 0                      # /clock messages published (clock_hz)
+    # messages published before an acknowledgement wait that timed out (reliable publishers):
+    # a reliable subscriber may have lost up to this many (``ack_timeout`` of :func:`replay`)
+    unacked: int = 0
 
     @property
     def messages_per_s(self) -> float:
@@ -416,6 +419,9 @@ class ReplayStats:
             lines.append(f'{self.clock_messages} /clock messages')
         if self.latched:
             lines.append('played transient-local, as recorded: ' + ', '.join(self.latched))
+        if self.unacked:
+            lines.append(f'{self.unacked} message(s) not acknowledged by every reliable '
+                         'subscriber in time (maybe lost)')
         if self.skipped:
             lines.append(f'{len(self.skipped)} topic(s) skipped, type not installed: '
                          + ', '.join(f'{t} ({m})' for t, m in self.skipped.items()))
@@ -495,6 +501,54 @@ def _publisher(node, msgtype: str, topic: str, qos: str, depth: int, latched: bo
     return cache[key]
 
 
+# how long a reliable publisher waits for its subscribers to acknowledge what it has sent
+# before its keep-last history would overwrite a message not yet delivered
+ACK_TIMEOUT_S = 5.0
+
+
+class _AckGate:
+    """Keeps a reliable keep-last publisher from overwriting messages its subscribers have not
+    acknowledged: after every ``depth`` publishes since the last complete acknowledgement,
+    :meth:`published` waits (``Publisher.wait_for_all_acked``, in 0.1 s steps so that ``stop``
+    is seen) until they are all acknowledged or ``timeout`` s pass. Those that were not are
+    counted in ``stats.unacked``. Best-effort publishers are not gated (nothing acknowledges)."""
+
+    def __init__(self, timeout: float, stats, stop: threading.Event | None):
+        self.timeout, self.stats, self.stop = timeout, stats, stop
+        self._sent = {}   # id(publisher) -> [publisher, depth, publishes since the last wait]
+
+    def published(self, pub) -> None:
+        entry = self._sent.get(id(pub))
+        if entry is None:
+            from rclpy.qos import ReliabilityPolicy
+            q = pub.qos_profile
+            if q.reliability != ReliabilityPolicy.RELIABLE:
+                return
+            entry = self._sent[id(pub)] = [pub, max(1, int(q.depth)), 0]
+        entry[2] += 1
+        if entry[2] >= entry[1]:
+            self._wait(entry)
+
+    def flush(self) -> None:
+        """Wait for the acknowledgement of everything sent (the end of a replay)."""
+        for entry in self._sent.values():
+            if entry[2]:
+                self._wait(entry)
+
+    def _wait(self, entry) -> None:
+        from rclpy.duration import Duration
+        pub, _, n = entry
+        deadline = time.monotonic() + self.timeout
+        while True:
+            left = deadline - time.monotonic()
+            if pub.wait_for_all_acked(Duration(nanoseconds=int(max(0.0, min(left, 0.1)) * 1e9))):
+                break
+            if left <= 0 or (self.stop is not None and self.stop.is_set()):
+                self.stats.unacked += n
+                break
+        entry[2] = 0
+
+
 def _publish_clock(pub, stamp_ns: int, stats) -> None:
     from rosgraph_msgs.msg import Clock
     msg = Clock()
@@ -521,7 +575,8 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
            rate: float = 1.0, loop: bool = False, loops: int | None = None,
            qos: str = 'reliable', depth: int = 10, wait_subscribers: int = 0,
            wait_timeout: float = 10.0, stop: threading.Event | None = None,
-           on_publish=None, clock_hz: float = 0.0) -> ReplayStats:
+           on_publish=None, clock_hz: float = 0.0,
+           ack_timeout: float = ACK_TIMEOUT_S) -> ReplayStats:
     """Publish the messages of a bag with ``node``'s publishers; returns what was sent.
 
     Args:
@@ -535,7 +590,12 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
         rate: timing factor: a message is sent at ``t0 + (stamp - first_stamp) / rate``; ``0``
             publishes as fast as possible.
         loop: repeat until ``stop`` is set; ``loops`` caps the number of passes (default 1).
-        qos: 'reliable' or 'best_effort' (history keep-last ``depth``, volatile). A topic
+        qos: 'reliable' or 'best_effort' (history keep-last ``depth``, volatile). A reliable
+            publisher waits for its subscribers' acknowledgements after every ``depth``
+            messages (at most ``ack_timeout`` s; what was not acknowledged by then is counted in
+            ``stats.unacked``) and at the end, so that a fast replay (``rate=0``) does not
+            overwrite undelivered messages in its history; best-effort subscribers can still
+            miss messages (nothing tells the publisher). A topic
             recorded from transient-local publishers only (``recorded_latched``, e.g.
             /tf_static) is played reliable and transient-local, as recorded, so that late and
             transient-local subscribers (tf2's static listener) get it; ``stats.latched``
@@ -624,6 +684,7 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
                 time.sleep(0.02)
             stats.waited_s = time.monotonic() - t_wait
 
+        acks = _AckGate(ack_timeout, stats, stop)
         t_first = t_last = None
         while n_passes is None or stats.loops < n_passes:
             t_start = None
@@ -648,6 +709,7 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
                     _publish_clock(clock, t, stats)
                 data = bytes(raw)
                 pubs[conn.topic].publish(data)
+                acks.published(pubs[conn.topic])
                 now = time.monotonic()
                 t_first = now if t_first is None else t_first
                 t_last = now
@@ -665,6 +727,7 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
             stats.loops += 1
             if bag_t0 is None:  # nothing to play: don't spin forever with --loop
                 break
+        acks.flush()
         for out, ts in stats.topics.items():
             ts.subscribers = pub_by_out[out].get_subscription_count()
     stats.wall_s = (t_last - t_first) if t_first is not None else 0.0
@@ -1057,7 +1120,13 @@ def replay_main(argv=None) -> int:
                    help='publisher reliability (default reliable; keep-last, volatile); '
                         'topics recorded from transient-local publishers (e.g. /tf_static) '
                         'are played reliable and transient-local, as recorded')
-    p.add_argument('--depth', type=count(1), default=10, help='publisher history depth (default 10)')
+    p.add_argument('--depth', type=count(1), default=10,
+                   help='publisher history depth (default 10); a reliable publisher waits for '
+                        'its subscribers to acknowledge every DEPTH messages')
+    p.add_argument('--ack-timeout', type=number(0), default=ACK_TIMEOUT_S, metavar='S',
+                   help='how long a reliable publisher waits for those acknowledgements before '
+                        'it goes on and counts the messages as unacknowledged (maybe lost; '
+                        f'default {ACK_TIMEOUT_S:g})')
     p.add_argument('--clock', type=number(0), nargs='?', const=40.0, default=0.0, metavar='HZ',
                    help='also publish the bag time on /clock, before every message and at HZ '
                         '(default 40) in between, for nodes run with use_sim_time:=true; '
@@ -1084,12 +1153,17 @@ def replay_main(argv=None) -> int:
             stats = replay(args.bag, node, topics=args.topics, all_topics=args.all_topics,
                            remap=remap, rate=args.rate, loop=args.loop, qos=args.qos,
                            depth=args.depth, wait_subscribers=args.wait_subscribers,
-                           wait_timeout=args.wait_timeout, stop=stop, clock_hz=args.clock)
+                           wait_timeout=args.wait_timeout, stop=stop, clock_hz=args.clock,
+                           ack_timeout=args.ack_timeout)
             time.sleep(0.2)  # let reliable transports drain before the publishers go away
             for topic, typ in stats.skipped.items():
                 print(f'beo-replay: warning: skipping {topic}: message type {typ} is not '
                       'installed', file=sys.stderr)
             print(json.dumps(stats.to_dict(), indent=2) if args.json else stats.table())
+            if stats.unacked:
+                print(f'beo-replay: warning: {stats.unacked} message(s) were not acknowledged by '
+                      f'every reliable subscriber within --ack-timeout {args.ack_timeout:g} s; '
+                      'a slow or stalled subscriber may have lost them', file=sys.stderr)
             if stats.messages == 0 and not stats.interrupted:
                 print('beo-replay: nothing to play (no matching topics)', file=sys.stderr)
                 code = 1
