@@ -118,3 +118,93 @@ def test_cli_replay_rate_0_delivers_every_cloud_to_a_reliable_subscriber_of_anot
         if sub.poll() is None:
             sub.kill()
     assert int(out.strip()) == n, err
+
+
+# ------------------------------------------------------------------------------------------
+# 2. beo-record: write errors (disk full) and SIGKILL
+# ------------------------------------------------------------------------------------------
+
+# beo-record in a subprocess, fed by a publisher of 100 kB strings on /big (its own context in
+# a thread), every sqlite3 batch committed (COMMIT_PERIOD_S = 0); argv[1]: file size limit
+# (bytes, 0: none), argv[2]: messages to publish, argv[3:]: beo-record's arguments
+RECORDER = r'''
+import resource, sys, threading, time
+limit, n = int(sys.argv[1]), int(sys.argv[2])
+if limit:   # a full disk, as far as the writes of this process go (EFBIG; SIGXFSZ is ignored)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+import rclpy
+from std_msgs.msg import String
+from beo_ros.ros import bag
+bag.COMMIT_PERIOD_S = 0.0
+
+def publish():
+    ctx = rclpy.Context()
+    rclpy.init(args=[], context=ctx)
+    node = rclpy.create_node('beo_test_big', context=ctx)
+    pub = node.create_publisher(String, '/big', 1000)
+    while pub.get_subscription_count() == 0:
+        time.sleep(0.05)
+    for i in range(n):
+        pub.publish(String(data='x' * 100_000))
+        time.sleep(0.05)
+    print('published', flush=True)
+    time.sleep(3600)
+threading.Thread(target=publish, daemon=True).start()
+sys.exit(bag.record_main(sys.argv[3:]))
+'''
+
+
+@pytest.mark.parametrize('storage', bag.STORAGES)
+def test_cli_record_on_a_full_disk_is_one_line_exit_2_and_leaves_no_lying_metadata(
+        tmp_path, ros_domain_id, storage):
+    """Before: sqlite3.OperationalError traceback, exit 1, and a metadata.yaml counting messages
+    the database had rolled back; mcap: an unreadable file."""
+    out = tmp_path / 'rec'
+    p = subprocess.run([sys.executable, '-c', RECORDER, str(1_000_000), '100',
+                        '/big:std_msgs/msg/String', '-o', str(out), '--storage', storage,
+                        '--duration', '60'],
+                       env=_cli_env(ros_domain_id), capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2, p.stderr
+    lines = [ln for ln in p.stderr.splitlines() if ln.startswith('beo-record')]
+    assert len(lines) == 1 and 'Traceback' not in p.stderr, p.stderr
+    assert f'cannot write {out}' in lines[0], lines[0]
+    assert not (out / 'metadata.yaml').exists()
+    if storage == 'mcap':
+        assert 'the unfinished bag was removed' in lines[0] and not out.exists()
+    else:   # what is said to be kept is what reads back
+        import re
+        kept = int(re.search(r'keeps the (\d+) message', lines[0]).group(1))
+        assert 1 <= kept < 10
+        assert len(list(bag.read_bag(out / 'rec.db3'))) == kept
+
+
+def test_sigkilled_sqlite3_recording_keeps_what_was_committed(tmp_path, ros_domain_id):
+    import signal
+    import sqlite3
+    out = tmp_path / 'rec'
+    p = subprocess.Popen([sys.executable, '-c', RECORDER, '0', '5', '/big:std_msgs/msg/String',
+                          '-o', str(out), '--duration', '600'],
+                         env=_cli_env(ros_domain_id), stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    db = out / 'rec.db3'
+
+    def committed():
+        try:
+            with sqlite3.connect(f'file:{db}?mode=ro', uri=True) as c:
+                return c.execute('SELECT COUNT(*) FROM messages').fetchone()[0]
+        except sqlite3.Error:
+            return 0
+    try:
+        end = time.monotonic() + 60
+        while committed() < 5 and time.monotonic() < end and p.poll() is None:
+            time.sleep(0.05)
+        assert committed() == 5
+        p.send_signal(signal.SIGKILL)
+        p.communicate(timeout=30)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == -signal.SIGKILL
+    assert not (out / 'metadata.yaml').exists()
+    got = list(bag.read_bag(db))   # the .db3 file reads on its own
+    assert len(got) == 5 and all(t == '/big' and m == 'std_msgs/msg/String' for t, m, _, _ in got)

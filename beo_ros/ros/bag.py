@@ -262,11 +262,32 @@ def _qos_for_bag(reliable: bool = True, transient_local: bool = False):
                liveliness_lease_duration=zero, avoid_ros_namespace_conventions=False)
 
 
+def storage_errors() -> tuple:
+    """Exception types of a failing bag write or read: the file system's (disk full, ...), the
+    sqlite3 databases' (``sqlite3.Error`` when writing, ``apsw.Error`` when reading) and
+    rosbags' own."""
+    import sqlite3
+
+    from rosbags.rosbag2 import ReaderError, WriterError
+    errors = [OSError, sqlite3.Error, ReaderError, WriterError]
+    try:
+        import apsw
+        errors.append(apsw.Error)
+    except ImportError:   # only the sqlite3 reader of rosbags uses it
+        pass
+    return tuple(errors)
+
+
 class BagWriter:
     """Writes rclpy messages (or raw CDR bytes) to a new rosbag2 bag.
 
     >>> with BagWriter(path, storage='mcap') as w:
     ...     w.write('/beo/input', cloud_msg, stamp_ns)
+
+    A write that fails (disk full, ...) marks the writer ``failed``: leaving the ``with`` block
+    then aborts it instead of closing it, so that no metadata.yaml claims messages the storage
+    lost (sqlite rolls the open transaction back on such errors). :meth:`commit` makes what is
+    written so far durable (sqlite3 only).
     """
 
     def __init__(self, path, storage: str = 'sqlite3'):
@@ -277,19 +298,60 @@ class BagWriter:
                               storage_plugin=_storage_plugin(storage))
         self._conns = {}
         self.counts = {}
+        self.failed = False
+        self._opened = False
+
+    @property
+    def storage_file(self) -> Path:
+        """The .db3 / .mcap file of the bag."""
+        return self.path / f'{self.path.name}.{"db3" if self.storage == "sqlite3" else "mcap"}'
 
     def open(self):
-        self._writer.open()
+        existed = self.path.exists() or self.path.is_symlink()
+        try:
+            self._writer.open()
+        except Exception:
+            if not existed and self.path.is_dir():   # made, but no database in it
+                shutil.rmtree(self.path, ignore_errors=True)
+            raise
+        self._opened = True   # the directory is ours: it may be removed after a failure
         return self
 
     def close(self):
-        self._writer.close()
+        try:
+            self._writer.close()
+        except Exception:
+            self.failed = True
+            self.abort()
+            raise
+
+    def abort(self):
+        """Close without metadata.yaml; sqlite3 keeps what :meth:`commit` committed."""
+        with contextlib.suppress(Exception):
+            self._writer.abort()
+
+    def commit(self) -> bool:
+        """Commit the sqlite3 transaction: what is written so far survives a crash or SIGKILL
+        (the .db3 file then reads on its own, without metadata.yaml). False for mcap (its
+        file is unreadable until :meth:`close` writes the footer)."""
+        conn = getattr(self._writer.storage, 'conn', None)
+        if self.storage != 'sqlite3' or conn is None:
+            return False
+        try:
+            conn.commit()
+        except Exception:
+            self.failed = True
+            raise
+        return True
 
     def __enter__(self):
         return self.open()
 
     def __exit__(self, *exc):
-        self.close()
+        if self.failed:
+            self.abort()
+        else:
+            self.close()
 
     def add_topic(self, topic: str, msgtype: str, *, reliable: bool = True,
                   transient_local: bool = False):
@@ -299,9 +361,13 @@ class BagWriter:
                 raise ValueError(f'{topic}: already has type {self._conns[topic].msgtype}')
             return self._conns[topic]
         store = get_typestore([msgtype])
-        conn = self._writer.add_connection(
-            topic, msgtype, typestore=store,
-            offered_qos_profiles=[_qos_for_bag(reliable, transient_local)])
+        try:
+            conn = self._writer.add_connection(
+                topic, msgtype, typestore=store,
+                offered_qos_profiles=[_qos_for_bag(reliable, transient_local)])
+        except storage_errors():
+            self.failed = True
+            raise
         self._conns[topic] = conn
         self.counts[topic] = 0
         return conn
@@ -317,7 +383,11 @@ class BagWriter:
             msgtype = msgtype or msgtype_of(msg)
             data = serialize_message(msg)
         conn = self._conns.get(topic) or self.add_topic(topic, msgtype)
-        self._writer.write(conn, int(stamp_ns), data)
+        try:
+            self._writer.write(conn, int(stamp_ns), data)
+        except storage_errors():
+            self.failed = True
+            raise
         self.counts[topic] += 1
 
 
@@ -738,6 +808,38 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
 # record
 # ---------------------------------------------------------------------------------------------
 
+COMMIT_PERIOD_S = 1.0   # beo-record commits its sqlite3 bag at least this often
+
+
+class BagWriteError(Exception):
+    """A bag could not be written (disk full, I/O error); the message says what is left."""
+
+
+def _write_failure(writer, exc) -> str:
+    """One line on a failed recording, after ``writer`` was aborted: the error, and what is
+    left of the bag (a .db3 with the committed messages, or nothing: an unreadable bag is
+    removed)."""
+    reason = f'cannot write {writer.path}: {exc}'
+    if not writer._opened:
+        return reason
+    kept = 0
+    if writer.storage == 'sqlite3':
+        import sqlite3
+        try:
+            with contextlib.closing(sqlite3.connect(f'file:{writer.storage_file}?mode=ro',
+                                                    uri=True)) as db:
+                kept = db.execute('SELECT COUNT(*) FROM messages').fetchone()[0]
+        except sqlite3.Error:
+            kept = 0
+    if kept:
+        return (f'{reason}; {writer.storage_file} keeps the {kept} message(s) committed before '
+                'the error (no metadata.yaml: play or read that file itself)')
+    shutil.rmtree(writer.path, ignore_errors=True)
+    why = ('an mcap file is unreadable without the footer written when it is closed'
+           if writer.storage == 'mcap' else 'nothing in it was committed')
+    return f'{reason}; the unfinished bag was removed ({why})'
+
+
 @dataclass
 class RecordStats:
     bag: str
@@ -831,7 +933,7 @@ def _subscription_qos(node, topic: str, depth: int = 100):
 def record(node, bag_path, topics, *, storage: str = 'sqlite3', wait: float = 10.0,
            duration: float | None = None, count: int | None = None,
            stop: threading.Event | None = None, ready: threading.Event | None = None,
-           executor=None) -> RecordStats:
+           executor=None, commit_every: float | None = None) -> RecordStats:
     """Record ``topics`` to a new bag at ``bag_path``, spinning ``node`` in the calling thread.
 
     Args:
@@ -841,11 +943,16 @@ def record(node, bag_path, topics, *, storage: str = 'sqlite3', wait: float = 10
         duration: stop after this many seconds of recording; ``count``: after this many messages
             in total; ``stop``: an Event to end the recording (e.g. set by SIGINT).
         ready: set once all subscriptions exist (useful to start publishers in tests).
+        commit_every: sqlite3: commit the messages written at least every this many seconds
+            (default ``COMMIT_PERIOD_S``, 1 s), so that a crash or SIGKILL keeps them (the .db3 file then reads on its own; there
+            is no metadata.yaml). An mcap bag is unreadable until it is closed.
     Messages are stored as received (raw CDR), stamped with the node clock at receipt. A topic is
     subscribed once it has a publisher (typed topics may have none yet), with reliability and
     durability adapted to what its publishers offer. ``KeyError``, before the bag is created,
     for a type without a definition or Python module; ``KeyboardInterrupt``, with no bag, if
-    ``stop`` is set while untyped topics wait for a publisher.
+    ``stop`` is set while untyped topics wait for a publisher. :class:`BagWriteError` when the
+    bag cannot be written (disk full, ...): its message says what is left of the bag; no
+    metadata.yaml is written then, a bag with nothing readable in it is removed.
     """
     from rclpy.executors import SingleThreadedExecutor
     if isinstance(topics, (list, tuple)):
@@ -856,6 +963,7 @@ def record(node, bag_path, topics, *, storage: str = 'sqlite3', wait: float = 10
         get_typestore([typ])
         import_msg_class(typ)
     stats = RecordStats(bag=str(bag_path), storage=storage)
+    commit_every = COMMIT_PERIOD_S if commit_every is None else commit_every
     writer = BagWriter(bag_path, storage)
     own_exec = executor is None
     executor = executor or SingleThreadedExecutor(context=node.context)
@@ -881,49 +989,55 @@ def record(node, bag_path, topics, *, storage: str = 'sqlite3', wait: float = 10
                                                  callback_for(topic), qos, raw=True))
             del unsubscribed[topic]
 
-    with writer:
-        for topic, typ in topics.items():
-            qos = _subscription_qos(node, topic)
-            writer.add_topic(topic, typ,
-                             reliable=qos.reliability.name == 'RELIABLE',
-                             transient_local=qos.durability.name == 'TRANSIENT_LOCAL')
-            stats.topics[topic] = {'type': typ, 'count': 0}
-        subscribe_new()
-        if own_exec:
-            executor.add_node(node)
-        if ready is not None:
-            ready.set()
-        t0 = t_poll = time.monotonic()
-        try:
-            while True:
-                executor.spin_once(timeout_sec=0.05)
-                if unsubscribed and time.monotonic() - t_poll > 0.05:
-                    t_poll = time.monotonic()
-                    subscribe_new()
-                with lock:
-                    batch, pending[:] = list(pending), []
-                for topic, t, raw in batch:
-                    if count is not None and stats.messages >= count:
-                        break
-                    writer.write(topic, raw, t, topics[topic])
-                    stats.topics[topic]['count'] += 1
-                    stats.messages += 1
-                if count is not None and stats.messages >= count:
-                    stats.stopped_by = 'count'
-                    break
-                if duration is not None and time.monotonic() - t0 >= duration:
-                    stats.stopped_by = 'duration'
-                    break
-                if stop.is_set():
-                    stats.stopped_by = 'interrupt'
-                    break
-        finally:
-            stats.wall_s = time.monotonic() - t0
-            for s in subs:
-                node.destroy_subscription(s)
+    try:
+        with writer:
+            for topic, typ in topics.items():
+                qos = _subscription_qos(node, topic)
+                writer.add_topic(topic, typ,
+                                 reliable=qos.reliability.name == 'RELIABLE',
+                                 transient_local=qos.durability.name == 'TRANSIENT_LOCAL')
+                stats.topics[topic] = {'type': typ, 'count': 0}
+            subscribe_new()
             if own_exec:
-                executor.remove_node(node)
-                executor.shutdown()
+                executor.add_node(node)
+            if ready is not None:
+                ready.set()
+            t0 = t_poll = t_commit = time.monotonic()
+            try:
+                while True:
+                    executor.spin_once(timeout_sec=0.05)
+                    if unsubscribed and time.monotonic() - t_poll > 0.05:
+                        t_poll = time.monotonic()
+                        subscribe_new()
+                    with lock:
+                        batch, pending[:] = list(pending), []
+                    for topic, t, raw in batch:
+                        if count is not None and stats.messages >= count:
+                            break
+                        writer.write(topic, raw, t, topics[topic])
+                        stats.topics[topic]['count'] += 1
+                        stats.messages += 1
+                    if batch and time.monotonic() - t_commit >= commit_every:
+                        t_commit = time.monotonic()
+                        writer.commit()
+                    if count is not None and stats.messages >= count:
+                        stats.stopped_by = 'count'
+                        break
+                    if duration is not None and time.monotonic() - t0 >= duration:
+                        stats.stopped_by = 'duration'
+                        break
+                    if stop.is_set():
+                        stats.stopped_by = 'interrupt'
+                        break
+            finally:
+                stats.wall_s = time.monotonic() - t0
+                for s in subs:
+                    node.destroy_subscription(s)
+                if own_exec:
+                    executor.remove_node(node)
+                    executor.shutdown()
+    except storage_errors() as e:
+        raise BagWriteError(_write_failure(writer, e)) from None
     return stats
 
 
@@ -1221,6 +1335,9 @@ def record_main(argv=None) -> int:
             print(f'beo-record: {e.args[0]}', file=sys.stderr)
             code = 2
         except ValueError as e:   # 'x' and '/x' given different types
+            print(f'beo-record: {e}', file=sys.stderr)
+            code = 2
+        except BagWriteError as e:   # disk full, ...: what is left of the bag
             print(f'beo-record: {e}', file=sys.stderr)
             code = 2
         except OSError as e:
