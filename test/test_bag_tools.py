@@ -208,3 +208,28 @@ def test_sigkilled_sqlite3_recording_keeps_what_was_committed(tmp_path, ros_doma
     assert not (out / 'metadata.yaml').exists()
     got = list(bag.read_bag(db))   # the .db3 file reads on its own
     assert len(got) == 5 and all(t == '/big' and m == 'std_msgs/msg/String' for t, m, _, _ in got)
+
+
+# ------------------------------------------------------------------------------------------
+# 3. beo-replay of a corrupt sqlite3 bag
+# ------------------------------------------------------------------------------------------
+
+def test_cli_replay_of_a_bag_corrupt_part_way_is_one_line_exit_2_with_what_was_played(
+        tmp_path, capsys, keep_signal_handlers):
+    """Before: apsw.CorruptError traceback, exit 1."""
+    p = tmp_path / 'b'
+    with bag.BagWriter(p, 'sqlite3') as w:   # 200 clouds of 12 kB
+        for i in range(200):
+            w.write('/beo/input', make_cloud(i, n=1000, ns=T0 + i)[1], T0 + i)
+    db = p / 'b.db3'
+    size = db.stat().st_size
+    with open(db, 'r+b') as f:   # a page in the middle of the messages
+        f.seek(size // 2)
+        f.write(b'\xff' * 8192)
+    assert bag.replay_main([str(p), '--rate', '0', '--json']) == 2
+    out, err = capsys.readouterr()
+    assert 'Traceback' not in err
+    (line,) = err.splitlines()
+    assert line.startswith(f'beo-replay: cannot read {p}: database disk image is malformed')
+    played = json.loads(out)['messages']
+    assert 0 < played < 200 and f'(after {played} message(s))' in line

@@ -641,6 +641,15 @@ def _clock_tick(pub, stats, t_start: float, bag_t0: int, rate: float, t_next: in
     _publish_clock(pub, min(bag_t0 + round((now - t_start) * rate * 1e9), t_next), stats)
 
 
+class BagReadError(ValueError):
+    """A bag turned out unreadable (corrupt database, truncated file) during :func:`replay`;
+    ``stats``: what was played before."""
+
+    def __init__(self, message: str, stats: ReplayStats):
+        super().__init__(message)
+        self.stats = stats
+
+
 def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
            rate: float = 1.0, loop: bool = False, loops: int | None = None,
            qos: str = 'reliable', depth: int = 10, wait_subscribers: int = 0,
@@ -688,118 +697,125 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
     n_passes = loops if loops is not None else (None if loop else 1)
     stats = ReplayStats(bag=str(bag_path), storage=detect_storage(bag_path), rate=float(rate))
 
-    with Reader(bag_path) as reader:
-        if topics:
-            wanted = set(topics)
-            missing = wanted - {c.topic for c in reader.connections}
-            if missing:
-                raise KeyError(f'topics not in bag {bag_path}: {sorted(missing)}')
-            conns = [c for c in reader.connections if c.topic in wanted]
-        elif all_topics:
-            conns = list(reader.connections)
-        else:
-            conns = [c for c in reader.connections if c.msgtype == CLOUD_TYPE]
-        unknown = set(remap) - {c.topic for c in reader.connections}
-        if unknown:   # a typo would otherwise play on the old name
-            raise KeyError(f'remapped topics not in bag {bag_path}: {sorted(unknown)}')
-        pubs, pub_by_out = {}, {}
-        for c in list(conns):
-            out = remap.get(c.topic, c.topic)
-            if c.topic in stats.skipped:
-                conns.remove(c)
-            elif c.topic not in pubs:
-                try:
-                    latched = recorded_latched(c)
-                    # keep every latched message for late subscribers (one per static
-                    # broadcaster on /tf_static), not only the last ``depth``
-                    pubs[c.topic] = _publisher(node, c.msgtype, out, qos,
-                                               max(depth, int(getattr(c, 'msgcount', 0) or 0))
-                                               if latched else depth, latched)
-                    if latched:
-                        stats.latched.append(out)
-                except KeyError:   # type not installed: fatal only for a topic asked for
-                    if topics:
-                        raise
-                    stats.skipped[c.topic] = c.msgtype
+    t_first = t_last = None
+    try:
+        with Reader(bag_path) as reader:
+            if topics:
+                wanted = set(topics)
+                missing = wanted - {c.topic for c in reader.connections}
+                if missing:
+                    raise KeyError(f'topics not in bag {bag_path}: {sorted(missing)}')
+                conns = [c for c in reader.connections if c.topic in wanted]
+            elif all_topics:
+                conns = list(reader.connections)
+            else:
+                conns = [c for c in reader.connections if c.msgtype == CLOUD_TYPE]
+            unknown = set(remap) - {c.topic for c in reader.connections}
+            if unknown:   # a typo would otherwise play on the old name
+                raise KeyError(f'remapped topics not in bag {bag_path}: {sorted(unknown)}')
+            pubs, pub_by_out = {}, {}
+            for c in list(conns):
+                out = remap.get(c.topic, c.topic)
+                if c.topic in stats.skipped:
                     conns.remove(c)
-                    continue
-                pub_by_out.setdefault(out, pubs[c.topic])
-                stats.topics.setdefault(out, TopicStats(out, c.topic, c.msgtype))
-        if not conns:
-            return stats
+                elif c.topic not in pubs:
+                    try:
+                        latched = recorded_latched(c)
+                        # keep every latched message for late subscribers (one per static
+                        # broadcaster on /tf_static), not only the last ``depth``
+                        pubs[c.topic] = _publisher(node, c.msgtype, out, qos,
+                                                   max(depth, int(getattr(c, 'msgcount', 0) or 0))
+                                                   if latched else depth, latched)
+                        if latched:
+                            stats.latched.append(out)
+                    except KeyError:   # type not installed: fatal only for a topic asked for
+                        if topics:
+                            raise
+                        stats.skipped[c.topic] = c.msgtype
+                        conns.remove(c)
+                        continue
+                    pub_by_out.setdefault(out, pubs[c.topic])
+                    stats.topics.setdefault(out, TopicStats(out, c.topic, c.msgtype))
+            if not conns:
+                return stats
 
-        # made before the wait, so that discovery matches /clock with the data topics
-        # best effort, depth 1, volatile: rclcpp's ClockQoS
-        clock = (_publisher(node, 'rosgraph_msgs/msg/Clock', '/clock', 'best_effort', 1)
-                 if clock_hz > 0 else None)
-        if wait_subscribers > 0:
-            t_wait = time.monotonic()
-            deadline = t_wait + wait_timeout
-            clock_grace = None   # once the data topics match, up to 1 s more for /clock
-            while True:
-                counts = {p.topic_name: p.get_subscription_count() for p in pubs.values()}
-                short = {t: c for t, c in counts.items() if c < wait_subscribers}
-                if not short:
-                    if clock is None or clock.get_subscription_count() > 0:
-                        break
-                    clock_grace = clock_grace or time.monotonic() + CLOCK_GRACE_S
-                    if time.monotonic() >= clock_grace:
-                        break
-                if stop is not None and stop.is_set():
-                    stats.interrupted = True
-                    return stats
-                if short and time.monotonic() > deadline:
-                    raise TimeoutError(f'waited {wait_timeout:g} s for {wait_subscribers} '
-                                       f'subscriber(s); matched: {short}')
-                time.sleep(0.02)
-            stats.waited_s = time.monotonic() - t_wait
+            # made before the wait, so that discovery matches /clock with the data topics
+            # best effort, depth 1, volatile: rclcpp's ClockQoS
+            clock = (_publisher(node, 'rosgraph_msgs/msg/Clock', '/clock', 'best_effort', 1)
+                     if clock_hz > 0 else None)
+            if wait_subscribers > 0:
+                t_wait = time.monotonic()
+                deadline = t_wait + wait_timeout
+                clock_grace = None   # once the data topics match, up to 1 s more for /clock
+                while True:
+                    counts = {p.topic_name: p.get_subscription_count() for p in pubs.values()}
+                    short = {t: c for t, c in counts.items() if c < wait_subscribers}
+                    if not short:
+                        if clock is None or clock.get_subscription_count() > 0:
+                            break
+                        clock_grace = clock_grace or time.monotonic() + CLOCK_GRACE_S
+                        if time.monotonic() >= clock_grace:
+                            break
+                    if stop is not None and stop.is_set():
+                        stats.interrupted = True
+                        return stats
+                    if short and time.monotonic() > deadline:
+                        raise TimeoutError(f'waited {wait_timeout:g} s for {wait_subscribers} '
+                                           f'subscriber(s); matched: {short}')
+                    time.sleep(0.02)
+                stats.waited_s = time.monotonic() - t_wait
 
-        acks = _AckGate(ack_timeout, stats, stop)
-        t_first = t_last = None
-        while n_passes is None or stats.loops < n_passes:
-            t_start = None
-            bag_t0 = bag_t1 = None
-            for conn, t, raw in reader.messages(connections=conns):
-                if bag_t0 is None:
-                    bag_t0 = t
-                bag_t1 = t
-                if rate > 0:
-                    if t_start is None:
-                        t_start = time.monotonic()
-                    tick = None if clock is None else functools.partial(
-                        _clock_tick, clock, stats, t_start, bag_t0, rate, t)
-                    if not _sleep_until(t_start + (t - bag_t0) / 1e9 / rate, stop, tick,
-                                        1.0 / clock_hz if clock_hz > 0 else 0.05):
+            acks = _AckGate(ack_timeout, stats, stop)
+            while n_passes is None or stats.loops < n_passes:
+                t_start = None
+                bag_t0 = bag_t1 = None
+                for conn, t, raw in reader.messages(connections=conns):
+                    if bag_t0 is None:
+                        bag_t0 = t
+                    bag_t1 = t
+                    if rate > 0:
+                        if t_start is None:
+                            t_start = time.monotonic()
+                        tick = None if clock is None else functools.partial(
+                            _clock_tick, clock, stats, t_start, bag_t0, rate, t)
+                        if not _sleep_until(t_start + (t - bag_t0) / 1e9 / rate, stop, tick,
+                                            1.0 / clock_hz if clock_hz > 0 else 0.05):
+                            stats.interrupted = True
+                            break
+                    elif stop is not None and stop.is_set():
                         stats.interrupted = True
                         break
-                elif stop is not None and stop.is_set():
-                    stats.interrupted = True
+                    if clock is not None:
+                        _publish_clock(clock, t, stats)
+                    data = bytes(raw)
+                    pubs[conn.topic].publish(data)
+                    acks.published(pubs[conn.topic])
+                    now = time.monotonic()
+                    t_first = now if t_first is None else t_first
+                    t_last = now
+                    ts = stats.topics[remap.get(conn.topic, conn.topic)]
+                    ts.count += 1
+                    ts.bytes += len(data)
+                    stats.messages += 1
+                    stats.bytes += len(data)
+                    if on_publish is not None:
+                        on_publish(ts.topic, data, t)
+                if bag_t0 is not None:
+                    stats.bag_span_s = (bag_t1 - bag_t0) / 1e9
+                if stats.interrupted:
                     break
-                if clock is not None:
-                    _publish_clock(clock, t, stats)
-                data = bytes(raw)
-                pubs[conn.topic].publish(data)
-                acks.published(pubs[conn.topic])
-                now = time.monotonic()
-                t_first = now if t_first is None else t_first
-                t_last = now
-                ts = stats.topics[remap.get(conn.topic, conn.topic)]
-                ts.count += 1
-                ts.bytes += len(data)
-                stats.messages += 1
-                stats.bytes += len(data)
-                if on_publish is not None:
-                    on_publish(ts.topic, data, t)
-            if bag_t0 is not None:
-                stats.bag_span_s = (bag_t1 - bag_t0) / 1e9
-            if stats.interrupted:
-                break
-            stats.loops += 1
-            if bag_t0 is None:  # nothing to play: don't spin forever with --loop
-                break
-        acks.flush()
-        for out, ts in stats.topics.items():
-            ts.subscribers = pub_by_out[out].get_subscription_count()
+                stats.loops += 1
+                if bag_t0 is None:  # nothing to play: don't spin forever with --loop
+                    break
+            acks.flush()
+            for out, ts in stats.topics.items():
+                ts.subscribers = pub_by_out[out].get_subscription_count()
+    except TimeoutError:   # --wait-subscribers (an OSError too)
+        raise
+    except storage_errors() as e:   # a corrupt database, a truncated file
+        if t_first is not None:
+            stats.wall_s = t_last - t_first
+        raise BagReadError(str(e) or type(e).__name__, stats) from e
     stats.wall_s = (t_last - t_first) if t_first is not None else 0.0
     return stats
 
@@ -1260,7 +1276,6 @@ def replay_main(argv=None) -> int:
         p.error(str(e))
     if not Path(args.bag).exists():
         p.error(f'no such bag: {args.bag}')
-    from rosbags.rosbag2 import ReaderError
     code = 0
     with _cli_node(args.node_name) as (node, stop):
         try:
@@ -1292,7 +1307,14 @@ def replay_main(argv=None) -> int:
         except KeyError as e:
             print(f'beo-replay: {e.args[0]}', file=sys.stderr)
             code = 2
-        except (ValueError, OSError, ReaderError) as e:   # not a bag, or a corrupt one
+        except BagReadError as e:   # corrupt part way: what was played before it
+            if e.stats.messages:
+                print(json.dumps(e.stats.to_dict(), indent=2) if args.json
+                      else e.stats.table())
+            print(f'beo-replay: cannot read {args.bag}: {e} (after {e.stats.messages} '
+                  'message(s))', file=sys.stderr)
+            code = 2
+        except (ValueError, *storage_errors()) as e:   # not a bag, or a corrupt one
             print(f'beo-replay: cannot read {args.bag}: {e}', file=sys.stderr)
             code = 2
     return code
