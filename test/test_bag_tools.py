@@ -233,3 +233,38 @@ def test_cli_replay_of_a_bag_corrupt_part_way_is_one_line_exit_2_with_what_was_p
     assert line.startswith(f'beo-replay: cannot read {p}: database disk image is malformed')
     played = json.loads(out)['messages']
     assert 0 < played < 200 and f'(after {played} message(s))' in line
+
+
+# ------------------------------------------------------------------------------------------
+# 4. the offered QoS stored by record is that of the publisher matched
+# ------------------------------------------------------------------------------------------
+
+def test_record_stores_the_qos_of_a_publisher_that_appears_after_it_started(ctx, tmp_path):
+    """A typed topic recorded before its publisher exists: the bag used to store the QoS seen
+    at the start (volatile, best effort), so a latched topic was replayed volatile."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from rosbags.rosbag2 import Reader
+    from std_msgs.msg import String
+    rec_node = rclpy.create_node('recorder', context=ctx)
+    ready, result = threading.Event(), {}
+    th = threading.Thread(target=lambda: result.setdefault('s', bag.record(
+        rec_node, tmp_path / 'r', ['/latched:std_msgs/msg/String',
+                                   '/never:std_msgs/msg/String'],
+        count=1, ready=ready)))
+    th.start()
+    assert ready.wait(10)
+    pub_node = rclpy.create_node('talker', context=ctx)
+    pub = pub_node.create_publisher(String, '/latched', QoSProfile(
+        depth=1, reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    pub.publish(String(data='static'))   # a latched message reaches a late subscriber
+    th.join(30)
+    assert not th.is_alive()
+    assert result['s'].topics['/latched']['count'] == 1
+    with Reader(tmp_path / 'r') as r:
+        conns = {c.topic: c for c in r.connections}
+        assert bag.recorded_latched(conns['/latched'])
+        assert set(conns) == {'/latched', '/never'} and not bag.recorded_latched(conns['/never'])
+    player = rclpy.create_node('player', context=ctx)
+    stats = bag.replay(tmp_path / 'r', player, all_topics=True, rate=0)
+    assert stats.latched == ['/latched'] and stats.topics['/latched'].count == 1

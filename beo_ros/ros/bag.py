@@ -1001,6 +1001,10 @@ def record(node, bag_path, topics, *, storage: str = 'sqlite3', wait: float = 10
             if not node.get_publishers_info_by_topic(topic):
                 continue
             qos = _subscription_qos(node, topic)
+            # the bag's offered QoS is that of the publishers matched now (a latched
+            # publisher that appears after the recording started is replayed latched)
+            writer.add_topic(topic, typ, reliable=qos.reliability.name == 'RELIABLE',
+                             transient_local=qos.durability.name == 'TRANSIENT_LOCAL')
             subs.append(node.create_subscription(import_msg_class(typ), topic,
                                                  callback_for(topic), qos, raw=True))
             del unsubscribed[topic]
@@ -1008,10 +1012,6 @@ def record(node, bag_path, topics, *, storage: str = 'sqlite3', wait: float = 10
     try:
         with writer:
             for topic, typ in topics.items():
-                qos = _subscription_qos(node, topic)
-                writer.add_topic(topic, typ,
-                                 reliable=qos.reliability.name == 'RELIABLE',
-                                 transient_local=qos.durability.name == 'TRANSIENT_LOCAL')
                 stats.topics[topic] = {'type': typ, 'count': 0}
             subscribe_new()
             if own_exec:
@@ -1047,6 +1047,8 @@ def record(node, bag_path, topics, *, storage: str = 'sqlite3', wait: float = 10
                         break
             finally:
                 stats.wall_s = time.monotonic() - t0
+                for topic, typ in unsubscribed.items():   # never published: listed, empty
+                    writer.add_topic(topic, typ, reliable=False)
                 for s in subs:
                     node.destroy_subscription(s)
                 if own_exec:
