@@ -268,3 +268,19 @@ def test_record_stores_the_qos_of_a_publisher_that_appears_after_it_started(ctx,
     player = rclpy.create_node('player', context=ctx)
     stats = bag.replay(tmp_path / 'r', player, all_topics=True, rate=0)
     assert stats.latched == ['/latched'] and stats.topics['/latched'].count == 1
+
+
+# ------------------------------------------------------------------------------------------
+# 8. bag_span_s counts only the messages sent
+# ------------------------------------------------------------------------------------------
+
+def test_interrupted_replay_span_leaves_out_the_message_never_sent(ctx, tmp_path):
+    """Before, the stamp of the message being waited for counted: 10 s here."""
+    write_test_bag(tmp_path / 'b', 'sqlite3', n=2, period_ns=10_000_000_000, extra_topic=False)
+    stop = threading.Event()
+    node = rclpy.create_node('player', context=ctx)
+    stats = bag.replay(tmp_path / 'b', node, rate=1.0, stop=stop,
+                       on_publish=lambda *a: stop.set())
+    assert stats.interrupted and stats.messages == 1 and stats.bag_span_s == 0.0
+    stats = bag.replay(tmp_path / 'b', node, rate=0)
+    assert stats.messages == 2 and stats.bag_span_s == pytest.approx(10.0)

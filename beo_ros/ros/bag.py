@@ -451,7 +451,7 @@ class ReplayStats:
     messages: int = 0
     bytes: int = 0
     wall_s: float = 0.0                 # from the first to the last publish
-    bag_span_s: float = 0.0             # bag timestamp span of one pass
+    bag_span_s: float = 0.0             # bag timestamp span of the messages sent in a pass
     waited_s: float = 0.0               # time spent in --wait-subscribers
     interrupted: bool = False
     topics: dict = field(default_factory=dict)   # published topic -> TopicStats
@@ -768,11 +768,11 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
             acks = _AckGate(ack_timeout, stats, stop)
             while n_passes is None or stats.loops < n_passes:
                 t_start = None
-                bag_t0 = bag_t1 = None
+                bag_t0 = None            # stamp of the pass's first message: the timing's origin
+                sent_t0 = sent_t1 = None  # stamps of the first and last message sent
                 for conn, t, raw in reader.messages(connections=conns):
                     if bag_t0 is None:
                         bag_t0 = t
-                    bag_t1 = t
                     if rate > 0:
                         if t_start is None:
                             t_start = time.monotonic()
@@ -793,6 +793,8 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
                     now = time.monotonic()
                     t_first = now if t_first is None else t_first
                     t_last = now
+                    sent_t0 = t if sent_t0 is None else sent_t0
+                    sent_t1 = t
                     ts = stats.topics[remap.get(conn.topic, conn.topic)]
                     ts.count += 1
                     ts.bytes += len(data)
@@ -800,8 +802,8 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
                     stats.bytes += len(data)
                     if on_publish is not None:
                         on_publish(ts.topic, data, t)
-                if bag_t0 is not None:
-                    stats.bag_span_s = (bag_t1 - bag_t0) / 1e9
+                if sent_t0 is not None:   # not the message an interrupt kept from being sent
+                    stats.bag_span_s = (sent_t1 - sent_t0) / 1e9
                 if stats.interrupted:
                     break
                 stats.loops += 1
