@@ -284,3 +284,32 @@ def test_interrupted_replay_span_leaves_out_the_message_never_sent(ctx, tmp_path
     assert stats.interrupted and stats.messages == 1 and stats.bag_span_s == 0.0
     stats = bag.replay(tmp_path / 'b', node, rate=0)
     assert stats.messages == 2 and stats.bag_span_s == pytest.approx(10.0)
+
+
+# ------------------------------------------------------------------------------------------
+# 5. remaps that would put two types on one topic
+# ------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize('extra', [
+    ['--all-topics', '-r', '/beo/input:=/x', '-r', '/chatter:=/x'],
+    ['--all-topics', '-r', '/beo/input:=/chatter'],
+])
+def test_cli_replay_refuses_two_types_on_one_topic(tmp_path, capsys, keep_signal_handlers,
+                                                   extra):
+    """Before: an RCLError traceback from create_publisher, exit 1."""
+    write_test_bag(tmp_path / 'b', 'sqlite3', n=2)
+    assert bag.replay_main([str(tmp_path / 'b'), '--rate', '0', *extra]) == 2
+    out, err = capsys.readouterr()
+    assert 'would both be played on' in err and 'Traceback' not in err and out == '', err
+    assert len(err.splitlines()) == 1
+
+
+def test_replay_refuses_a_topic_of_another_type_in_the_graph(ctx, tmp_path):
+    from std_msgs.msg import String
+    write_test_bag(tmp_path / 'b', 'sqlite3', n=2, extra_topic=False)
+    other = rclpy.create_node('other', context=ctx)
+    other.create_publisher(String, '/taken', 10)
+    player = rclpy.create_node('player', context=ctx)
+    with pytest.raises(KeyError, match='/taken has type std_msgs/msg/String in the ROS graph'):
+        bag.replay(tmp_path / 'b', player, remap={'/beo/input': '/taken'}, rate=0)
+

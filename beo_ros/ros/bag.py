@@ -641,6 +641,25 @@ def _clock_tick(pub, stats, t_start: float, bag_t0: int, rate: float, t_next: in
     _publish_clock(pub, min(bag_t0 + round((now - t_start) * rate * 1e9), t_next), stats)
 
 
+def _check_output_types(node, conns, remap) -> None:
+    """``KeyError`` if two bag topics of different types would be published on one topic (by
+    remapping), or a published topic has another type in the graph already (rcl refuses the
+    publisher)."""
+    outs = {}
+    for c in conns:
+        out = remap.get(c.topic, c.topic)
+        if outs.setdefault(out, (c.msgtype, c.topic))[0] != c.msgtype:
+            typ, first = outs[out]
+            raise KeyError(f'{first} ({typ}) and {c.topic} ({c.msgtype}) would both be played '
+                           f'on {out}: one topic has one type; remap one of them elsewhere')
+    graph = dict(node.get_topic_names_and_types())
+    for out, (typ, bag_topic) in outs.items():
+        others = sorted({normalize_msgtype(t) for t in graph.get(out, ())} - {typ})
+        if others:
+            raise KeyError(f'{out} has type {others[0]} in the ROS graph; cannot play '
+                           f'{bag_topic} ({typ}) on it')
+
+
 class BagReadError(ValueError):
     """A bag turned out unreadable (corrupt database, truncated file) during :func:`replay`;
     ``stats``: what was played before."""
@@ -713,6 +732,7 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
             unknown = set(remap) - {c.topic for c in reader.connections}
             if unknown:   # a typo would otherwise play on the old name
                 raise KeyError(f'remapped topics not in bag {bag_path}: {sorted(unknown)}')
+            _check_output_types(node, conns, remap)
             pubs, pub_by_out = {}, {}
             for c in list(conns):
                 out = remap.get(c.topic, c.topic)
