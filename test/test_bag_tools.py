@@ -287,7 +287,7 @@ def test_interrupted_replay_span_leaves_out_the_message_never_sent(ctx, tmp_path
 
 
 # ------------------------------------------------------------------------------------------
-# 5. remaps that would put two types on one topic
+# 5. remaps that would put two types on one topic; 10. --topics with --all-topics
 # ------------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize('extra', [
@@ -313,3 +313,10 @@ def test_replay_refuses_a_topic_of_another_type_in_the_graph(ctx, tmp_path):
     with pytest.raises(KeyError, match='/taken has type std_msgs/msg/String in the ROS graph'):
         bag.replay(tmp_path / 'b', player, remap={'/beo/input': '/taken'}, rate=0)
 
+
+def test_cli_replay_refuses_topics_with_all_topics(tmp_path, capsys):
+    write_test_bag(tmp_path / 'b', 'sqlite3', n=1)
+    with pytest.raises(SystemExit) as ei:   # --all-topics used to be ignored
+        bag.replay_main([str(tmp_path / 'b'), '--topics', '/chatter', '--all-topics'])
+    assert ei.value.code == 2
+    assert '--topics and --all-topics exclude each other' in capsys.readouterr().err

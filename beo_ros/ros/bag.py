@@ -1293,6 +1293,8 @@ def replay_main(argv=None) -> int:
     p.add_argument('--node-name', default='beo_replay')
     p.add_argument('--json', action='store_true', help='print the report as JSON')
     args = p.parse_args(argv)
+    if args.topics and args.all_topics:
+        p.error('--topics and --all-topics exclude each other')
     try:
         remap = parse_remaps(args.remap)
         check_node_name(args.node_name)
