@@ -11,11 +11,13 @@ Console entry points:
     ones named with ``--topics``) into the live graph, timed by the bag's receive timestamps divided
     by ``--rate`` (``--rate 0``: as fast as possible). Header stamps are left as recorded. Reports
     per-topic counts and the wall duration as a table (``--json`` for machine-readable output).
-    Exit code 130 when Ctrl-C cuts it short (0 for a ``--loop`` replay that played).
+    Exit code 130 when Ctrl-C cuts it short (0 for a ``--loop`` replay that played), 143 on
+    SIGTERM.
     In-process use: :func:`replay`.
 
 ``beo-record TOPIC[:TYPE] ... -o BAG``
-    Records topics to a new bag until SIGINT, ``--duration`` or ``--count``. Types are discovered
+    Records topics to a new bag until SIGINT or SIGTERM (either closes the bag, exit code 0),
+    ``--duration`` or ``--count``. Types are discovered
     from the graph or given as ``TOPIC:pkg/msg/Type``. Message definitions of types that the
     rosbags Jazzy typestore lacks (e.g. ``beo_interfaces/msg/ObjectEstimate``) are parsed from the
     package's ``.msg`` files, so the bag is self-describing. In-process use: :func:`record`.
@@ -39,7 +41,8 @@ Console entry points:
     is refused; a scene without object labels (>= 20) is skipped with a warning.
 
 Bad arguments (numbers out of range, invalid topic or node names, an output that exists) exit 2
-with one line; Ctrl-C, one line and exit code 130, leaving no partial pcd2bag bag.
+with one line; Ctrl-C, one line and exit code 130, SIGTERM 143 (beo-record: both stop the
+recording and close the bag, exit code 0), leaving no partial pcd2bag bag.
 """
 from __future__ import annotations
 
@@ -1208,13 +1211,17 @@ def pcd_to_bag(scenes, bag_path, *, storage: str = 'sqlite3', topic: str = DEFAU
 # command line
 # ---------------------------------------------------------------------------------------------
 
-def _install_sigint(stop: threading.Event):
+def _install_sigint(stop: threading.Event, sigterm: bool = True):
+    """SIGINT (and SIGTERM with ``sigterm``) sets ``stop``; a second one raises
+    KeyboardInterrupt. Without ``sigterm``, SIGTERM keeps :func:`interruptible`'s handler
+    (exit code 143)."""
     def handler(signum, frame):  # noqa: ARG001
         if stop.is_set():  # second Ctrl-C: give up immediately
             raise KeyboardInterrupt
         stop.set()
     signal.signal(signal.SIGINT, handler)
-    signal.signal(signal.SIGTERM, handler)
+    if sigterm:
+        signal.signal(signal.SIGTERM, handler)
 
 
 def _ros_setup():
@@ -1226,16 +1233,17 @@ def _ros_setup():
 
 
 @contextlib.contextmanager
-def _cli_node(name):
+def _cli_node(name, sigterm_stops: bool = True):
     """rclpy context and node for a command-line tool; yields (node, stop event set on
-    SIGINT), and destroys the node and shuts rclpy down on the way out."""
+    SIGINT, and on SIGTERM with ``sigterm_stops``), and destroys the node and shuts rclpy down
+    on the way out."""
     _ros_setup()
     import rclpy
     stop = threading.Event()
     # no command-line arguments: rcl would take the tool's own ones (-r OLD:=NEW) as remap rules
     rclpy.init(args=[], signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
     node = rclpy.create_node(name)
-    _install_sigint(stop)
+    _install_sigint(stop, sigterm_stops)
     try:
         yield node, stop
     finally:
@@ -1303,7 +1311,8 @@ def replay_main(argv=None) -> int:
     if not Path(args.bag).exists():
         p.error(f'no such bag: {args.bag}')
     code = 0
-    with _cli_node(args.node_name) as (node, stop):
+    # SIGTERM ends a replay with 143 (interruptible); SIGINT is how a --loop replay stops
+    with _cli_node(args.node_name, sigterm_stops=False) as (node, stop):
         try:
             stats = replay(args.bag, node, topics=args.topics, all_topics=args.all_topics,
                            remap=remap, rate=args.rate, loop=args.loop, qos=args.qos,
