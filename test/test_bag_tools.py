@@ -343,3 +343,22 @@ def test_cli_loop_replay_ended_by_sigterm_exits_143(tmp_path, ros_domain_id):
             p.kill()
     assert p.returncode == 143, err
     assert 'beo-replay: terminated' in err and 'Traceback' not in err, err
+
+
+# ------------------------------------------------------------------------------------------
+# 6. beo-demo: discovery off whatever the user's setting
+# ------------------------------------------------------------------------------------------
+
+def test_demo_forces_discovery_off(tmp_path, monkeypatch, ros_tiny_model_dir):
+    """Before, setdefault let a user's LOCALHOST win: the demo's node and listener talked to
+    other processes."""
+    from beo_ros.ros import demo
+    monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    seen = {}
+
+    def fake_run(*a, **k):   # where the node and its rclpy context would start
+        seen['range'] = os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE']
+        raise KeyboardInterrupt
+    monkeypatch.setattr(demo, 'run_node_on_bag', fake_run)
+    assert demo.main(['--model', str(ros_tiny_model_dir), '--out', str(tmp_path / 'o')]) == 130
+    assert seen['range'] == 'OFF'

@@ -105,7 +105,9 @@ def run_node_on_bag(bag_path, model_dir, bank, up, origin, timeout: float = 120.
 
     ``estimates`` and ``completed`` map header stamps (ns) to messages.
     """
-    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'OFF')
+    # forced, not defaulted: with a user's LOCALHOST/SUBNET the demo would talk to other nodes
+    # (its listener would take their estimates); its worker processes inherit it
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'OFF'
     import rclpy
     from rclpy.executors import MultiThreadedExecutor
     from rclpy.parameter import Parameter
@@ -270,7 +272,7 @@ def main(argv=None) -> int:
     if problem:
         p.error(f'--out {args.out}: {problem}')
     t_start = time.monotonic()
-    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'OFF')
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'OFF'   # the demo's graph is its own
     from beo_ros.ros.env import ensure_ament_prefix
     ensure_ament_prefix()
 
