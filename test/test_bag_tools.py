@@ -362,3 +362,31 @@ def test_demo_forces_discovery_off(tmp_path, monkeypatch, ros_tiny_model_dir):
     monkeypatch.setattr(demo, 'run_node_on_bag', fake_run)
     assert demo.main(['--model', str(ros_tiny_model_dir), '--out', str(tmp_path / 'o')]) == 130
     assert seen['range'] == 'OFF'
+
+
+# ------------------------------------------------------------------------------------------
+# 9. a pcd2bag run without clouds; replays with nothing to play say why
+# ------------------------------------------------------------------------------------------
+
+def test_cli_pcd2bag_without_any_cloud_exits_2_and_writes_no_bag(tmp_path, capsys):
+    """Before: a bag with 0 clouds, exit 0, '1 object(s) ( points)'."""
+    from test_bag import write_scene_pcd
+    scene = write_scene_pcd(tmp_path / 's.pcd')
+    out = tmp_path / 'b'
+    assert bag.pcd2bag_main([str(scene), '-o', str(out), '--min-points', '100000']) == 2
+    err = capsys.readouterr().err
+    assert 'no object with at least 100000 points' in err and 'Traceback' not in err
+    assert not out.exists()
+
+
+def test_cli_replay_says_why_there_is_nothing_to_play(tmp_path, capsys, keep_signal_handlers):
+    from std_msgs.msg import String
+    with bag.BagWriter(tmp_path / 'empty', 'sqlite3') as w:   # a cloud topic with 0 messages
+        w.add_topic('/beo/input', bag.CLOUD_TYPE)
+    with bag.BagWriter(tmp_path / 'strings', 'sqlite3') as w:
+        w.write('/chatter', String(data='x'), T0)
+    assert bag.replay_main([str(tmp_path / 'empty'), '--rate', '0']) == 1
+    assert 'nothing to play: no messages on /beo/input' in capsys.readouterr().err
+    assert bag.replay_main([str(tmp_path / 'strings'), '--rate', '0']) == 1
+    assert ('no sensor_msgs/msg/PointCloud2 topic (it has /chatter: --all-topics plays them)'
+            in capsys.readouterr().err)

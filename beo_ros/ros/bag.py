@@ -1173,6 +1173,9 @@ def pcd_to_bag(scenes, bag_path, *, storage: str = 'sqlite3', topic: str = DEFAU
     if not read:
         raise ValueError('no scene with objects: ' + '; '.join(
             s['reason'] for s in summary['skipped']))
+    if not any(objects for _, objects, _, _ in read):   # a bag without a single cloud
+        raise ValueError(f'no object with at least {min_points} points (--min-points) in any '
+                         'scene: no cloud to write, no bag written')
     stamps = _scene_stamps([len(objects) for _, objects, _, _ in read], period, object_period,
                            t0_ns)
     if max(max([ns, *objs]) for ns, objs in stamps) > MAX_NS:
@@ -1264,6 +1267,20 @@ def _output_problem(path) -> str | None:
     return None
 
 
+def _nothing_to_play(args, stats) -> str:
+    """Why a replay sent nothing: its topics are empty, or the bag has none that matches."""
+    if stats.topics:
+        return 'no messages on ' + ', '.join(sorted(s.bag_topic for s in stats.topics.values()))
+    if args.topics or args.all_topics:
+        return 'no matching topics'
+    try:
+        others = sorted(bag_info(args.bag)['topics'])
+    except Exception:  # noqa: BLE001 - only a hint
+        others = []
+    hint = f' (it has {", ".join(others)}: --all-topics plays them)' if others else ''
+    return f'the bag has no {CLOUD_TYPE} topic{hint}'
+
+
 @interruptible('beo-replay')
 def replay_main(argv=None) -> int:
     p = argparse.ArgumentParser(
@@ -1329,7 +1346,8 @@ def replay_main(argv=None) -> int:
                       f'every reliable subscriber within --ack-timeout {args.ack_timeout:g} s; '
                       'a slow or stalled subscriber may have lost them', file=sys.stderr)
             if stats.messages == 0 and not stats.interrupted:
-                print('beo-replay: nothing to play (no matching topics)', file=sys.stderr)
+                print(f'beo-replay: nothing to play: {_nothing_to_play(args, stats)}',
+                      file=sys.stderr)
                 code = 1
             # Ctrl-C is how a --loop replay ends once it plays; otherwise it cut the replay short
             if stats.interrupted and not (args.loop and stats.messages):
@@ -1450,13 +1468,19 @@ def pcd2bag_main(argv=None) -> int:
         return 2
     for s in summary['skipped']:
         print(f'beo-pcd2bag: warning: skipped {s["reason"]}', file=sys.stderr)
+    for s in summary['scenes']:
+        if not s['objects']:
+            print(f'beo-pcd2bag: warning: {s["scene"]}: no object with at least '
+                  f'{args.min_points} points (--min-points); only its up vector and plane are '
+                  'written', file=sys.stderr)
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
         for s in summary['scenes']:
             up = ', '.join(f'{v:+.3f}' for v in s['up'])
-            print(f'{Path(s["scene"]).name}: {len(s["objects"])} object(s) '
-                  f'({", ".join(str(o["points"]) for o in s["objects"])} points), up ({up})')
+            pts = (f' ({", ".join(str(o["points"]) for o in s["objects"])} points)'
+                   if s['objects'] else '')
+            print(f'{Path(s["scene"]).name}: {len(s["objects"])} object(s){pts}, up ({up})')
         print(' '.join(f'{t}: {n}' for t, n in summary['topics'].items()) + f' -> {args.output} '
               f'({args.storage})')
     return 0
