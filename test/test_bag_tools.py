@@ -349,19 +349,21 @@ def test_cli_loop_replay_ended_by_sigterm_exits_143(tmp_path, ros_domain_id):
 # 6. beo-demo: discovery off whatever the user's setting
 # ------------------------------------------------------------------------------------------
 
-def test_demo_forces_discovery_off(tmp_path, monkeypatch, ros_tiny_model_dir):
+def test_demo_forces_discovery_off(monkeypatch):
     """Before, setdefault let a user's LOCALHOST win: the demo's node and listener talked to
-    other processes."""
-    from beo_ros.ros import demo
+    other processes. The caller's setting is put back afterwards."""
+    from beo_ros.ros import demo, node
     monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     seen = {}
 
-    def fake_run(*a, **k):   # where the node and its rclpy context would start
+    def fake_node(*a, **k):   # the node starts in the demo's rclpy context
         seen['range'] = os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE']
-        raise KeyboardInterrupt
-    monkeypatch.setattr(demo, 'run_node_on_bag', fake_run)
-    assert demo.main(['--model', str(ros_tiny_model_dir), '--out', str(tmp_path / 'o')]) == 130
+        raise RuntimeError('stop here')
+    monkeypatch.setattr(node, 'BeoNode', fake_node)
+    with pytest.raises(RuntimeError, match='stop here'):
+        demo.run_node_on_bag('bag', 'model', None, (0.0, 0.0, 1.0), (0.0, 0.0, 0.0))
     assert seen['range'] == 'OFF'
+    assert os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] == 'LOCALHOST'
 
 
 # ------------------------------------------------------------------------------------------
