@@ -60,7 +60,8 @@ def test_replay_waits_for_acknowledgements_before_the_history_wraps(tmp_path, mo
     def fake(node, msgtype, topic, qos, depth, latched=False):
         return pubs.setdefault(topic, FakePublisher(topic, depth, qos == 'reliable', acked))
     monkeypatch.setattr(bag, '_publisher', fake)
-    stats = bag.replay(tmp_path / 'b', object(), rate=0, depth=3, ack_timeout=0)
+    node = SimpleNamespace(get_topic_names_and_types=lambda: [])
+    stats = bag.replay(tmp_path / 'b', node, rate=0, depth=3, ack_timeout=0)
     assert stats.messages == 7
     events = ''.join('P' if e == 'pub' else 'A' for e in pubs['/beo/input'].events)
     assert events == 'PPPAPPPAPA'
@@ -68,7 +69,7 @@ def test_replay_waits_for_acknowledgements_before_the_history_wraps(tmp_path, mo
     assert ('not acknowledged' in stats.table()) == (not acked)
 
     pubs.clear()   # best effort: nothing acknowledges, nothing to wait for
-    stats = bag.replay(tmp_path / 'b', object(), rate=0, depth=3, qos='best_effort')
+    stats = bag.replay(tmp_path / 'b', node, rate=0, depth=3, qos='best_effort')
     assert pubs['/beo/input'].events == ['pub'] * 7 and stats.unacked == 0
 
 
