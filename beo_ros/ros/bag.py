@@ -11,11 +11,13 @@ Console entry points:
     ones named with ``--topics``) into the live graph, timed by the bag's receive timestamps divided
     by ``--rate`` (``--rate 0``: as fast as possible). Header stamps are left as recorded. Reports
     per-topic counts and the wall duration as a table (``--json`` for machine-readable output).
-    Exit code 130 when Ctrl-C cuts it short (0 for a ``--loop`` replay that played).
+    Exit code 130 when Ctrl-C cuts it short (0 for a ``--loop`` replay that played), 143 on
+    SIGTERM.
     In-process use: :func:`replay`.
 
 ``beo-record TOPIC[:TYPE] ... -o BAG``
-    Records topics to a new bag until SIGINT, ``--duration`` or ``--count``. Types are discovered
+    Records topics to a new bag until SIGINT or SIGTERM (either closes the bag, exit code 0),
+    ``--duration`` or ``--count``. Types are discovered
     from the graph or given as ``TOPIC:pkg/msg/Type``. Message definitions of types that the
     rosbags Jazzy typestore lacks (e.g. ``beo_interfaces/msg/ObjectEstimate``) are parsed from the
     package's ``.msg`` files, so the bag is self-describing. In-process use: :func:`record`.
@@ -39,7 +41,8 @@ Console entry points:
     is refused; a scene without object labels (>= 20) is skipped with a warning.
 
 Bad arguments (numbers out of range, invalid topic or node names, an output that exists) exit 2
-with one line; Ctrl-C, one line and exit code 130, leaving no partial pcd2bag bag.
+with one line; Ctrl-C, one line and exit code 130, SIGTERM 143 (beo-record: both stop the
+recording and close the bag, exit code 0), leaving no partial pcd2bag bag.
 """
 from __future__ import annotations
 
@@ -262,11 +265,32 @@ def _qos_for_bag(reliable: bool = True, transient_local: bool = False):
                liveliness_lease_duration=zero, avoid_ros_namespace_conventions=False)
 
 
+def storage_errors() -> tuple:
+    """Exception types of a failing bag write or read: the file system's (disk full, ...), the
+    sqlite3 databases' (``sqlite3.Error`` when writing, ``apsw.Error`` when reading) and
+    rosbags' own."""
+    import sqlite3
+
+    from rosbags.rosbag2 import ReaderError, WriterError
+    errors = [OSError, sqlite3.Error, ReaderError, WriterError]
+    try:
+        import apsw
+        errors.append(apsw.Error)
+    except ImportError:   # only the sqlite3 reader of rosbags uses it
+        pass
+    return tuple(errors)
+
+
 class BagWriter:
     """Writes rclpy messages (or raw CDR bytes) to a new rosbag2 bag.
 
     >>> with BagWriter(path, storage='mcap') as w:
     ...     w.write('/beo/input', cloud_msg, stamp_ns)
+
+    A write that fails (disk full, ...) marks the writer ``failed``: leaving the ``with`` block
+    then aborts it instead of closing it, so that no metadata.yaml claims messages the storage
+    lost (sqlite rolls the open transaction back on such errors). :meth:`commit` makes what is
+    written so far durable (sqlite3 only).
     """
 
     def __init__(self, path, storage: str = 'sqlite3'):
@@ -277,19 +301,60 @@ class BagWriter:
                               storage_plugin=_storage_plugin(storage))
         self._conns = {}
         self.counts = {}
+        self.failed = False
+        self._opened = False
+
+    @property
+    def storage_file(self) -> Path:
+        """The .db3 / .mcap file of the bag."""
+        return self.path / f'{self.path.name}.{"db3" if self.storage == "sqlite3" else "mcap"}'
 
     def open(self):
-        self._writer.open()
+        existed = self.path.exists() or self.path.is_symlink()
+        try:
+            self._writer.open()
+        except Exception:
+            if not existed and self.path.is_dir():   # made, but no database in it
+                shutil.rmtree(self.path, ignore_errors=True)
+            raise
+        self._opened = True   # the directory is ours: it may be removed after a failure
         return self
 
     def close(self):
-        self._writer.close()
+        try:
+            self._writer.close()
+        except Exception:
+            self.failed = True
+            self.abort()
+            raise
+
+    def abort(self):
+        """Close without metadata.yaml; sqlite3 keeps what :meth:`commit` committed."""
+        with contextlib.suppress(Exception):
+            self._writer.abort()
+
+    def commit(self) -> bool:
+        """Commit the sqlite3 transaction: what is written so far survives a crash or SIGKILL
+        (the .db3 file then reads on its own, without metadata.yaml). False for mcap (its
+        file is unreadable until :meth:`close` writes the footer)."""
+        conn = getattr(self._writer.storage, 'conn', None)
+        if self.storage != 'sqlite3' or conn is None:
+            return False
+        try:
+            conn.commit()
+        except Exception:
+            self.failed = True
+            raise
+        return True
 
     def __enter__(self):
         return self.open()
 
     def __exit__(self, *exc):
-        self.close()
+        if self.failed:
+            self.abort()
+        else:
+            self.close()
 
     def add_topic(self, topic: str, msgtype: str, *, reliable: bool = True,
                   transient_local: bool = False):
@@ -299,9 +364,13 @@ class BagWriter:
                 raise ValueError(f'{topic}: already has type {self._conns[topic].msgtype}')
             return self._conns[topic]
         store = get_typestore([msgtype])
-        conn = self._writer.add_connection(
-            topic, msgtype, typestore=store,
-            offered_qos_profiles=[_qos_for_bag(reliable, transient_local)])
+        try:
+            conn = self._writer.add_connection(
+                topic, msgtype, typestore=store,
+                offered_qos_profiles=[_qos_for_bag(reliable, transient_local)])
+        except storage_errors():
+            self.failed = True
+            raise
         self._conns[topic] = conn
         self.counts[topic] = 0
         return conn
@@ -317,7 +386,11 @@ class BagWriter:
             msgtype = msgtype or msgtype_of(msg)
             data = serialize_message(msg)
         conn = self._conns.get(topic) or self.add_topic(topic, msgtype)
-        self._writer.write(conn, int(stamp_ns), data)
+        try:
+            self._writer.write(conn, int(stamp_ns), data)
+        except storage_errors():
+            self.failed = True
+            raise
         self.counts[topic] += 1
 
 
@@ -381,13 +454,16 @@ class ReplayStats:
     messages: int = 0
     bytes: int = 0
     wall_s: float = 0.0                 # from the first to the last publish
-    bag_span_s: float = 0.0             # bag timestamp span of one pass
+    bag_span_s: float = 0.0             # bag timestamp span of the messages sent in a pass
     waited_s: float = 0.0               # time spent in --wait-subscribers
     interrupted: bool = False
     topics: dict = field(default_factory=dict)   # published topic -> TopicStats
     skipped: dict = field(default_factory=dict)  # bag topic -> type not installed (all_topics)
     latched: list = field(default_factory=list)  # published topics played transient-local
     clock_messages: int = 0                      # /clock messages published (clock_hz)
+    # messages published before an acknowledgement wait that timed out (reliable publishers):
+    # a reliable subscriber may have lost up to this many (``ack_timeout`` of :func:`replay`)
+    unacked: int = 0
 
     @property
     def messages_per_s(self) -> float:
@@ -416,6 +492,9 @@ class ReplayStats:
             lines.append(f'{self.clock_messages} /clock messages')
         if self.latched:
             lines.append('played transient-local, as recorded: ' + ', '.join(self.latched))
+        if self.unacked:
+            lines.append(f'{self.unacked} message(s) not acknowledged by every reliable '
+                         'subscriber in time (maybe lost)')
         if self.skipped:
             lines.append(f'{len(self.skipped)} topic(s) skipped, type not installed: '
                          + ', '.join(f'{t} ({m})' for t, m in self.skipped.items()))
@@ -495,6 +574,54 @@ def _publisher(node, msgtype: str, topic: str, qos: str, depth: int, latched: bo
     return cache[key]
 
 
+# how long a reliable publisher waits for its subscribers to acknowledge what it has sent
+# before its keep-last history would overwrite a message not yet delivered
+ACK_TIMEOUT_S = 5.0
+
+
+class _AckGate:
+    """Keeps a reliable keep-last publisher from overwriting messages its subscribers have not
+    acknowledged: after every ``depth`` publishes since the last complete acknowledgement,
+    :meth:`published` waits (``Publisher.wait_for_all_acked``, in 0.1 s steps so that ``stop``
+    is seen) until they are all acknowledged or ``timeout`` s pass. Those that were not are
+    counted in ``stats.unacked``. Best-effort publishers are not gated (nothing acknowledges)."""
+
+    def __init__(self, timeout: float, stats, stop: threading.Event | None):
+        self.timeout, self.stats, self.stop = timeout, stats, stop
+        self._sent = {}   # id(publisher) -> [publisher, depth, publishes since the last wait]
+
+    def published(self, pub) -> None:
+        entry = self._sent.get(id(pub))
+        if entry is None:
+            from rclpy.qos import ReliabilityPolicy
+            q = pub.qos_profile
+            if q.reliability != ReliabilityPolicy.RELIABLE:
+                return
+            entry = self._sent[id(pub)] = [pub, max(1, int(q.depth)), 0]
+        entry[2] += 1
+        if entry[2] >= entry[1]:
+            self._wait(entry)
+
+    def flush(self) -> None:
+        """Wait for the acknowledgement of everything sent (the end of a replay)."""
+        for entry in self._sent.values():
+            if entry[2]:
+                self._wait(entry)
+
+    def _wait(self, entry) -> None:
+        from rclpy.duration import Duration
+        pub, _, n = entry
+        deadline = time.monotonic() + self.timeout
+        while True:
+            left = deadline - time.monotonic()
+            if pub.wait_for_all_acked(Duration(nanoseconds=int(max(0.0, min(left, 0.1)) * 1e9))):
+                break
+            if left <= 0 or (self.stop is not None and self.stop.is_set()):
+                self.stats.unacked += n
+                break
+        entry[2] = 0
+
+
 def _publish_clock(pub, stamp_ns: int, stats) -> None:
     from rosgraph_msgs.msg import Clock
     msg = Clock()
@@ -517,11 +644,40 @@ def _clock_tick(pub, stats, t_start: float, bag_t0: int, rate: float, t_next: in
     _publish_clock(pub, min(bag_t0 + round((now - t_start) * rate * 1e9), t_next), stats)
 
 
+def _check_output_types(node, conns, remap) -> None:
+    """``KeyError`` if two bag topics of different types would be published on one topic (by
+    remapping), or a published topic has another type in the graph already (rcl refuses the
+    publisher)."""
+    outs = {}
+    for c in conns:
+        out = remap.get(c.topic, c.topic)
+        if outs.setdefault(out, (c.msgtype, c.topic))[0] != c.msgtype:
+            typ, first = outs[out]
+            raise KeyError(f'{first} ({typ}) and {c.topic} ({c.msgtype}) would both be played '
+                           f'on {out}: one topic has one type; remap one of them elsewhere')
+    graph = dict(node.get_topic_names_and_types())
+    for out, (typ, bag_topic) in outs.items():
+        others = sorted({normalize_msgtype(t) for t in graph.get(out, ())} - {typ})
+        if others:
+            raise KeyError(f'{out} has type {others[0]} in the ROS graph; cannot play '
+                           f'{bag_topic} ({typ}) on it')
+
+
+class BagReadError(ValueError):
+    """A bag turned out unreadable (corrupt database, truncated file) during :func:`replay`;
+    ``stats``: what was played before."""
+
+    def __init__(self, message: str, stats: ReplayStats):
+        super().__init__(message)
+        self.stats = stats
+
+
 def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
            rate: float = 1.0, loop: bool = False, loops: int | None = None,
            qos: str = 'reliable', depth: int = 10, wait_subscribers: int = 0,
            wait_timeout: float = 10.0, stop: threading.Event | None = None,
-           on_publish=None, clock_hz: float = 0.0) -> ReplayStats:
+           on_publish=None, clock_hz: float = 0.0,
+           ack_timeout: float = ACK_TIMEOUT_S) -> ReplayStats:
     """Publish the messages of a bag with ``node``'s publishers; returns what was sent.
 
     Args:
@@ -535,7 +691,12 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
         rate: timing factor: a message is sent at ``t0 + (stamp - first_stamp) / rate``; ``0``
             publishes as fast as possible.
         loop: repeat until ``stop`` is set; ``loops`` caps the number of passes (default 1).
-        qos: 'reliable' or 'best_effort' (history keep-last ``depth``, volatile). A topic
+        qos: 'reliable' or 'best_effort' (history keep-last ``depth``, volatile). A reliable
+            publisher waits for its subscribers' acknowledgements after every ``depth``
+            messages (at most ``ack_timeout`` s; what was not acknowledged by then is counted in
+            ``stats.unacked``) and at the end, so that a fast replay (``rate=0``) does not
+            overwrite undelivered messages in its history; best-effort subscribers can still
+            miss messages (nothing tells the publisher). A topic
             recorded from transient-local publishers only (``recorded_latched``, e.g.
             /tf_static) is played reliable and transient-local, as recorded, so that late and
             transient-local subscribers (tf2's static listener) get it; ``stats.latched``
@@ -558,115 +719,128 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
     n_passes = loops if loops is not None else (None if loop else 1)
     stats = ReplayStats(bag=str(bag_path), storage=detect_storage(bag_path), rate=float(rate))
 
-    with Reader(bag_path) as reader:
-        if topics:
-            wanted = set(topics)
-            missing = wanted - {c.topic for c in reader.connections}
-            if missing:
-                raise KeyError(f'topics not in bag {bag_path}: {sorted(missing)}')
-            conns = [c for c in reader.connections if c.topic in wanted]
-        elif all_topics:
-            conns = list(reader.connections)
-        else:
-            conns = [c for c in reader.connections if c.msgtype == CLOUD_TYPE]
-        unknown = set(remap) - {c.topic for c in reader.connections}
-        if unknown:   # a typo would otherwise play on the old name
-            raise KeyError(f'remapped topics not in bag {bag_path}: {sorted(unknown)}')
-        pubs, pub_by_out = {}, {}
-        for c in list(conns):
-            out = remap.get(c.topic, c.topic)
-            if c.topic in stats.skipped:
-                conns.remove(c)
-            elif c.topic not in pubs:
-                try:
-                    latched = recorded_latched(c)
-                    # keep every latched message for late subscribers (one per static
-                    # broadcaster on /tf_static), not only the last ``depth``
-                    pubs[c.topic] = _publisher(node, c.msgtype, out, qos,
-                                               max(depth, int(getattr(c, 'msgcount', 0) or 0))
-                                               if latched else depth, latched)
-                    if latched:
-                        stats.latched.append(out)
-                except KeyError:   # type not installed: fatal only for a topic asked for
-                    if topics:
-                        raise
-                    stats.skipped[c.topic] = c.msgtype
+    t_first = t_last = None
+    try:
+        with Reader(bag_path) as reader:
+            if topics:
+                wanted = set(topics)
+                missing = wanted - {c.topic for c in reader.connections}
+                if missing:
+                    raise KeyError(f'topics not in bag {bag_path}: {sorted(missing)}')
+                conns = [c for c in reader.connections if c.topic in wanted]
+            elif all_topics:
+                conns = list(reader.connections)
+            else:
+                conns = [c for c in reader.connections if c.msgtype == CLOUD_TYPE]
+            unknown = set(remap) - {c.topic for c in reader.connections}
+            if unknown:   # a typo would otherwise play on the old name
+                raise KeyError(f'remapped topics not in bag {bag_path}: {sorted(unknown)}')
+            _check_output_types(node, conns, remap)
+            pubs, pub_by_out = {}, {}
+            for c in list(conns):
+                out = remap.get(c.topic, c.topic)
+                if c.topic in stats.skipped:
                     conns.remove(c)
-                    continue
-                pub_by_out.setdefault(out, pubs[c.topic])
-                stats.topics.setdefault(out, TopicStats(out, c.topic, c.msgtype))
-        if not conns:
-            return stats
+                elif c.topic not in pubs:
+                    try:
+                        latched = recorded_latched(c)
+                        # keep every latched message for late subscribers (one per static
+                        # broadcaster on /tf_static), not only the last ``depth``
+                        pubs[c.topic] = _publisher(node, c.msgtype, out, qos,
+                                                   max(depth, int(getattr(c, 'msgcount', 0) or 0))
+                                                   if latched else depth, latched)
+                        if latched:
+                            stats.latched.append(out)
+                    except KeyError:   # type not installed: fatal only for a topic asked for
+                        if topics:
+                            raise
+                        stats.skipped[c.topic] = c.msgtype
+                        conns.remove(c)
+                        continue
+                    pub_by_out.setdefault(out, pubs[c.topic])
+                    stats.topics.setdefault(out, TopicStats(out, c.topic, c.msgtype))
+            if not conns:
+                return stats
 
-        # made before the wait, so that discovery matches /clock with the data topics
-        # best effort, depth 1, volatile: rclcpp's ClockQoS
-        clock = (_publisher(node, 'rosgraph_msgs/msg/Clock', '/clock', 'best_effort', 1)
-                 if clock_hz > 0 else None)
-        if wait_subscribers > 0:
-            t_wait = time.monotonic()
-            deadline = t_wait + wait_timeout
-            clock_grace = None   # once the data topics match, up to 1 s more for /clock
-            while True:
-                counts = {p.topic_name: p.get_subscription_count() for p in pubs.values()}
-                short = {t: c for t, c in counts.items() if c < wait_subscribers}
-                if not short:
-                    if clock is None or clock.get_subscription_count() > 0:
-                        break
-                    clock_grace = clock_grace or time.monotonic() + CLOCK_GRACE_S
-                    if time.monotonic() >= clock_grace:
-                        break
-                if stop is not None and stop.is_set():
-                    stats.interrupted = True
-                    return stats
-                if short and time.monotonic() > deadline:
-                    raise TimeoutError(f'waited {wait_timeout:g} s for {wait_subscribers} '
-                                       f'subscriber(s); matched: {short}')
-                time.sleep(0.02)
-            stats.waited_s = time.monotonic() - t_wait
+            # made before the wait, so that discovery matches /clock with the data topics
+            # best effort, depth 1, volatile: rclcpp's ClockQoS
+            clock = (_publisher(node, 'rosgraph_msgs/msg/Clock', '/clock', 'best_effort', 1)
+                     if clock_hz > 0 else None)
+            if wait_subscribers > 0:
+                t_wait = time.monotonic()
+                deadline = t_wait + wait_timeout
+                clock_grace = None   # once the data topics match, up to 1 s more for /clock
+                while True:
+                    counts = {p.topic_name: p.get_subscription_count() for p in pubs.values()}
+                    short = {t: c for t, c in counts.items() if c < wait_subscribers}
+                    if not short:
+                        if clock is None or clock.get_subscription_count() > 0:
+                            break
+                        clock_grace = clock_grace or time.monotonic() + CLOCK_GRACE_S
+                        if time.monotonic() >= clock_grace:
+                            break
+                    if stop is not None and stop.is_set():
+                        stats.interrupted = True
+                        return stats
+                    if short and time.monotonic() > deadline:
+                        raise TimeoutError(f'waited {wait_timeout:g} s for {wait_subscribers} '
+                                           f'subscriber(s); matched: {short}')
+                    time.sleep(0.02)
+                stats.waited_s = time.monotonic() - t_wait
 
-        t_first = t_last = None
-        while n_passes is None or stats.loops < n_passes:
-            t_start = None
-            bag_t0 = bag_t1 = None
-            for conn, t, raw in reader.messages(connections=conns):
-                if bag_t0 is None:
-                    bag_t0 = t
-                bag_t1 = t
-                if rate > 0:
-                    if t_start is None:
-                        t_start = time.monotonic()
-                    tick = None if clock is None else functools.partial(
-                        _clock_tick, clock, stats, t_start, bag_t0, rate, t)
-                    if not _sleep_until(t_start + (t - bag_t0) / 1e9 / rate, stop, tick,
-                                        1.0 / clock_hz if clock_hz > 0 else 0.05):
+            acks = _AckGate(ack_timeout, stats, stop)
+            while n_passes is None or stats.loops < n_passes:
+                t_start = None
+                bag_t0 = None            # stamp of the pass's first message: the timing's origin
+                sent_t0 = sent_t1 = None  # stamps of the first and last message sent
+                for conn, t, raw in reader.messages(connections=conns):
+                    if bag_t0 is None:
+                        bag_t0 = t
+                    if rate > 0:
+                        if t_start is None:
+                            t_start = time.monotonic()
+                        tick = None if clock is None else functools.partial(
+                            _clock_tick, clock, stats, t_start, bag_t0, rate, t)
+                        if not _sleep_until(t_start + (t - bag_t0) / 1e9 / rate, stop, tick,
+                                            1.0 / clock_hz if clock_hz > 0 else 0.05):
+                            stats.interrupted = True
+                            break
+                    elif stop is not None and stop.is_set():
                         stats.interrupted = True
                         break
-                elif stop is not None and stop.is_set():
-                    stats.interrupted = True
+                    if clock is not None:
+                        _publish_clock(clock, t, stats)
+                    data = bytes(raw)
+                    pubs[conn.topic].publish(data)
+                    acks.published(pubs[conn.topic])
+                    now = time.monotonic()
+                    t_first = now if t_first is None else t_first
+                    t_last = now
+                    sent_t0 = t if sent_t0 is None else sent_t0
+                    sent_t1 = t
+                    ts = stats.topics[remap.get(conn.topic, conn.topic)]
+                    ts.count += 1
+                    ts.bytes += len(data)
+                    stats.messages += 1
+                    stats.bytes += len(data)
+                    if on_publish is not None:
+                        on_publish(ts.topic, data, t)
+                if sent_t0 is not None:   # not the message an interrupt kept from being sent
+                    stats.bag_span_s = (sent_t1 - sent_t0) / 1e9
+                if stats.interrupted:
                     break
-                if clock is not None:
-                    _publish_clock(clock, t, stats)
-                data = bytes(raw)
-                pubs[conn.topic].publish(data)
-                now = time.monotonic()
-                t_first = now if t_first is None else t_first
-                t_last = now
-                ts = stats.topics[remap.get(conn.topic, conn.topic)]
-                ts.count += 1
-                ts.bytes += len(data)
-                stats.messages += 1
-                stats.bytes += len(data)
-                if on_publish is not None:
-                    on_publish(ts.topic, data, t)
-            if bag_t0 is not None:
-                stats.bag_span_s = (bag_t1 - bag_t0) / 1e9
-            if stats.interrupted:
-                break
-            stats.loops += 1
-            if bag_t0 is None:  # nothing to play: don't spin forever with --loop
-                break
-        for out, ts in stats.topics.items():
-            ts.subscribers = pub_by_out[out].get_subscription_count()
+                stats.loops += 1
+                if bag_t0 is None:  # nothing to play: don't spin forever with --loop
+                    break
+            acks.flush()
+            for out, ts in stats.topics.items():
+                ts.subscribers = pub_by_out[out].get_subscription_count()
+    except TimeoutError:   # --wait-subscribers (an OSError too)
+        raise
+    except storage_errors() as e:   # a corrupt database, a truncated file
+        if t_first is not None:
+            stats.wall_s = t_last - t_first
+        raise BagReadError(str(e) or type(e).__name__, stats) from e
     stats.wall_s = (t_last - t_first) if t_first is not None else 0.0
     return stats
 
@@ -674,6 +848,38 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
 # ---------------------------------------------------------------------------------------------
 # record
 # ---------------------------------------------------------------------------------------------
+
+COMMIT_PERIOD_S = 1.0   # beo-record commits its sqlite3 bag at least this often
+
+
+class BagWriteError(Exception):
+    """A bag could not be written (disk full, I/O error); the message says what is left."""
+
+
+def _write_failure(writer, exc) -> str:
+    """One line on a failed recording, after ``writer`` was aborted: the error, and what is
+    left of the bag (a .db3 with the committed messages, or nothing: an unreadable bag is
+    removed)."""
+    reason = f'cannot write {writer.path}: {exc}'
+    if not writer._opened:
+        return reason
+    kept = 0
+    if writer.storage == 'sqlite3':
+        import sqlite3
+        try:
+            with contextlib.closing(sqlite3.connect(f'file:{writer.storage_file}?mode=ro',
+                                                    uri=True)) as db:
+                kept = db.execute('SELECT COUNT(*) FROM messages').fetchone()[0]
+        except sqlite3.Error:
+            kept = 0
+    if kept:
+        return (f'{reason}; {writer.storage_file} keeps the {kept} message(s) committed before '
+                'the error (no metadata.yaml: play or read that file itself)')
+    shutil.rmtree(writer.path, ignore_errors=True)
+    why = ('an mcap file is unreadable without the footer written when it is closed'
+           if writer.storage == 'mcap' else 'nothing in it was committed')
+    return f'{reason}; the unfinished bag was removed ({why})'
+
 
 @dataclass
 class RecordStats:
@@ -768,7 +974,7 @@ def _subscription_qos(node, topic: str, depth: int = 100):
 def record(node, bag_path, topics, *, storage: str = 'sqlite3', wait: float = 10.0,
            duration: float | None = None, count: int | None = None,
            stop: threading.Event | None = None, ready: threading.Event | None = None,
-           executor=None) -> RecordStats:
+           executor=None, commit_every: float | None = None) -> RecordStats:
     """Record ``topics`` to a new bag at ``bag_path``, spinning ``node`` in the calling thread.
 
     Args:
@@ -778,11 +984,16 @@ def record(node, bag_path, topics, *, storage: str = 'sqlite3', wait: float = 10
         duration: stop after this many seconds of recording; ``count``: after this many messages
             in total; ``stop``: an Event to end the recording (e.g. set by SIGINT).
         ready: set once all subscriptions exist (useful to start publishers in tests).
+        commit_every: sqlite3: commit the messages written at least every this many seconds
+            (default ``COMMIT_PERIOD_S``, 1 s), so that a crash or SIGKILL keeps them (the .db3 file then reads on its own; there
+            is no metadata.yaml). An mcap bag is unreadable until it is closed.
     Messages are stored as received (raw CDR), stamped with the node clock at receipt. A topic is
     subscribed once it has a publisher (typed topics may have none yet), with reliability and
     durability adapted to what its publishers offer. ``KeyError``, before the bag is created,
     for a type without a definition or Python module; ``KeyboardInterrupt``, with no bag, if
-    ``stop`` is set while untyped topics wait for a publisher.
+    ``stop`` is set while untyped topics wait for a publisher. :class:`BagWriteError` when the
+    bag cannot be written (disk full, ...): its message says what is left of the bag; no
+    metadata.yaml is written then, a bag with nothing readable in it is removed.
     """
     from rclpy.executors import SingleThreadedExecutor
     if isinstance(topics, (list, tuple)):
@@ -793,6 +1004,7 @@ def record(node, bag_path, topics, *, storage: str = 'sqlite3', wait: float = 10
         get_typestore([typ])
         import_msg_class(typ)
     stats = RecordStats(bag=str(bag_path), storage=storage)
+    commit_every = COMMIT_PERIOD_S if commit_every is None else commit_every
     writer = BagWriter(bag_path, storage)
     own_exec = executor is None
     executor = executor or SingleThreadedExecutor(context=node.context)
@@ -814,53 +1026,61 @@ def record(node, bag_path, topics, *, storage: str = 'sqlite3', wait: float = 10
             if not node.get_publishers_info_by_topic(topic):
                 continue
             qos = _subscription_qos(node, topic)
+            # the bag's offered QoS is that of the publishers matched now (a latched
+            # publisher that appears after the recording started is replayed latched)
+            writer.add_topic(topic, typ, reliable=qos.reliability.name == 'RELIABLE',
+                             transient_local=qos.durability.name == 'TRANSIENT_LOCAL')
             subs.append(node.create_subscription(import_msg_class(typ), topic,
                                                  callback_for(topic), qos, raw=True))
             del unsubscribed[topic]
 
-    with writer:
-        for topic, typ in topics.items():
-            qos = _subscription_qos(node, topic)
-            writer.add_topic(topic, typ,
-                             reliable=qos.reliability.name == 'RELIABLE',
-                             transient_local=qos.durability.name == 'TRANSIENT_LOCAL')
-            stats.topics[topic] = {'type': typ, 'count': 0}
-        subscribe_new()
-        if own_exec:
-            executor.add_node(node)
-        if ready is not None:
-            ready.set()
-        t0 = t_poll = time.monotonic()
-        try:
-            while True:
-                executor.spin_once(timeout_sec=0.05)
-                if unsubscribed and time.monotonic() - t_poll > 0.05:
-                    t_poll = time.monotonic()
-                    subscribe_new()
-                with lock:
-                    batch, pending[:] = list(pending), []
-                for topic, t, raw in batch:
-                    if count is not None and stats.messages >= count:
-                        break
-                    writer.write(topic, raw, t, topics[topic])
-                    stats.topics[topic]['count'] += 1
-                    stats.messages += 1
-                if count is not None and stats.messages >= count:
-                    stats.stopped_by = 'count'
-                    break
-                if duration is not None and time.monotonic() - t0 >= duration:
-                    stats.stopped_by = 'duration'
-                    break
-                if stop.is_set():
-                    stats.stopped_by = 'interrupt'
-                    break
-        finally:
-            stats.wall_s = time.monotonic() - t0
-            for s in subs:
-                node.destroy_subscription(s)
+    try:
+        with writer:
+            for topic, typ in topics.items():
+                stats.topics[topic] = {'type': typ, 'count': 0}
+            subscribe_new()
             if own_exec:
-                executor.remove_node(node)
-                executor.shutdown()
+                executor.add_node(node)
+            if ready is not None:
+                ready.set()
+            t0 = t_poll = t_commit = time.monotonic()
+            try:
+                while True:
+                    executor.spin_once(timeout_sec=0.05)
+                    if unsubscribed and time.monotonic() - t_poll > 0.05:
+                        t_poll = time.monotonic()
+                        subscribe_new()
+                    with lock:
+                        batch, pending[:] = list(pending), []
+                    for topic, t, raw in batch:
+                        if count is not None and stats.messages >= count:
+                            break
+                        writer.write(topic, raw, t, topics[topic])
+                        stats.topics[topic]['count'] += 1
+                        stats.messages += 1
+                    if batch and time.monotonic() - t_commit >= commit_every:
+                        t_commit = time.monotonic()
+                        writer.commit()
+                    if count is not None and stats.messages >= count:
+                        stats.stopped_by = 'count'
+                        break
+                    if duration is not None and time.monotonic() - t0 >= duration:
+                        stats.stopped_by = 'duration'
+                        break
+                    if stop.is_set():
+                        stats.stopped_by = 'interrupt'
+                        break
+            finally:
+                stats.wall_s = time.monotonic() - t0
+                for topic, typ in unsubscribed.items():   # never published: listed, empty
+                    writer.add_topic(topic, typ, reliable=False)
+                for s in subs:
+                    node.destroy_subscription(s)
+                if own_exec:
+                    executor.remove_node(node)
+                    executor.shutdown()
+    except storage_errors() as e:
+        raise BagWriteError(_write_failure(writer, e)) from None
     return stats
 
 
@@ -953,6 +1173,9 @@ def pcd_to_bag(scenes, bag_path, *, storage: str = 'sqlite3', topic: str = DEFAU
     if not read:
         raise ValueError('no scene with objects: ' + '; '.join(
             s['reason'] for s in summary['skipped']))
+    if not any(objects for _, objects, _, _ in read):   # a bag without a single cloud
+        raise ValueError(f'no object with at least {min_points} points (--min-points) in any '
+                         'scene: no cloud to write, no bag written')
     stamps = _scene_stamps([len(objects) for _, objects, _, _ in read], period, object_period,
                            t0_ns)
     if max(max([ns, *objs]) for ns, objs in stamps) > MAX_NS:
@@ -991,13 +1214,17 @@ def pcd_to_bag(scenes, bag_path, *, storage: str = 'sqlite3', topic: str = DEFAU
 # command line
 # ---------------------------------------------------------------------------------------------
 
-def _install_sigint(stop: threading.Event):
+def _install_sigint(stop: threading.Event, sigterm: bool = True):
+    """SIGINT (and SIGTERM with ``sigterm``) sets ``stop``; a second one raises
+    KeyboardInterrupt. Without ``sigterm``, SIGTERM keeps :func:`interruptible`'s handler
+    (exit code 143)."""
     def handler(signum, frame):  # noqa: ARG001
         if stop.is_set():  # second Ctrl-C: give up immediately
             raise KeyboardInterrupt
         stop.set()
     signal.signal(signal.SIGINT, handler)
-    signal.signal(signal.SIGTERM, handler)
+    if sigterm:
+        signal.signal(signal.SIGTERM, handler)
 
 
 def _ros_setup():
@@ -1009,16 +1236,17 @@ def _ros_setup():
 
 
 @contextlib.contextmanager
-def _cli_node(name):
+def _cli_node(name, sigterm_stops: bool = True):
     """rclpy context and node for a command-line tool; yields (node, stop event set on
-    SIGINT), and destroys the node and shuts rclpy down on the way out."""
+    SIGINT, and on SIGTERM with ``sigterm_stops``), and destroys the node and shuts rclpy down
+    on the way out."""
     _ros_setup()
     import rclpy
     stop = threading.Event()
     # no command-line arguments: rcl would take the tool's own ones (-r OLD:=NEW) as remap rules
     rclpy.init(args=[], signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
     node = rclpy.create_node(name)
-    _install_sigint(stop)
+    _install_sigint(stop, sigterm_stops)
     try:
         yield node, stop
     finally:
@@ -1039,6 +1267,20 @@ def _output_problem(path) -> str | None:
     return None
 
 
+def _nothing_to_play(args, stats) -> str:
+    """Why a replay sent nothing: its topics are empty, or the bag has none that matches."""
+    if stats.topics:
+        return 'no messages on ' + ', '.join(sorted(s.bag_topic for s in stats.topics.values()))
+    if args.topics or args.all_topics:
+        return 'no matching topics'
+    try:
+        others = sorted(bag_info(args.bag)['topics'])
+    except Exception:  # noqa: BLE001 - only a hint
+        others = []
+    hint = f' (it has {", ".join(others)}: --all-topics plays them)' if others else ''
+    return f'the bag has no {CLOUD_TYPE} topic{hint}'
+
+
 @interruptible('beo-replay')
 def replay_main(argv=None) -> int:
     p = argparse.ArgumentParser(
@@ -1057,7 +1299,13 @@ def replay_main(argv=None) -> int:
                    help='publisher reliability (default reliable; keep-last, volatile); '
                         'topics recorded from transient-local publishers (e.g. /tf_static) '
                         'are played reliable and transient-local, as recorded')
-    p.add_argument('--depth', type=count(1), default=10, help='publisher history depth (default 10)')
+    p.add_argument('--depth', type=count(1), default=10,
+                   help='publisher history depth (default 10); a reliable publisher waits for '
+                        'its subscribers to acknowledge every DEPTH messages')
+    p.add_argument('--ack-timeout', type=number(0), default=ACK_TIMEOUT_S, metavar='S',
+                   help='how long a reliable publisher waits for those acknowledgements before '
+                        'it goes on and counts the messages as unacknowledged (maybe lost; '
+                        f'default {ACK_TIMEOUT_S:g})')
     p.add_argument('--clock', type=number(0), nargs='?', const=40.0, default=0.0, metavar='HZ',
                    help='also publish the bag time on /clock, before every message and at HZ '
                         '(default 40) in between, for nodes run with use_sim_time:=true; '
@@ -1070,6 +1318,8 @@ def replay_main(argv=None) -> int:
     p.add_argument('--node-name', default='beo_replay')
     p.add_argument('--json', action='store_true', help='print the report as JSON')
     args = p.parse_args(argv)
+    if args.topics and args.all_topics:
+        p.error('--topics and --all-topics exclude each other')
     try:
         remap = parse_remaps(args.remap)
         check_node_name(args.node_name)
@@ -1077,21 +1327,27 @@ def replay_main(argv=None) -> int:
         p.error(str(e))
     if not Path(args.bag).exists():
         p.error(f'no such bag: {args.bag}')
-    from rosbags.rosbag2 import ReaderError
     code = 0
-    with _cli_node(args.node_name) as (node, stop):
+    # SIGTERM ends a replay with 143 (interruptible); SIGINT is how a --loop replay stops
+    with _cli_node(args.node_name, sigterm_stops=False) as (node, stop):
         try:
             stats = replay(args.bag, node, topics=args.topics, all_topics=args.all_topics,
                            remap=remap, rate=args.rate, loop=args.loop, qos=args.qos,
                            depth=args.depth, wait_subscribers=args.wait_subscribers,
-                           wait_timeout=args.wait_timeout, stop=stop, clock_hz=args.clock)
+                           wait_timeout=args.wait_timeout, stop=stop, clock_hz=args.clock,
+                           ack_timeout=args.ack_timeout)
             time.sleep(0.2)  # let reliable transports drain before the publishers go away
             for topic, typ in stats.skipped.items():
                 print(f'beo-replay: warning: skipping {topic}: message type {typ} is not '
                       'installed', file=sys.stderr)
             print(json.dumps(stats.to_dict(), indent=2) if args.json else stats.table())
+            if stats.unacked:
+                print(f'beo-replay: warning: {stats.unacked} message(s) were not acknowledged by '
+                      f'every reliable subscriber within --ack-timeout {args.ack_timeout:g} s; '
+                      'a slow or stalled subscriber may have lost them', file=sys.stderr)
             if stats.messages == 0 and not stats.interrupted:
-                print('beo-replay: nothing to play (no matching topics)', file=sys.stderr)
+                print(f'beo-replay: nothing to play: {_nothing_to_play(args, stats)}',
+                      file=sys.stderr)
                 code = 1
             # Ctrl-C is how a --loop replay ends once it plays; otherwise it cut the replay short
             if stats.interrupted and not (args.loop and stats.messages):
@@ -1104,7 +1360,14 @@ def replay_main(argv=None) -> int:
         except KeyError as e:
             print(f'beo-replay: {e.args[0]}', file=sys.stderr)
             code = 2
-        except (ValueError, OSError, ReaderError) as e:   # not a bag, or a corrupt one
+        except BagReadError as e:   # corrupt part way: what was played before it
+            if e.stats.messages:
+                print(json.dumps(e.stats.to_dict(), indent=2) if args.json
+                      else e.stats.table())
+            print(f'beo-replay: cannot read {args.bag}: {e} (after {e.stats.messages} '
+                  'message(s))', file=sys.stderr)
+            code = 2
+        except (ValueError, *storage_errors()) as e:   # not a bag, or a corrupt one
             print(f'beo-replay: cannot read {args.bag}: {e}', file=sys.stderr)
             code = 2
     return code
@@ -1147,6 +1410,9 @@ def record_main(argv=None) -> int:
             print(f'beo-record: {e.args[0]}', file=sys.stderr)
             code = 2
         except ValueError as e:   # 'x' and '/x' given different types
+            print(f'beo-record: {e}', file=sys.stderr)
+            code = 2
+        except BagWriteError as e:   # disk full, ...: what is left of the bag
             print(f'beo-record: {e}', file=sys.stderr)
             code = 2
         except OSError as e:
@@ -1202,13 +1468,19 @@ def pcd2bag_main(argv=None) -> int:
         return 2
     for s in summary['skipped']:
         print(f'beo-pcd2bag: warning: skipped {s["reason"]}', file=sys.stderr)
+    for s in summary['scenes']:
+        if not s['objects']:
+            print(f'beo-pcd2bag: warning: {s["scene"]}: no object with at least '
+                  f'{args.min_points} points (--min-points); only its up vector and plane are '
+                  'written', file=sys.stderr)
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
         for s in summary['scenes']:
             up = ', '.join(f'{v:+.3f}' for v in s['up'])
-            print(f'{Path(s["scene"]).name}: {len(s["objects"])} object(s) '
-                  f'({", ".join(str(o["points"]) for o in s["objects"])} points), up ({up})')
+            pts = (f' ({", ".join(str(o["points"]) for o in s["objects"])} points)'
+                   if s['objects'] else '')
+            print(f'{Path(s["scene"]).name}: {len(s["objects"])} object(s){pts}, up ({up})')
         print(' '.join(f'{t}: {n}' for t, n in summary['topics'].items()) + f' -> {args.output} '
               f'({args.storage})')
     return 0

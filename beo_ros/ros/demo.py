@@ -105,7 +105,21 @@ def run_node_on_bag(bag_path, model_dir, bank, up, origin, timeout: float = 120.
 
     ``estimates`` and ``completed`` map header stamps (ns) to messages.
     """
-    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'OFF')
+    # forced, not defaulted: with a user's LOCALHOST/SUBNET the demo would talk to other nodes
+    # (its listener would take their estimates); the node's worker processes inherit it. Put
+    # back afterwards: the caller's own contexts keep their setting
+    saved_range = os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE')
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'OFF'
+    try:
+        return _run_node_on_bag(bag_path, model_dir, bank, up, origin, timeout)
+    finally:
+        if saved_range is None:
+            os.environ.pop('ROS_AUTOMATIC_DISCOVERY_RANGE', None)
+        else:
+            os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = saved_range
+
+
+def _run_node_on_bag(bag_path, model_dir, bank, up, origin, timeout):
     import rclpy
     from rclpy.executors import MultiThreadedExecutor
     from rclpy.parameter import Parameter
@@ -270,7 +284,6 @@ def main(argv=None) -> int:
     if problem:
         p.error(f'--out {args.out}: {problem}')
     t_start = time.monotonic()
-    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'OFF')
     from beo_ros.ros.env import ensure_ament_prefix
     ensure_ament_prefix()
 

@@ -1,0 +1,395 @@
+"""Bag tools (beo_ros.ros.bag): fixes found in review -- acknowledged delivery at --rate 0, write
+and read errors as one line, the recorded QoS, remaps onto one topic, SIGTERM, empty topics.
+
+Helpers and fixtures come from test_bag.py.
+"""
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import rclpy
+
+from beo_ros.ros import bag
+from test_bag import (T0, _cli_env, ctx, keep_signal_handlers, make_cloud,  # noqa: F401
+                      write_test_bag)
+
+CODE = 'import sys; from beo_ros.ros.bag import {0}; sys.exit({0}(sys.argv[1:]))'
+
+
+# ------------------------------------------------------------------------------------------
+# 1. reliable delivery at --rate 0: the keep-last history must not wrap before acknowledgement
+# ------------------------------------------------------------------------------------------
+
+class FakePublisher:
+    """Stands in for an rclpy publisher: records publishes and acknowledgement waits."""
+
+    def __init__(self, topic, depth, reliable=True, acked=True):
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        self.topic_name = topic
+        self.qos_profile = QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE
+                                      if reliable else ReliabilityPolicy.BEST_EFFORT)
+        self.acked = acked
+        self.events = []
+
+    def publish(self, data):
+        self.events.append('pub')
+
+    def wait_for_all_acked(self, timeout):
+        self.events.append('ack')
+        return self.acked
+
+    def get_subscription_count(self):
+        return 1
+
+
+@pytest.mark.parametrize('acked', [True, False])
+def test_replay_waits_for_acknowledgements_before_the_history_wraps(tmp_path, monkeypatch,
+                                                                   acked):
+    """A reliable publisher of depth 3 waits for acknowledgements after every 3rd message and at
+    the end; what was not acknowledged in time is counted (the old code never waited: at
+    --rate 0 a subscriber in another process got 43-91 of 100 large clouds, reported as 100)."""
+    write_test_bag(tmp_path / 'b', 'sqlite3', n=7, extra_topic=False)
+    pubs = {}
+
+    def fake(node, msgtype, topic, qos, depth, latched=False):
+        return pubs.setdefault(topic, FakePublisher(topic, depth, qos == 'reliable', acked))
+    monkeypatch.setattr(bag, '_publisher', fake)
+    node = SimpleNamespace(get_topic_names_and_types=lambda: [])
+    stats = bag.replay(tmp_path / 'b', node, rate=0, depth=3, ack_timeout=0)
+    assert stats.messages == 7
+    events = ''.join('P' if e == 'pub' else 'A' for e in pubs['/beo/input'].events)
+    assert events == 'PPPAPPPAPA'
+    assert stats.unacked == (0 if acked else 7)
+    assert ('not acknowledged' in stats.table()) == (not acked)
+
+    pubs.clear()   # best effort: nothing acknowledges, nothing to wait for
+    stats = bag.replay(tmp_path / 'b', node, rate=0, depth=3, qos='best_effort')
+    assert pubs['/beo/input'].events == ['pub'] * 7 and stats.unacked == 0
+
+
+SUBSCRIBER = r'''
+import sys, time, rclpy
+from rclpy.qos import QoSProfile
+from sensor_msgs.msg import PointCloud2
+rclpy.init(args=[])
+node = rclpy.create_node('beo_test_sub')
+got = []
+node.create_subscription(PointCloud2, '/beo/input', lambda m: got.append(1),
+                         QoSProfile(depth=100))   # reliable, keep-last 100, volatile
+want = int(sys.argv[1])
+last = time.monotonic()
+while len(got) < want and time.monotonic() - last < 5.0:   # 5 s without a message: done
+    n = len(got)
+    rclpy.spin_once(node, timeout_sec=0.1)
+    if len(got) > n:
+        last = time.monotonic()
+print(len(got), flush=True)
+'''
+
+
+def test_cli_replay_rate_0_delivers_every_cloud_to_a_reliable_subscriber_of_another_process(
+        tmp_path, ros_domain_id):
+    n = 100
+    pts = np.random.default_rng(0).normal(size=(20_000, 3)).astype(np.float32)
+    from std_msgs.msg import Header
+    from beo_ros.ros.conversions import xyz_to_cloud
+    from test_bag import stamp
+    with bag.BagWriter(tmp_path / 'b', 'mcap') as w:
+        for i in range(n):
+            ns = T0 + i * 10_000_000
+            w.write('/beo/input', xyz_to_cloud(pts, Header(stamp=stamp(ns), frame_id='c')), ns)
+    env = _cli_env(ros_domain_id)
+    sub = subprocess.Popen([sys.executable, '-c', SUBSCRIBER, str(n)], env=env,
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        rep = subprocess.run([sys.executable, '-c', CODE.format('replay_main'),
+                              str(tmp_path / 'b'), '--rate', '0', '--wait-subscribers', '1',
+                              '--wait-timeout', '30', '--json'],
+                             env=env, capture_output=True, text=True, timeout=120)
+        assert rep.returncode == 0, rep.stderr
+        assert json.loads(rep.stdout)['unacked'] == 0
+        out, err = sub.communicate(timeout=60)
+    finally:
+        if sub.poll() is None:
+            sub.kill()
+    assert int(out.strip()) == n, err
+
+
+# ------------------------------------------------------------------------------------------
+# 2. beo-record: write errors (disk full) and SIGKILL
+# ------------------------------------------------------------------------------------------
+
+# beo-record in a subprocess, fed by a publisher of 100 kB strings on /big (its own context in
+# a thread), every sqlite3 batch committed (COMMIT_PERIOD_S = 0); argv[1]: file size limit
+# (bytes, 0: none), argv[2]: messages to publish, argv[3:]: beo-record's arguments
+RECORDER = r'''
+import resource, sys, threading, time
+limit, n = int(sys.argv[1]), int(sys.argv[2])
+if limit:   # a full disk, as far as the writes of this process go (EFBIG; SIGXFSZ is ignored)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+import rclpy
+from std_msgs.msg import String
+from beo_ros.ros import bag
+bag.COMMIT_PERIOD_S = 0.0
+
+def publish():
+    ctx = rclpy.Context()
+    rclpy.init(args=[], context=ctx)
+    node = rclpy.create_node('beo_test_big', context=ctx)
+    pub = node.create_publisher(String, '/big', 1000)
+    while pub.get_subscription_count() == 0:
+        time.sleep(0.05)
+    for i in range(n):
+        pub.publish(String(data='x' * 100_000))
+        time.sleep(0.05)
+    print('published', flush=True)
+    time.sleep(3600)
+threading.Thread(target=publish, daemon=True).start()
+sys.exit(bag.record_main(sys.argv[3:]))
+'''
+
+
+@pytest.mark.parametrize('storage', bag.STORAGES)
+def test_cli_record_on_a_full_disk_is_one_line_exit_2_and_leaves_no_lying_metadata(
+        tmp_path, ros_domain_id, storage):
+    """Before: sqlite3.OperationalError traceback, exit 1, and a metadata.yaml counting messages
+    the database had rolled back; mcap: an unreadable file."""
+    out = tmp_path / 'rec'
+    p = subprocess.run([sys.executable, '-c', RECORDER, str(1_000_000), '100',
+                        '/big:std_msgs/msg/String', '-o', str(out), '--storage', storage,
+                        '--duration', '60'],
+                       env=_cli_env(ros_domain_id), capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2, p.stderr
+    lines = [ln for ln in p.stderr.splitlines() if ln.startswith('beo-record')]
+    assert len(lines) == 1 and 'Traceback' not in p.stderr, p.stderr
+    assert f'cannot write {out}' in lines[0], lines[0]
+    assert not (out / 'metadata.yaml').exists()
+    if storage == 'mcap':
+        assert 'the unfinished bag was removed' in lines[0] and not out.exists()
+    else:   # what is said to be kept is what reads back
+        import re
+        kept = int(re.search(r'keeps the (\d+) message', lines[0]).group(1))
+        assert 1 <= kept < 10
+        assert len(list(bag.read_bag(out / 'rec.db3'))) == kept
+
+
+def test_sigkilled_sqlite3_recording_keeps_what_was_committed(tmp_path, ros_domain_id):
+    import signal
+    import sqlite3
+    out = tmp_path / 'rec'
+    p = subprocess.Popen([sys.executable, '-c', RECORDER, '0', '5', '/big:std_msgs/msg/String',
+                          '-o', str(out), '--duration', '600'],
+                         env=_cli_env(ros_domain_id), stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    db = out / 'rec.db3'
+
+    def committed():
+        try:
+            with sqlite3.connect(f'file:{db}?mode=ro', uri=True) as c:
+                return c.execute('SELECT COUNT(*) FROM messages').fetchone()[0]
+        except sqlite3.Error:
+            return 0
+    try:
+        end = time.monotonic() + 60
+        while committed() < 5 and time.monotonic() < end and p.poll() is None:
+            time.sleep(0.05)
+        assert committed() == 5
+        p.send_signal(signal.SIGKILL)
+        p.communicate(timeout=30)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == -signal.SIGKILL
+    assert not (out / 'metadata.yaml').exists()
+    got = list(bag.read_bag(db))   # the .db3 file reads on its own
+    assert len(got) == 5 and all(t == '/big' and m == 'std_msgs/msg/String' for t, m, _, _ in got)
+
+
+# ------------------------------------------------------------------------------------------
+# 3. beo-replay of a corrupt sqlite3 bag
+# ------------------------------------------------------------------------------------------
+
+def test_cli_replay_of_a_bag_corrupt_part_way_is_one_line_exit_2_with_what_was_played(
+        tmp_path, capsys, keep_signal_handlers):
+    """Before: apsw.CorruptError traceback, exit 1."""
+    p = tmp_path / 'b'
+    with bag.BagWriter(p, 'sqlite3') as w:   # 200 clouds of 12 kB
+        for i in range(200):
+            w.write('/beo/input', make_cloud(i, n=1000, ns=T0 + i)[1], T0 + i)
+    db = p / 'b.db3'
+    size = db.stat().st_size
+    with open(db, 'r+b') as f:   # a page in the middle of the messages
+        f.seek(size // 2)
+        f.write(b'\xff' * 8192)
+    assert bag.replay_main([str(p), '--rate', '0', '--json']) == 2
+    out, err = capsys.readouterr()
+    assert 'Traceback' not in err
+    (line,) = err.splitlines()
+    assert line.startswith(f'beo-replay: cannot read {p}: database disk image is malformed')
+    played = json.loads(out)['messages']
+    assert 0 < played < 200 and f'(after {played} message(s))' in line
+
+
+# ------------------------------------------------------------------------------------------
+# 4. the offered QoS stored by record is that of the publisher matched
+# ------------------------------------------------------------------------------------------
+
+def test_record_stores_the_qos_of_a_publisher_that_appears_after_it_started(ctx, tmp_path):
+    """A typed topic recorded before its publisher exists: the bag used to store the QoS seen
+    at the start (volatile, best effort), so a latched topic was replayed volatile."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from rosbags.rosbag2 import Reader
+    from std_msgs.msg import String
+    rec_node = rclpy.create_node('recorder', context=ctx)
+    ready, result = threading.Event(), {}
+    th = threading.Thread(target=lambda: result.setdefault('s', bag.record(
+        rec_node, tmp_path / 'r', ['/latched:std_msgs/msg/String',
+                                   '/never:std_msgs/msg/String'],
+        count=1, ready=ready)))
+    th.start()
+    assert ready.wait(10)
+    pub_node = rclpy.create_node('talker', context=ctx)
+    pub = pub_node.create_publisher(String, '/latched', QoSProfile(
+        depth=1, reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    pub.publish(String(data='static'))   # a latched message reaches a late subscriber
+    th.join(30)
+    assert not th.is_alive()
+    assert result['s'].topics['/latched']['count'] == 1
+    with Reader(tmp_path / 'r') as r:
+        conns = {c.topic: c for c in r.connections}
+        assert bag.recorded_latched(conns['/latched'])
+        assert set(conns) == {'/latched', '/never'} and not bag.recorded_latched(conns['/never'])
+    player = rclpy.create_node('player', context=ctx)
+    stats = bag.replay(tmp_path / 'r', player, all_topics=True, rate=0)
+    assert stats.latched == ['/latched'] and stats.topics['/latched'].count == 1
+
+
+# ------------------------------------------------------------------------------------------
+# 8. bag_span_s counts only the messages sent
+# ------------------------------------------------------------------------------------------
+
+def test_interrupted_replay_span_leaves_out_the_message_never_sent(ctx, tmp_path):
+    """Before, the stamp of the message being waited for counted: 10 s here."""
+    write_test_bag(tmp_path / 'b', 'sqlite3', n=2, period_ns=10_000_000_000, extra_topic=False)
+    stop = threading.Event()
+    node = rclpy.create_node('player', context=ctx)
+    stats = bag.replay(tmp_path / 'b', node, rate=1.0, stop=stop,
+                       on_publish=lambda *a: stop.set())
+    assert stats.interrupted and stats.messages == 1 and stats.bag_span_s == 0.0
+    stats = bag.replay(tmp_path / 'b', node, rate=0)
+    assert stats.messages == 2 and stats.bag_span_s == pytest.approx(10.0)
+
+
+# ------------------------------------------------------------------------------------------
+# 5. remaps that would put two types on one topic; 10. --topics with --all-topics
+# ------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize('extra', [
+    ['--all-topics', '-r', '/beo/input:=/x', '-r', '/chatter:=/x'],
+    ['--all-topics', '-r', '/beo/input:=/chatter'],
+])
+def test_cli_replay_refuses_two_types_on_one_topic(tmp_path, capsys, keep_signal_handlers,
+                                                   extra):
+    """Before: an RCLError traceback from create_publisher, exit 1."""
+    write_test_bag(tmp_path / 'b', 'sqlite3', n=2)
+    assert bag.replay_main([str(tmp_path / 'b'), '--rate', '0', *extra]) == 2
+    out, err = capsys.readouterr()
+    assert 'would both be played on' in err and 'Traceback' not in err and out == '', err
+    assert len(err.splitlines()) == 1
+
+
+def test_replay_refuses_a_topic_of_another_type_in_the_graph(ctx, tmp_path):
+    from std_msgs.msg import String
+    write_test_bag(tmp_path / 'b', 'sqlite3', n=2, extra_topic=False)
+    other = rclpy.create_node('other', context=ctx)
+    other.create_publisher(String, '/taken', 10)
+    player = rclpy.create_node('player', context=ctx)
+    with pytest.raises(KeyError, match='/taken has type std_msgs/msg/String in the ROS graph'):
+        bag.replay(tmp_path / 'b', player, remap={'/beo/input': '/taken'}, rate=0)
+
+
+def test_cli_replay_refuses_topics_with_all_topics(tmp_path, capsys):
+    write_test_bag(tmp_path / 'b', 'sqlite3', n=1)
+    with pytest.raises(SystemExit) as ei:   # --all-topics used to be ignored
+        bag.replay_main([str(tmp_path / 'b'), '--topics', '/chatter', '--all-topics'])
+    assert ei.value.code == 2
+    assert '--topics and --all-topics exclude each other' in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------------------
+# 7. SIGTERM ends beo-replay with 143
+# ------------------------------------------------------------------------------------------
+
+def test_cli_loop_replay_ended_by_sigterm_exits_143(tmp_path, ros_domain_id):
+    """Before, SIGTERM was taken as Ctrl-C: a --loop replay exited 0."""
+    import signal
+    from test_bag import _wait_for_nodes
+    write_test_bag(tmp_path / 'b', 'sqlite3', n=3)
+    p = subprocess.Popen([sys.executable, '-c', CODE.format('replay_main'), str(tmp_path / 'b'),
+                          '--loop'], env=_cli_env(ros_domain_id), stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    try:
+        _wait_for_nodes(ros_domain_id, {'beo_replay'})
+        p.send_signal(signal.SIGTERM)
+        out, err = p.communicate(timeout=30)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 143, err
+    assert 'beo-replay: terminated' in err and 'Traceback' not in err, err
+
+
+# ------------------------------------------------------------------------------------------
+# 6. beo-demo: discovery off whatever the user's setting
+# ------------------------------------------------------------------------------------------
+
+def test_demo_forces_discovery_off(monkeypatch):
+    """Before, setdefault let a user's LOCALHOST win: the demo's node and listener talked to
+    other processes. The caller's setting is put back afterwards."""
+    from beo_ros.ros import demo, node
+    monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    seen = {}
+
+    def fake_node(*a, **k):   # the node starts in the demo's rclpy context
+        seen['range'] = os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE']
+        raise RuntimeError('stop here')
+    monkeypatch.setattr(node, 'BeoNode', fake_node)
+    with pytest.raises(RuntimeError, match='stop here'):
+        demo.run_node_on_bag('bag', 'model', None, (0.0, 0.0, 1.0), (0.0, 0.0, 0.0))
+    assert seen['range'] == 'OFF'
+    assert os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] == 'LOCALHOST'
+
+
+# ------------------------------------------------------------------------------------------
+# 9. a pcd2bag run without clouds; replays with nothing to play say why
+# ------------------------------------------------------------------------------------------
+
+def test_cli_pcd2bag_without_any_cloud_exits_2_and_writes_no_bag(tmp_path, capsys):
+    """Before: a bag with 0 clouds, exit 0, '1 object(s) ( points)'."""
+    from test_bag import write_scene_pcd
+    scene = write_scene_pcd(tmp_path / 's.pcd')
+    out = tmp_path / 'b'
+    assert bag.pcd2bag_main([str(scene), '-o', str(out), '--min-points', '100000']) == 2
+    err = capsys.readouterr().err
+    assert 'no object with at least 100000 points' in err and 'Traceback' not in err
+    assert not out.exists()
+
+
+def test_cli_replay_says_why_there_is_nothing_to_play(tmp_path, capsys, keep_signal_handlers):
+    from std_msgs.msg import String
+    with bag.BagWriter(tmp_path / 'empty', 'sqlite3') as w:   # a cloud topic with 0 messages
+        w.add_topic('/beo/input', bag.CLOUD_TYPE)
+    with bag.BagWriter(tmp_path / 'strings', 'sqlite3') as w:
+        w.write('/chatter', String(data='x'), T0)
+    assert bag.replay_main([str(tmp_path / 'empty'), '--rate', '0']) == 1
+    assert 'nothing to play: no messages on /beo/input' in capsys.readouterr().err
+    assert bag.replay_main([str(tmp_path / 'strings'), '--rate', '0']) == 1
+    assert ('no sensor_msgs/msg/PointCloud2 topic (it has /chatter: --all-topics plays them)'
+            in capsys.readouterr().err)
