@@ -17,6 +17,7 @@ IMPORT_KEYS = {
     'open3d': 'python3-open3d-pip',
     'trimesh': 'python3-trimesh-pip',
     'rosbags': 'python3-rosbags-pip',
+    'apsw': 'python3-rosbags-pip',    # rosbags' sqlite3 reader; bag.py only catches its errors
     'matplotlib': 'python3-matplotlib',
     'tqdm': 'python3-tqdm',
     'threadpoolctl': 'python3-threadpoolctl',
