@@ -602,9 +602,9 @@ def test_cli_sigint_before_anything_is_played_or_recorded_exits_130(tmp_path, ro
     assert not (tmp_path / 'r').exists()
 
 
-def test_cli_loop_replay_ended_by_sigint_exits_0(tmp_path, ros_domain_id):
-    """With --loop, Ctrl-C is the normal end once the replay plays."""
-    import signal
+def signal_loop_replay(tmp_path, ros_domain_id, sig, settle=0.0):
+    """Run ``beo-replay BAG --loop`` in a subprocess, send it ``sig`` once its node is up (and
+    ``settle`` s later); -> (exit code, stdout, stderr)."""
     write_test_bag(tmp_path / 'b', 'sqlite3', n=3)
     code = 'import sys; from beo_ros.ros.bag import replay_main; sys.exit(replay_main(sys.argv[1:]))'
     p = subprocess.Popen([sys.executable, '-c', code, str(tmp_path / 'b'), '--loop'],
@@ -612,13 +612,21 @@ def test_cli_loop_replay_ended_by_sigint_exits_0(tmp_path, ros_domain_id):
                          stderr=subprocess.PIPE, text=True)
     try:
         _wait_for_nodes(ros_domain_id, {'beo_replay'})
-        time.sleep(2.0)   # it plays its first message as soon as its node is up
-        p.send_signal(signal.SIGINT)
+        time.sleep(settle)
+        p.send_signal(sig)
         out, err = p.communicate(timeout=30)
     finally:
         if p.poll() is None:
             p.kill()
-    assert p.returncode == 0, err
+    return p.returncode, out, err
+
+
+def test_cli_loop_replay_ended_by_sigint_exits_0(tmp_path, ros_domain_id):
+    """With --loop, Ctrl-C is the normal end once the replay plays."""
+    import signal
+    # it plays its first message as soon as its node is up
+    rc, out, err = signal_loop_replay(tmp_path, ros_domain_id, signal.SIGINT, settle=2.0)
+    assert rc == 0, err
     assert 'interrupted' in out and 'Traceback' not in err
 
 

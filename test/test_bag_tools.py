@@ -330,19 +330,9 @@ def test_cli_replay_refuses_topics_with_all_topics(tmp_path, capsys):
 def test_cli_loop_replay_ended_by_sigterm_exits_143(tmp_path, ros_domain_id):
     """Before, SIGTERM was taken as Ctrl-C: a --loop replay exited 0."""
     import signal
-    from test_bag import _wait_for_nodes
-    write_test_bag(tmp_path / 'b', 'sqlite3', n=3)
-    p = subprocess.Popen([sys.executable, '-c', CODE.format('replay_main'), str(tmp_path / 'b'),
-                          '--loop'], env=_cli_env(ros_domain_id), stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True)
-    try:
-        _wait_for_nodes(ros_domain_id, {'beo_replay'})
-        p.send_signal(signal.SIGTERM)
-        out, err = p.communicate(timeout=30)
-    finally:
-        if p.poll() is None:
-            p.kill()
-    assert p.returncode == 143, err
+    from test_bag import signal_loop_replay
+    rc, _, err = signal_loop_replay(tmp_path, ros_domain_id, signal.SIGTERM)
+    assert rc == 143, err
     assert 'beo-replay: terminated' in err and 'Traceback' not in err, err
 
 
