@@ -72,7 +72,8 @@ def generate_launch_description():
                                           'entry of config/beo.yaml). Other topics listed in the '
                                           'input_topics parameter are not remapped by this'),
         DeclareLaunchArgument('model_dir', default_value='',
-                              description="Model bank directory; '' keeps the params file's "
-                                          'model_dir (there, empty means the shipped models)'),
+                              description="Model bank directory, or a shipped model's name "
+                                          "(tabletop_32); '' keeps the params file's model_dir "
+                                          '(there, empty means the shipped modelnet10_32)'),
     ]
     return LaunchDescription(args + [OpaqueFunction(function=_beo_node)])
