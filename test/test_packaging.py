@@ -20,7 +20,8 @@ IMPORT_KEYS = {
     'apsw': 'python3-rosbags-pip',    # rosbags' sqlite3 reader; bag.py only catches its errors
     'matplotlib': 'python3-matplotlib',
     'tqdm': 'python3-tqdm',
-    'threadpoolctl': 'python3-threadpoolctl',
+    # optional (blas_threads); not a confirmed rosdep key: it comes with python3-sklearn
+    'threadpoolctl': 'python3-sklearn',
     'yaml': 'python3-yaml',
     'pytest': 'python3-pytest',
     'tf2_ros': 'tf2_ros_py',
