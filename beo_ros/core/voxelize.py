@@ -401,7 +401,7 @@ def voxelize_view(points, sensor_origin, up, spec: GridSpec, center=None, floor=
     # grid) has gaps the closing does not bridge; squares as wide as the point spacing do
     splats, half = None, 0.0
     # (3 points per occupied voxel or more: dense enough, and no KD-tree to build, 20 ms for 50k)
-    if close_holes and inside.sum() < 3 * len(np.unique(idx @ [n * n, n, 1])):
+    if close_holes and inside.sum() < 3 * occ.sum():
         spacing = point_spacing(g[inside])
         if SPARSE_SPACING < spacing < np.inf:
             splats, half = g[inside], float(SPLAT_SCALE * spacing)

@@ -34,14 +34,17 @@ TOPIC = '/beo/input'
 
 def _default_model_dir() -> str:
     """The node's default model; if it is not there, another shipped model next to it."""
+    from beo_ros.core.bank import default_model_dir as shipped_model_dir
+    from beo_ros.core.bank import shipped_models
     from beo_ros.ros.node import default_model_dir
     d = Path(default_model_dir())
     if (d / 'manifest.json').is_file():
         return str(d)
-    others = sorted(p.parent for p in d.parent.glob('*/manifest.json'))
+    others = shipped_models()
     if others:
-        print(f'beo-demo: default model {d} is missing; using {others[0]}', file=sys.stderr)
-        return str(others[0])
+        other = shipped_model_dir(others[0])
+        print(f'beo-demo: default model {d} is missing; using {other}', file=sys.stderr)
+        return str(other)
     return str(d)
 
 

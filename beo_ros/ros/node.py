@@ -235,14 +235,14 @@ class BeoNode(Node):
         self._est_slots = threading.Semaphore(self._n_workers)
         self._svc_waiting = 0
         self._svc_lock = threading.Lock()
+        # the directory the models come from ('' or a shipped name resolved: diagnostics name it)
+        self._serving_dir = str(resolve_model_dir(self.get_parameter('model_dir').value))
         if bank is None:
-            model_dir = str(resolve_model_dir(self.get_parameter('model_dir').value))
-            bank = load_bank(model_dir)
-            self.get_logger().info(f"loaded models from '{model_dir}': classes {bank.classes}")
+            bank = load_bank(self._serving_dir)
+            self.get_logger().info(f"loaded models from '{self._serving_dir}': "
+                                   f'classes {bank.classes}')
         self._base_bank = bank  # as loaded: the class_prior parameter is applied to a copy
         self._serving_base = bank   # the models the estimates use now (a reload may be pending)
-        # the directory they came from ('' resolved: diagnostics name it)
-        self._serving_dir = str(resolve_model_dir(self.get_parameter('model_dir').value))
         try:
             bank = with_class_prior(bank, self.get_parameter('class_prior').value)
         except ValueError as e:
