@@ -350,7 +350,8 @@ def _calibrate_only(args, X, y, names, spec, data_sha256=None):
     report.update(seconds=round(time.time() - t0, 1))
     print(f'occupancy calibration: {report}', file=sys.stderr)
     ModelBank(bank.models, bank.spec, bank.classifier, dict(info, occupancy_calibration=report),
-              bank.pose_components, class_prior=bank.class_prior, verifier=bank.verifier,
+              bank.pose_components, stage2_noise_map=bank.stage2_noise_map,
+              class_prior=bank.class_prior, verifier=bank.verifier,
               occupancy_calibration=cal).save(args.out)
     print(f'wrote {args.out}: occupancy calibration from {report["views"]} views, '
           f'{time.time() - t0:.1f} s')

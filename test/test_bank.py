@@ -260,6 +260,21 @@ def test_stage2_noise_map_is_off_by_default():
     assert all(t[3] is not None for t in on._full_terms)
 
 
+def test_stage2_noise_map_survives_save_and_load(tmp_path):
+    tiny = make_tiny_bank()
+    for flag in (True, False):
+        path = ModelBank(tiny.models, tiny.spec, stage2_noise_map=flag).save(tmp_path / str(flag))
+        back = ModelBank.load(path)
+        assert back.stage2_noise_map is flag
+        assert all((t[3] is not None) is flag for t in back.engine._full_terms)
+    mf = tmp_path / 'True' / 'manifest.json'
+    manifest = json.loads(mf.read_text())
+    manifest['stage2_noise_map'] = 'yes'
+    mf.write_text(json.dumps(manifest))
+    with pytest.raises(ModelError, match='stage2_noise_map must be true or false'):
+        ModelBank.load(tmp_path / 'True')
+
+
 def test_full_component_scores_equal_the_leading_components_when_all_are_used():
     # stage 2 (full=True) scores class c with all k components; with pose_components = k the
     # stage-1 arrays hold the same components, so both paths must agree: without a noise map,

@@ -668,6 +668,7 @@ class ModelBank:
             'format': FORMAT, 'version': VERSION, 'classes': self.classes,
             'grid': dict(self.spec.to_dict(), axes='xyz', up='+z'),
             'pose_components': self.pose_components,
+            'stage2_noise_map': self.stage2_noise_map,
             'class_prior': (self.class_prior if isinstance(self.class_prior, str)
                             else [float(w) for w in self.class_prior]),  # in class order
             'features': list(FEATURE_NAMES),
@@ -798,8 +799,13 @@ class ModelBank:
         reason = _settings_reason(manifest.get('pose_components', 8), manifest.get('training'))
         if reason:
             raise ModelError(f'{mf}: {reason}')
+        if not isinstance(manifest.get('stage2_noise_map', False), bool):
+            raise ModelError(f'{mf}: stage2_noise_map must be true or false, got '
+                             f'{manifest["stage2_noise_map"]!r}')
         return cls(models, spec, classifier, manifest.get('training'),
-                   manifest.get('pose_components', 8), class_prior=class_prior,
+                   manifest.get('pose_components', 8),
+                   stage2_noise_map=manifest.get('stage2_noise_map', False),
+                   class_prior=class_prior,
                    verifier=verifier, occupancy_calibration=calibration)
 
     # ------------------------------------------------------------------ queries
