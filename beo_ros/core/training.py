@@ -302,8 +302,10 @@ def cross_validated_report(F, y, records, C=1.0, folds=5, seed=0, row_standardiz
         cv = StratifiedGroupKFold(n_splits=min(folds, per_class), shuffle=True, random_state=seed)
     else:
         groups = None
-        cv = StratifiedKFold(n_splits=min(folds, int(np.bincount(y).min())), shuffle=True,
-                             random_state=seed)
+        # counts of the classes present: a class index without rows (all its views skipped)
+        # is not a class of this cross-validation
+        cv = StratifiedKFold(n_splits=min(folds, int(np.unique(y, return_counts=True)[1].min())),
+                             shuffle=True, random_state=seed)
     nf = len(FEATURE_NAMES)
     P = cross_val_predict(clf, classifier_input(F, F.shape[1] // nf, row_standardize,
                                                 descriptors), y, cv=cv, groups=groups,
