@@ -137,7 +137,7 @@ def summarize(name, lat, correct, yerr, peaks):
     yerr = np.asarray(yerr)
     correct = np.asarray(correct, dtype=bool)
     flip = np.minimum(yerr, 180.0 - yerr)
-    yc = yerr[correct] if correct.any() else yerr
+    yc = yerr[correct] if correct.any() else np.full(1, np.nan)   # no right class: no median
     return {
         'queries': int(len(lat)),
         'accuracy': float(correct.mean()),
@@ -242,7 +242,7 @@ def scaling(args, X, y, names, n, tr, queries, bank, icp_db, rng):
 
         def rs(v):
             return zoom(v.reshape((n,) * 3), f, order=0).ravel() if g != n else v
-        Xg = np.array([rs(X[tr][i]) for i in sub], dtype=np.float32)
+        Xg = np.array([rs(Xtr[i]) for i in sub], dtype=np.float32)
         b = fit_class_bank(Xg, ytr[sub], names, g, k)
         qrng = np.random.default_rng(args.seed + 7)
         qs = [dict(grid=random_partial_view(rs(X[i]).reshape((g,) * 3) > 0.5, qrng)[0])
