@@ -146,6 +146,16 @@ def test_writer_refuses_existing_and_type_clash(tmp_path):
         w.add_topic('/x', 'std_msgs/String')
         with pytest.raises(ValueError):
             w.add_topic('/x', 'std_msgs/msg/Float64MultiArray')
+    # write() checks the type of a message on a known topic too (a Header after a String
+    # would be written and fail to deserialize later)
+    from std_msgs.msg import Header, String
+    with bag.BagWriter(tmp_path / 'd', 'sqlite3') as w:
+        w.write('/x', String(data='a'), 1)
+        with pytest.raises(ValueError, match='already has type std_msgs/msg/String'):
+            w.write('/x', Header(), 2)
+        w.write('/x', String(data='b'), 3)
+        assert w.counts['/x'] == 2
+    assert [m.data for _, m, _ in bag.read_messages(tmp_path / 'd')] == ['a', 'b']
 
 
 def test_msgtype_names():

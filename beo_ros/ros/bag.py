@@ -385,7 +385,8 @@ class BagWriter:
             from rclpy.serialization import serialize_message
             msgtype = msgtype or msgtype_of(msg)
             data = serialize_message(msg)
-        conn = self._conns.get(topic) or self.add_topic(topic, msgtype)
+        # add_topic refuses a type other than the topic's: the bag would not deserialize
+        conn = self._conns[topic] if msgtype is None else self.add_topic(topic, msgtype)
         try:
             self._writer.write(conn, int(stamp_ns), data)
         except storage_errors():
