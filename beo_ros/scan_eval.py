@@ -332,7 +332,8 @@ def _run(args, objs, out, t_start):
             else:
                 est = bank.estimate(grids[i], yaw_step_deg=args.yaw_step)
                 T = objs.grid_to_input[i]
-            pred = names.index(est.label)
+            # 'unknown': no occupied voxel in the grid (no features either), counted wrong
+            pred = names.index(est.label) if est.label in names else -1
             pts = objs.points[i]
             pg = (np.linalg.inv(T) @ np.c_[pts, np.ones(len(pts))].T).T[:, :3]
             h = pts @ objs.ups[i] + objs.plane_d[i]
@@ -340,16 +341,21 @@ def _run(args, objs, out, t_start):
             # the object's full (C, F) features under the models fitted without its scene
             # (out-of-fold): bank.features(grid) with the stage-1 search step of estimate(),
             # i.e. exactly the features its class decision used
-            feats = np.asarray(est.features, dtype=np.float64)
-            oof.append((i, feats))
+            feats = None if est.features is None else np.asarray(est.features, dtype=np.float64)
+            if feats is None:
+                print(f'{objs.scenes[i]}/{objs.object_ids[i]}: {est.classifier_note}; counted '
+                      'wrong, left out of the out-of-fold features', file=sys.stderr)
+            else:
+                oof.append((i, feats))
             rec = dict(scene=str(objs.scenes[i]), object=int(objs.object_ids[i]), true=names[objs.y[i]],
                        pred=est.label, correct=bool(pred == objs.y[i]),
                        n_points=int(len(pts)), extent_cm=[round(float(e) * 100, 1) for e in ext],
                        above_table_cm=round(float(h.min()) * 100, 1),
                        n_occupied=int((est.grid == 1).sum()),
                        unknown_fraction=round(float((est.grid < 0).mean()), 4),
-                       features={names[c]: dict(zip(FEATURE_NAMES, np.round(feats[c], 4).tolist()))
-                                 for c in range(len(names))},
+                       features=None if feats is None else {
+                           names[c]: dict(zip(FEATURE_NAMES, np.round(feats[c], 4).tolist()))
+                           for c in range(len(names))},
                        scores={k: round(v, 4) for k, v in est.scores.items()},
                        yaw_deg=round(float(np.rad2deg(est.yaw)), 1),
                        footprint_deg=round(float(np.rad2deg(footprint_angle(pg))), 1),
@@ -365,9 +371,9 @@ def _run(args, objs, out, t_start):
         print(f'[{si + 1}/{len(groups)}] {scene}: {len(te)} objects, refit {t_fit:.0f} s, '
               f'running accuracy {acc:.3f}', file=sys.stderr)
     y_true = np.array([names.index(r['true']) for r in recs])
-    y_pred = np.array([names.index(r['pred']) for r in recs])
-    conf = np.zeros((len(names), len(names)), dtype=int)
-    np.add.at(conf, (y_true, y_pred), 1)
+    y_pred = np.array([names.index(r['pred']) if r['pred'] in names else -1 for r in recs])
+    conf = np.zeros((len(names), len(names)), dtype=int)   # of the known answers
+    np.add.at(conf, (y_true[y_pred >= 0], y_pred[y_pred >= 0]), 1)
     summary = dict(
         protocol=('leave-one-scene-out' if len(groups) == len(scenes) else
                   f'{len(groups)}-fold leave-scenes-out (every scene held out once)') +
@@ -381,7 +387,7 @@ def _run(args, objs, out, t_start):
         accuracy=round(float(np.mean(y_true == y_pred)), 4),
         per_class_accuracy={n: round(float(np.mean(y_pred[y_true == c] == c)), 4)
                             for c, n in enumerate(names) if (y_true == c).any()},
-        confusion=conf.tolist(),
+        confusion=conf.tolist(), n_unknown=int(np.sum(y_pred < 0)),
         mean_estimate_seconds=round(float(np.mean([r['seconds'] for r in recs])), 3))
     if box is not None:
         b = [r for r in recs if r['true'] == 'box']
@@ -429,7 +435,7 @@ def _run(args, objs, out, t_start):
     return summary
 
 
-def print_table(s, file=sys.stdout):
+def print_table(s, file=None):
     print(f'{"objects":>10} {"scenes":>7} {"accuracy":>9}  per class', file=file)
     per = ', '.join(f'{k} {v:.3f}' for k, v in s['per_class_accuracy'].items())
     print(f'{s["n_objects"]:>10} {s["n_scenes"]:>7} {s["accuracy"]:>9.3f}  {per}', file=file)

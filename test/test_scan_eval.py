@@ -167,6 +167,46 @@ def test_loso_saves_out_of_fold_features(scan_files, tmp_path, monkeypatch):
     assert D[box, 0].min() > D[~box, 0].max(), D
 
 
+def test_loso_counts_an_object_without_occupied_voxels_as_unknown(scan_files, tmp_path,
+                                                                    monkeypatch):
+    # a grid with no occupied voxel gets 'unknown' and no features: counted wrong, not a crash
+    import contextlib
+    import io
+    import time
+    import beo_ros.scan_eval as scan_eval
+    real_fit = scan_eval.fit_models
+    calls = []
+
+    def fit(*a, **k):
+        bank = real_fit(*a, **k)
+        real_estimate = bank.estimate
+
+        def estimate(grid, **kw):
+            calls.append(1)
+            if len(calls) == 1:
+                return bank._no_object(np.zeros_like(grid), None, time.perf_counter())
+            return real_estimate(grid, **kw)
+        bank.estimate = estimate
+        return bank
+    monkeypatch.setattr(scan_eval, 'fit_models', fit)
+    out = tmp_path / 'ev'
+    stdout = io.StringIO()
+    with contextlib.redirect_stdout(stdout):
+        rc = main(['--scans', *map(str, scan_files), '--out', str(out), '--no-congeal',
+                   '--k', '2', '--max-iter', '3', '--grid', '16', '--voxel-size', '0.03125',
+                   '--yaw-step', '10', '--figures', '0'])
+    assert rc == 0
+    assert 'accuracy' in stdout.getvalue()   # the table follows a redirected stdout
+    res = json.loads((out / 'scan_eval.json').read_text())
+    s, recs = res['summary'], res['objects']
+    assert len(recs) == 8 and s['n_unknown'] == 1
+    first = recs[0]
+    assert first['pred'] == 'unknown' and not first['correct'] and first['features'] is None
+    assert np.sum(s['confusion']) == 7
+    assert s['accuracy'] <= 7 / 8
+    assert len(np.load(out / 'oof_features.npz')['y']) == 7
+
+
 def test_scene_cv_point_predictions_learn_from_the_descriptors_and_are_grouped():
     from beo_ros.core.bank import apply_point_classifier
     from beo_ros.core.scan_training import train_point_classifier
