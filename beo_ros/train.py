@@ -1,7 +1,7 @@
 """beo-train: learn a model directory (per-class VBPCA + out-of-fold classifier).
 
 Inputs: voxel npz files in the shared format (keys voxels (bit-packed or (n, N, N, N)), labels,
-classes), meshes (OFF/OBJ/STL/PLY, class from the parent folder or the name before '_'), or
+classes), meshes (OFF/OBJ/STL/PLY, class from the name before '_<digits>' or the folder), or
 labelled tabletop scans (``--scans``, PCD files; see beo_ros.core.scans).
 """
 from __future__ import annotations

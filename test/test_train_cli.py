@@ -282,6 +282,17 @@ def test_classes_apply_to_meshes(tmp_path, capsys):
     assert "classes ['cup'] not in ['cube', 'slab']" in capsys.readouterr().err
 
 
+def test_mesh_class_names(tmp_path, monkeypatch):
+    from beo_ros.core.training import mesh_class_name
+    assert mesh_class_name('chair/train/chair_0001.off') == 'chair'
+    assert mesh_class_name('x/night_stand_0012.off') == 'night_stand'
+    assert mesh_class_name('mugs/red_mug.off') == 'mugs'      # not 'red'
+    assert mesh_class_name('mugs/mug.obj') == 'mugs'
+    assert mesh_class_name('cans/can_7b.stl') == 'cans'
+    monkeypatch.chdir(tmp_path)
+    assert mesh_class_name('mug.ply') == tmp_path.name        # a bare name: the working folder
+
+
 # ---------------------------------------------------------------------- 7: one class
 def test_one_class_needs_views_0(tmp_path, capsys, monkeypatch):
     from beo_ros.core import training

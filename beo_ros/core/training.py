@@ -864,15 +864,26 @@ def select_classes(X, labels, names, classes, where):
     return X[sel], np.array([remap[v] for v in labels[sel]], dtype=int), list(classes)
 
 
+def mesh_class_name(path) -> str:
+    """The class of a mesh file: the name before a last '_' followed by digits only, as in
+    ModelNet's ``chair_0001.off`` (``night_stand_0001.off`` -> 'night_stand'), else the name
+    of the folder holding it (``mugs/red_mug.off`` -> 'mugs')."""
+    from pathlib import Path
+    path = Path(path)
+    head, sep, tail = path.stem.rpartition('_')
+    if sep and head and tail.isdigit():
+        return head
+    return path.absolute().parent.name
+
+
 def load_meshes(paths, size):
-    """Voxelize mesh files; class = parent folder name, or the file name before the last '_'."""
+    """Voxelize mesh files; the class of each is :func:`mesh_class_name`."""
     from pathlib import Path
     from .meshes import load_mesh, voxelize_mesh
     X, names_of = [], []
     for p in paths:
         p = Path(p)
         X.append(voxelize_mesh(load_mesh(p), size).ravel())
-        stem = p.stem.rsplit('_', 1)[0] if '_' in p.stem else p.parent.name
-        names_of.append(stem)
+        names_of.append(mesh_class_name(p))
     names = sorted(set(names_of))
     return np.array(X, dtype=np.float32), np.array([names.index(s) for s in names_of]), names
