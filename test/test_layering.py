@@ -8,25 +8,48 @@ CORE = Path(__file__).resolve().parents[1] / 'beo_ros' / 'core'
 FORBIDDEN_ROOTS = {'rclpy', 'rosbags', 'beo_interfaces', 'rosidl_runtime_py', 'launch_ros'}
 
 
-def _imports(path):
+def _imports(path, package='beo_ros.core'):
+    """Absolute names of the modules ``path`` imports (relative imports resolved against
+    ``package``, the package the file is in)."""
     tree = ast.parse(path.read_text(), filename=str(path))
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             for a in node.names:
                 yield a.name
-        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-            yield node.module
+        elif isinstance(node, ast.ImportFrom):
+            base = package.split('.')
+            base = base[:len(base) - node.level + 1] if node.level else []
+            if node.module:
+                yield '.'.join(base + [node.module])
+            else:   # from . import x, y
+                for a in node.names:
+                    yield '.'.join(base + [a.name])
 
 
 def _forbidden(name):
+    """ROS runtime or message packages, and any part of beo_ros outside the core (the ROS layer
+    and the commands build on the core, never the other way round). ament_index_python is a
+    plain file lookup (bank.default_model_dir) and allowed."""
     root = name.split('.')[0]
+    if root == 'beo_ros':
+        return not (name == 'beo_ros.core' or name.startswith('beo_ros.core.'))
     return root in FORBIDDEN_ROOTS or root.endswith('_msgs')
 
 
 def test_forbidden_detector():
     assert _forbidden('rclpy.node') and _forbidden('sensor_msgs.msg')
     assert _forbidden('beo_interfaces.srv') and _forbidden('rosbags.highlevel')
+    assert _forbidden('beo_ros.ros.node') and _forbidden('beo_ros.evaluate')
     assert not _forbidden('numpy') and not _forbidden('scipy.ndimage')
+    assert not _forbidden('beo_ros.core.grid') and not _forbidden('ament_index_python.packages')
+
+
+def test_relative_imports_are_resolved(tmp_path):
+    f = tmp_path / 'm.py'
+    f.write_text('from .grid import x\nfrom ..ros import conversions\nfrom .. import cli\n'
+                 'from . import bank\nimport numpy\n')
+    assert list(_imports(f)) == ['beo_ros.core.grid', 'beo_ros.ros', 'beo_ros.cli',
+                                 'beo_ros.core.bank', 'numpy']
 
 
 def test_core_modules_do_not_import_ros():
