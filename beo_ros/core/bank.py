@@ -35,7 +35,7 @@ import numpy as np
 
 from .calibration import OccupancyCalibration, check_arrays as check_calibration_arrays
 from .estimate import UNKNOWN_LABEL, Estimate, Hypothesis
-from .grid import GridSpec, symmetric_turns, unit_vector, wrap_yaw as _wrap, yaw_matrix
+from .grid import GridSpec, symmetric_turns, unit_vector, wrap_yaw as _wrap, yaw_grid, yaw_matrix
 from .inference import FEATURE_NAMES, InferenceEngine, observed_edt, top_modes, top_yaw_modes
 from .outliers import OUTLIER_MADS, OUTLIER_NEIGHBORS, clean_points
 from .shape import BASIC_NAMES as BASIC_SHAPE_DESCRIPTORS, DESCRIPTOR_NAMES as SHAPE_DESCRIPTORS
@@ -938,7 +938,7 @@ class ModelBank:
         obs = eng.observe(per_c.get('observed', grid))
         if stage2_step_deg:
             step = np.deg2rad(stage2_step_deg)
-            yaws = np.arange(int(round(2 * np.pi / step))) * step
+            yaws = yaw_grid(stage2_step_deg)
             rows = None
             if stage2_modes and stage2_window_deg:
                 sy, sl = per_c['searched']
@@ -946,10 +946,8 @@ class ModelBank:
                 r = np.rint(sy[m0] / step).astype(int)
                 w = int(round(stage2_window_deg / stage2_step_deg))
                 rows = np.unique((r[:, None] + np.arange(-w, w + 1)).ravel() % len(yaws))
-            pooled = per_c.get('pooled')
-            if pooled is None:
-                pooled = self.engine.pooled(grid)
-            ll = self.engine.scores(pooled, yaws, c, full=True, rows=rows)[:, 0]
+            ll = self.engine.scores(self._pooled(grid, per_c), yaws, c, full=True,
+                                    rows=rows)[:, 0]
             if rows is not None:
                 full_ll = np.full(len(yaws), -np.inf)
                 full_ll[rows] = ll
@@ -1005,13 +1003,15 @@ class ModelBank:
         """Pooled log-likelihood of class ``c`` with all its components at ``yaw`` rounded to
         the stage-2 grid of ``step_deg`` (whose rotation maps are cached), as the hypotheses'
         scores."""
-        step = np.deg2rad(step_deg)
-        yaws = np.arange(int(round(2 * np.pi / step))) * step
+        yaws = yaw_grid(step_deg)
+        row = int(np.rint(yaw / np.deg2rad(step_deg))) % len(yaws)
+        return float(self.engine.scores(self._pooled(grid, per_c), yaws, c, full=True,
+                                        rows=[row])[0, 0])
+
+    def _pooled(self, grid, per_c):
+        """The 2x-pooled observation: the search's (``per_c['pooled']``), else made now."""
         pooled = per_c.get('pooled')
-        if pooled is None:
-            pooled = self.engine.pooled(grid)
-        row = int(np.rint(yaw / step)) % len(yaws)
-        return float(self.engine.scores(pooled, yaws, c, full=True, rows=[row])[0, 0])
+        return self.engine.pooled(grid) if pooled is None else pooled
 
     def _verify_turns(self, grid, c, per_c):
         """The refined yaw of class ``c`` or one of its 90, 180, 270° turns: the one with the

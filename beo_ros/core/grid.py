@@ -91,6 +91,13 @@ def yaw_matrix(yaw: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def yaw_grid(step_deg) -> np.ndarray:
+    """(Y,) float64 yaws 0, step, 2 step, ... below 2 pi (radians) for a step in degrees. Every
+    search builds its candidates here: the rotation maps are cached by the array's bytes."""
+    step = np.deg2rad(step_deg)
+    return np.arange(int(round(2 * np.pi / step))) * step
+
+
 def wrap_yaw(yaw) -> float:
     """A yaw in radians as a float in [-pi, pi)."""
     y = float(np.mod(yaw + np.pi, 2 * np.pi) - np.pi)

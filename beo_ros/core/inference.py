@@ -25,7 +25,7 @@ from scipy import ndimage
 from scipy.linalg import lapack
 from scipy.special import ndtr
 
-from .grid import yaw_column_index, yaw_source_index
+from .grid import yaw_column_index, yaw_grid, yaw_source_index
 
 LOG2PI = float(np.log(2 * np.pi))
 FEATURE_NAMES = ('loglik', 'coarse_loglik', 'rmse', 'recall', 'false_occupied', 'dt_error')
@@ -399,12 +399,11 @@ class InferenceEngine:
         P = self.pooled(grid) if pooled is None else pooled
         step = np.deg2rad(step_deg)
         if exhaustive or coarse_step_deg <= step_deg:
-            yaws = np.arange(int(round(2 * np.pi / step))) * step
+            yaws = yaw_grid(step_deg)
             ll = self.scores(P, yaws)
             per = [(yaws, ll[:, c]) for c in range(self.C)]
         else:
-            cstep = np.deg2rad(coarse_step_deg)
-            yaws0 = np.arange(int(round(2 * np.pi / cstep))) * cstep
+            yaws0 = yaw_grid(coarse_step_deg)
             ll0 = self.scores(P, yaws0)
             half = np.deg2rad(coarse_step_deg if window_deg is None else window_deg)
             nw = int(round(half / step))
