@@ -277,7 +277,6 @@ def scaling(args, X, y, names, n, tr, queries, bank, icp_db, rng):
 
 # ---------------------------------------------------------------------- node
 BAG_HZ = 10.0       # message spacing in the bench bag; replay rate factor = rate / BAG_HZ
-BAG_T0_NS = 1_700_000_000_000_000_000
 
 
 def _node_clouds(X, n, idx, limit, rng):
@@ -296,14 +295,17 @@ def _node_clouds(X, n, idx, limit, rng):
     return clouds
 
 
-def _write_node_bag(path, clouds, n_msgs, xyz_to_cloud, Header, TimeMsg):
+def _write_node_bag(path, clouds, n_msgs):
     """A rosbag2 (sqlite3) of ``n_msgs`` clouds on /beo/input, cycling ``clouds``, BAG_HZ apart;
     each header stamp equals its bag stamp (unique, so estimates can be matched to sends)."""
-    from beo_ros.ros.bag import BagWriter
+    from std_msgs.msg import Header
+
+    from beo_ros.ros.bag import T0_NS, BagWriter
+    from beo_ros.ros.conversions import stamp_from_ns, xyz_to_cloud
     with BagWriter(path) as w:
         for j in range(n_msgs):
-            t = BAG_T0_NS + int(round(j * 1e9 / BAG_HZ))
-            hdr = Header(frame_id='camera', stamp=TimeMsg(sec=t // 10**9, nanosec=t % 10**9))
+            t = T0_NS + int(round(j * 1e9 / BAG_HZ))
+            hdr = Header(frame_id='camera', stamp=stamp_from_ns(t))
             w.write('/beo/input', xyz_to_cloud(clouds[j % len(clouds)], hdr), t)
 
 
@@ -322,7 +324,7 @@ def _replay_probe(cfg_json=None):
     from rclpy.executors import SingleThreadedExecutor
 
     from beo_ros.ros.bag import replay
-    from beo_ros.ros.conversions import interfaces
+    from beo_ros.ros.conversions import interfaces, ns_from_stamp
     ctx = Context()
     rclpy.init(args=[], context=ctx, domain_id=int(cfg['domain']))
     node = rclpy.create_node('beo_bench_player', context=ctx)
@@ -331,7 +333,7 @@ def _replay_probe(cfg_json=None):
 
     def on_est(m):
         with lock:
-            got[m.header.stamp.sec * 10**9 + m.header.stamp.nanosec] = time.monotonic()
+            got[ns_from_stamp(m.header.stamp)] = time.monotonic()
     node.create_subscription(interfaces().ObjectEstimate, '/beo/estimates', on_est, 1000)
     ex = SingleThreadedExecutor(context=ctx)
     ex.add_node(node)
@@ -395,7 +397,6 @@ def node_bench(bank, X, y, n, idx, args, rng):
         import tempfile
 
         import rclpy
-        from builtin_interfaces.msg import Time as TimeMsg
         from rclpy.context import Context
         from rclpy.parameter import Parameter
         from rclpy.qos import qos_profile_sensor_data
@@ -403,7 +404,7 @@ def node_bench(bank, X, y, n, idx, args, rng):
         from std_msgs.msg import Header
 
         __import__('rosbags')  # the bag and its player need it
-        from beo_ros.ros.conversions import interfaces, xyz_to_cloud
+        from beo_ros.ros.conversions import interfaces, ns_from_stamp, stamp_from_ns, xyz_to_cloud
         from beo_ros.ros.node import BeoNode, make_executor
         msgs = interfaces()
     except Exception as e:  # noqa: BLE001 - ROS, rosbags or interfaces missing
@@ -416,7 +417,7 @@ def node_bench(bank, X, y, n, idx, args, rng):
     n_msgs = int(math.ceil(max(rates) * args.node_duration)) + 1
     tmp = tempfile.TemporaryDirectory(prefix='beo_bench_bag_')
     bag_path = Path(tmp.name) / 'clouds'
-    _write_node_bag(bag_path, clouds, n_msgs, xyz_to_cloud, Header, TimeMsg)
+    _write_node_bag(bag_path, clouds, n_msgs)
 
     ctx = Context()
     rclpy.init(args=[], context=ctx, domain_id=domain)
@@ -439,7 +440,7 @@ def node_bench(bank, X, y, n, idx, args, rng):
 
         def on_est(m):
             with cond:
-                got[m.header.stamp.sec * 10**9 + m.header.stamp.nanosec] = time.perf_counter()
+                got[ns_from_stamp(m.header.stamp)] = time.perf_counter()
                 cond.notify_all()
         client.create_subscription(msgs.ObjectEstimate, '/beo/estimates', on_est, 1000)
         pub = client.create_publisher(PointCloud2, '/beo/input', qos_profile_sensor_data)
@@ -450,8 +451,7 @@ def node_bench(bank, X, y, n, idx, args, rng):
         th.start()
 
         def send(j, stamp_ns):
-            hdr = Header(frame_id='camera', stamp=TimeMsg(sec=stamp_ns // 10**9,
-                                                          nanosec=stamp_ns % 10**9))
+            hdr = Header(frame_id='camera', stamp=stamp_from_ns(stamp_ns))
             msg = xyz_to_cloud(clouds[j % len(clouds)], hdr)
             t = time.perf_counter()
             pub.publish(msg)

@@ -280,3 +280,12 @@ def test_estimate_to_msg():
     np.testing.assert_allclose([hh.yaw for hh in m3.hypotheses],
                                [3.5 - 2 * np.pi, 4.0 - 2 * np.pi], atol=1e-9)
     np.testing.assert_allclose(m3.symmetric_yaws, [3.5 - np.pi], rtol=1e-6)
+
+
+def test_stamps_round_trip_nanoseconds():
+    from beo_ros.ros.bag import T0_NS
+    from beo_ros.ros.conversions import ns_from_stamp, stamp_from_ns
+    for ns in (0, 1, 999_999_999, 1_000_000_000, T0_NS + 123_456_789):
+        t = stamp_from_ns(ns)
+        assert 0 <= t.nanosec < 1_000_000_000 and ns_from_stamp(t) == ns
+    assert (stamp_from_ns(T0_NS + 5).sec, stamp_from_ns(T0_NS + 5).nanosec) == (1_700_000_000, 5)

@@ -625,8 +625,8 @@ class _AckGate:
 
 def _publish_clock(pub, stamp_ns: int, stats) -> None:
     from rosgraph_msgs.msg import Clock
-    msg = Clock()
-    msg.clock.sec, msg.clock.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    from beo_ros.ros.conversions import stamp_from_ns
+    msg = Clock(clock=stamp_from_ns(stamp_ns))
     pub.publish(msg)
     stats.clock_messages += 1
 
@@ -1089,11 +1089,6 @@ def record(node, bag_path, topics, *, storage: str = 'sqlite3', wait: float = 10
 # PCD scenes -> bag
 # ---------------------------------------------------------------------------------------------
 
-def _stamp(ns: int):
-    from builtin_interfaces.msg import Time
-    return Time(sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
-
-
 class NoObjects(ValueError):
     """A scene without object labels (>= 20): nothing to segment, and no up vector worth writing."""
 
@@ -1156,7 +1151,7 @@ def pcd_to_bag(scenes, bag_path, *, storage: str = 'sqlite3', topic: str = DEFAU
     from geometry_msgs.msg import Vector3, Vector3Stamped
     from std_msgs.msg import Float64MultiArray, Header
 
-    from beo_ros.ros.conversions import xyz_to_cloud
+    from beo_ros.ros.conversions import stamp_from_ns, xyz_to_cloud
     if not (math.isfinite(period) and math.isfinite(object_period)):
         raise ValueError('period and object_period must be finite numbers')
     if period < 0 or object_period < 0:
@@ -1189,7 +1184,7 @@ def pcd_to_bag(scenes, bag_path, *, storage: str = 'sqlite3', topic: str = DEFAU
             w.add_topic(UP_TOPIC, 'geometry_msgs/msg/Vector3Stamped')
             w.add_topic(PLANE_TOPIC, 'std_msgs/msg/Float64MultiArray')
             for (scene, objects, up, plane), (ns, obj_ns) in zip(read, stamps):
-                header = Header(stamp=_stamp(ns), frame_id=frame_id)
+                header = Header(stamp=stamp_from_ns(ns), frame_id=frame_id)
                 entry = {'scene': str(scene), 'stamp_ns': ns, 'objects': [],
                          'up': up.tolist(), 'plane': plane.tolist()}
                 w.write(UP_TOPIC, Vector3Stamped(header=header, vector=Vector3(
@@ -1197,8 +1192,8 @@ def pcd_to_bag(scenes, bag_path, *, storage: str = 'sqlite3', topic: str = DEFAU
                 w.write(PLANE_TOPIC, Float64MultiArray(data=[float(v) for v in plane]), ns)
                 for (obj_id, pts), t in zip(objects, obj_ns):
                     pts = np.asarray(pts, dtype=np.float32)
-                    w.write(topic, xyz_to_cloud(pts, Header(stamp=_stamp(t), frame_id=frame_id)),
-                            t)
+                    header = Header(stamp=stamp_from_ns(t), frame_id=frame_id)
+                    w.write(topic, xyz_to_cloud(pts, header), t)
                     entry['objects'].append({'id': int(obj_id), 'points': int(len(pts)),
                                              'centroid': pts.mean(axis=0).tolist(),
                                              'stamp_ns': t})

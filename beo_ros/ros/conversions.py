@@ -13,6 +13,7 @@ import array
 import math
 
 import numpy as np
+from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point, Pose, Quaternion, Vector3
 from sensor_msgs.msg import PointField, PointCloud2
 
@@ -257,18 +258,33 @@ def _voxel_size(est) -> float:
     return float(np.linalg.norm(np.asarray(g)[:3, 0]))
 
 
+def stamp_from_ns(ns: int) -> Time:
+    """``builtin_interfaces/Time`` of ``ns`` nanoseconds (>= 0)."""
+    sec, nanosec = divmod(int(ns), 1_000_000_000)
+    return Time(sec=sec, nanosec=nanosec)
+
+
+def ns_from_stamp(stamp) -> int:
+    """Nanoseconds of a ``builtin_interfaces/Time``."""
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+_interfaces = None
+
+
 def interfaces():
-    """Import and return ``beo_interfaces.msg`` (after making the built package findable)."""
-    try:
-        from beo_ros.ros.env import ensure_ament_prefix
-    except ImportError:  # pragma: no cover - env helper not present
-        ensure_ament_prefix = None
-    if ensure_ament_prefix is not None:
-        ensure_ament_prefix()
+    """Import and return ``beo_interfaces.msg`` (after making the built package findable; once
+    found, the module is kept: every published estimate asks for it)."""
+    global _interfaces
+    if _interfaces is not None:
+        return _interfaces
+    from beo_ros.ros.env import ensure_ament_prefix
+    ensure_ament_prefix()
     import beo_interfaces.msg as msgs
     if not hasattr(msgs, 'ObjectEstimate'):
         raise ImportError(
             'beo_interfaces is not built (found only the source folder); run scripts/setup')
+    _interfaces = msgs
     return msgs
 
 

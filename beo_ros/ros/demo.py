@@ -89,15 +89,14 @@ def render_inputs(bank, seed: int = 0, views_per_class: int = 1, size: float = 1
 
 def write_bag(inputs, path, period: float = 0.5, storage: str = 'sqlite3') -> list:
     """One cloud per input on /beo/input, ``period`` s apart; sets ``input['stamp_ns']``."""
-    from builtin_interfaces.msg import Time
     from std_msgs.msg import Header
 
     from beo_ros.ros.bag import T0_NS, BagWriter
-    from beo_ros.ros.conversions import xyz_to_cloud
+    from beo_ros.ros.conversions import stamp_from_ns, xyz_to_cloud
     with BagWriter(path, storage) as w:
         for i, inp in enumerate(inputs):
             ns = T0_NS + int(round(i * period * 1e9))
-            header = Header(stamp=Time(sec=ns // 10**9, nanosec=ns % 10**9), frame_id=FRAME)
+            header = Header(stamp=stamp_from_ns(ns), frame_id=FRAME)
             w.write(TOPIC, xyz_to_cloud(inp['points'], header), ns)
             inp['stamp_ns'] = ns
     return inputs
@@ -130,7 +129,7 @@ def _run_node_on_bag(bag_path, model_dir, bank, up, origin, timeout):
     from sensor_msgs.msg import PointCloud2
 
     from beo_ros.ros import bag
-    from beo_ros.ros.conversions import interfaces
+    from beo_ros.ros.conversions import interfaces, ns_from_stamp
     from beo_ros.ros.node import BeoNode, drain_executor
     msgs = interfaces()
     ctx = rclpy.Context()
@@ -150,7 +149,7 @@ def _run_node_on_bag(bag_path, model_dir, bank, up, origin, timeout):
 
         def keep(store, m):
             with got:
-                store[m.header.stamp.sec * 10**9 + m.header.stamp.nanosec] = m
+                store[ns_from_stamp(m.header.stamp)] = m
                 got.notify_all()
         listener.create_subscription(msgs.ObjectEstimate, '/beo/estimates',
                                      lambda m: keep(estimates, m), QoSProfile(depth=100))
