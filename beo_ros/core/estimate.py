@@ -47,8 +47,9 @@ class Estimate:
             [yaw + pi] for a table that looks the same turned round. A hint: of the turns it
             lists on ModelNet10 views, 74 % are turns of the true object (fold 0).
         timings: seconds per stage ('pose_and_features', 'classify', 'pose_refinement',
-            'completion', 'total'; 'voxelize' and, for a bank with a 'points' classifier,
-            'point_descriptors' from ``estimate_points``).
+            'orientation_check', 'completion', 'total'; 'outliers', 'voxelize' and, for a bank
+            with a 'points' classifier, 'point_descriptors' from ``estimate_points``; only
+            'total' for a grid with no occupied voxel).
         classifier_mode: the rule that decided the class: 'points' (the bank's classifier on
             the per-class log-likelihood + the raw points' side-normal descriptors),
             'complete' / 'partial' (the bank's classifier on the grid features),

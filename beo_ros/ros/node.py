@@ -44,7 +44,8 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 from visualization_msgs.msg import Marker, MarkerArray
 
-from beo_ros.core.bank import check_step, parse_class_prior, resolve_model_dir, shipped_models
+from beo_ros.core.bank import (check_step, load_models, parse_class_prior, resolve_model_dir,
+                               shipped_models)
 from beo_ros.core.bank import default_model_dir as shipped_model_dir
 from beo_ros.core.outliers import OUTLIER_MADS, OUTLIER_NEIGHBORS
 from beo_ros.core.voxelize import MAX_COORDINATE, MIN_POINTS
@@ -108,10 +109,6 @@ def load_bank(model_dir: str):
     if not path.is_dir():
         raise StartupError(f"model_dir '{path}' is not a directory")
     try:
-        import beo_ros
-        load_models = getattr(beo_ros, 'load_models', None)
-        if load_models is None:
-            from beo_ros.core.bank import load_models
         return load_models(str(path))
     except Exception as e:  # ModelError names the bad file; anything else is wrapped
         raise StartupError(f"cannot load models from '{path}': {type(e).__name__}: {e}") from e
