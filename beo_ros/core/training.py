@@ -406,18 +406,34 @@ def fit_logistic(Z, y, n_classes, C=1.0):
     own probabilities (logits -z, +z would square the odds).
     """
     from sklearn.linear_model import LogisticRegression
+    Z, mean, scale = _standardized(Z)
+    lr = LogisticRegression(C=C, max_iter=2000).fit(Z, y)
+    return dict(mean=mean, scale=scale,
+                **_softmax_head(lr.classes_, lr.coef_, lr.intercept_, n_classes, y))
+
+
+def _standardized(Z):
+    """(Z standardised per column, mean, scale) of input rows Z (m, n_in)."""
     Z = np.asarray(Z, dtype=np.float64)
     mean = Z.mean(axis=0)
     scale = Z.std(axis=0) + 1e-9
-    lr = LogisticRegression(C=C, max_iter=2000).fit((Z - mean) / scale, y)
-    coef = np.zeros((n_classes, Z.shape[1]))
+    return (Z - mean) / scale, mean, scale
+
+
+def _softmax_head(classes, coef_, intercept_, n_classes, y):
+    """coef (n_classes, n_in), intercept (n_classes,) and class_counts of a fitted scikit-learn
+    linear output layer (coef_ (K, n_in), intercept_ (K,) over the K ``classes`` present; one
+    row for a binary fit). Absent classes get intercept -30 (never chosen); a binary fit's one
+    logit z becomes the two-class softmax with logits -z/2, +z/2 (its own probabilities:
+    logits -z, +z would square the odds)."""
+    coef = np.zeros((n_classes, coef_.shape[1]))
     intercept = np.full(n_classes, -30.0)
-    if len(lr.classes_) > 2:
-        coef[lr.classes_], intercept[lr.classes_] = lr.coef_, lr.intercept_
+    if len(classes) > 2:
+        coef[classes], intercept[classes] = coef_, intercept_
     else:
-        coef[lr.classes_] = np.vstack([-lr.coef_, lr.coef_]) / 2
-        intercept[lr.classes_] = np.hstack([-lr.intercept_, lr.intercept_]) / 2
-    return dict(mean=mean, scale=scale, coef=coef, intercept=intercept,
+        coef[classes] = np.vstack([-coef_, coef_]) / 2
+        intercept[classes] = np.hstack([-intercept_, intercept_]) / 2
+    return dict(coef=coef, intercept=intercept,
                 class_counts=np.bincount(np.asarray(y), minlength=n_classes).astype(np.float64))
 
 
@@ -427,21 +443,11 @@ def fit_mlp(Z, y, n_classes, hidden=MLP_HIDDEN, alpha=MLP_ALPHA, seed=0):
     :func:`fit_logistic` plus hidden_coef (hidden, n_in) and hidden_intercept (hidden,); coef
     (n_classes, hidden) is then the softmax layer on the hidden units (see
     ``bank.classifier_probabilities``). Absent classes and a binary fit as in fit_logistic."""
-    Z = np.asarray(Z, dtype=np.float64)
-    mean = Z.mean(axis=0)
-    scale = Z.std(axis=0) + 1e-9
-    net = _network(hidden, alpha, seed).fit((Z - mean) / scale, y)
+    Z, mean, scale = _standardized(Z)
+    net = _network(hidden, alpha, seed).fit(Z, y)
     (w1, w2), (b1, b2) = net.coefs_, net.intercepts_
-    coef = np.zeros((n_classes, w1.shape[1]))
-    intercept = np.full(n_classes, -30.0)
-    if len(net.classes_) > 2:
-        coef[net.classes_], intercept[net.classes_] = w2.T, b2
-    else:   # one logistic output unit z: the two-class softmax with logits -z/2, +z/2
-        coef[net.classes_] = np.vstack([-w2.T, w2.T]) / 2
-        intercept[net.classes_] = np.hstack([-b2, b2]) / 2
     return dict(mean=mean, scale=scale, hidden_coef=w1.T.copy(), hidden_intercept=b1.copy(),
-                coef=coef, intercept=intercept,
-                class_counts=np.bincount(np.asarray(y), minlength=n_classes).astype(np.float64))
+                **_softmax_head(net.classes_, w2.T, b2, n_classes, y))
 
 
 def train_classifier(F, y, n_classes, C=1.0, row_standardize=False, descriptors=None, hidden=0,
