@@ -35,7 +35,7 @@ import numpy as np
 
 from .cli import count, interruptible, number
 from .core.grid import yaw_error
-from .evaluate import json_safe, out_dir_problem, output_dir
+from .cli import json_safe, out_dir_problem, output_dir
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = 'modelnet10/modelnet10_vox32_train.npz'

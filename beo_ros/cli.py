@@ -1,4 +1,5 @@
-"""Pieces shared by the command lines (ROS-free): argparse number types and Ctrl-C handling.
+"""Pieces shared by the command lines (ROS-free): argparse number types, Ctrl-C handling and
+output directories.
 
     ap.add_argument('--duration', type=number(0, None, lo_open=True), ...)
 
@@ -8,13 +9,19 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import math
+import os
 import signal
 import sys
 import threading
+from pathlib import Path
 
-__all__ = ['INTERRUPTED', 'TERMINATED', 'Terminated', 'count', 'interruptible', 'number']
+import numpy as np
+
+__all__ = ['INTERRUPTED', 'TERMINATED', 'Terminated', 'count', 'existing_parent', 'interruptible',
+           'json_safe', 'number', 'out_dir_problem', 'output_dir', 'writable_dir']
 
 INTERRUPTED = 130   # the shell's code for a process ended by SIGINT
 TERMINATED = 143    # ... and by SIGTERM
@@ -100,3 +107,65 @@ def interruptible(prog: str):
                     signal.signal(signal.SIGTERM, signal.SIG_DFL if old is None else old)
         return run
     return wrap
+
+
+def json_safe(obj):
+    """``obj`` with every non-finite float (NaN: nothing to average) as None and numpy scalars
+    as Python numbers, for strict JSON."""
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    if isinstance(obj, (np.floating, np.integer)):
+        return json_safe(obj.item())
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def out_dir_problem(out):
+    """Why ``out`` cannot be the output directory, or None; creates nothing."""
+    if out.exists():
+        if not out.is_dir():
+            return 'exists and is not a directory'
+        return None if writable_dir(out) else 'the output directory is not writable'
+    parent = existing_parent(out)
+    if not parent.is_dir():
+        return f'cannot make the output directory ({parent} is not a directory)'
+    if not writable_dir(parent):
+        return f'cannot make the output directory ({parent} is not writable)'
+    return None
+
+
+def existing_parent(path) -> Path:
+    """The nearest folder above ``path`` (made absolute) that exists (it may be a file)."""
+    return next(d for d in Path(path).absolute().parents if d.exists())
+
+
+def writable_dir(path) -> bool:
+    """True when ``path`` is a directory this process may create files in."""
+    path = Path(path)
+    return path.is_dir() and os.access(path, os.W_OK | os.X_OK)
+
+
+@contextlib.contextmanager
+def output_dir(out):
+    """Make the directory ``out`` (and missing parents) for the block; if the block fails
+    (an exception, Ctrl-C included), remove the directories it made that are still empty
+    (never one that existed before or holds files)."""
+    out = Path(out)
+    made = [d for d in (out, *out.absolute().parents) if not d.exists()]
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OSError(f'--out {out}: cannot make the output directory ({e.strerror or e})') \
+            from None
+    try:
+        yield out
+    except BaseException:
+        for d in made:   # deepest first
+            try:
+                d.rmdir()
+            except OSError:
+                break
+        raise

@@ -17,17 +17,14 @@ view) and eval.png (examples, confusion matrix).
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
-import math
-import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from .cli import count, interruptible
+from .cli import count, interruptible, json_safe, out_dir_problem, output_dir
 from .core.bank import load_models, parse_class_prior
 from .core.calibration import calibration_sums, metrics_from_sums
 from .core.grid import GridSpec, symmetric_turns, yaw_error, yaw_error_up_to
@@ -182,58 +179,6 @@ def summarize(recs, classes):
         out[mode]['confusion'] = cm.tolist()
     out['classes'] = list(classes)
     return out
-
-
-def json_safe(obj):
-    """``obj`` with every non-finite float (NaN: nothing to average) as None and numpy scalars
-    as Python numbers, for strict JSON."""
-    if isinstance(obj, dict):
-        return {k: json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [json_safe(v) for v in obj]
-    if isinstance(obj, (np.floating, np.integer)):
-        return json_safe(obj.item())
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
-
-
-def out_dir_problem(out):
-    """Why ``out`` cannot be the output directory, or None; creates nothing."""
-    if out.exists():
-        if not out.is_dir():
-            return 'exists and is not a directory'
-        return None if os.access(out, os.W_OK | os.X_OK) else \
-            'the output directory is not writable'
-    parent = next(d for d in out.absolute().parents if d.exists())
-    if not parent.is_dir():
-        return f'cannot make the output directory ({parent} is not a directory)'
-    if not os.access(parent, os.W_OK | os.X_OK):
-        return f'cannot make the output directory ({parent} is not writable)'
-    return None
-
-
-@contextlib.contextmanager
-def output_dir(out):
-    """Make the directory ``out`` (and missing parents) for the block; if the block fails
-    (an exception, Ctrl-C included), remove the directories it made that are still empty
-    (never one that existed before or holds files)."""
-    out = Path(out)
-    made = [d for d in (out, *out.absolute().parents) if not d.exists()]
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise OSError(f'--out {out}: cannot make the output directory ({e.strerror or e})') \
-            from None
-    try:
-        yield out
-    except BaseException:
-        for d in made:   # deepest first
-            try:
-                d.rmdir()
-            except OSError:
-                break
-        raise
 
 
 def print_table(summary, file=None):

@@ -296,7 +296,7 @@ def plot_completions(path, items, spec):
 def run(args) -> dict:
     """The evaluation of parsed ``args``: writes scan_eval.json (and the PNG); the summary."""
     from .core.scan_training import load_scan_objects
-    from .evaluate import output_dir
+    from .cli import output_dir
     t_start = time.time()
     objs = load_scan_objects(args.scans, args.scan_classes, args.grid, args.voxel_size)
     # --out is made once the scans have loaded; a failure or Ctrl-C leaves no empty one behind
@@ -460,7 +460,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     if args.scene_folds == 1 or args.scene_folds < 0:
         ap.error(f'--scene-folds must be 0 (leave one scene out) or >= 2, got {args.scene_folds}')
-    from .evaluate import out_dir_problem
+    from .cli import out_dir_problem
     problem = out_dir_problem(Path(args.out))
     if problem:
         ap.error(f'--out {args.out}: {problem}')

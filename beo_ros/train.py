@@ -7,14 +7,13 @@ labelled tabletop scans (``--scans``, PCD files; see beo_ros.core.scans).
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from .cli import count, interruptible, number
+from .cli import count, existing_parent, interruptible, number, writable_dir
 from .core.bank import (UNREADABLE, check_class_names, check_save_target, is_model_dir,
                         parse_class_prior)
 from .core.grid import GridSpec
@@ -246,17 +245,15 @@ def _check_out(args):
         oof = Path(args.oof_out)
         if oof.is_dir():
             raise ValueError(f'--oof-out {oof} is a directory (give a file name)')
-        parent = next(d for d in oof.absolute().parents if d.exists())
-        if not (parent.is_dir() and os.access(parent, os.W_OK | os.X_OK)):
+        parent = existing_parent(oof)
+        if not writable_dir(parent):
             raise ValueError(f'cannot write --oof-out {oof}: {parent} is not a writable '
                              'directory')
     if args.calibrate_only:   # rewrites the model it loads (ModelBank.load checks it)
         return False
     check_save_target(args.out)
-    parent = Path(args.out).absolute().parent
-    while not parent.exists():
-        parent = parent.parent
-    if not (parent.is_dir() and os.access(parent, os.W_OK | os.X_OK)):
+    parent = existing_parent(args.out)
+    if not writable_dir(parent):
         raise ValueError(f'cannot write {args.out}: {parent} is not a writable directory')
     return is_model_dir(args.out)
 

@@ -5,7 +5,7 @@ import types
 import numpy as np
 import pytest
 
-from beo_ros import bench, evaluate, scan_eval
+from beo_ros import bench, cli, evaluate, scan_eval
 from beo_ros.core.synthetic import make_tiny_bank, primitive_shapes
 
 N = 16
@@ -48,17 +48,17 @@ def call(main, argv):
 def test_output_dir_removes_only_what_it_made_and_left_empty(tmp_path):
     out = tmp_path / 'a' / 'b'
     with pytest.raises(RuntimeError):
-        with evaluate.output_dir(out):
+        with cli.output_dir(out):
             assert out.is_dir()
             raise RuntimeError
     assert not (tmp_path / 'a').exists()       # the made parent goes too
     (tmp_path / 'old').mkdir()
     with pytest.raises(KeyboardInterrupt):
-        with evaluate.output_dir(tmp_path / 'old'):
+        with cli.output_dir(tmp_path / 'old'):
             raise KeyboardInterrupt
     assert (tmp_path / 'old').is_dir()          # existed before: kept
     with pytest.raises(RuntimeError):
-        with evaluate.output_dir(tmp_path / 'new') as d:
+        with cli.output_dir(tmp_path / 'new') as d:
             (d / 'partial.json').write_text('{}')
             raise RuntimeError
     assert (tmp_path / 'new' / 'partial.json').is_file()   # holds files: kept

@@ -281,7 +281,7 @@ def main(argv=None) -> int:
     p.add_argument('--timeout', type=number(0, None, lo_open=True), default=120.0,
                    help='seconds to wait for each estimate (default 120)')
     args = p.parse_args(argv)
-    from beo_ros.evaluate import out_dir_problem, output_dir
+    from beo_ros.cli import out_dir_problem, output_dir
     problem = out_dir_problem(Path(args.out))
     if problem:
         p.error(f'--out {args.out}: {problem}')
