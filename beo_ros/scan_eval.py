@@ -91,22 +91,11 @@ def circular_spread_deg(angles, period_deg=90.0):
 
 
 def fit_models(objs, k, max_iter, congeal=True, mirror=False):
-    """Class models (ModelBank without classifier) from ScanObjects.
-
-    ``mirror``: also train on the mirror image of every grid
-    (:func:`beo_ros.core.scan_training.mirror_augment`).
-    """
+    """Class models (ModelBank without classifier) from ScanObjects, fitted as
+    ``beo-train --scans`` fits them (:func:`beo_ros.core.scan_training.fit_scan_models`)."""
     from .core.bank import ModelBank
-    from .core.congeal import congeal_classes
-    from .core.scan_training import mirror_augment
-    from .core.training import fit_class_models
-    X, M, y = objs.X, objs.masks, objs.y
-    if mirror:
-        X, y, M = mirror_augment(X, y, M, objs.spec.size)
-    if congeal:
-        X, M = congeal_classes(X, y, objs.spec.size, masks=M)
-    models = fit_class_models(X, y, objs.names, objs.spec, k, M, max_iter=max_iter)
-    return ModelBank(models, objs.spec)
+    from .core.scan_training import fit_scan_models
+    return ModelBank(fit_scan_models(objs, k, max_iter, mirror, congeal)[0], objs.spec)
 
 
 CLASSIFIER_VARIANTS = (('all', 0.1), ('all', 1.0), ('diff', 0.1), ('diff', 1.0))

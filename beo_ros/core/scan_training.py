@@ -309,6 +309,20 @@ def point_classifier_from_oof(oof_path, objs, C=1.0):
     return clf, info
 
 
+def fit_scan_models(objs, k, max_iter, mirror=True, congeal=False, verbose=False):
+    """One VBPCA class model per class of a :class:`ScanObjects`, the unknown voxels as missing
+    data: ``mirror`` appends the mirror image of every grid (:func:`mirror_augment`),
+    ``congeal`` yaw-aligns them within each class. -> (list of ClassModel, training grids)."""
+    from .training import fit_class_models
+    X, y, M = objs.X, objs.y, objs.masks
+    if mirror:
+        X, y, M = mirror_augment(X, y, M, objs.spec.size)
+    if congeal:
+        from .congeal import congeal_classes
+        X, M = congeal_classes(X, y, objs.spec.size, masks=M, verbose=verbose)
+    return fit_class_models(X, y, objs.names, objs.spec, k, M, max_iter=max_iter), int(len(X))
+
+
 def train_scan_bank(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32, voxel_size=0.5 / 32,
                     k=8, max_iter=200, mirror=True, congeal=False, verbose=False,
                     point_classifier=None, point_C=1.0):
@@ -325,7 +339,6 @@ def train_scan_bank(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32, voxel_siz
     """
     import time
     from .bank import ModelBank
-    from .training import fit_class_models
     t0 = time.time()
     paths = list(paths)   # a generator would be consumed by load_scan_objects (manifest inputs)
     s = load_scan_objects(paths, scan_classes, grid, voxel_size, verbose)
@@ -333,16 +346,10 @@ def train_scan_bank(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32, voxel_siz
     if point_classifier is not None:  # before the fit: a bad npz fails fast
         clf, extra = point_classifier_from_oof(point_classifier, s, point_C)
         classifier = {'points': clf}
-    X, y, M = s.X, s.y, s.masks
-    if mirror:
-        X, y, M = mirror_augment(X, y, M, s.spec.size)
-    if congeal:
-        from .congeal import congeal_classes
-        X, M = congeal_classes(X, y, s.spec.size, masks=M, verbose=verbose)
-    models = fit_class_models(X, y, s.names, s.spec, k, M, max_iter=max_iter)
+    models, n_grids = fit_scan_models(s, k, max_iter, mirror, congeal, verbose)
     info = dict(inputs=[str(p) for p in paths], scan_classes=str(scan_classes), k=k,
                 max_iter=max_iter, mirror=bool(mirror), congeal=bool(congeal),
-                n_objects=int(len(s)), n_training_grids=int(len(X)), classifier_views=0,
+                n_objects=int(len(s)), n_training_grids=n_grids, classifier_views=0,
                 rule='maximum likelihood', fit_seconds=round(time.time() - t0, 1))
     if classifier is not None:
         info.update(extra, rule="estimate_points: 'points' classifier (loglik + side-normal "
