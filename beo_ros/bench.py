@@ -129,10 +129,10 @@ def run_peer(name, predict, queries, repeats, mem_queries=3):
         predict(q['grid'])
         peaks.append(tracemalloc.get_traced_memory()[1])
         tracemalloc.stop()
-    return summarize(name, lat, correct, yerr, peaks)
+    return summarize(lat, correct, yerr, peaks)
 
 
-def summarize(name, lat, correct, yerr, peaks):
+def summarize(lat, correct, yerr, peaks):
     lat = np.asarray(lat) * 1e3
     yerr = np.asarray(yerr)
     correct = np.asarray(correct, dtype=bool)
@@ -203,7 +203,7 @@ def fit_class_bank(X, y, names, n, k):
 
 
 # ---------------------------------------------------------------------- scaling
-def scaling(args, X, y, names, n, tr, queries, bank, icp_db, rng):
+def scaling(args, X, y, names, n, tr, queries, bank, rng):
     from beo_ros.core.baselines import ICPDatabase
     from beo_ros.core.synthetic import random_partial_view
     from scipy.ndimage import zoom
@@ -376,7 +376,7 @@ def bench_domain(pid):
     return 215 + int(pid) % 18
 
 
-def node_bench(bank, X, y, n, idx, args, rng):
+def node_bench(bank, X, n, idx, args, rng):
     """A real BeoNode fed by a rosbag2 replay (open loop) at fixed rates, plus a closed loop.
 
     Open loop (the sustained rate): for every rate in ``--node-rates`` the bench bag is replayed
@@ -906,7 +906,7 @@ def _bench(args, out, X, y, names, n, source, tr, te, bank, t_all):
         res['speedup_vs_paper'] = res['paper']['p50_ms'] / res['beo']['p50_ms']
 
     res['scaling'] = ({'skipped': '--no-scaling'} if args.no_scaling else
-                      scaling(args, X, y, names, n, tr, queries, bank, icp,
+                      scaling(args, X, y, names, n, tr, queries, bank,
                               np.random.default_rng(args.seed + 2)))
     node_failed = None
     if args.no_node:
@@ -914,7 +914,7 @@ def _bench(args, out, X, y, names, n, source, tr, te, bank, t_all):
     else:
         log('[node] bag replay (open loop) and closed loop through BeoNode')
         try:
-            res['node'] = node_bench(bank, X, y, n, te, args,
+            res['node'] = node_bench(bank, X, n, te, args,
                                      np.random.default_rng(args.seed + 3))
         except Exception as e:  # noqa: BLE001 - the peers' results are kept and written
             log(f'[node] failed: {type(e).__name__}: {e}')

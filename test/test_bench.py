@@ -104,9 +104,9 @@ def test_yaw_error_wraps():
 def test_summary_yaw_of_the_correct_class_is_nan_when_no_class_is_right():
     from beo_ros.bench import summarize
     yerr = [5.0, 170.0, 30.0]
-    s = summarize('x', [0.01] * 3, [False, True, True], yerr, [1, 2, 3])
+    s = summarize([0.01] * 3, [False, True, True], yerr, [1, 2, 3])
     assert s['yaw_median_deg_correct_class'] == 100.0 and s['yaw_median_deg'] == 30.0
-    none = summarize('x', [0.01] * 3, [False] * 3, yerr, [1, 2, 3])
+    none = summarize([0.01] * 3, [False] * 3, yerr, [1, 2, 3])
     assert math.isnan(none['yaw_median_deg_correct_class']) and none['accuracy'] == 0.0
 
 
