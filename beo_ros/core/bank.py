@@ -369,10 +369,10 @@ def check_classifier_arrays(clf, n_classes, n_in, where, inputs):
             raise ModelError(f'{where} {key!r} contains NaN or Inf')
     if (np.asarray(clf['scale']) <= 0).any():
         raise ModelError(f"{where} 'scale' must be positive")
-    check_class_counts(clf, n_classes, where)
+    _check_classifier_counts(clf, n_classes, where)
 
 
-def check_class_counts(clf, n_classes, where):
+def _check_classifier_counts(clf, n_classes, where):
     """Raise ModelError unless the optional ``class_counts`` of ``clf`` are (C,) finite >= 0."""
     if 'class_counts' not in clf:
         return
