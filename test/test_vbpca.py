@@ -465,3 +465,58 @@ def test_a_numerical_failure_of_the_fit_is_named():
     X = rng.normal(size=(20, 8)) * 1e200
     with pytest.raises(ValueError, match='numerically'):
         VBPCA(3, dtype=np.float64).fit(X)
+
+
+def test_full_and_missing_paths_agree_on_fully_observed_data():
+    # the two paths are the same model: with every entry observed they reach the same fit
+    # (each path's mean, noise and bound terms checked against the other's)
+    X, _, _ = planted()
+    a = VBPCA(RANK, dtype=np.float64, tol=1e-12, max_iter=3000).fit(X)
+    b = VBPCA(RANK, dtype=np.float64, tol=1e-12, max_iter=3000)
+    Xv, _ = b._validate(X, None)
+    b._fit_missing(Xv, np.ones(X.shape, bool), RANK)
+    assert a.converged_ and b.converged_
+    np.testing.assert_allclose(b.noise_variance_, a.noise_variance_, rtol=1e-6)
+    np.testing.assert_allclose(b.lower_bound_, a.lower_bound_, rtol=1e-6)
+    np.testing.assert_allclose(b.mean_, a.mean_, atol=1e-4)
+    np.testing.assert_allclose(b.mean_variance_, a.mean_variance_, rtol=1e-4)
+
+
+def _posterior_case():
+    """A fitted model with a non-trivial loadings' covariance, and explicit posterior terms."""
+    X, _, _ = planted(n=60, d=12)
+    est = VBPCA(RANK, dtype=np.float64).fit(X)
+    k, d = est.n_components_, X.shape[1]
+    est.loading_covariance_ = (0.05 * np.eye(k) + 0.02).astype(np.float32)
+    W = est.components_.T.astype(np.float64)
+    Sw = est.loading_covariance_.astype(np.float64)
+    v = est.noise_variance_
+    S = np.linalg.inv(np.eye(k) + (W.T @ W + d * Sw) / v)
+    m = (X - est.mean_) @ W @ S / v
+    return est, X, S, m
+
+
+def test_posterior_includes_the_loading_covariance():
+    est, X, S, m = _posterior_case()
+    for mask in (None, np.ones(X.shape, bool)):
+        got_m, got_S = est.posterior(X, mask=mask)
+        np.testing.assert_allclose(got_m, m, rtol=1e-6, atol=1e-8)
+        np.testing.assert_allclose(got_S, np.broadcast_to(S, got_S.shape), rtol=1e-6, atol=1e-10)
+
+
+def test_finish_keeps_the_posterior_of_the_unrotated_model():
+    # _finish turns W to orthogonal columns; the rotated Sw must describe the same posterior
+    rng = np.random.default_rng(3)
+    d, k, v = 12, 3, 0.2
+    W = rng.standard_normal((d, k)) @ np.array([[1.0, 0.6, 0.0], [0.0, 1.0, 0.4], [0.0, 0.0, 1.0]])
+    A = rng.standard_normal((k, k))
+    Sw = 0.01 * (A @ A.T + np.diag([1.0, 3.0, 0.5]))
+    mu = rng.standard_normal(d)
+    est = VBPCA(k, dtype=np.float64)
+    est._finish(W, mu, v, np.ones(k), Sw, np.zeros(d, np.float32), 1, True, 0.0)
+    X = rng.standard_normal((5, d))
+    S = np.linalg.inv(np.eye(k) + (W.T @ W + d * Sw) / v)
+    want = (X - mu) @ W @ S @ W.T / v + mu
+    np.testing.assert_allclose(est.inverse_transform(est.transform(X)), want, atol=1e-5)
+    np.testing.assert_allclose(est.component_variance_,
+                               np.linalg.svd(W, compute_uv=False) ** 2 / d, rtol=1e-5)
