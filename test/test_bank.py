@@ -1744,3 +1744,70 @@ def test_load_models_takes_a_shipped_models_name(tmp_path, monkeypatch):
         assert resolve_model_dir(text) == Path(text)
         with pytest.raises(ModelError, match='does not exist'):
             load_models(text)
+
+
+# ---------------------------------------------------------------------- formulas, directly
+def test_features_equal_a_direct_computation_at_yaw_zero(tiny):
+    # at yaw 0 the canonical frame is the observed one: every feature can be computed by hand
+    from beo_ros.core.inference import FEATURE_NAMES, observed_edt
+    _, part = views()
+    eng = tiny.engine
+    edt = observed_edt(part).ravel()
+    canon = part.ravel()
+    known = canon >= 0
+    for c in range(len(tiny.classes)):
+        ex = eng.exact(part, c, 0.0)
+        np.testing.assert_array_equal(ex['canon'], canon)
+        f = dict(zip(FEATURE_NAMES, eng.features(ex, c, 0.0, edt)))
+        pred = ex['pred'].astype(np.float64)
+        p = pred >= 0.5
+        occ, free = canon == 1, canon == 0
+        assert f['rmse'] == pytest.approx(np.sqrt(np.mean((canon[known] - pred[known]) ** 2)),
+                                          rel=1e-4)
+        assert f['recall'] == pytest.approx((p & occ).sum() / occ.sum())
+        assert f['false_occupied'] == pytest.approx((p & free).sum() / free.sum())
+        assert f['dt_error'] == pytest.approx(np.sqrt(np.mean(edt[p & known] ** 2)), rel=1e-5)
+
+
+def test_predictive_variance_formula(tiny):
+    # var_i = w_i^T S w_i + v + m^T Sw m + tr(Sw S) + mu_var_i, S = G^-1 (loadings, noise, the
+    # loadings' posterior covariance Sw and the mean's variance)
+    _, part = views()
+    eng = tiny.engine
+    c = 0
+    ex = eng.exact(part, c, 0.0)
+    k = ex['G'].shape[0]
+    Sw = 0.05 * np.eye(k)
+    mu_var = np.full(eng.d, 0.01)
+    _, mean, var = eng.predictive(ex, c, Sw, mu_var)
+    W = eng.W[c].astype(np.float64)
+    S = np.linalg.inv(ex['G'])
+    m = ex['m']
+    want = ((W @ S) * W).sum(axis=1) + eng.v[c] + m @ Sw @ m + np.trace(Sw @ S) + mu_var
+    np.testing.assert_allclose(var, want, rtol=1e-5)
+    np.testing.assert_allclose(mean, W @ m + eng.mu[c], rtol=1e-5, atol=1e-6)
+
+
+def test_completion_variance_includes_the_class_predictive_variance(tiny):
+    # the unknown voxels' variance is at least the model noise: it is the mixture's variance,
+    # predictive variances included, not only the spread of the class means
+    _, part = views()
+    e = tiny.estimate(part, yaw=0.0)
+    assert e.variance[part < 0].min() >= min(m.noise_variance for m in tiny.models)
+    assert (e.variance[part >= 0] == 0).all()
+
+
+def test_completion_of_a_rotated_partial_view_matches_the_shape(pose_case):
+    # the completion of the *unknown* voxels is turned back into the observed frame by the yaw:
+    # with the true yaw given, the hidden part of an asymmetric shape comes out where it is
+    bank, _ = pose_case
+    Xt, _ = asymmetric_shapes(2, np.random.default_rng(5))
+    for x in Xt:
+        shape = x.reshape((N,) * 3) > 0.5
+        for yaw in (0.9, -2.0):
+            rot = rotate_grid(shape.astype(np.uint8), yaw).astype(bool)
+            pv = partial_view(rot, 0.3, np.deg2rad(30))
+            e = bank.estimate(pv, yaw=yaw)
+            hidden = pv < 0
+            assert hidden.sum() > 50
+            assert ((e.completion >= 0.5) == rot)[hidden].mean() >= 0.95
