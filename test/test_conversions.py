@@ -183,6 +183,8 @@ def _good(pts):
     (lambda m: setattr(m, 'height', 1), 'needs'),                            # 2nd row ignored
     (lambda m: setattr(m.fields[1], 'offset', 2), 'overlap'),
     (lambda m: [setattr(f, 'offset', 0) for f in m.fields], 'overlap'),
+    (lambda m: setattr(m.fields[0], 'count', 2), 'overlap'),                 # x[2] runs into y
+    (lambda m: setattr(m.fields[2], 'count', 2), 'overruns point_step'),     # z[2] past the point
 ])
 def test_malformed_clouds_raise_named_error(pts, breaker, match):
     msg = _good(pts)

@@ -210,3 +210,14 @@ def test_yaw_error_up_to_the_shape_turns():
     assert np.rad2deg(yaw_error_up_to(np.deg2rad(93.0), b, (np.pi,))) == pytest.approx(89.0)
     turns = (np.pi / 2, np.pi, 3 * np.pi / 2)
     assert np.rad2deg(yaw_error_up_to(np.deg2rad(-88.0), b, turns)) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_quarter_turn_of_a_footprint_padded_on_both_sides():
+    # x extent 14, y extent 12: the square footprint of the quarter turns is padded by one
+    # voxel on each side of y, not by two on one side
+    occ = np.zeros((32, 32, 32), bool)
+    occ[8:20, 8:20, :10] = True
+    occ[7, 13:15, :10] = True
+    occ[20, 13:15, :10] = True
+    turns = symmetric_turns(occ)
+    assert np.pi / 2 in turns and np.pi in turns and 3 * np.pi / 2 in turns

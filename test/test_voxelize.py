@@ -347,3 +347,14 @@ def test_non_finite_points_are_dropped():
     assert v.n_points == 50
     with pytest.raises(ValueError, match='at least 60'):
         voxelize_view(pts, np.zeros(3), [0, 0, 1], GridSpec(16), min_points=60)
+
+
+def test_sensor_in_an_occupied_voxel_still_sees_free_space():
+    # a point in the sensor's own voxel (dust on the lens, a self-return) must not blind it
+    occ = np.zeros((16, 16, 16), bool)
+    occ[12, 4:12, 4:12] = True         # a wall in front of the sensor
+    occ[3, 8, 8] = True                # the sensor's own voxel
+    g = label_free_unknown(occ, (3.0, 8.0, 8.0))
+    assert (g[5:11, 6:10, 6:10] == FREE).all()
+    assert (g[13:, 6:10, 6:10] == UNKNOWN).all()
+    assert g[12, 8, 8] == OCCUPIED
