@@ -13,7 +13,8 @@ from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 
-from beo_ros.ros.conversions import cloud_to_xyz, pose_to_matrix, xyz_to_cloud
+from beo_ros.ros.conversions import (cloud_to_xyz, pose_to_matrix, quaternion_to_rotation,
+                                     xyz_to_cloud)
 
 pytestmark = pytest.mark.usefixtures('ros_interfaces')
 TIMEOUT = 30.0
@@ -511,6 +512,32 @@ def test_stray_points_are_removed_and_counted(harness):
     assert spoilt.max() > 10 * clean.max(), (spoilt, clean)
 
 
+def test_nonfinite_points_are_dropped_and_counted(harness):
+    """A partial view with 5 non-finite points (NaN or Inf, in all or one coordinate): each
+    counted once in nonfinite_points, and the cloud estimated from the others, on the stream
+    and the service path alike."""
+    node = harness.node
+    pts = box_view()
+    bad = np.zeros(len(pts), bool)
+    bad[[3, 50, 400, 700, 900]] = True
+    pts[[3, 50, 400]] = np.nan
+    pts[700, 2] = np.nan
+    pts[900, 0] = np.inf
+    msg = cloud(pts)
+    before = node.counters()
+    node._on_cloud(msg, '/beo/input')
+    c = harness.wait_counter(lambda c: c['processed'] == before['processed'] + 1)
+    assert c['nonfinite_points'] == before['nonfinite_points'] + 5, c
+    assert c['rejected'] == before['rejected'] and c['errors'] == before['errors'], c
+    req = harness.Classify.Request()
+    req.cloud = msg
+    dims = _dims(harness.call(harness.classify, req))
+    assert node.counters()['nonfinite_points'] == before['nonfinite_points'] + 10
+    req.cloud = cloud(pts[~bad])
+    np.testing.assert_allclose(_dims(harness.call(harness.classify, req)), dims, atol=1e-9)
+    assert node.counters()['nonfinite_points'] == before['nonfinite_points'] + 10
+
+
 def test_cluster_tolerance_keeps_the_largest_cluster_and_counts_the_rest(harness):
     node = harness.node
     req = harness.good_request()
@@ -621,11 +648,20 @@ def test_only_latest_cloud_per_topic_is_kept(harness1):
     """One worker busy: newer clouds replace unprocessed ones (counted as stale)."""
     harness = harness1
     node, gated, msg = _gated_node(harness, 1)
+    order, process = [], node._process
+
+    def recording_process(topic, *args, **kwargs):
+        order.append(topic)
+        return process(topic, *args, **kwargs)
+
+    node._process = recording_process
     try:
         node._on_cloud(msg, '/beo/input')
         gated.wait(lambda g: len(g.entered) == 1)
         for _ in range(5):
             node._on_cloud(msg, '/beo/input')
+        # /beo/input's cloud is strictly the older one, even on a coarse clock
+        assert _until(lambda: time.monotonic() > node._slots['/beo/input'][1])
         node._on_cloud(msg, '/beo/input2')
         c = node.counters()
         assert c['dropped_stale'] == 4 and c['received'] == 7
@@ -634,6 +670,8 @@ def test_only_latest_cloud_per_topic_is_kept(harness1):
         gated.gate.set()
     harness.wait_counter(lambda c: c['processed'] == 3)
     assert not node._slots
+    # of the clouds waiting on several topics, the one that waited longest goes first
+    assert order == ['/beo/input', '/beo/input', '/beo/input2']
 
 
 def test_cloud_in_flight_when_rclpy_shuts_down_is_counted_not_an_error(harness1):
@@ -1311,15 +1349,22 @@ def test_up_vector_from_tf_when_tf2_ros_is_there(ros_context, ros_tiny_model_dir
     import beo_ros.ros.node as node_mod
     from beo_ros.ros.node import BeoNode, InputRejected
 
-    s = np.sqrt(0.5)   # base_frame turned 90 deg about x: its +z is -y of the camera frame
+    s = np.sqrt(0.5)
+    q = np.random.default_rng(16).normal(size=4)
+    q /= np.linalg.norm(q)   # a unit quaternion with every term non-zero
+    rotations = {   # (x, y, z, w) of the transform cloud frame <- base_frame
+        'camera': (s, 0.0, 0.0, s),    # base_frame 90 deg about x: its +z is -y of the camera
+        'camera_y': (0.0, s, 0.0, s),  # 90 deg about y: its +z is +x of the camera
+        'camera_q': tuple(q)}
     lookups = []
 
     class Buffer:
         def lookup_transform(self, target, source, when):
             lookups.append((target, source))
-            if target != 'camera':
+            if target not in rotations:
                 raise LookupError(f'no frame {target}')
-            rot = types.SimpleNamespace(x=s, y=0.0, z=0.0, w=s)
+            x, y, z, w = rotations[target]
+            rot = types.SimpleNamespace(x=x, y=y, z=z, w=w)
             return types.SimpleNamespace(transform=types.SimpleNamespace(rotation=rot))
 
     listeners = []
@@ -1335,6 +1380,12 @@ def test_up_vector_from_tf_when_tf2_ros_is_there(ros_context, ros_tiny_model_dir
         assert lookups == [('camera', 'base')]
         with pytest.raises(InputRejected, match='no transform base -> lidar'):
             node._prepare(cloud(box_view(), frame='lidar'), node._params())
+        # the rotation maps base_frame coordinates into the cloud frame: up is its third column
+        assert np.abs(q).min() > 0.1
+        for frame, want in (('camera_y', [1.0, 0.0, 0.0]),
+                            ('camera_q', quaternion_to_rotation(q)[:, 2])):
+            _, _, up = node._prepare(cloud(box_view(), frame=frame), node._params())
+            np.testing.assert_allclose(up, want, atol=1e-12, err_msg=frame)
     finally:
         node.destroy_node()
 
