@@ -211,6 +211,49 @@ def test_sigkilled_sqlite3_recording_keeps_what_was_committed(tmp_path, ros_doma
     assert len(got) == 5 and all(t == '/big' and m == 'std_msgs/msg/String' for t, m, _, _ in got)
 
 
+def test_a_burst_followed_by_quiet_is_committed(tmp_path, ctx):
+    """Before: the writes were committed only when a later message came, so a burst and then
+    silence stayed uncommitted (1 of 7 messages in the .db3 after kill -9)."""
+    import sqlite3
+    from std_msgs.msg import String
+    pub_node = rclpy.create_node('talker', context=ctx)
+    rec_node = rclpy.create_node('recorder', context=ctx)
+    pub = pub_node.create_publisher(String, '/chatter', 100)
+    ready, stop, result = threading.Event(), threading.Event(), {}
+    out = tmp_path / 'rec'
+    th = threading.Thread(target=lambda: result.setdefault('s', bag.record(
+        rec_node, out, ['/chatter:std_msgs/msg/String'], stop=stop, ready=ready,
+        commit_every=1.0)))
+    th.start()
+
+    def committed():
+        try:
+            with sqlite3.connect(f'file:{out / "rec.db3"}?mode=ro', uri=True) as c:
+                return c.execute('SELECT COUNT(*) FROM messages').fetchone()[0]
+        except sqlite3.Error:
+            return 0
+    try:
+        assert ready.wait(10)
+        end = time.monotonic() + 10
+        while pub.get_subscription_count() == 0 and time.monotonic() < end:
+            time.sleep(0.02)
+        pub.publish(String(data='first'))
+        end = time.monotonic() + 10
+        while committed() < 1 and time.monotonic() < end:
+            time.sleep(0.02)
+        assert committed() == 1
+        for i in range(4):   # within a second of that commit, then nothing more
+            pub.publish(String(data=f'burst {i}'))
+        end = time.monotonic() + 10
+        while committed() < 5 and time.monotonic() < end:
+            time.sleep(0.05)
+        assert committed() == 5
+    finally:
+        stop.set()
+        th.join(10)
+    assert result['s'].messages == 5
+
+
 # ------------------------------------------------------------------------------------------
 # 3. beo-replay of a corrupt sqlite3 bag
 # ------------------------------------------------------------------------------------------

@@ -1045,6 +1045,7 @@ def record(node, bag_path, topics, *, storage: str = 'sqlite3', wait: float = 10
             if ready is not None:
                 ready.set()
             t0 = t_poll = t_commit = time.monotonic()
+            uncommitted = False
             try:
                 while True:
                     executor.spin_once(timeout_sec=0.05)
@@ -1059,9 +1060,12 @@ def record(node, bag_path, topics, *, storage: str = 'sqlite3', wait: float = 10
                         writer.write(topic, raw, t, topics[topic])
                         stats.topics[topic]['count'] += 1
                         stats.messages += 1
-                    if batch and time.monotonic() - t_commit >= commit_every:
+                        uncommitted = True
+                    # also when nothing new came: a burst followed by quiet is committed too
+                    if uncommitted and time.monotonic() - t_commit >= commit_every:
                         t_commit = time.monotonic()
                         writer.commit()
+                        uncommitted = False
                     if count is not None and stats.messages >= count:
                         stats.stopped_by = 'count'
                         break
