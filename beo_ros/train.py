@@ -17,8 +17,8 @@ from .cli import count, existing_parent, interruptible, number, writable_dir
 from .core.bank import (UNREADABLE, check_class_names, check_save_target, is_model_dir,
                         parse_class_prior)
 from .core.grid import GridSpec
-from .core.training import (check_grid_size, drop_empty_objects, fit_bank, load_meshes,
-                            load_voxel_npz, select_classes, training_data_hash)
+from .core.training import (check_class_counts, check_grid_size, drop_empty_objects, fit_bank,
+                            load_meshes, load_voxel_npz, select_classes, training_data_hash)
 
 
 # the values of the auto|on|off options, as fit_bank takes them
@@ -208,6 +208,9 @@ def main(argv=None):
             return _calibrate_only(args, X, y, names, spec, training.get('data_sha256'))
         if args.congeal:
             from .core.congeal import congeal_classes
+            # fit_bank's check, before minutes of congealing
+            check_class_counts(y, names, args.folds if args.views > 0
+                               or args.calibration_views != 0 else 0)
             if masks is not None:
                 X, masks = congeal_classes(X, y, spec.size, masks=masks, verbose=True)
             else:

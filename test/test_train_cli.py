@@ -381,3 +381,14 @@ def test_a_text_file_named_npz_is_called_so(tmp_path):
     p.write_text('voxels, labels, classes\n')
     with pytest.raises(ValueError, match=r"notes\.npz: not an npz file \(it starts with b'voxels, '\)"):
         load_voxel_npz(p)
+
+
+def test_congeal_checks_the_class_counts_first(tmp_path, capsys, monkeypatch):
+    # a class with one object is refused before the congealing, not after it
+    from beo_ros.core import congeal
+    p = write_npz(tmp_path / 'd.npz', count=1)
+    calls = []
+    monkeypatch.setattr(congeal, 'congeal_classes', lambda *a, **k: calls.append(1))
+    assert train.main([str(p), '-o', str(tmp_path / 'm'), '--congeal'] + FAST) == 2
+    assert 'has 1 training objects' in capsys.readouterr().err
+    assert calls == [] and not (tmp_path / 'm').exists()
