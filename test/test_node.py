@@ -512,6 +512,19 @@ def test_stray_points_are_removed_and_counted(harness):
     assert spoilt.max() > 10 * clean.max(), (spoilt, clean)
 
 
+def test_implausible_message_lost_reports_are_not_added(harness):
+    # Fast DDS reported 2^31 - 1 and 2^64 - 1 clouds lost for 6 MB clouds: middleware_lost
+    # read 3e10 after 15 lost clouds
+    from types import SimpleNamespace
+    node = harness.node
+    before = node.counters()
+    for change in (3, 2**31 - 1, 2**64 - 1, 0, 2):
+        node._on_message_lost(SimpleNamespace(total_count_change=change), '/beo/input')
+    c = node.counters()
+    assert c['middleware_lost'] - before['middleware_lost'] == 5
+    assert c['middleware_lost_implausible'] - before['middleware_lost_implausible'] == 3
+
+
 def test_nonfinite_points_are_dropped_and_counted(harness):
     """A partial view with 5 non-finite points (NaN or Inf, in all or one coordinate): each
     counted once in nonfinite_points, and the cloud estimated from the others, on the stream

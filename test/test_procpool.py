@@ -177,3 +177,36 @@ def test_shutdown_ends_stopped_process(make_pool):
     assert _ended(procs)
     manager.join(WAIT)
     assert not manager.is_alive()
+
+
+def test_estimates_queued_in_a_pool_that_is_shut_down_fail_as_broken(make_pool):
+    """Before: an estimate still queued when the pool was shut down (the node replaces a pool
+    after another estimate's crash or timeout) raised CancelledError, which the node took for
+    this cloud's failure (an error, or 'internal error' to a service); now BrokenProcessPool,
+    which it retries on the new pool."""
+    pool = make_pool(n=1)
+    os.kill(pool.pids[0], signal.SIGSTOP)   # nothing is taken off the queue
+    errors = []
+
+    def call():
+        try:
+            _estimate(pool)
+        except BaseException as e:   # noqa: BLE001 - recorded and checked below
+            errors.append(type(e))
+    threads = [threading.Thread(target=call) for _ in range(4)]
+    try:
+        for t in threads:
+            t.start()
+        end = time.monotonic() + WAIT
+        while len(pool._pool._pending_work_items) < 4 and time.monotonic() < end:
+            time.sleep(0.01)
+        assert len(pool._pool._pending_work_items) == 4
+        pool.shutdown(timeout=0.2)   # cancels what is still queued, kills the stopped process
+        for t in threads:
+            t.join(WAIT)
+    finally:
+        try:
+            os.kill(pool.pids[0], signal.SIGCONT)
+        except ProcessLookupError:
+            pass
+    assert len(errors) == 4 and set(errors) == {BrokenProcessPool}, errors

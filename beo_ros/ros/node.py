@@ -63,6 +63,8 @@ DEFAULT_MODEL = 'modelnet10_32'
 MIN_ESTIMATE_TIMEOUT = 1.0  # s; an estimate takes 0.03-0.1 s
 LOG_THROTTLE_SEC = 5.0
 LATENCY_WINDOW = 200  # samples kept per stage for the p50 in diagnostics
+# a message-lost report of this many or more is garbage (seen from Fast DDS: 2^31 - 1, 2^64 - 1)
+MAX_PLAUSIBLE_LOST = 2**31 - 1
 INPUT_RELIABILITY = ('best_effort', 'reliable')
 BASE_FRAME_WITHOUT_TF = ('base_frame is set but tf2_ros is not installed; using the '
                          'sensor_origin and up_vector parameters')
@@ -270,7 +272,7 @@ class BeoNode(Node):
             'service_calls', 'service_failures', 'worker_restarts', 'worker_timeouts',
             'reload_failures', 'dropped_shutdown', 'service_dropped_shutdown',
             'incompatible_publishers',
-            'middleware_lost')})
+            'middleware_lost', 'middleware_lost_implausible')})
         self._latency = collections.defaultdict(lambda: collections.deque(maxlen=LATENCY_WINDOW))
         self._last_diag = (time.monotonic(), collections.Counter(self._counters))
 
@@ -315,7 +317,7 @@ class BeoNode(Node):
         for topic in topics:
             events = SubscriptionEventCallbacks(
                 incompatible_qos=lambda e, t=topic: self._on_incompatible_qos(e, t),
-                message_lost=lambda e: self._count('middleware_lost', e.total_count_change))
+                message_lost=lambda e, t=topic: self._on_message_lost(e, t))
             self.create_subscription(
                 PointCloud2, topic, lambda msg, t=topic: self._on_cloud(msg, t),
                 qos, callback_group=sub_group, event_callbacks=events)
@@ -567,6 +569,19 @@ class BeoNode(Node):
             f"(input_reliability '{self.get_parameter('input_reliability').value}'; policy "
             f'{qos_policy_name_from_kind(event.last_policy_kind)}): its clouds are not '
             'received')
+
+    def _on_message_lost(self, event, topic):
+        """The middleware reports clouds on ``topic`` lost before they reached the node. Fast
+        DDS sometimes reports 2^31 - 1 or 2^64 - 1 of them at once for large samples: such a
+        report is counted in ``middleware_lost_implausible``, not added."""
+        change = int(event.total_count_change)
+        if 0 < change < MAX_PLAUSIBLE_LOST:
+            self._count('middleware_lost', change)
+            return
+        self._count('middleware_lost_implausible')
+        self.get_logger().warning(
+            f"the middleware reported {change} clouds lost on '{topic}': implausible, not "
+            "counted in middleware_lost", throttle_duration_sec=LOG_THROTTLE_SEC)
 
     def _on_cloud(self, msg, topic):
         """Subscription callback: keep only the latest cloud per topic."""

@@ -14,7 +14,7 @@ import os
 import signal
 import threading
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import CancelledError, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from multiprocessing.connection import wait as wait_ready
 
@@ -204,7 +204,7 @@ class EstimatorPool:
         ``ModelBank.class_prior`` (None: the bank's own).
 
         Raises ValueError from the core as is, BrokenProcessPool when a process died while the
-        estimate was queued or running, PoolRetired when it could not be sent,
+        estimate was queued or running (or the pool was shut down with it queued), PoolRetired when it could not be sent,
         EstimateTimeout when no answer came within ``timeout`` seconds (None: no limit): a
         process that hangs (e.g. stopped, or deadlocked in a library) would otherwise hold
         the calling thread forever, so all processes are killed.
@@ -221,13 +221,19 @@ class EstimatorPool:
                 raise PoolRetired('the estimator pool was shut down') from e
             raise
         try:
-            return future.result(timeout=timeout)
-        except TimeoutError:
-            if future.done():   # finished right at the deadline
-                return future.result()
-            self.kill()
-            raise EstimateTimeout(f'no answer from the worker processes within {timeout:g} s; '
-                                  'they were killed') from None
+            try:
+                return future.result(timeout=timeout)
+            except TimeoutError:
+                if future.done():   # finished right at the deadline
+                    return future.result()
+                self.kill()
+                raise EstimateTimeout(f'no answer from the worker processes within {timeout:g} '
+                                      's; they were killed') from None
+        except CancelledError:
+            # still queued when the pool was shut down (replaced after another estimate's
+            # crash or timeout): not this cloud's fault, so the caller retries it as for a crash
+            raise BrokenProcessPool('the estimate was cancelled: its pool was shut down') \
+                from None
 
     def kill(self):
         """Kill the processes at once (SIGKILL: also ends a stopped or hung process); the pool
