@@ -512,6 +512,25 @@ def test_stray_points_are_removed_and_counted(harness):
     assert spoilt.max() > 10 * clean.max(), (spoilt, clean)
 
 
+def test_a_second_ctrl_c_while_the_processes_stop_kills_them(harness):
+    # before: a KeyboardInterrupt out of the pool's shutdown ended destroy_node with a
+    # traceback (exit 130 instead of 0, semaphores leaked)
+    class Pool:
+        killed = False
+
+        def shutdown(self, timeout):
+            raise KeyboardInterrupt
+
+        def kill(self):
+            self.killed = True
+    node = harness.node
+    pool = Pool()
+    with node._pool_lock:
+        node._pool = pool
+    node.destroy_node()
+    assert pool.killed and node._pool is None
+
+
 def test_implausible_message_lost_reports_are_not_added(harness):
     # Fast DDS reported 2^31 - 1 and 2^64 - 1 clouds lost for 6 MB clouds: middleware_lost
     # read 3e10 after 15 lost clouds

@@ -1111,7 +1111,10 @@ class BeoNode(Node):
             self._pool_closed = True
             pool, self._pool = self._pool, None
         if pool is not None:
-            pool.shutdown(timeout=5.0)
+            try:
+                pool.shutdown(timeout=5.0)
+            except KeyboardInterrupt:   # another Ctrl-C: do not wait for the processes to end
+                pool.kill()
 
     def destroy_node(self):
         """Stop the worker threads and processes, then destroy the node (idempotent)."""
@@ -1126,8 +1129,11 @@ class BeoNode(Node):
         self._shutdown_pool()
         with self._svc_threads_lock:
             reloads = list(self._reload_threads)
-        for thread in reloads:   # each shuts down the processes it was starting
-            thread.join(timeout=30.0)
+        try:
+            for thread in reloads:   # each shuts down the processes it was starting
+                thread.join(timeout=30.0)
+        except KeyboardInterrupt:   # daemon threads: they end with the process
+            log.warning('interrupted again: not waiting for the model reloads')
         self._restore_blas()
         # not on the node's logger: its /rosout publisher may be gone with the context
         lost = self._counters['dropped_shutdown']
