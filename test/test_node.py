@@ -531,6 +531,14 @@ def test_a_second_ctrl_c_while_the_processes_stop_kills_them(harness):
     assert pool.killed and node._pool is None
 
 
+def test_an_empty_frame_id_is_counted(harness):
+    node = harness.node
+    before = node.counters()['empty_frame_id']
+    node._prepare(cloud(box_view(), frame=''), node._params())
+    node._prepare(cloud(box_view()), node._params())
+    assert node.counters()['empty_frame_id'] == before + 1
+
+
 def test_implausible_message_lost_reports_are_not_added(harness):
     # Fast DDS reported 2^31 - 1 and 2^64 - 1 clouds lost for 6 MB clouds: middleware_lost
     # read 3e10 after 15 lost clouds

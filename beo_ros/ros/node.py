@@ -272,7 +272,7 @@ class BeoNode(Node):
             'service_calls', 'service_failures', 'worker_restarts', 'worker_timeouts',
             'reload_failures', 'dropped_shutdown', 'service_dropped_shutdown',
             'incompatible_publishers',
-            'middleware_lost', 'middleware_lost_implausible')})
+            'middleware_lost', 'middleware_lost_implausible', 'empty_frame_id')})
         self._latency = collections.defaultdict(lambda: collections.deque(maxlen=LATENCY_WINDOW))
         self._last_diag = (time.monotonic(), collections.Counter(self._counters))
 
@@ -682,6 +682,13 @@ class BeoNode(Node):
             keep = np.random.default_rng(0).choice(len(pts), p['max_points'], replace=False)
             pts = pts[np.sort(keep)]
             self._count('downsampled')
+        if not cloud.header.frame_id:
+            # estimated all the same (the cloud frame is implied), but no TF can place it
+            self._count('empty_frame_id')
+            self.get_logger().warning(
+                "a cloud with an empty header.frame_id: its estimate is published in frame ''"
+                + (", and up is up_vector, not TF's" if p['base_frame'] else ''),
+                throttle_duration_sec=LOG_THROTTLE_SEC)
         if up is None:
             up = self._tf_up(cloud.header.frame_id, p)
         if up is None:
