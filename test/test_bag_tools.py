@@ -179,9 +179,18 @@ def test_cli_record_on_a_full_disk_is_one_line_exit_2_and_leaves_no_lying_metada
         assert len(list(bag.read_bag(out / 'rec.db3'))) == kept
 
 
+def _committed(db):
+    """Messages committed to the sqlite3 file ``db`` so far (read-only; 0 before it exists)."""
+    import sqlite3
+    try:
+        with sqlite3.connect(f'file:{db}?mode=ro', uri=True) as c:
+            return c.execute('SELECT COUNT(*) FROM messages').fetchone()[0]
+    except sqlite3.Error:
+        return 0
+
+
 def test_sigkilled_sqlite3_recording_keeps_what_was_committed(tmp_path, ros_domain_id):
     import signal
-    import sqlite3
     out = tmp_path / 'rec'
     p = subprocess.Popen([sys.executable, '-c', RECORDER, '0', '5', '/big:std_msgs/msg/String',
                           '-o', str(out), '--duration', '600'],
@@ -190,11 +199,7 @@ def test_sigkilled_sqlite3_recording_keeps_what_was_committed(tmp_path, ros_doma
     db = out / 'rec.db3'
 
     def committed():
-        try:
-            with sqlite3.connect(f'file:{db}?mode=ro', uri=True) as c:
-                return c.execute('SELECT COUNT(*) FROM messages').fetchone()[0]
-        except sqlite3.Error:
-            return 0
+        return _committed(db)
     try:
         end = time.monotonic() + 60
         while committed() < 5 and time.monotonic() < end and p.poll() is None:
@@ -214,7 +219,6 @@ def test_sigkilled_sqlite3_recording_keeps_what_was_committed(tmp_path, ros_doma
 def test_a_burst_followed_by_quiet_is_committed(tmp_path, ctx):
     """Before: the writes were committed only when a later message came, so a burst and then
     silence stayed uncommitted (1 of 7 messages in the .db3 after kill -9)."""
-    import sqlite3
     from std_msgs.msg import String
     pub_node = rclpy.create_node('talker', context=ctx)
     rec_node = rclpy.create_node('recorder', context=ctx)
@@ -227,11 +231,7 @@ def test_a_burst_followed_by_quiet_is_committed(tmp_path, ctx):
     th.start()
 
     def committed():
-        try:
-            with sqlite3.connect(f'file:{out / "rec.db3"}?mode=ro', uri=True) as c:
-                return c.execute('SELECT COUNT(*) FROM messages').fetchone()[0]
-        except sqlite3.Error:
-            return 0
+        return _committed(out / 'rec.db3')
     try:
         assert ready.wait(10)
         end = time.monotonic() + 10
