@@ -204,8 +204,8 @@ class EstimatorPool:
         ``ModelBank.class_prior`` (None: the bank's own).
 
         Raises ValueError from the core as is, BrokenProcessPool when a process died while the
-        estimate was queued or running (or the pool was shut down with it queued), PoolRetired when it could not be sent,
-        EstimateTimeout when no answer came within ``timeout`` seconds (None: no limit): a
+        estimate was queued or running (or the pool was shut down with it queued), PoolRetired
+        when it could not be sent, EstimateTimeout when no answer came within ``timeout`` seconds (None: no limit): a
         process that hangs (e.g. stopped, or deadlocked in a library) would otherwise hold
         the calling thread forever, so all processes are killed.
         """
