@@ -205,9 +205,9 @@ class EstimatorPool:
 
         Raises ValueError from the core as is, BrokenProcessPool when a process died while the
         estimate was queued or running (or the pool was shut down with it queued), PoolRetired
-        when it could not be sent, EstimateTimeout when no answer came within ``timeout`` seconds (None: no limit): a
-        process that hangs (e.g. stopped, or deadlocked in a library) would otherwise hold
-        the calling thread forever, so all processes are killed.
+        when it could not be sent, EstimateTimeout when no answer came within ``timeout``
+        seconds (None: no limit): a process that hangs (e.g. stopped, or deadlocked in a
+        library) would otherwise hold the calling thread forever, so all processes are killed.
         """
         try:
             future = self._pool.submit(_estimate, np.ascontiguousarray(points, np.float64),
