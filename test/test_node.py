@@ -531,6 +531,29 @@ def test_a_second_ctrl_c_while_the_processes_stop_kills_them(harness):
     assert pool.killed and node._pool is None
 
 
+def test_a_service_call_cut_short_by_shutdown_is_not_an_error(harness, monkeypatch):
+    # a process-group SIGTERM ends the worker processes under a call in flight: it was logged
+    # as an ERROR and counted in errors and service_failures
+    from beo_interfaces.srv import Classify
+    node = harness.node
+
+    def no_pool(*a, **k):
+        raise RuntimeError('no usable worker process pool')
+    monkeypatch.setattr(node, '_estimate', no_pool)
+    before = node.counters()
+    monkeypatch.setattr(node, '_shutting_down', lambda: True)
+    req = Classify.Request(cloud=cloud(box_view()))
+    res = node._serve(req, Classify.Response(), False)
+    assert not res.success and res.message == 'the node is shutting down'
+    c = node.counters()
+    assert c['service_dropped_shutdown'] == before['service_dropped_shutdown'] + 1
+    assert (c['errors'], c['service_failures']) == (before['errors'], before['service_failures'])
+    monkeypatch.setattr(node, '_shutting_down', lambda: False)   # otherwise: an error, as before
+    res = node._serve(req, Classify.Response(), False)
+    assert not res.success and res.message.startswith('internal error: RuntimeError')
+    assert node.counters()['service_failures'] == before['service_failures'] + 1
+
+
 def test_an_empty_frame_id_is_counted(harness):
     node = harness.node
     before = node.counters()['empty_frame_id']

@@ -1028,11 +1028,20 @@ class BeoNode(Node):
             response.success = False
             response.message = str(e)
         except Exception as e:  # report, never crash the executor
+            response.success = False
+            if self._shutting_down():   # e.g. a signal ended the worker processes meanwhile
+                # as the stream's clouds: not an error of the call; not on the node's logger,
+                # whose /rosout publisher may be gone with the context
+                self._count('service_dropped_shutdown')
+                rclpy.logging.get_logger(f'{self.get_name()}.shutdown').info(
+                    f'{name}: call not completed, the node is shutting down '
+                    f'({type(e).__name__}: {e})')
+                response.message = 'the node is shutting down'
+                return response
             self._count('errors')
             self._count('service_failures')
             self.get_logger().error(f'{name} failed: {type(e).__name__}: {e}',
                                     throttle_duration_sec=LOG_THROTTLE_SEC)
-            response.success = False
             response.message = f'internal error: {type(e).__name__}: {e}'
         return response
 
