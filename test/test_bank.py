@@ -1811,3 +1811,12 @@ def test_completion_of_a_rotated_partial_view_matches_the_shape(pose_case):
             hidden = pv < 0
             assert hidden.sum() > 50
             assert ((e.completion >= 0.5) == rot)[hidden].mean() >= 0.95
+
+
+def test_parse_class_prior_refuses_an_unknown_name_in_the_text_form():
+    # before: 'Uniform' passed through and was refused later with the API's wording
+    from beo_ros.core.bank import parse_class_prior
+    assert parse_class_prior(' uniform ') == 'uniform' and parse_class_prior('') is None
+    assert parse_class_prior('a=1, b=2') == {'a': 1.0, 'b': 2.0}
+    with pytest.raises(ValueError, match=r"'train', 'uniform' or 'name=weight,\.\.\.'.*'Uniform'"):
+        parse_class_prior('Uniform')

@@ -631,7 +631,8 @@ def test_class_prior_parameter_is_checked_and_applied_to_the_estimates(harness):
 
     classes = node._bank.classes
     own = node._bank.class_prior
-    for value, why in (('flat', 'one of'), (f'{classes[0]}=1', 'missing'),
+    for value, why in (('flat', "'train', 'uniform' or 'name=weight"),
+                       (f'{classes[0]}=1', 'missing'),
                        (f'{classes[0]}=x', 'not a number'), ('a=1,a=2', 'each class once'),
                        (','.join(f'{c}=0' for c in classes), 'not all 0')):
         r = set_(value)

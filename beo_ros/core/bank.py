@@ -258,6 +258,9 @@ def parse_class_prior(text):
     if not text:
         return None
     if '=' not in text:
+        if text not in CLASS_PRIORS:
+            raise ValueError(f"class_prior must be 'train', 'uniform' or 'name=weight,...' with "
+                             f'each class once, got {text!r}')
         return text
     prior = {}
     for item in text.split(','):
