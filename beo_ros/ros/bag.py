@@ -385,8 +385,10 @@ class BagWriter:
             from rclpy.serialization import serialize_message
             msgtype = msgtype or msgtype_of(msg)
             data = serialize_message(msg)
-        # add_topic refuses a type other than the topic's: the bag would not deserialize
-        conn = self._conns[topic] if msgtype is None else self.add_topic(topic, msgtype)
+        conn = self._conns.get(topic)
+        if conn is None or (msgtype is not None and msgtype != conn.msgtype):
+            # add_topic refuses a type other than the topic's: the bag would not deserialize
+            conn = self.add_topic(topic, msgtype)
         try:
             self._writer.write(conn, int(stamp_ns), data)
         except storage_errors():
@@ -986,8 +988,9 @@ def record(node, bag_path, topics, *, storage: str = 'sqlite3', wait: float = 10
             in total; ``stop``: an Event to end the recording (e.g. set by SIGINT).
         ready: set once all subscriptions exist (useful to start publishers in tests).
         commit_every: sqlite3: commit the messages written at least every this many seconds
-            (default ``COMMIT_PERIOD_S``, 1 s), so that a crash or SIGKILL keeps them (the .db3 file then reads on its own; there
-            is no metadata.yaml). An mcap bag is unreadable until it is closed.
+            (default ``COMMIT_PERIOD_S``, 1 s), so that a crash or SIGKILL keeps them (the .db3
+            file then reads on its own; there is no metadata.yaml). An mcap bag is unreadable
+            until it is closed.
     Messages are stored as received (raw CDR), stamped with the node clock at receipt. A topic is
     subscribed once it has a publisher (typed topics may have none yet), with reliability and
     durability adapted to what its publishers offer. ``KeyError``, before the bag is created,

@@ -1030,10 +1030,9 @@ class BeoNode(Node):
         except Exception as e:  # report, never crash the executor
             response.success = False
             if self._shutting_down():   # e.g. a signal ended the worker processes meanwhile
-                # as the stream's clouds: not an error of the call; not on the node's logger,
-                # whose /rosout publisher may be gone with the context
+                # as the stream's clouds: not an error of the call
                 self._count('service_dropped_shutdown')
-                rclpy.logging.get_logger(f'{self.get_name()}.shutdown').info(
+                self._shutdown_logger().info(
                     f'{name}: call not completed, the node is shutting down '
                     f'({type(e).__name__}: {e})')
                 response.message = 'the node is shutting down'
@@ -1132,12 +1131,17 @@ class BeoNode(Node):
             except KeyboardInterrupt:   # another Ctrl-C: do not wait for the processes to end
                 pool.kill()
 
+    def _shutdown_logger(self):
+        """A logger for shutdown messages: not the node's, whose /rosout publisher may be gone
+        with the context."""
+        return rclpy.logging.get_logger(f'{self.get_name()}.shutdown')
+
     def destroy_node(self):
         """Stop the worker threads and processes, then destroy the node (idempotent)."""
         if self._destroyed:
             return
         self._destroyed = True
-        log = rclpy.logging.get_logger(f'{self.get_name()}.shutdown')
+        log = self._shutdown_logger()
         try:
             self._shutdown_worker()
         except KeyboardInterrupt:   # a second Ctrl-C: do not wait for the estimates in flight
@@ -1151,7 +1155,6 @@ class BeoNode(Node):
         except KeyboardInterrupt:   # daemon threads: they end with the process
             log.warning('interrupted again: not waiting for the model reloads')
         self._restore_blas()
-        # not on the node's logger: its /rosout publisher may be gone with the context
         lost = self._counters['dropped_shutdown']
         if lost:
             log.info(f'{lost} cloud(s) received but not published: waiting for a worker or '
