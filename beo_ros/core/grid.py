@@ -91,6 +91,14 @@ def yaw_matrix(yaw: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def quaternion_matrix(q) -> np.ndarray:
+    """float64 (3, 3) rotation of the unit quaternion ``q = (w, x, y, z)``."""
+    w, x, y, z = np.asarray(q, dtype=np.float64)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
 def yaw_grid(step_deg) -> np.ndarray:
     """(Y,) float64 yaws 0, step, 2 step, ... below 2 pi (radians) for a step in degrees. Every
     search builds its candidates here: the rotation maps are cached by the array's bytes."""

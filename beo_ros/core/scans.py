@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import open3d as o3d
 
-from .grid import GridSpec
+from .grid import GridSpec, quaternion_matrix
 from .pcd import PCDError, read_pcd
 from .voxelize import MIN_POINTS, ViewGrid, voxelize_view
 
@@ -90,14 +90,6 @@ def load_scene(path, require_labels: bool = True) -> Scene:
             break
     return Scene(points=pts, labels=labels, rgb=rgb, width=pcd.width, height=pcd.height,
                  path=os.fspath(path), viewpoint=viewpoint)
-
-
-def quaternion_matrix(q) -> np.ndarray:
-    """float64 (3, 3) rotation of the unit quaternion ``q = (w, x, y, z)``."""
-    w, x, y, z = np.asarray(q, dtype=np.float64)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
 
 
 def _to_sensor_frame(points, viewpoint, path) -> np.ndarray:

@@ -17,7 +17,7 @@ from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point, Pose, Quaternion, Vector3
 from sensor_msgs.msg import PointField, PointCloud2
 
-from beo_ros.core.grid import wrap_yaw
+from beo_ros.core.grid import quaternion_matrix, wrap_yaw
 
 __all__ = [
     'CloudFormatError', 'cloud_to_xyz', 'xyz_to_cloud', 'matrix_to_pose', 'pose_to_matrix',
@@ -197,11 +197,7 @@ def rotation_to_quaternion(r) -> np.ndarray:
 def quaternion_to_rotation(q) -> np.ndarray:
     """Quaternion (x, y, z, w) (any norm > 0) -> (3, 3) rotation matrix."""
     x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
+    return quaternion_matrix((w, x, y, z))
 
 
 def matrix_to_pose(t) -> Pose:
