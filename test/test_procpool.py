@@ -167,6 +167,38 @@ def test_timeout_kills_and_breaks(make_pool, tmp_path):
     assert pool.broken
 
 
+def test_one_hang_is_one_timeout(make_pool):
+    """Two estimates whose time runs out together in a hung pool: one EstimateTimeout (the
+    hang), the other BrokenProcessPool, which the node retries. Before, both could time out
+    before the executor failed the second (2 of 5 tries with 10 ms apart), so a cloud that only
+    waited was failed and counted as a second worker timeout."""
+    pool = make_pool()
+    for pid in pool.pids:
+        os.kill(pid, signal.SIGSTOP)
+    start, errors = threading.Barrier(3), []
+
+    def call():
+        start.wait()
+        try:
+            pool.estimate(np.zeros((3, 3)), np.zeros(3), np.zeros(3), 10.0, 0.5, timeout=0.5)
+        except BaseException as e:   # noqa: BLE001 - recorded and checked below
+            errors.append(type(e))
+    threads = [threading.Thread(target=call) for _ in range(3)]
+    try:
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(WAIT)
+    finally:
+        for pid in pool.pids:
+            try:
+                os.kill(pid, signal.SIGCONT)
+            except ProcessLookupError:
+                pass
+    assert sorted(e.__name__ for e in errors) == [
+        'BrokenProcessPool', 'BrokenProcessPool', 'EstimateTimeout'], errors
+
+
 def test_shutdown_ends_stopped_process(make_pool):
     """A stopped process (SIGTERM stays pending until it is continued) is killed, so neither
     shutdown nor the executor's thread (joined at interpreter exit) waits for it."""

@@ -144,6 +144,8 @@ class EstimatorPool:
     def __init__(self, n: int, bank, blas_threads: int = 1, timeout: float = 120.0):
         self.n = int(n)
         self._closed = False
+        self._killed = False   # kill() ran: the pool is broken, or about to be
+        self._kill_lock = threading.Lock()
         self._pool = ProcessPoolExecutor(
             self.n, mp_context=multiprocessing.get_context('spawn'), initializer=_init,
             initargs=(bank, int(blas_threads), os.getpid()))
@@ -208,6 +210,9 @@ class EstimatorPool:
         when it could not be sent, EstimateTimeout when no answer came within ``timeout``
         seconds (None: no limit): a process that hangs (e.g. stopped, or deadlocked in a
         library) would otherwise hold the calling thread forever, so all processes are killed.
+        Only the first estimate to time out in a pool raises EstimateTimeout; others whose
+        time runs out once the processes were killed raise BrokenProcessPool (one hang, one
+        timeout; the other clouds were only waiting).
         """
         try:
             future = self._pool.submit(_estimate, np.ascontiguousarray(points, np.float64),
@@ -226,6 +231,13 @@ class EstimatorPool:
             except TimeoutError:
                 if future.done():   # finished right at the deadline
                     return future.result()
+                with self._kill_lock:
+                    first, self._killed = not self._killed, True
+                if not first:
+                    # another estimate's timeout (or a death) killed the processes before the
+                    # executor failed this one: a hang is reported once, this cloud is retried
+                    raise BrokenProcessPool('the worker processes were killed while the '
+                                            'estimate waited') from None
                 self.kill()
                 raise EstimateTimeout(f'no answer from the worker processes within {timeout:g} '
                                       's; they were killed') from None
@@ -238,6 +250,7 @@ class EstimatorPool:
     def kill(self):
         """Kill the processes at once (SIGKILL: also ends a stopped or hung process); the pool
         is broken afterwards."""
+        self._killed = True
         for p in list((getattr(self._pool, '_processes', None) or {}).values()):
             if p.is_alive():
                 p.kill()
