@@ -53,6 +53,7 @@ setup(
             'beo-replay = beo_ros.ros.bag:replay_main',
             'beo-record = beo_ros.ros.bag:record_main',
             'beo-pcd2bag = beo_ros.ros.bag:pcd2bag_main',
+            'beo-bag-recover = beo_ros.ros.bag:recover_main',
         ],
     },
 )

@@ -303,6 +303,7 @@ class BagWriter:
         self.counts = {}
         self.failed = False
         self._opened = False
+        self.committed = 0   # messages made durable by the last commit()
 
     @property
     def storage_file(self) -> Path:
@@ -334,17 +335,28 @@ class BagWriter:
             self._writer.abort()
 
     def commit(self) -> bool:
-        """Commit the sqlite3 transaction: what is written so far survives a crash or SIGKILL
-        (the .db3 file then reads on its own, without metadata.yaml). False for mcap (its
-        file is unreadable until :meth:`close` writes the footer)."""
-        conn = getattr(self._writer.storage, 'conn', None)
-        if self.storage != 'sqlite3' or conn is None:
-            return False
+        """Make what is written so far survive a crash or SIGKILL -> True if done.
+
+        sqlite3: commit the transaction (the .db3 file then reads on its own, without
+        metadata.yaml). mcap: end the pending chunk and flush the file; without the footer
+        that :meth:`close` writes, :func:`recover_bag` reads it back."""
+        storage = self._writer.storage
         try:
-            conn.commit()
+            if self.storage == 'sqlite3':
+                conn = getattr(storage, 'conn', None)
+                if conn is None:
+                    return False
+                conn.commit()
+            else:
+                if storage is None or not hasattr(storage, 'close_chunk'):
+                    return False
+                if storage.chunk.bio.tell():
+                    storage.close_chunk()
+                storage.bio.flush()
         except Exception:
             self.failed = True
             raise
+        self.committed = sum(self.counts.values())
         return True
 
     def __enter__(self):
@@ -430,6 +442,148 @@ def bag_info(bag_path) -> dict:
                 'start_ns': reader.start_time if reader.message_count else 0,
                 'duration_s': reader.duration / 1e9 if reader.message_count else 0.0,
                 'message_count': reader.message_count, 'topics': topics}
+
+
+MCAP_MAGIC = b'\x89MCAP0\r\n'
+_MCAP_FOOTER_HEAD = b'\x02\x14' + bytes(7)   # opcode 2, length 20
+
+
+def _mcap_intact_end(path) -> tuple[int, bool]:
+    """-> (offset just past the last intact record of an mcap file's data section, whether the
+    file was closed: it ends in a footer and the magic). A record is intact when all its bytes
+    are there and, for a chunk, its records decompress to their stated size and checksum."""
+    from rosbags.rosbag2 import ReaderError
+    from rosbags.rosbag2.storage_mcap import decompress
+    size = os.path.getsize(path)
+    with open(path, 'rb') as f:
+        magic = f.read(8)
+        if not magic:
+            raise ValueError(f'{path}: empty file: nothing to recover')
+        if magic != MCAP_MAGIC[:len(magic)]:
+            raise ValueError(f'{path}: not an mcap file (no magic at its start)')
+        f.seek(8)
+        head = f.read(9)
+        if (len(head) < 9 or head[0] != 0x01
+                or 17 + int.from_bytes(head[1:], 'little') > size):
+            raise ValueError(f'{path}: cut off before the end of its header record: nothing '
+                             'to recover')
+        if size >= 8 + 37:
+            f.seek(size - 37)
+            tail = f.read(37)
+            if tail[:9] == _MCAP_FOOTER_HEAD and tail[-8:] == MCAP_MAGIC:
+                return size, True
+        end = pos = 8
+        while pos + 9 <= size:
+            f.seek(pos)
+            op, length = f.read(1)[0], int.from_bytes(f.read(8), 'little')
+            # 0x0f data end, 0x02 footer: the summary after them was being written
+            if not 0x01 <= op <= 0x10 or op in (0x02, 0x0f) or pos + 9 + length > size:
+                break
+            if op == 0x06:   # chunk: start, end, uncompressed size, crc, compression, records
+                body = f.read(length)
+                usize = int.from_bytes(body[16:24], 'little')
+                crc = int.from_bytes(body[24:28], 'little')
+                n = int.from_bytes(body[28:32], 'little')
+                comp = body[32:32 + n].decode(errors='replace')
+                data = body[32 + n + 8:]
+                try:
+                    decompress(data, comp, usize, crc)
+                except (ReaderError, ValueError, RuntimeError, OSError):
+                    break
+            pos += 9 + length
+            end = pos
+    return end, False
+
+
+def _bag_file(src) -> Path:
+    """The .db3 / .mcap file of a bag directory (or the file itself)."""
+    p = Path(src)
+    if p.is_file():
+        if p.suffix not in ('.db3', '.mcap'):
+            raise ValueError(f'{src}: not a .db3 or .mcap file')
+        return p
+    if not p.is_dir():
+        raise ValueError(f'{src}: no such bag')
+    files = sorted(f for f in p.iterdir() if f.suffix in ('.db3', '.mcap'))
+    if len(files) != 1:
+        raise ValueError(f'{src}: expected one .db3 or .mcap file, found '
+                         f'{len(files) or "none"}')
+    return files[0]
+
+
+def recover_bag(src, dst, *, storage: str | None = None) -> dict:
+    """Copy every intact message of a bag that was never closed (a recording ended by SIGKILL,
+    a crash or a full disk: no metadata.yaml, an mcap file without its footer) into a new,
+    closed bag ``dst``, as ``ros2 bag reindex`` and ``mcap recover`` would.
+
+    ``src``: bag directory or its .db3 / .mcap file; ``storage``: dst's (default src's).
+    -> ``{'messages', 'topics': {topic: count}, 'storage', 'lost_bytes'}``; ``lost_bytes``:
+    the tail of an mcap file that was cut off mid-record (0 for sqlite3). ValueError for a
+    source that is not a bag, or whose mcap data is unreadable from the start.
+    """
+    import tempfile
+
+    from rosbags.rosbag2 import Reader
+    path = _bag_file(src)
+    storage = storage or ('mcap' if path.suffix == '.mcap' else 'sqlite3')
+    dst = Path(dst)
+    lost = 0
+    with tempfile.TemporaryDirectory(prefix='.beo_recover_', dir=dst.parent) as tmp:
+        readable = path
+        if path.suffix == '.mcap':
+            end, closed = _mcap_intact_end(path)
+            if not closed:
+                lost = os.path.getsize(path) - end
+                readable = Path(tmp) / path.name
+                with open(path, 'rb') as fin, open(readable, 'wb') as fout:
+                    shutil.copyfileobj(_limited(fin, end), fout, 1 << 20)
+                    # data end (no crc), then a footer without a summary: readers scan the data
+                    fout.write(b'\x0f' + (4).to_bytes(8, 'little') + bytes(4))
+                    fout.write(_MCAP_FOOTER_HEAD + bytes(20) + MCAP_MAGIC)
+        topics = {}
+        with Reader(readable) as reader, _removed_on_error(BagWriter(dst, storage)) as writer:
+            for c in reader.connections:
+                profiles = getattr(getattr(c, 'ext', None), 'offered_qos_profiles', None) or []
+                writer.add_topic(c.topic, c.msgtype, transient_local=recorded_latched(c),
+                                 reliable=not profiles or any(
+                                     getattr(q.reliability, 'name', '') == 'RELIABLE'
+                                     for q in profiles))
+                topics.setdefault(c.topic, 0)
+            # a repaired mcap file has no index: its messages in file order (the reader would
+            # refuse stamps that go back, e.g. two topics; the new bag indexes them)
+            messages = (reader.storage.messages_scan(reader.connections)
+                        if readable is not path else reader.messages())
+            for conn, t, raw in messages:
+                writer.write(conn.topic, bytes(raw), t, conn.msgtype)
+                topics[conn.topic] += 1
+    return {'messages': sum(topics.values()), 'topics': topics, 'storage': storage,
+            'lost_bytes': lost}
+
+
+@contextlib.contextmanager
+def _removed_on_error(writer):
+    """Open ``writer``; close it on success, abort it and remove its bag on any exception."""
+    with writer:
+        try:
+            yield writer
+        except BaseException:
+            writer.failed = True
+            writer.abort()
+            shutil.rmtree(writer.path, ignore_errors=True)
+            raise
+
+
+def _limited(f, n: int):
+    """A reader of the first ``n`` bytes of file ``f`` (for shutil.copyfileobj)."""
+    class _Reader:
+        left = n
+
+        def read(self, size=-1):
+            size = self.left if size < 0 else min(size, self.left)
+            data = f.read(size)
+            self.left -= len(data)
+            return data
+    return _Reader()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -852,7 +1006,7 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
 # record
 # ---------------------------------------------------------------------------------------------
 
-COMMIT_PERIOD_S = 1.0   # beo-record commits its sqlite3 bag at least this often
+COMMIT_PERIOD_S = 1.0   # beo-record commits its bag at least this often
 
 
 class BagWriteError(Exception):
@@ -875,13 +1029,16 @@ def _write_failure(writer, exc) -> str:
                 kept = db.execute('SELECT COUNT(*) FROM messages').fetchone()[0]
         except sqlite3.Error:
             kept = 0
+    else:
+        kept = writer.committed
     if kept:
+        how = ('no metadata.yaml: play or read that file itself, or' if writer.storage ==
+               'sqlite3' else 'no footer:')
         return (f'{reason}; {writer.storage_file} keeps the {kept} message(s) committed before '
-                'the error (no metadata.yaml: play or read that file itself)')
+                f'the error ({how} beo-bag-recover {writer.path} -o NEW makes a closed bag of '
+                'them)')
     shutil.rmtree(writer.path, ignore_errors=True)
-    why = ('an mcap file is unreadable without the footer written when it is closed'
-           if writer.storage == 'mcap' else 'nothing in it was committed')
-    return f'{reason}; the unfinished bag was removed ({why})'
+    return f'{reason}; the unfinished bag was removed (nothing in it was committed)'
 
 
 @dataclass
@@ -987,10 +1144,10 @@ def record(node, bag_path, topics, *, storage: str = 'sqlite3', wait: float = 10
         duration: stop after this many seconds of recording; ``count``: after this many messages
             in total; ``stop``: an Event to end the recording (e.g. set by SIGINT).
         ready: set once all subscriptions exist (useful to start publishers in tests).
-        commit_every: sqlite3: commit the messages written at least every this many seconds
-            (default ``COMMIT_PERIOD_S``, 1 s), so that a crash or SIGKILL keeps them (the .db3
-            file then reads on its own; there is no metadata.yaml). An mcap bag is unreadable
-            until it is closed.
+        commit_every: commit the messages written at least every this many seconds (default
+            ``COMMIT_PERIOD_S``, 1 s), so that a crash or SIGKILL keeps them: a .db3 file then
+            reads on its own (there is no metadata.yaml), an mcap file through
+            :func:`recover_bag` (it has no footer).
     Messages are stored as received (raw CDR), stamped with the node clock at receipt. A topic is
     subscribed once it has a publisher (typed topics may have none yet), with reliability and
     durability adapted to what its publishers offer. ``KeyError``, before the bag is created,
@@ -1486,6 +1643,41 @@ def pcd2bag_main(argv=None) -> int:
             print(f'{Path(s["scene"]).name}: {len(s["objects"])} object(s){pts}, up ({up})')
         print(' '.join(f'{t}: {n}' for t, n in summary['topics'].items()) + f' -> {args.output} '
               f'({args.storage})')
+    return 0
+
+
+@interruptible('beo-bag-recover')
+def recover_main(argv=None) -> int:
+    p = argparse.ArgumentParser(
+        prog='beo-bag-recover', description='Copy the intact messages of a bag that was never '
+        'closed (a recording ended by SIGKILL, a crash or a full disk: no metadata.yaml, or an '
+        'mcap file without its footer) into a new, closed bag.')
+    p.add_argument('bag', help='bag directory, or its .db3 / .mcap file')
+    p.add_argument('-o', '--output', required=True, metavar='BAG', help='new bag directory')
+    p.add_argument('--storage', choices=STORAGES,
+                   help="the new bag's storage (default: the old one's)")
+    p.add_argument('--json', action='store_true', help='print the summary as JSON')
+    args = p.parse_args(argv)
+    problem = _output_problem(args.output)
+    if problem:
+        p.error(problem)
+    try:
+        summary = recover_bag(args.bag, args.output, storage=args.storage)
+    except (ValueError, KeyError) as e:   # not a bag, nothing intact, a type without a definition
+        print(f'beo-bag-recover: {e.args[0] if isinstance(e, KeyError) else e}',
+              file=sys.stderr)
+        return 2
+    except storage_errors() as e:
+        print(f'beo-bag-recover: {args.bag}: {e}', file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        topics = ' '.join(f'{t}: {n}' for t, n in summary['topics'].items()) or 'no topics'
+        lost = (f'; {summary["lost_bytes"]} bytes cut off mid-record were left out'
+                if summary['lost_bytes'] else '')
+        print(f'{summary["messages"]} message(s) ({topics}) -> {args.output} '
+              f'({summary["storage"]}){lost}')
     return 0
 
 

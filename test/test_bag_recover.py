@@ -1,0 +1,138 @@
+"""Bags that were never closed (SIGKILL, crash, full disk): BagWriter.commit makes mcap data
+durable too, and recover_bag / beo-bag-recover copy the intact messages into a closed bag."""
+import os
+import subprocess
+import sys
+
+import pytest
+
+pytest.importorskip('rosbags')
+pytest.importorskip('rclpy')
+
+from beo_ros.ros import bag  # noqa: E402
+
+# writes argv[3] messages on /a (latched) and /b, commits, writes argv[4] more on /a, then
+# ends as SIGKILL would: no close, no flush of Python's buffers
+KILLED_WRITER = r'''
+import os, sys
+from std_msgs.msg import String
+from beo_ros.ros.bag import BagWriter
+storage, path, n, extra = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
+w = BagWriter(path, storage).open()
+w.add_topic('/a', 'std_msgs/msg/String', transient_local=True)
+for i in range(n):
+    w.write('/a', String(data=f'a{i}:' + 'x' * 3000), 1000 + i)
+    w.write('/b', String(data=f'b{i}'), 500 + i)   # stamps behind /a's: file order != time order
+assert w.commit()
+for i in range(extra):
+    w.write('/a', String(data=f'lost{i}'), 5000 + i)
+os._exit(9)
+'''
+
+
+def _killed_bag(tmp_path, storage, n=400, extra=3):
+    out = tmp_path / 'killed'
+    p = subprocess.run([sys.executable, '-c', KILLED_WRITER, storage, str(out), str(n),
+                        str(extra)], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 9, p.stderr
+    assert not (out / 'metadata.yaml').exists()
+    return out
+
+
+def _texts(path):
+    from std_msgs.msg import String
+    from rclpy.serialization import deserialize_message
+    return [(t, deserialize_message(raw, String).data.split(':')[0])
+            for t, _, _, raw in bag.read_bag(path)]
+
+
+@pytest.mark.parametrize('storage', bag.STORAGES)
+def test_a_killed_recording_recovers_what_was_committed(tmp_path, storage):
+    """Before: an mcap recording killed with SIGKILL kept nothing (the chunk in memory, no
+    footer; rosbags: 'File end magic is invalid'); now every committed message is recovered,
+    with its topic's QoS, and only the messages after the last commit are lost."""
+    killed = _killed_bag(tmp_path, storage)
+    if storage == 'mcap':
+        from rosbags.rosbag2 import ReaderError
+        with pytest.raises(ReaderError):   # what a reader makes of it on its own
+            list(bag.read_bag(bag._bag_file(killed)))
+    summary = bag.recover_bag(killed, tmp_path / 'new')
+    assert summary == {'messages': 800, 'topics': {'/a': 400, '/b': 400}, 'storage': storage,
+                       'lost_bytes': 0}
+    info = bag.bag_info(tmp_path / 'new')   # a closed bag: metadata.yaml and all
+    assert (tmp_path / 'new' / 'metadata.yaml').is_file() and info['message_count'] == 800
+    got = _texts(tmp_path / 'new')
+    assert sorted(got) == sorted([('/a', f'a{i}') for i in range(400)]
+                                 + [('/b', f'b{i}') for i in range(400)])
+    from rosbags.rosbag2 import Reader
+    with Reader(tmp_path / 'new') as r:
+        assert {c.topic: bag.recorded_latched(c) for c in r.connections} == {
+            '/a': True, '/b': False}
+
+
+def test_an_mcap_file_cut_anywhere_gives_a_prefix_of_its_messages(tmp_path):
+    """A file cut mid-record (a full disk, a crash while a chunk was written) keeps the
+    messages of its intact chunks; cut inside its header it says there is nothing to
+    recover and leaves no bag behind."""
+    killed = _killed_bag(tmp_path, 'mcap', n=1000, extra=0)   # 3 MB: 1 MiB chunks
+    data = bag._bag_file(killed).read_bytes()
+    cuts = [0, 5, 30, 60, len(data) // 3, len(data) // 2, len(data) - 1, len(data)]
+    counts = []
+    for i, cut in enumerate(cuts):
+        src = tmp_path / f'cut{i}.mcap'
+        src.write_bytes(data[:cut])
+        dst = tmp_path / f'rec{i}'
+        if cut < 60:
+            with pytest.raises(ValueError, match='empty|header'):
+                bag.recover_bag(src, dst)
+            assert not dst.exists()
+            continue
+        summary = bag.recover_bag(src, dst)
+        counts.append(summary['messages'])
+        assert len(list(bag.read_bag(dst))) == summary['messages']
+        assert (summary['lost_bytes'] > 0) == (cut < len(data))
+    assert counts == sorted(counts) and counts[0] == 0 and counts[-1] == 2000
+    assert 0 < counts[2] < 2000   # half the file: its first chunk
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith('.beo_recover_')]
+
+
+def test_a_closed_bag_is_copied_whole_into_the_other_storage(tmp_path):
+    from std_msgs.msg import String
+    src = tmp_path / 'closed'
+    with bag.BagWriter(src, 'mcap') as w:
+        for i in range(5):
+            w.write('/s', String(data=str(i)), 10 + i)
+    summary = bag.recover_bag(src, tmp_path / 'copy', storage='sqlite3')
+    assert summary == {'messages': 5, 'topics': {'/s': 5}, 'storage': 'sqlite3',
+                       'lost_bytes': 0}
+    assert bag.detect_storage(tmp_path / 'copy') == 'sqlite3'
+    assert [raw for *_, raw in bag.read_bag(tmp_path / 'copy')] == [
+        raw for *_, raw in bag.read_bag(src)]
+
+
+def test_cli_recover(tmp_path, capsys):
+    killed = _killed_bag(tmp_path, 'mcap', n=3)
+    assert bag.recover_main([str(killed), '-o', str(tmp_path / 'ok')]) == 0
+    out = capsys.readouterr().out
+    assert out.strip() == f'6 message(s) (/a: 3 /b: 3) -> {tmp_path / "ok"} (mcap)'
+    (tmp_path / 'junk.mcap').write_bytes(b'not an mcap file at all')
+    for src, why in ((tmp_path / 'nope', 'no such bag'), (tmp_path / 'junk.mcap', 'not an mcap'),
+                     (tmp_path / 'ok' / 'metadata.yaml', 'not a .db3 or .mcap')):
+        assert bag.recover_main([str(src), '-o', str(tmp_path / 'x')]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith('beo-bag-recover: ') and why in err and len(err.splitlines()) == 1
+        assert not (tmp_path / 'x').exists()
+    with pytest.raises(SystemExit):   # the output exists already
+        bag.recover_main([str(killed), '-o', str(tmp_path / 'ok')])
+    assert 'exists already' in capsys.readouterr().err
+
+
+def test_commit_of_an_mcap_writer_without_new_messages_is_harmless(tmp_path):
+    from std_msgs.msg import String
+    with bag.BagWriter(tmp_path / 'b', 'mcap') as w:
+        assert w.commit()   # nothing written yet
+        w.write('/s', String(data='a'), 1)
+        assert w.commit() and w.commit() and w.committed == 1
+        w.write('/s', String(data='b'), 2)
+    assert [t for _, _, t, _ in bag.read_bag(tmp_path / 'b')] == [1, 2]
+    assert os.path.getsize(tmp_path / 'b' / 'b.mcap') > 0
