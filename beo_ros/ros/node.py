@@ -1104,6 +1104,17 @@ class BeoNode(Node):
         with self._stats_lock:
             return {k: float(np.median(v)) for k, v in self._latency.items() if v}
 
+    @property
+    def worker_threads(self) -> int:
+        """Worker threads in use: the ``workers`` parameter, at least ``worker_processes``."""
+        return self._n_workers
+
+    def backlog(self) -> dict:
+        """Clouds not yet published: ``waiting`` for a worker (at most one per topic) and
+        ``in_flight`` (taken by a worker)."""
+        with self._cond:
+            return {'waiting': len(self._slots), 'in_flight': self._in_flight}
+
     def _publish_diagnostics(self):
         now = time.monotonic()
         counters = self.counters()
