@@ -277,3 +277,46 @@ def test_bench_domain_is_in_the_linux_safe_range():
     from beo_ros.bench import bench_domain
     domains = {bench_domain(pid) for pid in range(1, 5000)}
     assert domains == set(range(215, 233))
+
+
+def test_rate_row_of_a_replay():
+    """Sent / arrived matched by stamp, counter increments, sustained only without losses."""
+    from beo_ros.bench import _rate_row
+    probe = {'sent': {'1': 0.0, '2': 0.1, '3': 0.2}, 'got': {'1': 0.05, '2': 0.2, '9': 0.3},
+             'wall_s': 0.2}
+    d = {'received': 3, 'processed': 2, 'dropped_stale': 1, 'rejected': 0, 'errors': 0}
+    row = _rate_row(10.0, probe, d, 0.5)
+    assert list(row) == ['rate_hz', 'sent', 'sent_per_s', 'received', 'estimates',
+                         'dropped_stale', 'rejected', 'errors', 'lost', 'missing_estimates',
+                         'order_waits', 'objects_per_s', 'e2e_p50_ms', 'e2e_p95_ms',
+                         'e2e_max_ms', 'sustained']
+    assert (row['sent'], row['estimates'], row['lost'], row['missing_estimates']) == (3, 2, 0, 0)
+    assert row['sent_per_s'] == pytest.approx(10.0) and row['objects_per_s'] == pytest.approx(
+        1 / 0.15)
+    assert row['e2e_max_ms'] == pytest.approx(100.0) and row['order_waits'] == 0
+    assert row['sustained'] and not _rate_row(10.0, probe, d, 0.2)['sustained']
+
+
+class _FakeNode:
+    """counters() and backlog() of a node that finishes one cloud per call."""
+
+    def __init__(self):
+        self.calls = 0
+
+    def counters(self):
+        self.calls += 1
+        done = min(self.calls, 3)
+        return {'received': 3, 'processed': done, 'dropped_stale': 0, 'rejected': 0,
+                'errors': 0}
+
+    def backlog(self):
+        return {'waiting': int(self.calls < 3), 'in_flight': int(self.calls < 3)}
+
+
+def test_bench_node_settles_through_the_public_api(monkeypatch):
+    import beo_ros.bench as bench
+    monkeypatch.setattr(bench.time, 'sleep', lambda s: None)
+    b = bench._BenchNode(None, None, [])
+    b.node = _FakeNode()
+    b.settle(timeout=5.0)
+    assert b.node.calls == 4   # idle at the third call, confirmed by a fourth

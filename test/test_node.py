@@ -876,6 +876,30 @@ def test_two_workers_keep_latest_cloud_and_in_flight_limit(harness2):
     assert c['received'] == c['processed'] + c['dropped_stale']
 
 
+def test_worker_threads_and_backlog_are_read_only_snapshots(harness2):
+    """The public view of the worker threads and of the clouds waiting / in flight."""
+    harness = harness2
+    node, gated, msg = _gated_node(harness, 2)
+    assert node.worker_threads == 2
+    with pytest.raises(AttributeError):
+        node.worker_threads = 3
+    assert node.backlog() == {'waiting': 0, 'in_flight': 0}
+    try:
+        node._on_cloud(msg, '/beo/input')
+        gated.wait(lambda g: len(g.entered) == 1)
+        node._on_cloud(msg, '/beo/input')
+        gated.wait(lambda g: len(g.entered) == 2)
+        node._on_cloud(msg, '/beo/input')
+        backlog = node.backlog()
+        assert backlog == {'waiting': 1, 'in_flight': 2}
+        backlog['waiting'] = 0   # a copy: the node's state is not touched
+        assert node.backlog()['waiting'] == 1 and len(node._slots) == 1
+    finally:
+        gated.gate.set()
+    harness.wait_counter(lambda c: c['processed'] == 3)
+    assert _until(lambda: node.backlog() == {'waiting': 0, 'in_flight': 0})
+
+
 def test_two_workers_overlap_and_publish_each_topic_in_order(harness2):
     """A slow cloud and a fast later cloud of one topic are estimated at the same time, but
     the later one is published only after the earlier one."""

@@ -183,11 +183,41 @@ class BeoNode(Node):
 
     # ------------------------------------------------------------------ setup
     def _setup(self, bank):
+        """Everything the constructor does after the base class, in order (the constructor
+        undoes it when this raises)."""
+        srvs = self._import_interfaces()
+        params, topics = self._read_parameters()
+        self._setup_models(bank)
+        self._setup_stats()
+        self._setup_tf()
+        sub_group = MutuallyExclusiveCallbackGroup()
+        self._svc_group = ReentrantCallbackGroup()
+        self._timer_group = MutuallyExclusiveCallbackGroup()
+        self._create_publishers()
+        self._setup_queue()
+        # the throw-away estimate comes before the subscriptions: a node that listens is ready
+        # (a bag replay that waits for the subscriber would otherwise see its first cloud wait
+        # for the warm-up and the next replace it as stale)
+        self._warm_up()
+        self._subscribe(topics, params['input_reliability'], sub_group)
+        self._create_services(srvs)
+        self._diag_timer = self.create_timer(self.get_parameter('diagnostics_period').value,
+                                             self._publish_diagnostics,
+                                             callback_group=self._timer_group)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self._start_workers()
+
+    def _import_interfaces(self):
+        """The beo_interfaces service module (``self._msgs``: its messages)."""
         try:
             self._msgs = interfaces()
             import beo_interfaces.srv as srvs
         except ImportError as e:
             raise StartupError(f'beo_interfaces is not available ({e}); run scripts/setup') from e
+        return srvs
+
+    def _read_parameters(self):
+        """Declare and check the parameters; (parameter values, resolved input topics)."""
         try:
             self._declare_parameters()
         except Exception as e:  # out-of-range / wrong-type overrides
@@ -213,7 +243,12 @@ class BeoNode(Node):
             reason = self._check(name, params[name], params)
             if reason:
                 raise StartupError(f'invalid parameter: {reason}')
-        topics = []   # resolved before the models load: a bad name fails fast
+        return params, self._resolve_topics(input_topics)
+
+    def _resolve_topics(self, input_topics) -> list:
+        """The ``input_topics`` resolved, without repeats (before the models load: a bad name
+        fails fast)."""
+        topics = []
         for topic in input_topics:
             try:
                 resolved = self.resolve_topic_name(topic)
@@ -224,7 +259,11 @@ class BeoNode(Node):
                                           'subscription')
                 continue
             topics.append(resolved)
+        return topics
 
+    def _setup_models(self, bank):
+        """Worker counts, BLAS limits, the model bank (``bank`` or loaded from ``model_dir``)
+        with the class prior, and the worker processes."""
         self._bank_lock = threading.Lock()  # serialises model reloads (the swap itself is atomic)
         self._n_procs = int(self.get_parameter('worker_processes').value)
         # each process is fed by a thread of its own
@@ -249,20 +288,26 @@ class BeoNode(Node):
         self.get_logger().info(f'class prior: {prior_text(bank)}')
         self._bank = bank
         if self._n_procs:
-            t0 = time.monotonic()
-            try:
-                self._pool = self._new_pool(bank)
-            except Exception as e:
-                if not self.context.ok():   # e.g. a SIGTERM to the group ended the processes
-                    raise ExternalShutdownException() from None
-                raise StartupError(f'cannot start {self._n_procs} worker process(es) '
-                                   f'({type(e).__name__}: {e}); a script that creates the '
-                                   "node needs the if __name__ == '__main__': guard") from e
-            if not self.context.ok():   # shut down by a signal during the seconds that took
-                raise ExternalShutdownException()
-            self.get_logger().info(f'{self._n_procs} worker process(es) ready in '
-                                   f'{time.monotonic() - t0:.1f} s')
+            self._start_pool(bank)
 
+    def _start_pool(self, bank):
+        """Start the ``worker_processes`` (blocks for seconds)."""
+        t0 = time.monotonic()
+        try:
+            self._pool = self._new_pool(bank)
+        except Exception as e:
+            if not self.context.ok():   # e.g. a SIGTERM to the group ended the processes
+                raise ExternalShutdownException() from None
+            raise StartupError(f'cannot start {self._n_procs} worker process(es) '
+                               f'({type(e).__name__}: {e}); a script that creates the '
+                               "node needs the if __name__ == '__main__': guard") from e
+        if not self.context.ok():   # shut down by a signal during the seconds that took
+            raise ExternalShutdownException()
+        self.get_logger().info(f'{self._n_procs} worker process(es) ready in '
+                               f'{time.monotonic() - t0:.1f} s')
+
+    def _setup_stats(self):
+        """The counters and the stage latency windows (all zero)."""
         self._stats_lock = threading.Lock()
         self._counters = collections.Counter({k: 0 for k in (
             'received', 'processed', 'dropped_stale', 'order_waits', 'rejected',
@@ -276,6 +321,8 @@ class BeoNode(Node):
         self._latency = collections.defaultdict(lambda: collections.deque(maxlen=LATENCY_WINDOW))
         self._last_diag = (time.monotonic(), collections.Counter(self._counters))
 
+    def _setup_tf(self):
+        """The TF listener when ``base_frame`` is set (and tf2_ros installed)."""
         self._tf_buffer = None
         self._tf_listener = None
         self._tf_lock = threading.Lock()
@@ -287,15 +334,15 @@ class BeoNode(Node):
             self._tf_buffer = tf2_ros.Buffer()
             self._tf_listener = tf2_ros.TransformListener(self._tf_buffer, self)
 
-        sub_group = MutuallyExclusiveCallbackGroup()
-        self._svc_group = ReentrantCallbackGroup()
-        self._timer_group = MutuallyExclusiveCallbackGroup()
+    def _create_publishers(self):
         self._pub_estimate = self.create_publisher(self._msgs.ObjectEstimate, '~/estimates', 10)
         self._pub_completed = self.create_publisher(PointCloud2, '~/completed', 10)
         self._pub_pose = self.create_publisher(PoseStamped, '~/pose', 10)
         self._pub_markers = self.create_publisher(MarkerArray, '~/markers', 10)
         self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
 
+    def _setup_queue(self):
+        """The latest-cloud slots the worker threads take from, and the publish order."""
         self._cond = threading.Condition()
         self._slots = {}  # resolved topic -> (PointCloud2, receipt monotonic time)
         self._stop = False
@@ -305,13 +352,12 @@ class BeoNode(Node):
         self._turn = collections.Counter()      # topic -> ticket allowed to publish now
         self._turn_cond = threading.Condition()
         self._in_flight = 0
-        # the throw-away estimate comes before the subscriptions: a node that listens is ready
-        # (a bag replay that waits for the subscriber would otherwise see its first cloud wait
-        # for the warm-up and the next replace it as stale)
-        self._warm_up()
+
+    def _subscribe(self, topics, reliability, group):
+        """One subscription per resolved topic (``reliability``: input_reliability)."""
         self._topics = []
         qos = qos_profile_sensor_data
-        if params['input_reliability'] == 'reliable':
+        if reliability == 'reliable':
             qos = QoSProfile(depth=qos_profile_sensor_data.depth, history=HistoryPolicy.KEEP_LAST,
                              reliability=ReliabilityPolicy.RELIABLE)
         for topic in topics:
@@ -320,10 +366,11 @@ class BeoNode(Node):
                 message_lost=lambda e, t=topic: self._on_message_lost(e, t))
             self.create_subscription(
                 PointCloud2, topic, lambda msg, t=topic: self._on_cloud(msg, t),
-                qos, callback_group=sub_group, event_callbacks=events)
+                qos, callback_group=group, event_callbacks=events)
             self._topics.append(topic)
         self._topic_index = {t: i for i, t in enumerate(self._topics)}
 
+    def _create_services(self, srvs):
         # the default service QoS keeps the last 10 requests: of a burst of 40 calls the
         # middleware dropped 29 before the executor took them, unanswered and uncounted
         svc_qos = QoSProfile(history=HistoryPolicy.KEEP_ALL,
@@ -334,11 +381,8 @@ class BeoNode(Node):
         self._srv_complete = self.create_service(srvs.Complete, '~/complete', self._on_complete,
                                                  qos_profile=svc_qos,
                                                  callback_group=self._svc_group)
-        self._diag_timer = self.create_timer(self.get_parameter('diagnostics_period').value,
-                                             self._publish_diagnostics,
-                                             callback_group=self._timer_group)
-        self.add_on_set_parameters_callback(self._on_set_parameters)
 
+    def _start_workers(self):
         self._workers = [threading.Thread(target=self._worker_loop, name=f'beo_worker_{i}',
                                           daemon=True)
                          for i in range(self._n_workers)]
@@ -1059,6 +1103,17 @@ class BeoNode(Node):
         """Median seconds per stage over the last samples."""
         with self._stats_lock:
             return {k: float(np.median(v)) for k, v in self._latency.items() if v}
+
+    @property
+    def worker_threads(self) -> int:
+        """Worker threads in use: the ``workers`` parameter, at least ``worker_processes``."""
+        return self._n_workers
+
+    def backlog(self) -> dict:
+        """Clouds not yet published: ``waiting`` for a worker (at most one per topic) and
+        ``in_flight`` (taken by a worker)."""
+        with self._cond:
+            return {'waiting': len(self._slots), 'in_flight': self._in_flight}
 
     def _publish_diagnostics(self):
         now = time.monotonic()
