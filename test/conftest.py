@@ -79,3 +79,27 @@ def pytest_unconfigure(config):
     2026-11-23, a wedged ProcessPoolExecutor thread) prints every thread's stack and fails
     within EXIT_GRACE s instead of holding CI until its own limit."""
     faulthandler.dump_traceback_later(EXIT_GRACE, exit=True)
+
+
+@pytest.fixture
+def ros_env_context(ros_domain_id):
+    """An initialised rclpy Context on a domain of its own, discovery as the environment sets
+    it (unlike ros_context); shut down afterwards."""
+    import rclpy
+
+    # a domain per test: a participant of the test before (its /clock subscriber) can linger in
+    # the discovery graph of the next context of this process and would match its endpoints
+    c = rclpy.Context()
+    rclpy.init(context=c, domain_id=ros_domain_id)
+    yield c
+    rclpy.try_shutdown(context=c)
+
+
+@pytest.fixture
+def keep_signal_handlers():
+    """The command-line tools install SIGINT/SIGTERM handlers: put pytest's back."""
+    import signal
+    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    yield
+    for s, h in saved.items():
+        signal.signal(s, h)

@@ -16,54 +16,19 @@ os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'OFF')
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 import rclpy  # noqa: E402
-from builtin_interfaces.msg import Time  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.qos import qos_profile_sensor_data  # noqa: E402
 from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
-from std_msgs.msg import Float64MultiArray, Header, String  # noqa: E402
+from std_msgs.msg import Float64MultiArray, String  # noqa: E402
 
 from beo_ros.ros import bag  # noqa: E402
-from beo_ros.ros.conversions import cloud_to_xyz, xyz_to_cloud  # noqa: E402
+from beo_ros.ros.conversions import cloud_to_xyz  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
+from _helpers import (REPO, T0, cli_env, make_cloud, signal_loop_replay,  # noqa: E402
+                      wait_for_nodes, write_scene_pcd, write_test_bag)
+
 DATA = Path(os.environ.get('BEO_DATA_DIR', REPO.parent / 'shared' / 'data'))
-T0 = 1_700_000_000_000_000_000
-
-
-def stamp(ns):
-    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
-
-
-def make_cloud(i, n=50, frame='camera', ns=None):
-    rng = np.random.default_rng(i)
-    pts = rng.normal(size=(n, 3)).astype(np.float32) * 0.1 + np.float32(i)
-    return pts, xyz_to_cloud(pts, Header(stamp=stamp(ns if ns is not None else T0 + i),
-                                         frame_id=frame))
-
-
-def write_test_bag(path, storage, n=10, period_ns=10_000_000, extra_topic=True):
-    """n clouds on /beo/input (stamps T0 + i*period), and a String every 2nd step on /chatter."""
-    clouds = []
-    with bag.BagWriter(path, storage) as w:
-        for i in range(n):
-            ns = T0 + i * period_ns
-            pts, msg = make_cloud(i, ns=ns)
-            clouds.append(pts)
-            w.write('/beo/input', msg, ns)
-            if extra_topic and i % 2 == 0:
-                w.write('/chatter', String(data=f'hello {i}'), ns + 1)
-    return clouds
-
-
-@pytest.fixture
-def ctx(ros_domain_id):
-    # a domain per test: a participant of the test before (its /clock subscriber) can linger in
-    # the discovery graph of the next context of this process and would match its endpoints
-    c = rclpy.Context()
-    rclpy.init(context=c, domain_id=ros_domain_id)
-    yield c
-    rclpy.try_shutdown(context=c)
 
 
 class Spinner:
@@ -227,15 +192,15 @@ def wait_for(pred, timeout=10.0):
 
 
 @pytest.mark.parametrize('storage', bag.STORAGES)
-def test_replay_in_process(ctx, tmp_path, storage):
+def test_replay_in_process(ros_env_context, tmp_path, storage):
     p = tmp_path / 'b'
     clouds = write_test_bag(p, storage, n=10, period_ns=20_000_000)
-    pub_node = rclpy.create_node('replayer', context=ctx)
-    sub_node = rclpy.create_node('listener', context=ctx)
+    pub_node = rclpy.create_node('replayer', context=ros_env_context)
+    sub_node = rclpy.create_node('listener', context=ros_env_context)
     from rclpy.qos import QoSProfile
     got = collect(sub_node, '/remapped', qos=QoSProfile(depth=100))
     chatter = collect(sub_node, '/chatter', String, QoSProfile(depth=100))
-    spin = Spinner(ctx, sub_node)
+    spin = Spinner(ros_env_context, sub_node)
     try:
         stats = bag.replay(p, pub_node, remap=['/beo/input:=/remapped'], rate=1.0,
                            wait_subscribers=1, wait_timeout=5.0)
@@ -259,10 +224,10 @@ def test_replay_in_process(ctx, tmp_path, storage):
     assert '/remapped' in stats.table()
 
 
-def test_replay_rate_loop_topics_and_stop(ctx, tmp_path):
+def test_replay_rate_loop_topics_and_stop(ros_env_context, tmp_path):
     p = tmp_path / 'b'
     write_test_bag(p, 'mcap', n=10, period_ns=100_000_000)   # 0.9 s span
-    node = rclpy.create_node('replayer', context=ctx)
+    node = rclpy.create_node('replayer', context=ros_env_context)
     t = time.monotonic()
     stats = bag.replay(p, node, rate=0, loops=3, all_topics=True)
     assert time.monotonic() - t < 0.9     # rate 0: no sleeping
@@ -284,13 +249,13 @@ def test_replay_rate_loop_topics_and_stop(ctx, tmp_path):
     assert stats.interrupted and stats.messages < 10
 
 
-def test_replay_best_effort_reaches_sensor_qos_subscriber(ctx, tmp_path):
+def test_replay_best_effort_reaches_sensor_qos_subscriber(ros_env_context, tmp_path):
     p = tmp_path / 'b'
     write_test_bag(p, 'sqlite3', n=5, period_ns=10_000_000)
-    pub_node = rclpy.create_node('replayer', context=ctx)
-    sub_node = rclpy.create_node('listener', context=ctx)
+    pub_node = rclpy.create_node('replayer', context=ros_env_context)
+    sub_node = rclpy.create_node('listener', context=ros_env_context)
     got = collect(sub_node, '/beo/input')
-    spin = Spinner(ctx, sub_node)
+    spin = Spinner(ros_env_context, sub_node)
     try:
         stats = bag.replay(p, pub_node, qos='best_effort', wait_subscribers=1)
         assert wait_for(lambda: len(got) == 5, 5)
@@ -306,10 +271,10 @@ def test_replay_best_effort_reaches_sensor_qos_subscriber(ctx, tmp_path):
                          for i in infos)
 
 
-def test_record_in_process_then_read_back(ctx, tmp_path):
+def test_record_in_process_then_read_back(ros_env_context, tmp_path):
     """record() from a live publisher; the bag is readable by rosbags and rclpy."""
-    pub_node = rclpy.create_node('talker', context=ctx)
-    rec_node = rclpy.create_node('recorder', context=ctx)
+    pub_node = rclpy.create_node('talker', context=ros_env_context)
+    rec_node = rclpy.create_node('recorder', context=ros_env_context)
     cloud_pub = pub_node.create_publisher(PointCloud2, '/beo/input', 10)
     arr_pub = pub_node.create_publisher(Float64MultiArray, '/beo/table_plane', 10)
     out = tmp_path / 'rec'
@@ -348,16 +313,16 @@ def test_record_in_process_then_read_back(ctx, tmp_path):
     assert planes == [[0.0, 0.0, 1.0, float(i)] for i in range(4)]
 
 
-def test_record_unknown_topic_times_out(ctx, tmp_path):
-    node = rclpy.create_node('recorder', context=ctx)
+def test_record_unknown_topic_times_out(ros_env_context, tmp_path):
+    node = rclpy.create_node('recorder', context=ros_env_context)
     with pytest.raises(KeyError, match='/nobody'):
         bag.record(node, tmp_path / 'x', ['/nobody'], wait=0.2)
 
 
-def test_record_beo_interfaces_topic(ctx, tmp_path):
+def test_record_beo_interfaces_topic(ros_env_context, tmp_path):
     msgs = _beo_interfaces()
-    pub_node = rclpy.create_node('talker', context=ctx)
-    rec_node = rclpy.create_node('recorder', context=ctx)
+    pub_node = rclpy.create_node('talker', context=ros_env_context)
+    rec_node = rclpy.create_node('recorder', context=ros_env_context)
     pub = pub_node.create_publisher(msgs.ObjectEstimate, '/beo/estimates', 10)
     ready, result = threading.Event(), {}
     th = threading.Thread(target=lambda: result.setdefault('s', bag.record(
@@ -390,17 +355,9 @@ def test_cli_help(main, capsys):
     assert 'usage:' in capsys.readouterr().out
 
 
-def _cli_env(domain):
-    env = dict(os.environ)
-    env['ROS_DOMAIN_ID'] = str(domain)
-    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    env['PYTHONPATH'] = str(REPO) + os.pathsep + env.get('PYTHONPATH', '')
-    return env
-
-
 def test_cli_record_and_replay_subprocesses(tmp_path, ros_domain_id):
     """beo-record and beo-replay as separate processes on a private domain."""
-    env = _cli_env(ros_domain_id)
+    env = cli_env(ros_domain_id)
     src = tmp_path / 'src'
     write_test_bag(src, 'sqlite3', n=6, period_ns=100_000_000)
     out = tmp_path / 'out'
@@ -541,16 +498,16 @@ def test_topic_specs_and_types_of_one_topic():
         bag.check_topic_name('/a//b')
 
 
-def test_record_refuses_two_names_of_one_topic_with_different_types(ctx, tmp_path):
-    node = rclpy.create_node('rec_names', context=ctx)
+def test_record_refuses_two_names_of_one_topic_with_different_types(ros_env_context, tmp_path):
+    node = rclpy.create_node('rec_names', context=ros_env_context)
     with pytest.raises(ValueError, match='/x is given twice'):
         bag.record(node, tmp_path / 'r', {'x': 'std_msgs/msg/String',
                                           '/x': 'sensor_msgs/msg/PointCloud2'}, duration=0.1)
     assert not (tmp_path / 'r').exists()
 
 
-def test_record_interrupted_while_waiting_for_publishers_says_so(ctx, tmp_path):
-    node = rclpy.create_node('rec_wait', context=ctx)
+def test_record_interrupted_while_waiting_for_publishers_says_so(ros_env_context, tmp_path):
+    node = rclpy.create_node('rec_wait', context=ros_env_context)
     stop = threading.Event()
     threading.Timer(0.3, stop.set).start()
     t = time.monotonic()
@@ -561,29 +518,12 @@ def test_record_interrupted_while_waiting_for_publishers_says_so(ctx, tmp_path):
     assert not (tmp_path / 'r').exists()
 
 
-def _wait_for_nodes(domain, names, timeout=60.0):
-    """Block until nodes ``names`` (of other processes) are in domain ``domain``'s graph."""
-    import rclpy
-    from rclpy.context import Context
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=domain)
-    try:
-        node = rclpy.create_node('beo_test_watcher', context=ctx)
-        end = time.monotonic() + timeout
-        while not names <= set(node.get_node_names()) and time.monotonic() < end:
-            time.sleep(0.1)
-        assert names <= set(node.get_node_names()), f'{names} never appeared'
-        node.destroy_node()
-    finally:
-        ctx.try_shutdown()
-
-
 def test_cli_sigint_before_anything_is_played_or_recorded_exits_130(tmp_path, ros_domain_id):
     """beo-replay waiting for subscribers and beo-record waiting for a publisher, interrupted:
     exit code 130, one line, no traceback (the replay used to exit 0, the recorder 2 with 'no
     publisher found within 30 s')."""
     import signal
-    env = _cli_env(ros_domain_id)
+    env = cli_env(ros_domain_id)
     write_test_bag(tmp_path / 'b', 'sqlite3', n=2)
     code = 'import sys; from beo_ros.ros.bag import {0}; sys.exit({0}(sys.argv[1:]))'
     procs = [subprocess.Popen([sys.executable, '-c', code.format(main), *args], env=env,
@@ -593,7 +533,7 @@ def test_cli_sigint_before_anything_is_played_or_recorded_exits_130(tmp_path, ro
                                   '--wait-timeout', '30']),
                  ('record_main', ['/nopub', '-o', str(tmp_path / 'r'), '--wait', '30']))]
     try:
-        _wait_for_nodes(ros_domain_id, {'beo_replay', 'beo_record'})
+        wait_for_nodes(ros_domain_id, {'beo_replay', 'beo_record'})
         time.sleep(1.0)   # from their node's appearance to their wait: well under a second
         results = []
         for p in procs:
@@ -612,25 +552,6 @@ def test_cli_sigint_before_anything_is_played_or_recorded_exits_130(tmp_path, ro
     assert not (tmp_path / 'r').exists()
 
 
-def signal_loop_replay(tmp_path, ros_domain_id, sig, settle=0.0):
-    """Run ``beo-replay BAG --loop`` in a subprocess, send it ``sig`` once its node is up (and
-    ``settle`` s later); -> (exit code, stdout, stderr)."""
-    write_test_bag(tmp_path / 'b', 'sqlite3', n=3)
-    code = 'import sys; from beo_ros.ros.bag import replay_main; sys.exit(replay_main(sys.argv[1:]))'
-    p = subprocess.Popen([sys.executable, '-c', code, str(tmp_path / 'b'), '--loop'],
-                         env=_cli_env(ros_domain_id), stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True)
-    try:
-        _wait_for_nodes(ros_domain_id, {'beo_replay'})
-        time.sleep(settle)
-        p.send_signal(sig)
-        out, err = p.communicate(timeout=30)
-    finally:
-        if p.poll() is None:
-            p.kill()
-    return p.returncode, out, err
-
-
 def test_cli_loop_replay_ended_by_sigint_exits_0(tmp_path, ros_domain_id):
     """With --loop, Ctrl-C is the normal end once the replay plays."""
     import signal
@@ -638,16 +559,6 @@ def test_cli_loop_replay_ended_by_sigint_exits_0(tmp_path, ros_domain_id):
     rc, out, err = signal_loop_replay(tmp_path, ros_domain_id, signal.SIGINT, settle=2.0)
     assert rc == 0, err
     assert 'interrupted' in out and 'Traceback' not in err
-
-
-@pytest.fixture
-def keep_signal_handlers():
-    """The command-line tools install SIGINT/SIGTERM handlers: put pytest's back."""
-    import signal
-    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-    yield
-    for s, h in saved.items():
-        signal.signal(s, h)
 
 
 def test_cli_node_ignores_the_tools_own_remap_arguments(monkeypatch, keep_signal_handlers):
@@ -673,12 +584,12 @@ def _bag_with_uninstalled_type(path):
             w.write('/beo/input', make_cloud(i)[1], T0 + 10 + i)
 
 
-def test_replay_skips_topics_of_types_not_installed(ctx, tmp_path):
+def test_replay_skips_topics_of_types_not_installed(ros_env_context, tmp_path):
     p = tmp_path / 'b'
     _bag_with_uninstalled_type(p)
     with pytest.raises(KeyError, match='is not installed'):
         bag.import_msg_class('foo_msgs/msg/Bar')
-    node = rclpy.create_node('player', context=ctx)
+    node = rclpy.create_node('player', context=ros_env_context)
     stats = bag.replay(p, node, all_topics=True, rate=0)
     assert stats.skipped == {'/foo': 'foo_msgs/msg/Bar'} and set(stats.topics) == {'/beo/input'}
     assert stats.messages == 4 and '1 topic(s) skipped' in stats.table()
@@ -703,22 +614,6 @@ def test_cli_record_of_an_unknown_type_leaves_no_bag(tmp_path, capsys, keep_sign
     assert bag.record_main(['/x:foo_msgs/msg/Bar', '-o', str(out), '--duration', '1']) == 2
     assert 'foo_msgs/msg/Bar' in capsys.readouterr().err
     assert not out.exists()   # a re-run would be refused: 'exists already'
-
-
-def write_scene_pcd(path, labels=True, objects=True):
-    """A labelled organized scene as the OSD ones: a table 0.3 m below the camera (label 1) and
-    a box on it (label 20, or 1 with objects=False); no label field with labels=False."""
-    from beo_ros.core.pcd import write_pcd
-    rng = np.random.default_rng(0)
-    m, k = 600, 300
-    table = np.c_[rng.uniform(-0.4, 0.4, m), np.full(m, 0.3), rng.uniform(0.6, 1.4, m)]
-    box = np.c_[rng.uniform(-0.05, 0.05, k), rng.uniform(0.2, 0.3, k), rng.uniform(0.95, 1.05, k)]
-    pts = np.r_[table, box].astype(np.float32)
-    fields = {'x': pts[:, 0], 'y': pts[:, 1], 'z': pts[:, 2]}
-    if labels:
-        fields['label'] = np.r_[np.ones(m), np.full(k, 20 if objects else 1)].astype(np.uint32)
-    write_pcd(path, fields, width=(m + k) // 3, height=3)
-    return path
 
 
 def test_pcd2bag_synthetic_scene(tmp_path):
@@ -897,7 +792,7 @@ def test_pcd2bag_osd(tmp_path, storage):
 
 def test_cli_record_stops_on_sigint_and_duration(tmp_path, ros_domain_id):
     import signal
-    env = _cli_env(ros_domain_id)
+    env = cli_env(ros_domain_id)
     code = 'import sys; from beo_ros.ros.bag import record_main; sys.exit(record_main(sys.argv[1:]))'
     out = tmp_path / 'sig'
     rec = subprocess.Popen([sys.executable, '-c', code, '/nobody:std_msgs/msg/String', '-o',
@@ -926,7 +821,7 @@ def test_cli_record_stops_on_sigint_and_duration(tmp_path, ros_domain_id):
     assert time.monotonic() - t < 20
 
 
-def test_replay_plays_latched_topics_transient_local(ctx, tmp_path):
+def test_replay_plays_latched_topics_transient_local(ros_env_context, tmp_path):
     """A topic recorded from transient-local publishers (like /tf_static) is played
     transient-local: a transient-local subscriber that joins after the replay still gets
     it. A volatile topic is not kept for late subscribers."""
@@ -937,14 +832,14 @@ def test_replay_plays_latched_topics_transient_local(ctx, tmp_path):
         w.add_topic('/plain', 'std_msgs/msg/String')
         w.write('/latched', String(data='static'), 1)
         w.write('/plain', String(data='volatile'), 2)
-    pub_node = rclpy.create_node('replayer', context=ctx)
+    pub_node = rclpy.create_node('replayer', context=ros_env_context)
     stats = bag.replay(p, pub_node, all_topics=True, rate=0, qos='best_effort')
     assert stats.latched == ['/latched'] and 'transient-local' in stats.table()
-    sub_node = rclpy.create_node('late_listener', context=ctx)
+    sub_node = rclpy.create_node('late_listener', context=ros_env_context)
     latched_qos = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL)
     late = collect(sub_node, '/latched', String, latched_qos)
     plain = collect(sub_node, '/plain', String, QoSProfile(depth=10))
-    spin = Spinner(ctx, sub_node)
+    spin = Spinner(ros_env_context, sub_node)
     try:
         assert wait_for(lambda: [m.data for m in late] == ['static'], 5)
         time.sleep(0.3)
@@ -953,7 +848,7 @@ def test_replay_plays_latched_topics_transient_local(ctx, tmp_path):
     assert plain == []
 
 
-def test_replay_publishes_the_bag_time_on_clock(ctx, tmp_path):
+def test_replay_publishes_the_bag_time_on_clock(ros_env_context, tmp_path):
     """clock_hz: /clock carries the bag time, before every message and in between, never
     going back; a node with use_sim_time follows it."""
     from rclpy.parameter import Parameter
@@ -965,13 +860,13 @@ def test_replay_publishes_the_bag_time_on_clock(ctx, tmp_path):
         w.add_topic('/chatter', 'std_msgs/msg/String')
         for i in range(3):
             w.write('/chatter', String(data=str(i)), t0 + i * 200_000_000)
-    pub_node = rclpy.create_node('replayer', context=ctx)
-    sub_node = rclpy.create_node('clock_listener', context=ctx)
-    sim_node = rclpy.create_node('sim', context=ctx,
+    pub_node = rclpy.create_node('replayer', context=ros_env_context)
+    sub_node = rclpy.create_node('clock_listener', context=ros_env_context)
+    sim_node = rclpy.create_node('sim', context=ros_env_context,
                                  parameter_overrides=[Parameter('use_sim_time', value=True)])
     clocks = collect(sub_node, '/clock', Clock,
                      QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT))
-    spin = Spinner(ctx, sub_node, sim_node)
+    spin = Spinner(ros_env_context, sub_node, sim_node)
     try:
         stats = bag.replay(p, pub_node, all_topics=True, rate=1.0, clock_hz=50.0,
                            wait_subscribers=0)
@@ -989,7 +884,7 @@ def test_replay_publishes_the_bag_time_on_clock(ctx, tmp_path):
         bag.replay(p, pub_node, clock_hz=float('nan'))
 
 
-def test_replay_keeps_every_latched_message_for_late_subscribers(ctx, tmp_path):
+def test_replay_keeps_every_latched_message_for_late_subscribers(ros_env_context, tmp_path):
     """Three latched messages (three static broadcasters' /tf_static) all reach a late
     transient-local subscriber, even with --depth 1."""
     from rclpy.qos import DurabilityPolicy, QoSProfile
@@ -998,12 +893,12 @@ def test_replay_keeps_every_latched_message_for_late_subscribers(ctx, tmp_path):
         w.add_topic('/static', 'std_msgs/msg/String', transient_local=True)
         for i, name in enumerate(('laser', 'camera', 'imu')):
             w.write('/static', String(data=name), i + 1)
-    node = rclpy.create_node('replayer', context=ctx)
+    node = rclpy.create_node('replayer', context=ros_env_context)
     bag.replay(p, node, all_topics=True, rate=0, depth=1)
-    sub_node = rclpy.create_node('late', context=ctx)
+    sub_node = rclpy.create_node('late', context=ros_env_context)
     got = collect(sub_node, '/static', String,
                   QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL))
-    spin = Spinner(ctx, sub_node)
+    spin = Spinner(ros_env_context, sub_node)
     try:
         assert wait_for(lambda: len(got) == 3, 5), [m.data for m in got]
     finally:
@@ -1045,7 +940,7 @@ def test_clock_ticks_never_pass_the_next_message_nor_the_deadline(monkeypatch):
         assert len(ticks) >= int(deadline / 0.025) - 1 and all(t < deadline for t in ticks)
 
 
-def test_replay_waits_for_a_clock_subscriber_with_its_data_subscribers(ctx, tmp_path):
+def test_replay_waits_for_a_clock_subscriber_with_its_data_subscribers(ros_env_context, tmp_path):
     """With wait_subscribers and clock_hz, /clock is matched before the first message when a
     use_sim_time node listens (no wait beyond its data topics); without a /clock subscriber
     the replay starts after a grace of CLOCK_GRACE_S."""
@@ -1053,14 +948,14 @@ def test_replay_waits_for_a_clock_subscriber_with_its_data_subscribers(ctx, tmp_
     from rosgraph_msgs.msg import Clock
     p = tmp_path / 'b'
     write_test_bag(p, 'sqlite3', n=2, period_ns=10_000_000)
-    pub_node = rclpy.create_node('replayer', context=ctx)
-    sub_node = rclpy.create_node('listener', context=ctx)
+    pub_node = rclpy.create_node('replayer', context=ros_env_context)
+    sub_node = rclpy.create_node('listener', context=ros_env_context)
     collect(sub_node, '/beo/input')
     stats = bag.replay(p, pub_node, rate=0, wait_subscribers=1, clock_hz=40.0)
     assert bag.CLOCK_GRACE_S - 0.05 <= stats.waited_s < bag.CLOCK_GRACE_S + 2.0
     clocks = collect(sub_node, '/clock', Clock,
                      QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
-    spin = Spinner(ctx, sub_node)
+    spin = Spinner(ros_env_context, sub_node)
     try:
         stats = bag.replay(p, pub_node, rate=0, wait_subscribers=1, clock_hz=40.0)
         assert wait_for(lambda: len(clocks) == 2, 5)

@@ -1,7 +1,7 @@
 """Bag tools (beo_ros.ros.bag): fixes found in review -- acknowledged delivery at --rate 0, write
 and read errors as one line, the recorded QoS, remaps onto one topic, SIGTERM, empty topics.
 
-Helpers and fixtures come from test_bag.py.
+Helpers come from _helpers.py, fixtures from conftest.py.
 """
 import json
 import os
@@ -11,13 +11,17 @@ import threading
 import time
 from types import SimpleNamespace
 
-import numpy as np
-import pytest
-import rclpy
+# as in test_bag.py: no discovery outside the process unless the environment asks for it
+os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'OFF')
 
-from beo_ros.ros import bag
-from test_bag import (T0, _cli_env, ctx, keep_signal_handlers, make_cloud,  # noqa: F401
-                      write_test_bag)
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+import rclpy  # noqa: E402
+
+from beo_ros.ros import bag  # noqa: E402
+
+from _helpers import (T0, cli_env, make_cloud, signal_loop_replay, stamp,  # noqa: E402
+                      write_scene_pcd, write_test_bag)
 
 CODE = 'import sys; from beo_ros.ros.bag import {0}; sys.exit({0}(sys.argv[1:]))'
 
@@ -99,12 +103,11 @@ def test_cli_replay_rate_0_delivers_every_cloud_to_a_reliable_subscriber_of_anot
     pts = np.random.default_rng(0).normal(size=(20_000, 3)).astype(np.float32)
     from std_msgs.msg import Header
     from beo_ros.ros.conversions import xyz_to_cloud
-    from test_bag import stamp
     with bag.BagWriter(tmp_path / 'b', 'mcap') as w:
         for i in range(n):
             ns = T0 + i * 10_000_000
             w.write('/beo/input', xyz_to_cloud(pts, Header(stamp=stamp(ns), frame_id='c')), ns)
-    env = _cli_env(ros_domain_id)
+    env = cli_env(ros_domain_id)
     sub = subprocess.Popen([sys.executable, '-c', SUBSCRIBER, str(n)], env=env,
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
@@ -165,7 +168,7 @@ def test_cli_record_on_a_full_disk_is_one_line_exit_2_and_leaves_no_lying_metada
     p = subprocess.run([sys.executable, '-c', RECORDER, str(1_000_000), '100',
                         '/big:std_msgs/msg/String', '-o', str(out), '--storage', storage,
                         '--duration', '60'],
-                       env=_cli_env(ros_domain_id), capture_output=True, text=True, timeout=120)
+                       env=cli_env(ros_domain_id), capture_output=True, text=True, timeout=120)
     assert p.returncode == 2, p.stderr
     lines = [ln for ln in p.stderr.splitlines() if ln.startswith('beo-record')]
     assert len(lines) == 1 and 'Traceback' not in p.stderr, p.stderr
@@ -196,7 +199,7 @@ def test_sigkilled_sqlite3_recording_keeps_what_was_committed(tmp_path, ros_doma
     out = tmp_path / 'rec'
     p = subprocess.Popen([sys.executable, '-c', RECORDER, '0', '5', '/big:std_msgs/msg/String',
                           '-o', str(out), '--duration', '600'],
-                         env=_cli_env(ros_domain_id), stdout=subprocess.PIPE,
+                         env=cli_env(ros_domain_id), stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True)
     db = out / 'rec.db3'
 
@@ -218,12 +221,12 @@ def test_sigkilled_sqlite3_recording_keeps_what_was_committed(tmp_path, ros_doma
     assert len(got) == 5 and all(t == '/big' and m == 'std_msgs/msg/String' for t, m, _, _ in got)
 
 
-def test_a_burst_followed_by_quiet_is_committed(tmp_path, ctx):
+def test_a_burst_followed_by_quiet_is_committed(tmp_path, ros_env_context):
     """Before: the writes were committed only when a later message came, so a burst and then
     silence stayed uncommitted (1 of 7 messages in the .db3 after kill -9)."""
     from std_msgs.msg import String
-    pub_node = rclpy.create_node('talker', context=ctx)
-    rec_node = rclpy.create_node('recorder', context=ctx)
+    pub_node = rclpy.create_node('talker', context=ros_env_context)
+    rec_node = rclpy.create_node('recorder', context=ros_env_context)
     pub = pub_node.create_publisher(String, '/chatter', 100)
     ready, stop, result = threading.Event(), threading.Event(), {}
     out = tmp_path / 'rec'
@@ -285,13 +288,14 @@ def test_cli_replay_of_a_bag_corrupt_part_way_is_one_line_exit_2_with_what_was_p
 # 4. the offered QoS stored by record is that of the publisher matched
 # ------------------------------------------------------------------------------------------
 
-def test_record_stores_the_qos_of_a_publisher_that_appears_after_it_started(ctx, tmp_path):
+def test_record_stores_the_qos_of_a_publisher_that_appears_after_it_started(
+        ros_env_context, tmp_path):
     """A typed topic recorded before its publisher exists: the bag used to store the QoS seen
     at the start (volatile, best effort), so a latched topic was replayed volatile."""
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from rosbags.rosbag2 import Reader
     from std_msgs.msg import String
-    rec_node = rclpy.create_node('recorder', context=ctx)
+    rec_node = rclpy.create_node('recorder', context=ros_env_context)
     ready, result = threading.Event(), {}
     th = threading.Thread(target=lambda: result.setdefault('s', bag.record(
         rec_node, tmp_path / 'r', ['/latched:std_msgs/msg/String',
@@ -299,7 +303,7 @@ def test_record_stores_the_qos_of_a_publisher_that_appears_after_it_started(ctx,
         count=1, ready=ready)))
     th.start()
     assert ready.wait(10)
-    pub_node = rclpy.create_node('talker', context=ctx)
+    pub_node = rclpy.create_node('talker', context=ros_env_context)
     pub = pub_node.create_publisher(String, '/latched', QoSProfile(
         depth=1, reliability=ReliabilityPolicy.RELIABLE,
         durability=DurabilityPolicy.TRANSIENT_LOCAL))
@@ -311,7 +315,7 @@ def test_record_stores_the_qos_of_a_publisher_that_appears_after_it_started(ctx,
         conns = {c.topic: c for c in r.connections}
         assert bag.recorded_latched(conns['/latched'])
         assert set(conns) == {'/latched', '/never'} and not bag.recorded_latched(conns['/never'])
-    player = rclpy.create_node('player', context=ctx)
+    player = rclpy.create_node('player', context=ros_env_context)
     stats = bag.replay(tmp_path / 'r', player, all_topics=True, rate=0)
     assert stats.latched == ['/latched'] and stats.topics['/latched'].count == 1
 
@@ -320,11 +324,11 @@ def test_record_stores_the_qos_of_a_publisher_that_appears_after_it_started(ctx,
 # 8. bag_span_s counts only the messages sent
 # ------------------------------------------------------------------------------------------
 
-def test_interrupted_replay_span_leaves_out_the_message_never_sent(ctx, tmp_path):
+def test_interrupted_replay_span_leaves_out_the_message_never_sent(ros_env_context, tmp_path):
     """Before, the stamp of the message being waited for counted: 10 s here."""
     write_test_bag(tmp_path / 'b', 'sqlite3', n=2, period_ns=10_000_000_000, extra_topic=False)
     stop = threading.Event()
-    node = rclpy.create_node('player', context=ctx)
+    node = rclpy.create_node('player', context=ros_env_context)
     stats = bag.replay(tmp_path / 'b', node, rate=1.0, stop=stop,
                        on_publish=lambda *a: stop.set())
     assert stats.interrupted and stats.messages == 1 and stats.bag_span_s == 0.0
@@ -350,12 +354,12 @@ def test_cli_replay_refuses_two_types_on_one_topic(tmp_path, capsys, keep_signal
     assert len(err.splitlines()) == 1
 
 
-def test_replay_refuses_a_topic_of_another_type_in_the_graph(ctx, tmp_path):
+def test_replay_refuses_a_topic_of_another_type_in_the_graph(ros_env_context, tmp_path):
     from std_msgs.msg import String
     write_test_bag(tmp_path / 'b', 'sqlite3', n=2, extra_topic=False)
-    other = rclpy.create_node('other', context=ctx)
+    other = rclpy.create_node('other', context=ros_env_context)
     other.create_publisher(String, '/taken', 10)
-    player = rclpy.create_node('player', context=ctx)
+    player = rclpy.create_node('player', context=ros_env_context)
     with pytest.raises(KeyError, match='/taken has type std_msgs/msg/String in the ROS graph'):
         bag.replay(tmp_path / 'b', player, remap={'/beo/input': '/taken'}, rate=0)
 
@@ -375,7 +379,6 @@ def test_cli_replay_refuses_topics_with_all_topics(tmp_path, capsys):
 def test_cli_loop_replay_ended_by_sigterm_exits_143(tmp_path, ros_domain_id):
     """Before, SIGTERM was taken as Ctrl-C: a --loop replay exited 0."""
     import signal
-    from test_bag import signal_loop_replay
     rc, _, err = signal_loop_replay(tmp_path, ros_domain_id, signal.SIGTERM)
     assert rc == 143, err
     assert 'beo-replay: terminated' in err and 'Traceback' not in err, err
@@ -408,7 +411,6 @@ def test_demo_forces_discovery_off(monkeypatch):
 
 def test_cli_pcd2bag_without_any_cloud_exits_2_and_writes_no_bag(tmp_path, capsys):
     """Before: a bag with 0 clouds, exit 0, '1 object(s) ( points)'."""
-    from test_bag import write_scene_pcd
     scene = write_scene_pcd(tmp_path / 's.pcd')
     out = tmp_path / 'b'
     assert bag.pcd2bag_main([str(scene), '-o', str(out), '--min-points', '100000']) == 2

@@ -1,6 +1,7 @@
 """beo-bench: a quick in-process smoke run and unit tests of the peers on generated shapes."""
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -92,6 +93,89 @@ def test_baselines_refuse_a_wrong_size_or_empty_grid(shapes, peer):
     for fill in (-1, 0):   # all unknown (a matmul error), all free (ICP: a silent (0, 0, 0))
         with pytest.raises(ValueError, match='no occupied voxel'):
             model.predict(np.full((N,) * 3, fill, np.int8))
+
+
+def _peer(peer, **params):
+    from beo_ros.core.baselines import ICPDatabase, PaperPCA
+    return (PaperPCA if peer == 'paper' else ICPDatabase)(**params)
+
+
+@pytest.mark.parametrize('peer, params', [
+    ('paper', dict(k=3, n_yaws=5, ridge=0.1)),
+    ('icp', dict(per_class=None, n_init_yaws=2, max_dist=1.5, max_iter=7, seed=None)),
+])
+def test_baselines_store_their_arguments_and_learn_attributes_ending_in_underscore(
+        shapes, peer, params):
+    """scikit-learn style: __init__ only stores the arguments; fit adds ``name_`` attributes
+    only, and returns the estimator."""
+    if peer == 'icp':
+        pytest.importorskip('open3d')
+    X, y, names, _ = shapes
+    model = _peer(peer, **params)
+    assert vars(model) == params
+    assert model.fit(X, y, names, N) is model
+    learned = {a for a in vars(model) if a not in params}
+    assert learned and all(a.endswith('_') and not a.startswith('_') for a in learned), learned
+    assert model.n_ == N and model.classes_ == list(names)
+
+
+@pytest.mark.parametrize('peer, params, message', [
+    ('paper', dict(k=0), 'k must be an integer >= 1, got 0'),
+    ('paper', dict(k=2.5), 'k must be an integer >= 1, got 2.5'),
+    ('paper', dict(n_yaws=True), 'n_yaws must be an integer >= 1, got True'),
+    ('paper', dict(ridge=-1.0), 'ridge must be a finite number >= 0, got -1.0'),
+    ('paper', dict(ridge=float('nan')), 'ridge must be a finite number >= 0, got nan'),
+    ('icp', dict(per_class=0), 'per_class must be an integer >= 1, got 0'),
+    ('icp', dict(n_init_yaws=0), 'n_init_yaws must be an integer >= 1, got 0'),
+    ('icp', dict(max_dist=0), 'max_dist must be a finite number > 0, got 0'),
+    ('icp', dict(max_iter='30'), "max_iter must be an integer >= 1, got '30'"),
+    ('icp', dict(seed=-1), 'seed must be an integer >= 0, got -1'),
+])
+def test_baselines_refuse_bad_parameters_at_fit(shapes, peer, params, message):
+    X, y, names, _ = shapes
+    model = _peer(peer, **params)   # stored as given, checked by fit
+    with pytest.raises(ValueError, match=re.escape(message)):
+        model.fit(X, y, names, N)
+
+
+@pytest.mark.parametrize('peer', ['paper', 'icp'])
+def test_baselines_refuse_training_data_that_does_not_fit_together(shapes, peer):
+    X, y, names, _ = shapes
+    model = _peer(peer)
+    with pytest.raises(ValueError, match=r'X must have shape \(objects, 512\) \(flattened 8'):
+        model.fit(X, y, names, 8)
+    with pytest.raises(ValueError, match=r'n must be an integer >= 1, got 0'):
+        model.fit(X, y, names, 0)
+    with pytest.raises(ValueError, match=r'y must have shape \(24,\) \(one label per row'):
+        model.fit(X, y[:-1], names, N)
+    with pytest.raises(ValueError, match=r'y must hold class indices 0\.\.1 \(into names\), '
+                                         r'got \[2\]'):
+        model.fit(X, np.where(y == 1, 2, y), names, N)
+    with pytest.raises(ValueError, match='names must name at least one class'):
+        model.fit(X, y, [], N)
+
+
+def test_icp_baseline_refuses_an_empty_database():
+    """Objects too small for a surface (< 4 voxels): predict would answer class 0, yaw 0."""
+    pytest.importorskip('open3d')
+    X = np.zeros((2, N ** 3), np.float32)
+    X[:, 0] = 1
+    with pytest.raises(ValueError, match='the database would be empty'):
+        _peer('icp').fit(X, np.array([0, 1]), ['a', 'b'], N)
+
+
+@pytest.mark.parametrize('peer', ['paper', 'icp'])
+def test_baselines_used_before_fit_say_so(peer):
+    from sklearn.exceptions import NotFittedError
+    model = _peer(peer)
+    calls = [lambda: model.predict(np.ones((N,) * 3, np.int8)), lambda: model.nbytes]
+    if peer == 'icp':
+        calls.append(lambda: model.size)
+    for call in calls:
+        with pytest.raises(NotFittedError, match=f'This {type(model).__name__} instance is '
+                                                 'not fitted yet'):
+            call()
+    assert issubclass(NotFittedError, ValueError)
 
 
 def test_yaw_error_wraps():

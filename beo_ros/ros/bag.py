@@ -829,6 +829,164 @@ class BagReadError(ValueError):
         self.stats = stats
 
 
+def _replay_connections(reader, bag_path, topics, all_topics: bool, remap: dict) -> list:
+    """The connections of the open bag ``reader`` to play: those of ``topics``, all of them
+    (``all_topics``) or the PointCloud2 ones. ``KeyError`` for a topic in ``topics`` or a
+    remapped topic that is not in the bag."""
+    if topics:
+        wanted = set(topics)
+        missing = wanted - {c.topic for c in reader.connections}
+        if missing:
+            raise KeyError(f'topics not in bag {bag_path}: {sorted(missing)}')
+        conns = [c for c in reader.connections if c.topic in wanted]
+    elif all_topics:
+        conns = list(reader.connections)
+    else:
+        conns = [c for c in reader.connections if c.msgtype == CLOUD_TYPE]
+    unknown = set(remap) - {c.topic for c in reader.connections}
+    if unknown:   # a typo would otherwise play on the old name
+        raise KeyError(f'remapped topics not in bag {bag_path}: {sorted(unknown)}')
+    return conns
+
+
+def _replay_publishers(node, conns, remap: dict, stats: ReplayStats, qos: str, depth: int,
+                       strict: bool) -> tuple[list, dict, dict]:
+    """Publishers for the connections to play -> (the connections kept, {bag topic: publisher},
+    {published topic: its first publisher}); adds their topics to ``stats.topics`` (and
+    ``stats.latched``). A topic of a type not installed raises ``KeyError`` if ``strict`` (it
+    was asked for), else it is left out and listed in ``stats.skipped``."""
+    kept, pubs, pub_by_out = [], {}, {}
+    for c in conns:
+        out = remap.get(c.topic, c.topic)
+        if c.topic in stats.skipped:
+            continue
+        if c.topic not in pubs:
+            try:
+                latched = recorded_latched(c)
+                # keep every latched message for late subscribers (one per static
+                # broadcaster on /tf_static), not only the last ``depth``
+                pubs[c.topic] = _publisher(node, c.msgtype, out, qos,
+                                           max(depth, int(getattr(c, 'msgcount', 0) or 0))
+                                           if latched else depth, latched)
+                if latched:
+                    stats.latched.append(out)
+            except KeyError:   # type not installed: fatal only for a topic asked for
+                if strict:
+                    raise
+                stats.skipped[c.topic] = c.msgtype
+                continue
+            pub_by_out.setdefault(out, pubs[c.topic])
+            stats.topics.setdefault(out, TopicStats(out, c.topic, c.msgtype))
+        kept.append(c)
+    return kept, pubs, pub_by_out
+
+
+def _wait_for_subscribers(pubs: dict, clock, wait_subscribers: int, wait_timeout: float,
+                          stop: threading.Event | None, stats: ReplayStats) -> bool:
+    """Wait until every publisher of ``pubs`` has ``wait_subscribers`` matched subscriptions
+    and ``clock`` (if any) one, or ``CLOCK_GRACE_S`` more; ``TimeoutError`` after
+    ``wait_timeout`` s. False if ``stop`` got set first (``stats.interrupted``); the time
+    waited goes to ``stats.waited_s``."""
+    t_wait = time.monotonic()
+    deadline = t_wait + wait_timeout
+    clock_grace = None   # once the data topics match, up to 1 s more for /clock
+    while True:
+        counts = {p.topic_name: p.get_subscription_count() for p in pubs.values()}
+        short = {t: c for t, c in counts.items() if c < wait_subscribers}
+        if not short:
+            if clock is None or clock.get_subscription_count() > 0:
+                break
+            clock_grace = clock_grace or time.monotonic() + CLOCK_GRACE_S
+            if time.monotonic() >= clock_grace:
+                break
+        if stop is not None and stop.is_set():
+            stats.interrupted = True
+            return False
+        if short and time.monotonic() > deadline:
+            raise TimeoutError(f'waited {wait_timeout:g} s for {wait_subscribers} '
+                               f'subscriber(s); matched: {short}')
+        time.sleep(0.02)
+    stats.waited_s = time.monotonic() - t_wait
+    return True
+
+
+class _Player:
+    """Sends the messages of ``conns`` of an open bag with ``pubs`` ({bag topic: publisher}),
+    timed as :func:`replay` describes, and counts them in ``stats``."""
+
+    def __init__(self, reader, conns, pubs: dict, remap: dict, stats: ReplayStats, *,
+                 rate: float, clock, clock_hz: float, stop: threading.Event | None,
+                 on_publish, ack_timeout: float):
+        self.reader, self.conns, self.pubs, self.remap = reader, conns, pubs, remap
+        self.stats, self.rate, self.clock, self.clock_hz = stats, rate, clock, clock_hz
+        self.stop, self.on_publish = stop, on_publish
+        self.acks = _AckGate(ack_timeout, stats, stop)
+        self._t_first = None   # monotonic time of the first publish
+        self._t_start = None   # monotonic time of the pass's first message (rate > 0)
+
+    def play(self, n_passes: int | None) -> None:
+        """Pass after pass over the bag, ``n_passes`` times (None: until stopped), then wait
+        for the acknowledgement of what was sent."""
+        while n_passes is None or self.stats.loops < n_passes:
+            bag_t0 = self._play_pass()
+            if self.stats.interrupted:
+                break
+            self.stats.loops += 1
+            if bag_t0 is None:  # nothing to play: don't spin forever with --loop
+                break
+        self.acks.flush()
+
+    def _play_pass(self) -> int | None:
+        """One pass over the bag -> the stamp of its first message (None: it has none)."""
+        self._t_start = None
+        bag_t0 = None            # stamp of the pass's first message: the timing's origin
+        sent_t0 = sent_t1 = None  # stamps of the first and last message sent
+        for conn, t, raw in self.reader.messages(connections=self.conns):
+            if bag_t0 is None:
+                bag_t0 = t
+            if not self._wait_until_due(t, bag_t0):
+                self.stats.interrupted = True
+                break
+            if self.clock is not None:
+                _publish_clock(self.clock, t, self.stats)
+            self._send(conn, t, raw)
+            sent_t0 = t if sent_t0 is None else sent_t0
+            sent_t1 = t
+        if sent_t0 is not None:   # not the message an interrupt kept from being sent
+            self.stats.bag_span_s = (sent_t1 - sent_t0) / 1e9
+        return bag_t0
+
+    def _wait_until_due(self, t: int, bag_t0: int) -> bool:
+        """Wait until the message stamped ``t`` is due (publishing /clock in between); False
+        if ``stop`` got set first."""
+        if self.rate > 0:
+            if self._t_start is None:
+                self._t_start = time.monotonic()
+            tick = None if self.clock is None else functools.partial(
+                _clock_tick, self.clock, self.stats, self._t_start, bag_t0, self.rate, t)
+            return _sleep_until(self._t_start + (t - bag_t0) / 1e9 / self.rate, self.stop, tick,
+                                1.0 / self.clock_hz if self.clock_hz > 0 else 0.05)
+        return not (self.stop is not None and self.stop.is_set())
+
+    def _send(self, conn, t: int, raw) -> None:
+        """Publish one message of the bag and count it."""
+        data = bytes(raw)
+        pub = self.pubs[conn.topic]
+        pub.publish(data)
+        self.acks.published(pub)
+        now = time.monotonic()
+        self._t_first = now if self._t_first is None else self._t_first
+        # from the first to the last publish, kept current for a BagReadError's stats
+        self.stats.wall_s = now - self._t_first
+        ts = self.stats.topics[self.remap.get(conn.topic, conn.topic)]
+        ts.count += 1
+        ts.bytes += len(data)
+        self.stats.messages += 1
+        self.stats.bytes += len(data)
+        if self.on_publish is not None:
+            self.on_publish(ts.topic, data, t)
+
+
 def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
            rate: float = 1.0, loop: bool = False, loops: int | None = None,
            qos: str = 'reliable', depth: int = 10, wait_subscribers: int = 0,
@@ -875,130 +1033,29 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
     bag_path = Path(bag_path)
     n_passes = loops if loops is not None else (None if loop else 1)
     stats = ReplayStats(bag=str(bag_path), storage=detect_storage(bag_path), rate=float(rate))
-
-    t_first = t_last = None
     try:
         with Reader(bag_path) as reader:
-            if topics:
-                wanted = set(topics)
-                missing = wanted - {c.topic for c in reader.connections}
-                if missing:
-                    raise KeyError(f'topics not in bag {bag_path}: {sorted(missing)}')
-                conns = [c for c in reader.connections if c.topic in wanted]
-            elif all_topics:
-                conns = list(reader.connections)
-            else:
-                conns = [c for c in reader.connections if c.msgtype == CLOUD_TYPE]
-            unknown = set(remap) - {c.topic for c in reader.connections}
-            if unknown:   # a typo would otherwise play on the old name
-                raise KeyError(f'remapped topics not in bag {bag_path}: {sorted(unknown)}')
+            conns = _replay_connections(reader, bag_path, topics, all_topics, remap)
             _check_output_types(node, conns, remap)
-            pubs, pub_by_out = {}, {}
-            for c in list(conns):
-                out = remap.get(c.topic, c.topic)
-                if c.topic in stats.skipped:
-                    conns.remove(c)
-                elif c.topic not in pubs:
-                    try:
-                        latched = recorded_latched(c)
-                        # keep every latched message for late subscribers (one per static
-                        # broadcaster on /tf_static), not only the last ``depth``
-                        pubs[c.topic] = _publisher(node, c.msgtype, out, qos,
-                                                   max(depth, int(getattr(c, 'msgcount', 0) or 0))
-                                                   if latched else depth, latched)
-                        if latched:
-                            stats.latched.append(out)
-                    except KeyError:   # type not installed: fatal only for a topic asked for
-                        if topics:
-                            raise
-                        stats.skipped[c.topic] = c.msgtype
-                        conns.remove(c)
-                        continue
-                    pub_by_out.setdefault(out, pubs[c.topic])
-                    stats.topics.setdefault(out, TopicStats(out, c.topic, c.msgtype))
+            conns, pubs, pub_by_out = _replay_publishers(node, conns, remap, stats, qos, depth,
+                                                         strict=bool(topics))
             if not conns:
                 return stats
-
             # made before the wait, so that discovery matches /clock with the data topics
             # best effort, depth 1, volatile: rclcpp's ClockQoS
             clock = (_publisher(node, 'rosgraph_msgs/msg/Clock', '/clock', 'best_effort', 1)
                      if clock_hz > 0 else None)
-            if wait_subscribers > 0:
-                t_wait = time.monotonic()
-                deadline = t_wait + wait_timeout
-                clock_grace = None   # once the data topics match, up to 1 s more for /clock
-                while True:
-                    counts = {p.topic_name: p.get_subscription_count() for p in pubs.values()}
-                    short = {t: c for t, c in counts.items() if c < wait_subscribers}
-                    if not short:
-                        if clock is None or clock.get_subscription_count() > 0:
-                            break
-                        clock_grace = clock_grace or time.monotonic() + CLOCK_GRACE_S
-                        if time.monotonic() >= clock_grace:
-                            break
-                    if stop is not None and stop.is_set():
-                        stats.interrupted = True
-                        return stats
-                    if short and time.monotonic() > deadline:
-                        raise TimeoutError(f'waited {wait_timeout:g} s for {wait_subscribers} '
-                                           f'subscriber(s); matched: {short}')
-                    time.sleep(0.02)
-                stats.waited_s = time.monotonic() - t_wait
-
-            acks = _AckGate(ack_timeout, stats, stop)
-            while n_passes is None or stats.loops < n_passes:
-                t_start = None
-                bag_t0 = None            # stamp of the pass's first message: the timing's origin
-                sent_t0 = sent_t1 = None  # stamps of the first and last message sent
-                for conn, t, raw in reader.messages(connections=conns):
-                    if bag_t0 is None:
-                        bag_t0 = t
-                    if rate > 0:
-                        if t_start is None:
-                            t_start = time.monotonic()
-                        tick = None if clock is None else functools.partial(
-                            _clock_tick, clock, stats, t_start, bag_t0, rate, t)
-                        if not _sleep_until(t_start + (t - bag_t0) / 1e9 / rate, stop, tick,
-                                            1.0 / clock_hz if clock_hz > 0 else 0.05):
-                            stats.interrupted = True
-                            break
-                    elif stop is not None and stop.is_set():
-                        stats.interrupted = True
-                        break
-                    if clock is not None:
-                        _publish_clock(clock, t, stats)
-                    data = bytes(raw)
-                    pubs[conn.topic].publish(data)
-                    acks.published(pubs[conn.topic])
-                    now = time.monotonic()
-                    t_first = now if t_first is None else t_first
-                    t_last = now
-                    sent_t0 = t if sent_t0 is None else sent_t0
-                    sent_t1 = t
-                    ts = stats.topics[remap.get(conn.topic, conn.topic)]
-                    ts.count += 1
-                    ts.bytes += len(data)
-                    stats.messages += 1
-                    stats.bytes += len(data)
-                    if on_publish is not None:
-                        on_publish(ts.topic, data, t)
-                if sent_t0 is not None:   # not the message an interrupt kept from being sent
-                    stats.bag_span_s = (sent_t1 - sent_t0) / 1e9
-                if stats.interrupted:
-                    break
-                stats.loops += 1
-                if bag_t0 is None:  # nothing to play: don't spin forever with --loop
-                    break
-            acks.flush()
+            if wait_subscribers > 0 and not _wait_for_subscribers(
+                    pubs, clock, wait_subscribers, wait_timeout, stop, stats):
+                return stats
+            _Player(reader, conns, pubs, remap, stats, rate=rate, clock=clock, clock_hz=clock_hz,
+                    stop=stop, on_publish=on_publish, ack_timeout=ack_timeout).play(n_passes)
             for out, ts in stats.topics.items():
                 ts.subscribers = pub_by_out[out].get_subscription_count()
     except TimeoutError:   # --wait-subscribers (an OSError too)
         raise
     except storage_errors() as e:   # a corrupt database, a truncated file
-        if t_first is not None:
-            stats.wall_s = t_last - t_first
         raise BagReadError(str(e) or type(e).__name__, stats) from e
-    stats.wall_s = (t_last - t_first) if t_first is not None else 0.0
     return stats
 
 
