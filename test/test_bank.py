@@ -15,6 +15,7 @@ from beo_ros.core.inference import InferenceEngine
 from beo_ros.core.shape import DESCRIPTOR_NAMES
 from beo_ros.core.synthetic import (make_tiny_bank, partial_view, primitive_shapes,
                                     render_view_points)
+from _shapes import asymmetric_shapes
 
 N = 16
 
@@ -845,26 +846,6 @@ def test_estimate_points_refuses_a_threshold_that_is_no_probability(tiny, thresh
 
 
 # ---------------------------------------------------------------------- pose on asymmetric shapes
-def asymmetric_shapes(count, rng):
-    """Two classes whose shapes have no yaw symmetry: 'ell' (a bar with an arm at one end) and
-    'step' (a low slab with a tall block in one quadrant)."""
-    c = (N - 1) / 2
-    ii, jj, kk = np.meshgrid(*(np.arange(N) - c,) * 3, indexing='ij')
-    X, y = [], []
-    for _ in range(count):
-        L, w, h, a = rng.uniform(5, 6.5), rng.uniform(1.5, 2.2), rng.uniform(3, 5), rng.uniform(3, 5)
-        o = (np.abs(ii) <= L) & (np.abs(jj + 2) <= w) & (np.abs(kk) <= h)
-        o |= (ii >= L - 2 * w) & (ii <= L) & (jj >= -2) & (jj <= -2 + a + w) & (np.abs(kk) <= h)
-        X.append(o.ravel())
-        y.append(0)
-        L, b, h = rng.uniform(5, 6.5), rng.uniform(3, 4.5), rng.uniform(2, 3)
-        o = (np.abs(ii) <= L) & (np.abs(jj) <= b) & (kk <= -h) & (kk >= -6)
-        o |= (ii >= 1) & (ii <= L) & (jj >= -b) & (jj <= 0) & (kk >= -6) & (kk <= 6)
-        X.append(o.ravel())
-        y.append(1)
-    return np.array(X, dtype=np.float32), np.array(y)
-
-
 @pytest.fixture(scope='module')
 def pose_case():
     from beo_ros.core.grid import GridSpec

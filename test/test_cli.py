@@ -9,6 +9,7 @@ from beo_ros.core.bank import ModelBank
 from beo_ros.core.grid import symmetric_turns
 from beo_ros.core.synthetic import primitive_shapes
 from beo_ros.core.training import load_voxel_npz
+from _shapes import box_off
 
 N = 16
 
@@ -489,15 +490,6 @@ def test_eval_cv_leaves_out_classes_without_objects(tmp_path, capsys):
     assert s['classes'] == ['box', 'cylinder'] and s['complete']['n'] == 8
 
 
-def _box_off(path, sx, sy, sz):
-    """An axis-aligned box mesh centred at the origin, as an OFF file."""
-    v = [(x * sx, y * sy, z * sz) for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]
-    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
-    tris = [t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))]
-    path.write_text('OFF\n8 12 0\n' + ''.join(f'{x} {y} {z}\n' for x, y, z in v)
-                    + ''.join(f'3 {a} {b} {c}\n' for a, b, c in tris))
-
-
 def test_train_on_meshes_of_several_classes(tmp_path, capsys):
     # every mesh used to be loaded on its own: the class list came from the first file and
     # the meshes of any other class got label -1 (beo-train failed)
@@ -505,7 +497,7 @@ def test_train_on_meshes_of_several_classes(tmp_path, capsys):
     for i in range(3):
         for name, size in (('cube', (1, 1, 1 + 0.1 * i)), ('slab', (1 + 0.1 * i, 1, 0.2))):
             paths.append(tmp_path / f'{name}_{i:04d}.off')
-            _box_off(paths[-1], *size)
+            box_off(paths[-1], *size)
     rc = train.main([*map(str, paths), '-o', str(tmp_path / 'm'), '--grid', '16', '--k', '2',
                      '--views', '0', '--verifier-views', '0'])
     assert rc == 0, capsys.readouterr().err

@@ -15,27 +15,10 @@ from std_msgs.msg import Header
 
 from beo_ros.ros.conversions import (cloud_to_xyz, pose_to_matrix, quaternion_to_rotation,
                                      xyz_to_cloud)
+from _shapes import box_view
 
 pytestmark = pytest.mark.usefixtures('ros_interfaces')
 TIMEOUT = 30.0
-
-
-def box_view(centre=(2.0, 0.3, 0.4), size=(0.5, 0.35, 0.8), n=3000, seed=0):
-    """Points (n', 3) on the faces of a box visible from the origin (one partial view, z up)."""
-    rng = np.random.default_rng(seed)
-    c, h = np.asarray(centre, float), np.asarray(size, float) / 2
-    pts = []
-    for axis in range(3):
-        for sign in (-1, 1):
-            normal = np.zeros(3)
-            normal[axis] = sign
-            face_c = c + normal * h
-            if normal @ (-face_c) <= 0:  # faces turned away from the sensor are not seen
-                continue
-            p = rng.uniform(-1, 1, size=(n // 3, 3)) * h + c
-            p[:, axis] = face_c[axis]
-            pts.append(p)
-    return np.concatenate(pts)
 
 
 def cloud(points, frame='camera'):

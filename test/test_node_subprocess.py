@@ -54,7 +54,7 @@ def test_node_process_streams_and_stops_on_sigint(ros_tiny_model_dir, ros_domain
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import qos_profile_sensor_data
     from sensor_msgs.msg import PointCloud2
-    from test_node import box_view
+    from _shapes import box_view
 
     # in a namespace: the parameter file must still apply (its key is /**/beo)
     proc = subprocess.Popen(

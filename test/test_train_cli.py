@@ -11,7 +11,7 @@ from beo_ros.core import bank as bank_module
 from beo_ros.core.bank import ModelBank, ModelError
 from beo_ros.core.synthetic import primitive_shapes
 from beo_ros.core.training import load_voxel_npz
-from test_cli import _box_off
+from _shapes import box_off
 
 N = 16
 FAST = ['--k', '2', '--views', '0', '--verifier-views', '0']
@@ -271,7 +271,7 @@ def test_classes_apply_to_meshes(tmp_path, capsys):
     for i in range(3):
         for name, size in (('cube', (1, 1, 1 + 0.1 * i)), ('slab', (1 + 0.1 * i, 1, 0.2))):
             paths.append(tmp_path / f'{name}_{i:04d}.off')
-            _box_off(paths[-1], *size)
+            box_off(paths[-1], *size)
     rc = train.main([*map(str, paths), '-o', str(tmp_path / 'm'), '--grid', '16',
                      '--classes', 'slab'] + FAST)
     assert rc == 0, capsys.readouterr().err

@@ -11,7 +11,7 @@ from beo_ros.core.synthetic import random_partial_view
 from beo_ros.core.training import fit_bank, verifier_training_set
 from beo_ros.core.verifier import (OrientationVerifier, check_arrays, quarter_turned_features,
                                    turned_features, verifier_features)
-from test_bank import N, asymmetric_shapes
+from _shapes import N, asymmetric_shapes
 
 PARAMS = dict(max_iter=25, learning_rate=0.3)
 
