@@ -294,100 +294,149 @@ def run(args) -> dict:
 
 
 def _run(args, objs, out, t_start):
-    from .core.inference import FEATURE_NAMES
-    from .core.scan_training import scan_point_descriptors
-    names, spec = objs.names, objs.spec
-    scenes = list(dict.fromkeys(objs.scenes))
+    """The folds of :func:`run` on the ScanObjects ``objs``: writes oof_features.npz,
+    scan_eval.json (and the PNG) in ``out``, prints the table; the summary."""
+    scenes, groups = _scene_groups(args, objs.scenes)
+    recs, figs, oof = [], [], []
+    for si, group in enumerate(groups):
+        n_held, t_fit = _evaluate_fold(args, objs, group, recs, figs, oof)
+        acc = np.mean([r['correct'] for r in recs])
+        print(f'[{si + 1}/{len(groups)}] {"+".join(group)}: {n_held} objects, refit '
+              f'{t_fit:.0f} s, running accuracy {acc:.3f}', file=sys.stderr)
+    summary = _summary(args, objs.names, recs, len(scenes), len(groups))
+    idx, F, D = _save_oof_features(args, objs, oof, out, summary)
+    if len(groups) > 1:
+        summary['classifier_cv'] = _classifier_cv(objs, idx, F, D)
+    summary['seconds'] = round(time.time() - t_start, 1)
+    (out / 'scan_eval.json').write_text(json.dumps(dict(summary=summary, objects=recs),
+                                                   indent=2) + '\n')
+    if figs:
+        plot_completions(out / 'scan_completions.png', figs, objs.spec)
+    print_table(summary)
+    return summary
+
+
+def _scene_groups(args, object_scenes):
+    """(scenes, groups): the scenes in order of appearance (only --scenes of them, spread over
+    the list, if given) and the groups of them held out together (--scene-folds)."""
+    scenes = list(dict.fromkeys(object_scenes))
     if args.scenes and args.scenes < len(scenes):
         scenes = [scenes[i] for i in np.linspace(0, len(scenes) - 1, args.scenes).astype(int)]
     groups = [[s] for s in scenes]
     if args.scene_folds and args.scene_folds < len(scenes):
         groups = [scenes[f::args.scene_folds] for f in range(args.scene_folds)]
-    grids = objs.grids
-    recs, figs, oof = [], [], []
-    box = names.index('box') if 'box' in names else None
-    for si, group in enumerate(groups):
-        held = np.isin(objs.scenes, group)
-        te = np.flatnonzero(held)
-        scene = '+'.join(group)
-        t0 = time.time()
-        bank = fit_models(objs.subset(~held), args.k, args.max_iter, args.congeal, args.mirror)
-        t_fit = time.time() - t0
-        for i in te:
-            if args.from_points:
-                est = bank.estimate_points(objs.points[i], sensor_origin=(0.0, 0.0, 0.0),
-                                           up=objs.ups[i], yaw_step_deg=args.yaw_step)
-                T = est.grid_to_input
-            else:
-                est = bank.estimate(grids[i], yaw_step_deg=args.yaw_step)
-                T = objs.grid_to_input[i]
-            # 'unknown': no occupied voxel in the grid (no features either), counted wrong
-            pred = names.index(est.label) if est.label in names else -1
-            pts = objs.points[i]
-            pg = (np.linalg.inv(T) @ np.c_[pts, np.ones(len(pts))].T).T[:, :3]
-            h = pts @ objs.ups[i] + objs.plane_d[i]
-            ext = np.ptp(pg, axis=0) * spec.voxel_size
-            # the object's full (C, F) features under the models fitted without its scene
-            # (out-of-fold): bank.features(grid) with the stage-1 search step of estimate(),
-            # i.e. exactly the features its class decision used
-            feats = None if est.features is None else np.asarray(est.features, dtype=np.float64)
-            if feats is None:
-                print(f'{objs.scenes[i]}/{objs.object_ids[i]}: {est.classifier_note}; counted '
-                      'wrong, left out of the out-of-fold features', file=sys.stderr)
-            else:
-                oof.append((i, feats))
-            rec = dict(scene=str(objs.scenes[i]), object=int(objs.object_ids[i]), true=names[objs.y[i]],
-                       pred=est.label, correct=bool(pred == objs.y[i]),
-                       n_points=int(len(pts)), extent_cm=[round(float(e) * 100, 1) for e in ext],
-                       above_table_cm=round(float(h.min()) * 100, 1),
-                       n_occupied=int((est.grid == 1).sum()),
-                       unknown_fraction=round(float((est.grid < 0).mean()), 4),
-                       features=None if feats is None else {
-                           names[c]: dict(zip(FEATURE_NAMES, np.round(feats[c], 4).tolist()))
-                           for c in range(len(names))},
-                       scores={k: round(v, 4) for k, v in est.scores.items()},
-                       yaw_deg=round(float(np.rad2deg(est.yaw)), 1),
-                       footprint_deg=round(float(np.rad2deg(footprint_angle(pg))), 1),
-                       seconds=round(est.timings['total'], 3))
-            recs.append(rec)
-            wanted = len(figs) < args.figures and (
-                sum(r[0].startswith(names[objs.y[i]]) for r in figs) < max(
-                    1, args.figures // len(names)))
-            if wanted:
-                title = f'{names[objs.y[i]]} {objs.scenes[i]}/{objs.object_ids[i]} -> {est.label}'
-                figs.append((title, pg, est.completion))
-        acc = np.mean([r['correct'] for r in recs])
-        print(f'[{si + 1}/{len(groups)}] {scene}: {len(te)} objects, refit {t_fit:.0f} s, '
-              f'running accuracy {acc:.3f}', file=sys.stderr)
+    return scenes, groups
+
+
+def _evaluate_fold(args, objs, group, recs, figs, oof):
+    """Refit the class models without the scenes ``group`` and estimate their objects:
+    appends to recs (records), figs (PNG items, up to --figures) and oof ((index, (C, F)
+    features)); (held-out objects, refit seconds)."""
+    names = objs.names
+    held = np.isin(objs.scenes, group)
+    te = np.flatnonzero(held)
+    t0 = time.time()
+    bank = fit_models(objs.subset(~held), args.k, args.max_iter, args.congeal, args.mirror)
+    t_fit = time.time() - t0
+    for i in te:
+        rec, feats, pg, est = _evaluate_object(args, objs, bank, i)
+        if feats is not None:
+            oof.append((i, feats))
+        recs.append(rec)
+        wanted = len(figs) < args.figures and (
+            sum(r[0].startswith(names[objs.y[i]]) for r in figs) < max(
+                1, args.figures // len(names)))
+        if wanted:
+            title = f'{names[objs.y[i]]} {objs.scenes[i]}/{objs.object_ids[i]} -> {est.label}'
+            figs.append((title, pg, est.completion))
+    return len(te), t_fit
+
+
+def _evaluate_object(args, objs, bank, i):
+    """Estimate object i with ``bank`` (from its grid, or its points with --from-points):
+    (record, (C, F) features or None, points (n, 3) in grid index coordinates, estimate)."""
+    from .core.inference import FEATURE_NAMES
+    names = objs.names
+    if args.from_points:
+        est = bank.estimate_points(objs.points[i], sensor_origin=(0.0, 0.0, 0.0),
+                                   up=objs.ups[i], yaw_step_deg=args.yaw_step)
+        T = est.grid_to_input
+    else:
+        est = bank.estimate(objs.grids[i], yaw_step_deg=args.yaw_step)
+        T = objs.grid_to_input[i]
+    # 'unknown': no occupied voxel in the grid (no features either), counted wrong
+    pred = names.index(est.label) if est.label in names else -1
+    pts = objs.points[i]
+    pg = (np.linalg.inv(T) @ np.c_[pts, np.ones(len(pts))].T).T[:, :3]
+    h = pts @ objs.ups[i] + objs.plane_d[i]
+    ext = np.ptp(pg, axis=0) * objs.spec.voxel_size
+    # the object's full (C, F) features under the models fitted without its scene
+    # (out-of-fold): bank.features(grid) with the stage-1 search step of estimate(),
+    # i.e. exactly the features its class decision used
+    feats = None if est.features is None else np.asarray(est.features, dtype=np.float64)
+    if feats is None:
+        print(f'{objs.scenes[i]}/{objs.object_ids[i]}: {est.classifier_note}; counted '
+              'wrong, left out of the out-of-fold features', file=sys.stderr)
+    rec = dict(scene=str(objs.scenes[i]), object=int(objs.object_ids[i]),
+               true=names[objs.y[i]], pred=est.label, correct=bool(pred == objs.y[i]),
+               n_points=int(len(pts)), extent_cm=[round(float(e) * 100, 1) for e in ext],
+               above_table_cm=round(float(h.min()) * 100, 1),
+               n_occupied=int((est.grid == 1).sum()),
+               unknown_fraction=round(float((est.grid < 0).mean()), 4),
+               features=None if feats is None else {
+                   names[c]: dict(zip(FEATURE_NAMES, np.round(feats[c], 4).tolist()))
+                   for c in range(len(names))},
+               scores={k: round(v, 4) for k, v in est.scores.items()},
+               yaw_deg=round(float(np.rad2deg(est.yaw)), 1),
+               footprint_deg=round(float(np.rad2deg(footprint_angle(pg))), 1),
+               seconds=round(est.timings['total'], 3))
+    return rec, feats, pg, est
+
+
+def _summary(args, names, recs, n_scenes, n_folds):
+    """The summary of the records: protocol, accuracy, confusion (and the box yaw)."""
     y_true = np.array([names.index(r['true']) for r in recs])
     y_pred = np.array([names.index(r['pred']) if r['pred'] in names else -1 for r in recs])
     conf = np.zeros((len(names), len(names)), dtype=int)   # of the known answers
     np.add.at(conf, (y_true[y_pred >= 0], y_pred[y_pred >= 0]), 1)
     summary = dict(
-        protocol=('leave-one-scene-out' if len(groups) == len(scenes) else
-                  f'{len(groups)}-fold leave-scenes-out (every scene held out once)') +
+        protocol=('leave-one-scene-out' if n_folds == n_scenes else
+                  f'{n_folds}-fold leave-scenes-out (every scene held out once)') +
                  '; class models refit without the held-out scenes '
                  f'(k={args.k}, max_iter={args.max_iter}, congeal={args.congeal}, '
                  f'mirror={args.mirror}); '
                  'max-likelihood class, full yaw search; held-out objects estimated from ' +
                  ('their raw points (estimate_points)' if args.from_points else
                   'their training grids (estimate)'),
-        n_objects=len(recs), n_scenes=len(scenes), n_folds=len(groups), classes=names,
+        n_objects=len(recs), n_scenes=n_scenes, n_folds=n_folds, classes=names,
         accuracy=round(float(np.mean(y_true == y_pred)), 4),
         per_class_accuracy={n: round(float(np.mean(y_pred[y_true == c] == c)), 4)
                             for c, n in enumerate(names) if (y_true == c).any()},
         confusion=conf.tolist(), n_unknown=int(np.sum(y_pred < 0)),
         mean_estimate_seconds=round(float(np.mean([r['seconds'] for r in recs])), 3))
-    if box is not None:
-        b = [r for r in recs if r['true'] == 'box']
-        if b:
-            rel = np.deg2rad([r['footprint_deg'] - r['yaw_deg'] for r in b])
-            mean, std = circular_spread_deg(rel, 90.0)
-            dev = (np.rad2deg(rel) - mean + 45.0) % 90.0 - 45.0
-            summary['box_yaw'] = dict(
-                n=len(b), offset_mod90_deg=round(mean, 1), circular_std_mod90_deg=round(std, 1),
+    b = [r for r in recs if r['true'] == 'box'] if 'box' in names else []
+    if b:
+        summary['box_yaw'] = _box_yaw(b)
+    return summary
+
+
+def _box_yaw(b):
+    """The yaw consistency of the box records ``b``: estimated yaw against the footprint edge,
+    modulo 90 degrees."""
+    rel = np.deg2rad([r['footprint_deg'] - r['yaw_deg'] for r in b])
+    mean, std = circular_spread_deg(rel, 90.0)
+    dev = (np.rad2deg(rel) - mean + 45.0) % 90.0 - 45.0
+    return dict(n=len(b), offset_mod90_deg=round(mean, 1), circular_std_mod90_deg=round(std, 1),
                 median_abs_dev_deg=round(float(np.median(np.abs(dev))), 1),
                 within_10_deg=round(float(np.mean(np.abs(dev) <= 10)), 4))
+
+
+def _save_oof_features(args, objs, oof, out, summary):
+    """Write oof_features.npz (the out-of-fold features and the side-normal descriptors of the
+    objects that have features) and note the descriptors' time in summary; (idx (m,),
+    F (m, C, F), D (m, 2))."""
+    from .core.inference import FEATURE_NAMES
+    from .core.scan_training import scan_point_descriptors
     idx = np.array([i for i, _ in oof], dtype=int)
     F = np.array([f for _, f in oof], dtype=np.float64)
     # side-normal descriptors of the raw points (no fitting: the same under any fold)
@@ -397,31 +446,29 @@ def _run(args, objs, out, t_start):
         1e3 * (time.perf_counter() - t_d) / max(len(idx), 1), 2)
     np.savez_compressed(out / 'oof_features.npz', features=F, y=objs.y[idx],
                         scenes=objs.scenes[idx], object_ids=objs.object_ids[idx],
-                        classes=np.array(names), feature_names=np.array(FEATURE_NAMES),
+                        classes=np.array(objs.names), feature_names=np.array(FEATURE_NAMES),
                         point_descriptors=D,
                         grid_source=np.array('estimate_points' if args.from_points else 'grid'))
-    if len(groups) > 1:
-        comp = classifier_comparison(F, objs.y[idx], objs.scenes[idx], names,
-                                     point_descriptors=D)
-        for rep in comp.values():
-            rep['wrong'] = [f'{objs.scenes[idx[j]]}/{objs.object_ids[idx[j]]}'
-                            for j in rep['wrong']]
-        summary['classifier_cv'] = dict(
-            protocol='second level, leave-one-scene-out over the out-of-fold features: every '
-                     "object's class from a logistic regression (standardised, features of the "
-                     'other scenes) that never saw its scene; lr_all: the C x F features '
-                     "(with the 'unknown' check, counted wrong), lr_diff: the F differences "
-                     "class 0 minus class 1; points: the C loglik + the raw points' side-normal "
-                     "descriptors r4, frac10 (the shipped tabletop rule of estimate_points, "
-                     "'unknown' check counted wrong); max_likelihood: argmax of loglik",
-            **comp)
-    summary['seconds'] = round(time.time() - t_start, 1)
-    (out / 'scan_eval.json').write_text(json.dumps(dict(summary=summary, objects=recs),
-                                                   indent=2) + '\n')
-    if figs:
-        plot_completions(out / 'scan_completions.png', figs, spec)
-    print_table(summary)
-    return summary
+    return idx, F, D
+
+
+def _classifier_cv(objs, idx, F, D):
+    """summary['classifier_cv']: the second-level comparison of the rules on the out-of-fold
+    features F of the objects idx (wrong objects named scene/object)."""
+    comp = classifier_comparison(F, objs.y[idx], objs.scenes[idx], objs.names,
+                                 point_descriptors=D)
+    for rep in comp.values():
+        rep['wrong'] = [f'{objs.scenes[idx[j]]}/{objs.object_ids[idx[j]]}'
+                        for j in rep['wrong']]
+    return dict(
+        protocol='second level, leave-one-scene-out over the out-of-fold features: every '
+                 "object's class from a logistic regression (standardised, features of the "
+                 'other scenes) that never saw its scene; lr_all: the C x F features '
+                 "(with the 'unknown' check, counted wrong), lr_diff: the F differences "
+                 "class 0 minus class 1; points: the C loglik + the raw points' side-normal "
+                 "descriptors r4, frac10 (the shipped tabletop rule of estimate_points, "
+                 "'unknown' check counted wrong); max_likelihood: argmax of loglik",
+        **comp)
 
 
 def print_table(s, file=None):

@@ -30,6 +30,35 @@ SCAN_CLASSES, VOXEL_SIZE, MAX_ITER = 'box:0-16,cylinder:33-44', 0.5 / 32, 200
 
 @interruptible('beo-train')
 def main(argv=None):
+    ap = _parser()
+    args = ap.parse_args(argv)
+    class_prior = _check_args(ap, args)
+    try:
+        replace = _check_out(args)
+        if args.mirror:
+            return _train_mirror(args, class_prior, replace)
+        X, y, names, masks, spec = _load_inputs(args)
+        training = _training_info(args, X, y, names, masks)
+        grids = None
+        if masks is not None:  # real partial scans: OOF classifier features from these grids
+            grids = np.where(masks, X > 0.5, -1).astype(np.int8).reshape((-1,) + spec.shape)
+        if args.calibrate_only:
+            return _calibrate_only(args, X, y, names, spec, training.get('data_sha256'))
+        if args.congeal:
+            X, masks = _congeal(args, X, y, names, masks, spec)
+        t0 = time.time()
+        bank = _fit(args, X, y, names, masks, spec, grids, training, class_prior)
+        _save(bank, args.out, replace)
+    except (ValueError, OSError) as e:
+        print(f'beo-train: error: {e}', file=sys.stderr)
+        return 2
+    print(f'wrote {args.out}: {len(names)} classes {names}, {len(X)} objects, '
+          f'{time.time() - t0:.1f} s')
+    return 0
+
+
+def _parser():
+    """The beo-train argument parser."""
     ap = argparse.ArgumentParser(prog='beo-train', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('inputs', nargs='+', help='voxel .npz files, mesh files, or PCD scans')
@@ -43,6 +72,26 @@ def main(argv=None):
                          'orientation verifier (default 32; npz files carry their own, which '
                          'must then equal it)')
     ap.add_argument('--classes', nargs='+', help='train only these classes (npz and mesh input)')
+    _add_scan_options(ap)
+    ap.add_argument('--congeal', action='store_true',
+                    help='align the yaw of unaligned training objects within each class')
+    ap.add_argument('--views', type=int, default=1,
+                    help='random partial views per object for the OOF classifier (0: none, '
+                         'the maximum-likelihood rule)')
+    ap.add_argument('--folds', type=int, default=5,
+                    help='folds for out-of-fold features (>= 2; not used with --views 0)')
+    ap.add_argument('--pose-components', type=int, default=8,
+                    help='leading components per class used by the coarse pose search (>= 1; '
+                         "at most the class model's components are used; --mirror banks always "
+                         'use 8; default: %(default)s)')
+    ap.add_argument('--seed', type=count(0), default=0)
+    ap.add_argument('--oof-out', help='also save the out-of-fold features and records (npz)')
+    _add_fit_options(ap)
+    return ap
+
+
+def _add_scan_options(ap):
+    """The options of --scans input (and of --scans --mirror banks)."""
     ap.add_argument('--scans', action='store_true',
                     help='inputs are labelled tabletop PCD scans (see --scan-classes)')
     ap.add_argument('--scan-classes', default=None,
@@ -60,19 +109,10 @@ def main(argv=None):
                          'estimate_points: per-class loglik + side-normal descriptors of the raw '
                          'points), fitted on every object with its out-of-fold features from '
                          'this oof_features.npz of a leave-one-scene-out beo-eval --scans run')
-    ap.add_argument('--congeal', action='store_true',
-                    help='align the yaw of unaligned training objects within each class')
-    ap.add_argument('--views', type=int, default=1,
-                    help='random partial views per object for the OOF classifier (0: none, '
-                         'the maximum-likelihood rule)')
-    ap.add_argument('--folds', type=int, default=5,
-                    help='folds for out-of-fold features (>= 2; not used with --views 0)')
-    ap.add_argument('--pose-components', type=int, default=8,
-                    help='leading components per class used by the coarse pose search (>= 1; '
-                         "at most the class model's components are used; --mirror banks always "
-                         'use 8; default: %(default)s)')
-    ap.add_argument('--seed', type=count(0), default=0)
-    ap.add_argument('--oof-out', help='also save the out-of-fold features and records (npz)')
+
+
+def _add_fit_options(ap):
+    """The options of the classifier, orientation verifier and occupancy calibration fits."""
     ap.add_argument('--row-standardize', choices=tuple(AUTO_ON_OFF), default='auto',
                     help='standardise every feature across the classes of its row before the '
                          'classifier; auto: per mode, whichever cross-validates better (needs '
@@ -106,13 +146,32 @@ def main(argv=None):
                          "set's class frequencies), uniform, or name=weight,... with every "
                          'class; the classifier input is chosen by the accuracy expected under '
                          'it (default: %(default)s)')
-    args = ap.parse_args(argv)
+
+
+def _check_args(ap, args):
+    """Refuse (ap.error) option values out of range or that do not apply, fill in the defaults
+    that depend on the mode; the class prior ('train', 'uniform' or {name: weight})."""
     try:
         class_prior = parse_class_prior(args.class_prior) or 'train'
     except ValueError as e:
         ap.error(str(e))
     if args.verifier_views is None:
         args.verifier_views = 0 if args.scans else 6
+    _check_counts(ap, args)
+    _check_mode_options(ap, args)
+    args.scan_classes = args.scan_classes or SCAN_CLASSES
+    args.voxel_size = args.voxel_size or VOXEL_SIZE
+    args.max_iter = args.max_iter or MAX_ITER
+    if args.grid is not None:
+        try:
+            check_grid_size(args.grid, verifier=args.verifier_views > 0)
+        except ValueError as e:
+            ap.error(f'--grid: {e}')
+    return class_prior
+
+
+def _check_counts(ap, args):
+    """Refuse (ap.error) counts of views, folds, jobs and components out of range."""
     if args.verifier_views < 0 or args.jobs < 1:
         ap.error('--verifier-views must be >= 0 and --jobs >= 1')
     if args.pose_components < 1:
@@ -126,6 +185,10 @@ def main(argv=None):
         ap.error(f'--calibration-views must be >= 0, got {args.calibration_views}')
     if args.calibrate_only and args.calibration_views == 0:
         ap.error('--calibrate-only fits a calibration: --calibration-views must be >= 1')
+
+
+def _check_mode_options(ap, args):
+    """Refuse (ap.error) options that the mode (--scans, --mirror, --views 0) does not use."""
     if args.scans and (args.calibration_views or args.calibrate_only):
         ap.error('--calibration-views and --calibrate-only need whole objects, not --scans')
     if args.scans and args.verifier_views:
@@ -152,92 +215,94 @@ def main(argv=None):
         ap.error('--classes is for npz and mesh input; with --scans use --scan-classes')
     if args.max_iter is not None and not args.mirror:
         ap.error('--max-iter is for --scans --mirror only (the other fits use their own)')
-    args.scan_classes = args.scan_classes or SCAN_CLASSES
-    args.voxel_size = args.voxel_size or VOXEL_SIZE
-    args.max_iter = args.max_iter or MAX_ITER
-    if args.grid is not None:
-        try:
-            check_grid_size(args.grid, verifier=args.verifier_views > 0)
-        except ValueError as e:
-            ap.error(f'--grid: {e}')
-    try:
-        replace = _check_out(args)
-        if args.mirror:
-            from .core.bank import resolve_class_prior
-            from .core.scan_training import parse_scan_classes, train_scan_bank
-            # a prior naming a class the scans lack fails before the fit, not after it
-            scan_names = parse_scan_classes(args.scan_classes)[0]
-            check_class_names(scan_names, '--scan-classes')
-            resolve_class_prior(class_prior, scan_names)
-            if args.point_classifier:
-                _check_oof_npz(args.point_classifier, scan_names)
-            t0 = time.time()
-            bank = train_scan_bank(args.inputs, args.scan_classes, args.grid or 32,
-                                   args.voxel_size, args.k, args.max_iter, mirror=True,
-                                   congeal=args.congeal, verbose=True,
-                                   point_classifier=args.point_classifier)
-            bank.class_prior = class_prior
-            _save(bank, args.out, replace)
-            print(f'wrote {args.out}: {len(bank.classes)} classes {bank.classes}, '
-                  f'{bank.training["n_training_grids"]} training grids, '
-                  f'{time.time() - t0:.1f} s')
-            return 0
-        if args.scans:
-            from .core.scan_training import load_scan_training_set, parse_scan_classes
-            check_class_names(parse_scan_classes(args.scan_classes)[0], '--scan-classes')
-            X, y, names, masks, spec = load_scan_training_set(
-                args.inputs, args.scan_classes, args.grid or 32, args.voxel_size,
-                verbose=True)
-        else:
-            masks = None
-            X, y, names, spec = _load_objects(args)
-        if args.views > 0 and len(names) < 2 and not args.calibrate_only:
-            raise ValueError(f'the classifier needs 2 or more classes, the inputs have '
-                             f'{len(names)} ({names}): add a class, or train no classifier '
-                             'with --views 0 (the maximum-likelihood rule)')
-        training = dict(inputs=[str(p) for p in args.inputs], congeal=args.congeal)
-        if args.scans:   # which scenes made which class, as the --mirror manifest says
-            training.update(scan_classes=str(args.scan_classes),
-                            voxel_size=float(args.voxel_size))
-        if masks is None:   # whole objects: --calibrate-only can tell other data apart
-            training['data_sha256'] = training_data_hash(X, y, names)
-        grids = None
-        if masks is not None:  # real partial scans: OOF classifier features from these grids
-            grids = np.where(masks, X > 0.5, -1).astype(np.int8).reshape((-1,) + spec.shape)
-        if args.calibrate_only:
-            return _calibrate_only(args, X, y, names, spec, training.get('data_sha256'))
-        if args.congeal:
-            from .core.congeal import congeal_classes
-            # fit_bank's check, before minutes of congealing
-            check_class_counts(y, names, args.folds if args.views > 0
-                               or args.calibration_views != 0 else 0)
-            if masks is not None:
-                X, masks = congeal_classes(X, y, spec.size, masks=masks, verbose=True)
-            else:
-                X = congeal_classes(X, y, spec.size, verbose=True)
-        t0 = time.time()
-        bank = fit_bank(X, y, names, spec, k=args.k, masks=masks,
-                        pose_components=args.pose_components, classifier_views=args.views,
-                        folds=args.folds, seed=args.seed, verbose=True, training=training,
-                        grids=grids, oof_path=args.oof_out,
-                        row_standardize=AUTO_ON_OFF[args.row_standardize],
-                        descriptors=AUTO_ON_OFF[args.descriptors], class_prior=class_prior,
-                        verifier_views=args.verifier_views, processes=args.jobs,
-                        classifier_kind=args.classifier,
-                        calibration_views=('auto' if args.calibration_views is None
-                                           else args.calibration_views))
-        if args.scans and args.views == 0:
-            # no out-of-fold classifier, calibration or verifier (none with --scans): the
-            # folds and the seed drew nothing, so the manifest does not claim them
-            for unused in ('folds', 'seed'):
-                bank.training.pop(unused, None)
-        _save(bank, args.out, replace)
-    except (ValueError, OSError) as e:
-        print(f'beo-train: error: {e}', file=sys.stderr)
-        return 2
-    print(f'wrote {args.out}: {len(names)} classes {names}, {len(X)} objects, '
+
+
+def _train_mirror(args, class_prior, replace):
+    """--scans --mirror: fit and save a maximum-likelihood bank on the scans and their mirror
+    images (train_scan_bank); 0."""
+    from .core.bank import resolve_class_prior
+    from .core.scan_training import parse_scan_classes, train_scan_bank
+    # a prior naming a class the scans lack fails before the fit, not after it
+    scan_names = parse_scan_classes(args.scan_classes)[0]
+    check_class_names(scan_names, '--scan-classes')
+    resolve_class_prior(class_prior, scan_names)
+    if args.point_classifier:
+        _check_oof_npz(args.point_classifier, scan_names)
+    t0 = time.time()
+    bank = train_scan_bank(args.inputs, args.scan_classes, args.grid or 32,
+                           args.voxel_size, args.k, args.max_iter, mirror=True,
+                           congeal=args.congeal, verbose=True,
+                           point_classifier=args.point_classifier)
+    bank.class_prior = class_prior
+    _save(bank, args.out, replace)
+    print(f'wrote {args.out}: {len(bank.classes)} classes {bank.classes}, '
+          f'{bank.training["n_training_grids"]} training grids, '
           f'{time.time() - t0:.1f} s')
     return 0
+
+
+def _load_inputs(args):
+    """(X, y, names, masks, spec) of the inputs: labelled scans (masks (n, N^3) bool: the
+    observed voxels) or npz and mesh objects (masks None). ValueError when a classifier is to
+    be trained on fewer than 2 classes."""
+    if args.scans:
+        from .core.scan_training import load_scan_training_set, parse_scan_classes
+        check_class_names(parse_scan_classes(args.scan_classes)[0], '--scan-classes')
+        X, y, names, masks, spec = load_scan_training_set(
+            args.inputs, args.scan_classes, args.grid or 32, args.voxel_size,
+            verbose=True)
+    else:
+        masks = None
+        X, y, names, spec = _load_objects(args)
+    if args.views > 0 and len(names) < 2 and not args.calibrate_only:
+        raise ValueError(f'the classifier needs 2 or more classes, the inputs have '
+                         f'{len(names)} ({names}): add a class, or train no classifier '
+                         'with --views 0 (the maximum-likelihood rule)')
+    return X, y, names, masks, spec
+
+
+def _training_info(args, X, y, names, masks):
+    """The manifest's record of the training inputs (before any congealing)."""
+    training = dict(inputs=[str(p) for p in args.inputs], congeal=args.congeal)
+    if args.scans:   # which scenes made which class, as the --mirror manifest says
+        training.update(scan_classes=str(args.scan_classes),
+                        voxel_size=float(args.voxel_size))
+    if masks is None:   # whole objects: --calibrate-only can tell other data apart
+        training['data_sha256'] = training_data_hash(X, y, names)
+    return training
+
+
+def _congeal(args, X, y, names, masks, spec):
+    """(X, masks) with the yaw of the objects aligned within each class (--congeal)."""
+    from .core.congeal import congeal_classes
+    # fit_bank's check, before minutes of congealing
+    check_class_counts(y, names, args.folds if args.views > 0
+                       or args.calibration_views != 0 else 0)
+    if masks is not None:
+        X, masks = congeal_classes(X, y, spec.size, masks=masks, verbose=True)
+    else:
+        X = congeal_classes(X, y, spec.size, verbose=True)
+    return X, masks
+
+
+def _fit(args, X, y, names, masks, spec, grids, training, class_prior):
+    """The ModelBank fitted on the objects with the options of args (fit_bank)."""
+    bank = fit_bank(X, y, names, spec, k=args.k, masks=masks,
+                    pose_components=args.pose_components, classifier_views=args.views,
+                    folds=args.folds, seed=args.seed, verbose=True, training=training,
+                    grids=grids, oof_path=args.oof_out,
+                    row_standardize=AUTO_ON_OFF[args.row_standardize],
+                    descriptors=AUTO_ON_OFF[args.descriptors], class_prior=class_prior,
+                    verifier_views=args.verifier_views, processes=args.jobs,
+                    classifier_kind=args.classifier,
+                    calibration_views=('auto' if args.calibration_views is None
+                                       else args.calibration_views))
+    if args.scans and args.views == 0:
+        # no out-of-fold classifier, calibration or verifier (none with --scans): the
+        # folds and the seed drew nothing, so the manifest does not claim them
+        for unused in ('folds', 'seed'):
+            bank.training.pop(unused, None)
+    return bank
 
 
 def _check_out(args):

@@ -280,3 +280,18 @@ def test_scene_options_are_checked(argv, message, tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(['--scans', str(tmp_path / 'none.pcd'), '--out', str(tmp_path / 'o'), *argv])
     assert message in capsys.readouterr().err
+
+
+def test_scene_groups_spread_and_fold_the_scenes():
+    from types import SimpleNamespace
+    from beo_ros.scan_eval import _scene_groups
+    scenes = np.array(['s0', 's0', 's1', 's2', 's2', 's3', 's4'])
+    args = SimpleNamespace(scenes=0, scene_folds=0)
+    assert _scene_groups(args, scenes) == (['s0', 's1', 's2', 's3', 's4'],
+                                           [['s0'], ['s1'], ['s2'], ['s3'], ['s4']])
+    args = SimpleNamespace(scenes=3, scene_folds=0)   # spread over the list, ends included
+    assert _scene_groups(args, scenes) == (['s0', 's2', 's4'], [['s0'], ['s2'], ['s4']])
+    args = SimpleNamespace(scenes=0, scene_folds=2)   # every scene held out once
+    assert _scene_groups(args, scenes)[1] == [['s0', 's2', 's4'], ['s1', 's3']]
+    args = SimpleNamespace(scenes=3, scene_folds=5)   # more folds than scenes: one per scene
+    assert _scene_groups(args, scenes)[1] == [['s0'], ['s2'], ['s4']]
