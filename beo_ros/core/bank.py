@@ -475,6 +475,160 @@ def _settings_reason(pose_components, training):
     return None
 
 
+def _read_manifest(path):
+    """(manifest path, manifest dict) of model directory ``path`` (a Path); ModelError unless
+    it is a directory whose manifest.json parses as this format and version with a grid
+    object."""
+    mf = path / 'manifest.json'
+    if not path.is_dir():
+        raise ModelError(f'model directory {path} '
+                         + ('is a file' if path.exists() else 'does not exist'))
+    if not mf.is_file():
+        raise ModelError(f'{mf} is missing: not a beo_ros model directory')
+    try:
+        manifest = json.loads(mf.read_text())
+    except (OSError, ValueError, RecursionError) as e:
+        # ValueError: JSONDecodeError, UnicodeDecodeError, integers of over 4300 digits;
+        # RecursionError: arrays nested thousands deep
+        raise ModelError(f'{mf} is not valid JSON: {type(e).__name__}: {e}') from None
+    if not isinstance(manifest, dict) or manifest.get('format') != FORMAT:
+        raise ModelError(f'{mf}: format is not {FORMAT!r}')
+    if manifest.get('version') != VERSION:
+        raise ModelError(f'{mf}: version {manifest.get("version")!r} is not supported '
+                         f'(this beo_ros reads version {VERSION})')
+    if not isinstance(manifest.get('grid'), dict):
+        raise ModelError(f'{mf}: grid must be an object (size, units, ...), got '
+                         f'{manifest.get("grid")!r}')
+    return mf, manifest
+
+
+def _manifest_layout(path, mf, manifest):
+    """(GridSpec, class names, dict file name -> sha256) of the manifest dict of model
+    directory ``path`` (manifest file ``mf``); ModelError for a bad or missing entry, a file
+    name outside the directory, an optional part present but unlisted, a bad class name or
+    axes other than xyz with up +z."""
+    try:
+        spec = GridSpec.from_dict(manifest['grid'])
+        classes = list(manifest['classes'])
+        files = dict(manifest['files'])
+    except (KeyError, TypeError, ValueError) as e:
+        raise ModelError(f'{mf}: bad or missing entry: {e}') from None
+    for fn in files:
+        if not isinstance(fn, str) or fn in ('', '.', '..') or Path(fn).name != fn:
+            raise ModelError(f'{mf}: files must name files in the model directory, got '
+                             f'{fn!r}')
+    for fn in OPTIONAL_FILES:
+        # a model saved with it lists it; present but unlisted, the model was tampered with
+        # and would silently lose a part
+        if fn not in files and (path / fn).exists():
+            raise ModelError(f'{path / fn} is present but not listed in the manifest')
+    check_class_names(classes, str(mf))   # the rule save applies: train and load agree
+    if manifest['grid'].get('up', '+z') != '+z' or manifest['grid'].get('axes', 'xyz') != 'xyz':
+        raise ModelError(f'{mf}: only axes xyz with up +z are supported')
+    return spec, classes, files
+
+
+def _check_checksums(path, files):
+    """ModelError unless every file of ``files`` (name -> sha256) is in directory ``path``
+    with that checksum."""
+    for fn, digest in files.items():
+        fp = path / fn
+        if not fp.is_file():
+            raise ModelError(f'{fp} is listed in the manifest but missing')
+        if _sha256(fp) != digest:
+            raise ModelError(f'{fp} is corrupt: checksum does not match the manifest')
+
+
+def _load_class_models(path, files, classes, spec):
+    """The ClassModel (float32) of every class name of ``classes``, in order, from its
+    ``class_XX_<name>.npz`` in directory ``path``; ModelError when the file is not listed in
+    ``files``, unreadable, lacks an array or its arrays do not fit the grid ``spec``."""
+    models = []
+    d = spec.size ** 3
+    for i, name in enumerate(classes):
+        fp = path / f'class_{i:02d}_{name}.npz'
+        if fp.name not in files:
+            raise ModelError(f'{fp} for class {name!r} is not listed in the manifest')
+        try:
+            with _load_npz(fp) as z:
+                arr = {k: z[k] for k in CLASS_KEYS}
+                arr.update({k: z[k] for k in OPTIONAL_CLASS_KEYS if k in z.files})
+        except KeyError as e:
+            raise ModelError(f'{fp}: missing array {e}') from None
+        except UNREADABLE as e:
+            raise ModelError(f'{fp}: unreadable: {type(e).__name__}: {e}') from None
+        check_class_arrays(arr, d, fp, spec.size)
+        W = arr['W']
+        noise_map = arr.get('coarse_noise_map')
+        if noise_map is not None and (noise_map.shape != (d // 8,) or noise_map.min() <= 0):
+            raise ModelError(f'{fp}: coarse_noise_map must be {d // 8} positive values, got '
+                             f'shape {noise_map.shape}')
+        models.append(ClassModel(
+            name=name, W=W.astype(np.float32), mean=arr['mean'].astype(np.float32),
+            noise_variance=float(arr['noise_variance']),
+            coarse_noise_variance=float(arr['coarse_noise_variance']),
+            loading_covariance=arr['loading_covariance'].astype(np.float32),
+            mean_variance=arr['mean_variance'].astype(np.float32),
+            component_variance=arr['component_variance'].astype(np.float32),
+            coarse_noise_map=None if noise_map is None else noise_map.astype(np.float32)))
+    return models
+
+
+def _load_classifier(path, files, n_classes):
+    """The classifier dict mode -> arrays of model directory ``path`` for ``n_classes``
+    classes, or None when ``files`` does not list classifier.npz; ModelError when it is
+    unreadable or a mode is unknown or does not fit (see :func:`_check_grid_classifier`)."""
+    if 'classifier.npz' not in files:
+        return None
+    fp = path / 'classifier.npz'
+    try:
+        with _load_npz(fp) as z:
+            classifier = {}
+            for key in z.files:
+                mode, name = key.split('__', 1)
+                classifier.setdefault(mode, {})[name] = z[key]
+    except UNREADABLE as e:
+        raise ModelError(f'{fp}: unreadable: {type(e).__name__}: {e}') from None
+    for mode, clf in classifier.items():
+        if mode == POINTS_MODE:
+            check_point_classifier(clf, n_classes, str(fp))
+        else:
+            _check_grid_classifier(clf, mode, n_classes, fp)
+    return classifier
+
+
+def _check_grid_classifier(clf, mode, n_classes, fp):
+    """ModelError (naming file ``fp``) unless ``clf`` is a grid classifier of a known ``mode``
+    whose arrays fit ``n_classes`` classes' features and its shape descriptors, and whose row
+    standardisation, if any, has the 3 classes it needs."""
+    if mode not in MODES:
+        raise ModelError(f'{fp}: unknown classifier {mode!r} (known: '
+                         f'{", ".join(MODES + (POINTS_MODE,))})')
+    try:
+        n_d = descriptor_count(clf)
+    except ModelError as e:
+        raise ModelError(f'{fp}: classifier {mode!r}: {e}') from None
+    nf = len(FEATURE_NAMES) * n_classes + n_d
+    extra = f' + {n_d} shape descriptors' if n_d else ''
+    check_classifier_arrays(clf, n_classes, nf, f'{fp}: classifier {mode!r}',
+                            f'{n_classes} classes x {len(FEATURE_NAMES)} '
+                            f'features{extra}')
+    if bool(clf.get('row_standardize', False)) and n_classes < 3:
+        raise ModelError(f'{fp}: classifier {mode!r} standardises features across '
+                         f'classes, which needs at least 3 classes')
+
+
+def _check_manifest_settings(mf, manifest):
+    """ModelError (naming manifest file ``mf``) unless the manifest's pose_components,
+    training and stage2_noise_map entries are usable."""
+    reason = _settings_reason(manifest.get('pose_components', 8), manifest.get('training'))
+    if reason:
+        raise ModelError(f'{mf}: {reason}')
+    if not isinstance(manifest.get('stage2_noise_map', False), bool):
+        raise ModelError(f'{mf}: stage2_noise_map must be true or false, got '
+                         f'{manifest["stage2_noise_map"]!r}')
+
+
 class ModelBank:
     """A set of class models over one grid, with pose search, completion and classification.
 
@@ -686,108 +840,11 @@ class ModelBank:
         ``class_prior``: overrides the manifest's (None: the manifest's; 'train' when it has
         none); a bad value raises ValueError (a bad one in the manifest: ModelError)."""
         path = Path(path)
-        mf = path / 'manifest.json'
-        if not path.is_dir():
-            raise ModelError(f'model directory {path} '
-                             + ('is a file' if path.exists() else 'does not exist'))
-        if not mf.is_file():
-            raise ModelError(f'{mf} is missing: not a beo_ros model directory')
-        try:
-            manifest = json.loads(mf.read_text())
-        except (OSError, ValueError, RecursionError) as e:
-            # ValueError: JSONDecodeError, UnicodeDecodeError, integers of over 4300 digits;
-            # RecursionError: arrays nested thousands deep
-            raise ModelError(f'{mf} is not valid JSON: {type(e).__name__}: {e}') from None
-        if not isinstance(manifest, dict) or manifest.get('format') != FORMAT:
-            raise ModelError(f'{mf}: format is not {FORMAT!r}')
-        if manifest.get('version') != VERSION:
-            raise ModelError(f'{mf}: version {manifest.get("version")!r} is not supported '
-                             f'(this beo_ros reads version {VERSION})')
-        if not isinstance(manifest.get('grid'), dict):
-            raise ModelError(f'{mf}: grid must be an object (size, units, ...), got '
-                             f'{manifest.get("grid")!r}')
-        try:
-            spec = GridSpec.from_dict(manifest['grid'])
-            classes = list(manifest['classes'])
-            files = dict(manifest['files'])
-        except (KeyError, TypeError, ValueError) as e:
-            raise ModelError(f'{mf}: bad or missing entry: {e}') from None
-        for fn in files:
-            if not isinstance(fn, str) or fn in ('', '.', '..') or Path(fn).name != fn:
-                raise ModelError(f'{mf}: files must name files in the model directory, got '
-                                 f'{fn!r}')
-        for fn in OPTIONAL_FILES:
-            # a model saved with it lists it; present but unlisted, the model was tampered with
-            # and would silently lose a part
-            if fn not in files and (path / fn).exists():
-                raise ModelError(f'{path / fn} is present but not listed in the manifest')
-        check_class_names(classes, str(mf))   # the rule save applies: train and load agree
-        if manifest['grid'].get('up', '+z') != '+z' or manifest['grid'].get('axes', 'xyz') != 'xyz':
-            raise ModelError(f'{mf}: only axes xyz with up +z are supported')
-        for fn, digest in files.items():
-            fp = path / fn
-            if not fp.is_file():
-                raise ModelError(f'{fp} is listed in the manifest but missing')
-            if _sha256(fp) != digest:
-                raise ModelError(f'{fp} is corrupt: checksum does not match the manifest')
-        models = []
-        d = spec.size ** 3
-        for i, name in enumerate(classes):
-            fp = path / f'class_{i:02d}_{name}.npz'
-            if fp.name not in files:
-                raise ModelError(f'{fp} for class {name!r} is not listed in the manifest')
-            try:
-                with _load_npz(fp) as z:
-                    arr = {k: z[k] for k in CLASS_KEYS}
-                    arr.update({k: z[k] for k in OPTIONAL_CLASS_KEYS if k in z.files})
-            except KeyError as e:
-                raise ModelError(f'{fp}: missing array {e}') from None
-            except UNREADABLE as e:
-                raise ModelError(f'{fp}: unreadable: {type(e).__name__}: {e}') from None
-            check_class_arrays(arr, d, fp, spec.size)
-            W = arr['W']
-            noise_map = arr.get('coarse_noise_map')
-            if noise_map is not None and (noise_map.shape != (d // 8,) or noise_map.min() <= 0):
-                raise ModelError(f'{fp}: coarse_noise_map must be {d // 8} positive values, got '
-                                 f'shape {noise_map.shape}')
-            models.append(ClassModel(
-                name=name, W=W.astype(np.float32), mean=arr['mean'].astype(np.float32),
-                noise_variance=float(arr['noise_variance']),
-                coarse_noise_variance=float(arr['coarse_noise_variance']),
-                loading_covariance=arr['loading_covariance'].astype(np.float32),
-                mean_variance=arr['mean_variance'].astype(np.float32),
-                component_variance=arr['component_variance'].astype(np.float32),
-                coarse_noise_map=None if noise_map is None else noise_map.astype(np.float32)))
-        classifier = None
-        if 'classifier.npz' in files:
-            fp = path / 'classifier.npz'
-            try:
-                with _load_npz(fp) as z:
-                    classifier = {}
-                    for key in z.files:
-                        mode, name = key.split('__', 1)
-                        classifier.setdefault(mode, {})[name] = z[key]
-            except UNREADABLE as e:
-                raise ModelError(f'{fp}: unreadable: {type(e).__name__}: {e}') from None
-            for mode, clf in classifier.items():
-                if mode == POINTS_MODE:
-                    check_point_classifier(clf, len(classes), str(fp))
-                    continue
-                if mode not in MODES:
-                    raise ModelError(f'{fp}: unknown classifier {mode!r} (known: '
-                                     f'{", ".join(MODES + (POINTS_MODE,))})')
-                try:
-                    n_d = descriptor_count(clf)
-                except ModelError as e:
-                    raise ModelError(f'{fp}: classifier {mode!r}: {e}') from None
-                nf = len(FEATURE_NAMES) * len(classes) + n_d
-                extra = f' + {n_d} shape descriptors' if n_d else ''
-                check_classifier_arrays(clf, len(classes), nf, f'{fp}: classifier {mode!r}',
-                                        f'{len(classes)} classes x {len(FEATURE_NAMES)} '
-                                        f'features{extra}')
-                if bool(clf.get('row_standardize', False)) and len(classes) < 3:
-                    raise ModelError(f'{fp}: classifier {mode!r} standardises features across '
-                                     f'classes, which needs at least 3 classes')
+        mf, manifest = _read_manifest(path)
+        spec, classes, files = _manifest_layout(path, mf, manifest)
+        _check_checksums(path, files)
+        models = _load_class_models(path, files, classes, spec)
+        classifier = _load_classifier(path, files, len(classes))
         arrays = _optional_arrays(path, files, 'verifier.npz',
                                   lambda a, where: check_arrays(a, len(classes), spec.size, where))
         verifier = None if arrays is None else OrientationVerifier.from_arrays(arrays)
@@ -799,12 +856,7 @@ class ModelBank:
                 resolve_class_prior(class_prior, classes)
             except ValueError as e:
                 raise ModelError(f'{mf}: {e}') from None
-        reason = _settings_reason(manifest.get('pose_components', 8), manifest.get('training'))
-        if reason:
-            raise ModelError(f'{mf}: {reason}')
-        if not isinstance(manifest.get('stage2_noise_map', False), bool):
-            raise ModelError(f'{mf}: stage2_noise_map must be true or false, got '
-                             f'{manifest["stage2_noise_map"]!r}')
+        _check_manifest_settings(mf, manifest)
         return cls(models, spec, classifier, manifest.get('training'),
                    manifest.get('pose_components', 8),
                    stage2_noise_map=manifest.get('stage2_noise_map', False),
@@ -1078,38 +1130,56 @@ class ModelBank:
         """
         t0 = time.perf_counter()
         grid = self.check_grid(grid)
-        check_step('yaw_step_deg', yaw_step_deg)
-        if search_step_deg is not None:
-            check_step('search_step_deg', search_step_deg)
-        if probe_deg is None:
-            probe_deg = ()
-        elif np.ndim(probe_deg) == 0:
-            probe_deg = (probe_deg.item() if isinstance(probe_deg, np.ndarray) else probe_deg,)
-        elif isinstance(probe_deg, np.ndarray):
-            probe_deg = probe_deg.ravel().tolist()
-        try:
-            probe_deg = tuple(probe_deg)
-        except TypeError:
-            raise ValueError(f'probe_deg must be offsets in (0, 180] degrees, got '
-                             f'{probe_deg!r}') from None
-        if stage2_window_deg is None:
-            stage2_window_deg = 0.0
-        if not all(isinstance(p, (int, float, np.floating, np.integer))
-                   and not isinstance(p, bool) and 0 < p <= 180 for p in probe_deg):
-            raise ValueError(f'probe_deg must be offsets in (0, 180] degrees, got {probe_deg}')
-        for name, value in (('refine_deg', refine_deg), ('stage2_window_deg', stage2_window_deg)):
-            if isinstance(value, (bool, np.bool_)) or not 0 <= value <= 180:   # and NaN
-                raise ValueError(f'{name} must be in [0, 180] degrees, got {value}')
-        check_count('n_hypotheses', n_hypotheses)
-        if stage2_modes is not None:
-            check_count('stage2_modes', stage2_modes)
-        if search_step_deg is None:
-            search_step_deg = max(SEARCH_STEP_DEG, yaw_step_deg)
+        search_step_deg, probe_deg, stage2_window_deg = _check_estimate_options(
+            yaw_step_deg, search_step_deg, probe_deg, refine_deg, stage2_window_deg, n_hypotheses,
+            stage2_modes)
         yaw = check_yaw(yaw)
         if not (grid == 1).any():
             return self._no_object(grid, yaw, t0)
         feats, per = self.features(grid, yaw, search_step_deg, exhaustive)
         t1 = time.perf_counter()
+        probs, unknown, rule, note, point_features = self._classify(feats, grid, point_features)
+        best = int(np.argmax(probs))
+        t_cls = time.perf_counter()
+        if yaw is None and refine_deg > 0:
+            per[best] = self._refine(grid, best, per[best], yaw_step_deg, refine_deg,
+                                     max(yaw_step_deg, STAGE2_MIN_STEP_DEG), stage2_modes,
+                                     stage2_window_deg, probe_deg)
+        t_ref = time.perf_counter()
+        refined_yaw = per[best]['yaw']
+        if yaw is None and refine_deg > 0 and verify and self.verifier is not None \
+                and self.verifier.has_class(best):
+            per[best] = self._verify_turns(grid, best, per[best])
+        t2 = time.perf_counter()
+        completion, variance = self._completion(grid, per, probs, best)
+        est_yaw = per[best]['yaw']
+        turns = symmetric_turns(completion >= 0.5)
+        t3 = time.perf_counter()
+        hyps = self._hypotheses(grid, per, best, refined_yaw, yaw_step_deg)
+        label = UNKNOWN_LABEL if unknown else self.classes[best]
+        return Estimate(
+            label=label, scores={c: float(p) for c, p in zip(self.classes, probs)},
+            yaw=_wrap(est_yaw),
+            symmetric_yaws=[_wrap(est_yaw + t) for t in turns],
+            completion=completion, variance=variance,
+            hypotheses=[Hypothesis(lab, _wrap(y), float(s))
+                        for lab, y, s in hyps[:n_hypotheses]],
+            timings={'pose_and_features': t1 - t0, 'classify': t_cls - t1,
+                     'pose_refinement': t_ref - t_cls, 'orientation_check': t2 - t_ref,
+                     'completion': t3 - t2,
+                     'total': t3 - t0},
+            features=feats, grid=grid, classifier_mode=rule, point_features=point_features,
+            classifier_note=note)
+
+    def _classify(self, feats, grid, point_features):
+        """Class probabilities (C,) and 'unknown' flag of one grid (N, N, N) from its features
+        ``feats`` (C, F): by the 'points' classifier when the bank has one and the optional
+        ``point_features`` (2,) are finite, else by the grid rule of the grid's mode.
+
+        Returns (probs, unknown, rule: 'points', 'complete', 'partial' or 'max_likelihood',
+        note: why the 'points' classifier was not used and / or the class prior not applied,
+        point_features as float64 (2,) or None); ValueError for point_features of another
+        shape."""
         mode = 'complete' if (grid < 0).mean() < 0.01 else 'partial'
         rule, note = None, ''
         if point_features is not None:
@@ -1128,22 +1198,15 @@ class ModelBank:
             probs, unknown = self.classify_features(feats, mode, grid)
             rule = mode if self.classifier and mode in self.classifier else 'max_likelihood'
         note = '; '.join(n for n in (note, self.prior_note(rule)) if n)
-        best = int(np.argmax(probs))
-        t_cls = time.perf_counter()
-        if yaw is None and refine_deg > 0:
-            per[best] = self._refine(grid, best, per[best], yaw_step_deg, refine_deg,
-                                     max(yaw_step_deg, STAGE2_MIN_STEP_DEG), stage2_modes,
-                                     stage2_window_deg, probe_deg)
-        t_ref = time.perf_counter()
-        refined_yaw = per[best]['yaw']
-        if yaw is None and refine_deg > 0 and verify and self.verifier is not None \
-                and self.verifier.has_class(best):
-            per[best] = self._verify_turns(grid, best, per[best])
-        t2 = time.perf_counter()
-        completion, variance = self._completion(grid, per, probs, best)
+        return probs, unknown, rule, note, point_features
+
+    def _hypotheses(self, grid, per, best, refined_yaw, yaw_step_deg):
+        """The pose hypotheses (class name, yaw, score), best first, of a grid whose chosen
+        class ``best`` has the refined (and maybe verifier-turned) search result ``per[best]``
+        (``refined_yaw``: its yaw before the verifier): that class's yaw modes (the first at
+        ``refined_yaw``; a verifier's quarter turn before them, with its own pooled score), then
+        every other class's best mode, by score."""
         est_yaw = per[best]['yaw']
-        turns = symmetric_turns(completion >= 0.5)
-        t3 = time.perf_counter()
         # the chosen class's yaw modes first (symmetric objects have several), then the others
         hyps = [(self.classes[best], y, ll) for y, ll in per[best]['hypotheses']]
         if hyps:  # the best mode, as refined at full resolution
@@ -1158,20 +1221,7 @@ class ModelBank:
                 [h for h in hyps if abs(_wrap(h[1] - est_yaw)) >= np.deg2rad(10.0)]
         hyps += sorted(((self.classes[c], y, ll) for c in range(len(per)) if c != best
                         for y, ll in per[c]['hypotheses'][:1]), key=lambda h: -h[2])
-        label = UNKNOWN_LABEL if unknown else self.classes[best]
-        return Estimate(
-            label=label, scores={c: float(p) for c, p in zip(self.classes, probs)},
-            yaw=_wrap(est_yaw),
-            symmetric_yaws=[_wrap(est_yaw + t) for t in turns],
-            completion=completion, variance=variance,
-            hypotheses=[Hypothesis(lab, _wrap(y), float(s))
-                        for lab, y, s in hyps[:n_hypotheses]],
-            timings={'pose_and_features': t1 - t0, 'classify': t_cls - t1,
-                     'pose_refinement': t_ref - t_cls, 'orientation_check': t2 - t_ref,
-                     'completion': t3 - t2,
-                     'total': t3 - t0},
-            features=feats, grid=grid, classifier_mode=rule, point_features=point_features,
-            classifier_note=note)
+        return hyps
 
     def _no_object(self, grid, yaw, t0):
         """The estimate of a grid with no occupied voxel (all free or unknown, e.g. the view of
@@ -1309,6 +1359,47 @@ def check_count(name, value):
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) \
             or value < 0:
         raise ValueError(f'{name} must be an integer >= 0, got {value!r}')
+
+def _probe_offsets(probe_deg):
+    """``probe_deg`` of :meth:`ModelBank.estimate` (None, one number or several, a list or an
+    array) as a tuple of offsets (degrees); ValueError unless each is a number in (0, 180]."""
+    if probe_deg is None:
+        probe_deg = ()
+    elif np.ndim(probe_deg) == 0:
+        probe_deg = (probe_deg.item() if isinstance(probe_deg, np.ndarray) else probe_deg,)
+    elif isinstance(probe_deg, np.ndarray):
+        probe_deg = probe_deg.ravel().tolist()
+    try:
+        probe_deg = tuple(probe_deg)
+    except TypeError:
+        raise ValueError(f'probe_deg must be offsets in (0, 180] degrees, got '
+                         f'{probe_deg!r}') from None
+    if not all(isinstance(p, (int, float, np.floating, np.integer))
+               and not isinstance(p, bool) and 0 < p <= 180 for p in probe_deg):
+        raise ValueError(f'probe_deg must be offsets in (0, 180] degrees, got {probe_deg}')
+    return probe_deg
+
+
+def _check_estimate_options(yaw_step_deg, search_step_deg, probe_deg, refine_deg,
+                            stage2_window_deg, n_hypotheses, stage2_modes):
+    """Check the search options of :meth:`ModelBank.estimate` (ValueError naming the first bad
+    one) and return (search_step_deg: max(SEARCH_STEP_DEG, yaw_step_deg) when None,
+    probe_deg: a tuple (see :func:`_probe_offsets`), stage2_window_deg: 0.0 when None)."""
+    check_step('yaw_step_deg', yaw_step_deg)
+    if search_step_deg is not None:
+        check_step('search_step_deg', search_step_deg)
+    probe_deg = _probe_offsets(probe_deg)
+    if stage2_window_deg is None:
+        stage2_window_deg = 0.0
+    for name, value in (('refine_deg', refine_deg), ('stage2_window_deg', stage2_window_deg)):
+        if isinstance(value, (bool, np.bool_)) or not 0 <= value <= 180:   # and NaN
+            raise ValueError(f'{name} must be in [0, 180] degrees, got {value}')
+    check_count('n_hypotheses', n_hypotheses)
+    if stage2_modes is not None:
+        check_count('stage2_modes', stage2_modes)
+    if search_step_deg is None:
+        search_step_deg = max(SEARCH_STEP_DEG, yaw_step_deg)
+    return search_step_deg, probe_deg, stage2_window_deg
 
 
 def load_models(path=None, class_prior=None):

@@ -570,6 +570,64 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
     model probabilities are published as they are). 'auto': 1 when a classifier is trained on
     whole objects, else 0 (partial training data have no truth for their unknown voxels).
     """
+    C, calibration_views = _check_fit_options(
+        names, spec, k, masks, classifier_views, folds, C, row_standardize, descriptors,
+        verifier_views, classifier_kind, calibration_views, grids, oof_path)
+    weights = resolve_class_prior(class_prior, names)
+    cv_prior = class_prior if isinstance(class_prior, str) else weights
+    X = np.asarray(X, dtype=np.float32)
+    y = np.asarray(y)
+    check_class_counts(y, names, folds if classifier_views > 0 or calibration_views else 0)
+    t0 = time.time()
+    if verbose:   # minutes with missing data (scans), and no bar of its own
+        print(f'fitting {len(names)} class models on {len(X)} objects (k {k}'
+              f'{", unknown voxels as missing data" if masks is not None else ""}) ...',
+              file=sys.stderr, flush=True)
+    models = fit_class_models(X, y, names, spec, k, masks)
+    info = dict(training or {}, k=k, n_objects=int(len(X)), folds=folds, seed=seed,
+                classifier_views=classifier_views, fit_seconds=round(time.time() - t0, 1))
+    classifier = None
+    if classifier_views > 0:
+        rows, skipped = _out_of_fold_rows(X, y, names, spec, k, masks, grids, pose_components,
+                                          classifier_views, folds, seed, verbose)
+        classifier, cv_report = _select_classifiers(rows, len(names), C, seed, row_standardize,
+                                                    descriptors, cv_prior, classifier_kind)
+        info['cross_validation'] = cv_report
+        info['skipped_views'] = skipped
+        if skipped:
+            print(f'out-of-fold features: {skipped} partial view(s) skipped: no occupied voxel '
+                  '(objects of a few voxels lost to the rotation)', file=sys.stderr)
+        if oof_path:
+            _save_out_of_fold_rows(oof_path, rows)
+        if verbose:
+            print(f'cross-validated (out-of-fold features, {folds} folds): {cv_report}',
+                  file=sys.stderr)
+        info['classifier_seconds'] = round(time.time() - t0 - info['fit_seconds'], 1)
+    calibration = None
+    if calibration_views:
+        t1 = time.time()
+        calibration, info['occupancy_calibration'] = fit_occupancy_calibration(
+            X, y, names, spec, k, folds, seed, calibration_views, classifier, class_prior,
+            pose_components, verbose)
+        info['occupancy_calibration'].update(seconds=round(time.time() - t1, 1))
+        if verbose:
+            print(f"occupancy calibration: {info['occupancy_calibration']}", file=sys.stderr)
+    verifier = None
+    if verifier_views > 0:
+        t1 = time.time()
+        verifier = fit_verifier(X, y, spec.size, verifier_views, seed, processes, verbose)
+        info.update(verifier_views=int(verifier_views),
+                    verifier_seconds=round(time.time() - t1, 1))
+    return ModelBank(models, spec, classifier, info, pose_components, class_prior=class_prior,
+                     verifier=verifier, occupancy_calibration=calibration)
+
+
+def _check_fit_options(names, spec, k, masks, classifier_views, folds, C, row_standardize,
+                       descriptors, verifier_views, classifier_kind, calibration_views, grids,
+                       oof_path):
+    """Check the options of :func:`fit_bank` before its long fits (ValueError naming the first
+    bad one, in fit_bank's order) and return (C: ``C_OPTIONS`` when None,
+    calibration_views: an integer, 'auto' resolved as fit_bank documents)."""
     if C is None:
         C = C_OPTIONS
     if not (np.size(C) and np.all(np.asarray(C, dtype=np.float64) > 0)):
@@ -578,7 +636,7 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
         raise ValueError(f"row_standardize must be True, False or 'auto', got {row_standardize!r}")
     if descriptors not in (True, False, 'auto'):
         raise ValueError(f"descriptors must be True, False or 'auto', got {descriptors!r}")
-    _check_kind(classifier_kind, 'classifier_kind')   # before the long fits
+    _check_kind(classifier_kind, 'classifier_kind')
     if row_standardize is True and len(names) < 3:
         raise ValueError('row_standardize needs at least 3 classes')
     if not (isinstance(verifier_views, (int, np.integer)) and verifier_views >= 0):
@@ -602,7 +660,7 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
                          'no out-of-fold features to save')
     if len(set(names)) != len(names):
         raise ValueError(f'class names must be unique, got {list(names)}')
-    check_class_names(names)   # the names save writes and load accepts, before the long fits
+    check_class_names(names)   # the names save writes and load accepts
     check_grid_size(spec.size)
     if not (isinstance(k, (int, np.integer)) and k >= 1):
         raise ValueError(f'k must be an integer >= 1, got {k!r}')
@@ -610,99 +668,84 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
         raise ValueError(f'a classifier needs 2 or more classes, got {len(names)} '
                          f'({list(names)}); train none (classifier_views=0) for a one-class '
                          'model')
-    weights = resolve_class_prior(class_prior, names)
-    cv_prior = class_prior if isinstance(class_prior, str) else weights
-    X = np.asarray(X, dtype=np.float32)
-    y = np.asarray(y)
-    check_class_counts(y, names, folds if classifier_views > 0 or calibration_views else 0)
-    t0 = time.time()
-    if verbose:   # minutes with missing data (scans), and no bar of its own
-        print(f'fitting {len(names)} class models on {len(X)} objects (k {k}'
-              f'{", unknown voxels as missing data" if masks is not None else ""}) ...',
-              file=sys.stderr, flush=True)
-    models = fit_class_models(X, y, names, spec, k, masks)
-    info = dict(training or {}, k=k, n_objects=int(len(X)), folds=folds, seed=seed,
-                classifier_views=classifier_views, fit_seconds=round(time.time() - t0, 1))
-    classifier = None
-    if classifier_views > 0:
-        rng = np.random.default_rng(seed)
-        fold = stratified_folds(y, folds, rng)
-        feats = {'complete': [], 'partial': []}
-        labels = {'complete': [], 'partial': []}
-        records = {'complete': [], 'partial': []}
-        objects = {'complete': [], 'partial': []}
-        descs = {'complete': [], 'partial': []}
-        skipped = 0
-        for f in progress_bar(range(folds), 'out-of-fold features', disable=not verbose):
-            tr, te = fold != f, np.flatnonzero(fold == f)
-            sub = ModelBank(fit_class_models(X[tr], y[tr], names, spec, k,
-                                             None if masks is None else masks[tr]),
-                            spec, pose_components=pose_components)
-            for i in progress_bar(te, f'fold {f}', disable=not verbose):
-                if grids is not None:
-                    F, _ = sub.features(np.asarray(grids[i], dtype=np.int8))
-                    feats['partial'].append(F.ravel()[None])
-                    descs['partial'].append(shape_descriptors(np.asarray(grids[i]))[None])
-                    labels['partial'].append(y[i])
-                    objects['partial'].append(i)
-                    records['partial'].append({})  # no ground-truth yaw for real scans
-                    continue
-                out, lost = view_features(sub, X[i:i + 1], rng, classifier_views,
-                                          complete=masks is None)
-                skipped += lost
-                for mode, (F, _, recs, D) in out.items():
-                    feats[mode].append(F)
-                    descs[mode].append(D)
-                    labels[mode] += [y[i]] * len(F)
-                    objects[mode] += [i] * len(F)
-                    records[mode] += recs
-        classifier, cv_report = {}, {}
-        for mode in feats:
-            if feats[mode]:
-                classifier[mode], cv_report[mode] = select_classifier(
-                    np.vstack(feats[mode]), np.array(labels[mode]), records[mode],
-                    np.array(objects[mode]), np.vstack(descs[mode]), len(names), C, seed,
-                    row_standardize, descriptors, cv_prior, classifier_kind)
-        info['cross_validation'] = cv_report
-        info['skipped_views'] = skipped
-        if skipped:
-            print(f'out-of-fold features: {skipped} partial view(s) skipped: no occupied voxel '
-                  '(objects of a few voxels lost to the rotation)', file=sys.stderr)
-        if oof_path:
-            arrays = {}
-            for mode in feats:
-                if feats[mode]:
-                    arrays[f'{mode}_features'] = np.vstack(feats[mode])
-                    arrays[f'{mode}_labels'] = np.array(labels[mode])
-                    arrays[f'{mode}_objects'] = np.array(objects[mode])
-                    arrays[f'{mode}_descriptors'] = np.vstack(descs[mode])
-                    if records[mode] and records[mode][0]:
-                        for key in records[mode][0]:
-                            arrays[f'{mode}_{key}'] = np.array([r[key] for r in records[mode]])
-            from pathlib import Path
-            Path(oof_path).parent.mkdir(parents=True, exist_ok=True)
-            np.savez(oof_path, **arrays)
-        if verbose:
-            print(f'cross-validated (out-of-fold features, {folds} folds): {cv_report}',
-                  file=sys.stderr)
-        info['classifier_seconds'] = round(time.time() - t0 - info['fit_seconds'], 1)
-    calibration = None
-    if calibration_views:
-        t1 = time.time()
-        calibration, info['occupancy_calibration'] = fit_occupancy_calibration(
-            X, y, names, spec, k, folds, seed, calibration_views, classifier, class_prior,
-            pose_components, verbose)
-        info['occupancy_calibration'].update(seconds=round(time.time() - t1, 1))
-        if verbose:
-            print(f"occupancy calibration: {info['occupancy_calibration']}", file=sys.stderr)
-    verifier = None
-    if verifier_views > 0:
-        t1 = time.time()
-        verifier = fit_verifier(X, y, spec.size, verifier_views, seed, processes, verbose)
-        info.update(verifier_views=int(verifier_views),
-                    verifier_seconds=round(time.time() - t1, 1))
-    return ModelBank(models, spec, classifier, info, pose_components, class_prior=class_prior,
-                     verifier=verifier, occupancy_calibration=calibration)
+    return C, calibration_views
+
+
+def _out_of_fold_rows(X, y, names, spec, k, masks, grids, pose_components, classifier_views,
+                      folds, seed, verbose):
+    """Classifier training rows of objects X (m, N^3) with labels y (m,), each from class
+    models fitted on the other folds (``folds`` stratified folds drawn with ``seed``, whose
+    stream then draws the views): ``classifier_views`` protocol views of each object (see
+    :func:`view_features`; the complete grid too without ``masks``), or with ``grids`` each
+    object's own labelled grid (a real scan: no ground-truth yaw).
+
+    Returns (dict mode ('complete', 'partial') -> dict of lists: 'features' (r_i, C*F) and
+    'descriptors' (r_i, D) blocks, 'labels' and 'objects' per row, 'records' (dicts) per row;
+    the number of views skipped: no occupied voxel)."""
+    rng = np.random.default_rng(seed)
+    fold = stratified_folds(y, folds, rng)
+    rows = {mode: dict(features=[], labels=[], records=[], objects=[], descriptors=[])
+            for mode in ('complete', 'partial')}
+    skipped = 0
+    for f in progress_bar(range(folds), 'out-of-fold features', disable=not verbose):
+        tr, te = fold != f, np.flatnonzero(fold == f)
+        sub = ModelBank(fit_class_models(X[tr], y[tr], names, spec, k,
+                                         None if masks is None else masks[tr]),
+                        spec, pose_components=pose_components)
+        for i in progress_bar(te, f'fold {f}', disable=not verbose):
+            if grids is not None:
+                part = rows['partial']
+                F, _ = sub.features(np.asarray(grids[i], dtype=np.int8))
+                part['features'].append(F.ravel()[None])
+                part['descriptors'].append(shape_descriptors(np.asarray(grids[i]))[None])
+                part['labels'].append(y[i])
+                part['objects'].append(i)
+                part['records'].append({})  # no ground-truth yaw for real scans
+                continue
+            out, lost = view_features(sub, X[i:i + 1], rng, classifier_views,
+                                      complete=masks is None)
+            skipped += lost
+            for mode, (F, _, recs, D) in out.items():
+                rows[mode]['features'].append(F)
+                rows[mode]['descriptors'].append(D)
+                rows[mode]['labels'] += [y[i]] * len(F)
+                rows[mode]['objects'] += [i] * len(F)
+                rows[mode]['records'] += recs
+    return rows, skipped
+
+
+def _select_classifiers(rows, n_classes, C, seed, row_standardize, descriptors, class_prior,
+                        kind):
+    """(classifier dict mode -> arrays, report dict mode -> cross-validation report): the
+    :func:`select_classifier` choice for every mode of ``rows`` (see
+    :func:`_out_of_fold_rows`) that has rows."""
+    classifier, cv_report = {}, {}
+    for mode, r in rows.items():
+        if r['features']:
+            classifier[mode], cv_report[mode] = select_classifier(
+                np.vstack(r['features']), np.array(r['labels']), r['records'],
+                np.array(r['objects']), np.vstack(r['descriptors']), n_classes, C, seed,
+                row_standardize, descriptors, class_prior, kind)
+    return classifier, cv_report
+
+
+def _save_out_of_fold_rows(path, rows):
+    """Save the out-of-fold ``rows`` (see :func:`_out_of_fold_rows`) to npz ``path``: per mode
+    with rows, <mode>_features, _labels, _objects, _descriptors and each record key (e.g.
+    <mode>_yaw_err (r, C), <mode>_iou (r, C))."""
+    arrays = {}
+    for mode, r in rows.items():
+        if r['features']:
+            arrays[f'{mode}_features'] = np.vstack(r['features'])
+            arrays[f'{mode}_labels'] = np.array(r['labels'])
+            arrays[f'{mode}_objects'] = np.array(r['objects'])
+            arrays[f'{mode}_descriptors'] = np.vstack(r['descriptors'])
+            if r['records'] and r['records'][0]:
+                for key in r['records'][0]:
+                    arrays[f'{mode}_{key}'] = np.array([rec[key] for rec in r['records']])
+    from pathlib import Path
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, **arrays)
 
 
 # ---------------------------------------------------------------------- data loading
