@@ -115,6 +115,10 @@ def test_cli_recover(tmp_path, capsys):
     assert bag.recover_main([str(killed), '-o', str(tmp_path / 'ok')]) == 0
     out = capsys.readouterr().out
     assert out.strip() == f'6 message(s) (/a: 3 /b: 3) -> {tmp_path / "ok"} (mcap)'
+    deep = tmp_path / 'new' / 'dirs' / 'bag'   # missing parents are made, as for beo-record
+    assert bag.recover_main([str(killed), '-o', str(deep), '--storage', 'sqlite3']) == 0
+    assert bag.bag_info(deep)['message_count'] == 6
+    capsys.readouterr()
     (tmp_path / 'junk.mcap').write_bytes(b'not an mcap file at all')
     for src, why in ((tmp_path / 'nope', 'no such bag'), (tmp_path / 'junk.mcap', 'not an mcap'),
                      (tmp_path / 'ok' / 'metadata.yaml', 'not a .db3 or .mcap')):

@@ -528,6 +528,7 @@ def recover_bag(src, dst, *, storage: str | None = None) -> dict:
     storage = storage or ('mcap' if path.suffix == '.mcap' else 'sqlite3')
     dst = Path(dst)
     lost = 0
+    dst.parent.mkdir(parents=True, exist_ok=True)   # as rosbags' writer would
     with tempfile.TemporaryDirectory(prefix='.beo_recover_', dir=dst.parent) as tmp:
         readable = path
         if path.suffix == '.mcap':
