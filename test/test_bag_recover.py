@@ -140,3 +140,27 @@ def test_commit_of_an_mcap_writer_without_new_messages_is_harmless(tmp_path):
         w.write('/s', String(data='b'), 2)
     assert [t for _, _, t, _ in bag.read_bag(tmp_path / 'b')] == [1, 2]
     assert os.path.getsize(tmp_path / 'b' / 'b.mcap') > 0
+
+
+@pytest.mark.parametrize('storage', bag.STORAGES)
+def test_a_type_beo_ros_does_not_know_is_copied_with_the_bags_own_definition(tmp_path, storage):
+    """Bags of other recorders (ros2 bag record) may carry types beo_ros has no .msg file for:
+    the new bag takes the old one's definition (before: KeyError)."""
+    from rosbags.rosbag2 import Reader
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+    store = get_typestore(Stores.EMPTY)
+    store.register(get_types_from_msg('int32 a\n', 'my_pkg/msg/Thing'))
+    # an mcap file read without metadata.yaml has no hash: the copy computes it again
+    src, digest = tmp_path / 'other', store.hash_rihs01('my_pkg/msg/Thing')
+    with bag.BagWriter(src, storage) as w:
+        with pytest.raises(KeyError):
+            w.add_topic('/t', 'my_pkg/msg/Thing')
+        w.add_topic('/t', 'my_pkg/msg/Thing', msgdef='int32 a\n', rihs01=digest)
+        for i in range(3):
+            w.write('/t', bytes([0, 1, 0, 0, i, 0, 0, 0]), 10 + i)
+    assert bag.recover_bag(src, tmp_path / 'new')['topics'] == {'/t': 3}
+    with Reader(tmp_path / 'new') as r:
+        (c,) = r.connections
+        assert (c.msgtype, c.msgdef.data.strip(), c.digest) == ('my_pkg/msg/Thing', 'int32 a',
+                                                                digest)
+    assert [raw[4] for *_, raw in bag.read_bag(tmp_path / 'new')] == [0, 1, 2]

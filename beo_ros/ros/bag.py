@@ -369,16 +369,21 @@ class BagWriter:
             self.close()
 
     def add_topic(self, topic: str, msgtype: str, *, reliable: bool = True,
-                  transient_local: bool = False):
+                  transient_local: bool = False, msgdef: str | None = None,
+                  rihs01: str | None = None):
+        """Add ``topic`` (once; another type for it is a ValueError). Its definition comes from
+        the typestore (KeyError for an unknown type), or is ``msgdef`` + ``rihs01`` as given
+        (copied from another bag)."""
         msgtype = normalize_msgtype(msgtype)
         if topic in self._conns:
             if self._conns[topic].msgtype != msgtype:
                 raise ValueError(f'{topic}: already has type {self._conns[topic].msgtype}')
             return self._conns[topic]
-        store = get_typestore([msgtype])
+        store = None if msgdef and rihs01 else get_typestore([msgtype])
         try:
             conn = self._writer.add_connection(
-                topic, msgtype, typestore=store,
+                topic, msgtype, typestore=store, msgdef=msgdef if store is None else None,
+                rihs01=rihs01 if store is None else None,
                 offered_qos_profiles=[_qos_for_bag(reliable, transient_local)])
         except storage_errors():
             self.failed = True
@@ -545,10 +550,12 @@ def recover_bag(src, dst, *, storage: str | None = None) -> dict:
         with Reader(readable) as reader, _removed_on_error(BagWriter(dst, storage)) as writer:
             for c in reader.connections:
                 profiles = getattr(getattr(c, 'ext', None), 'offered_qos_profiles', None) or []
-                writer.add_topic(c.topic, c.msgtype, transient_local=recorded_latched(c),
-                                 reliable=not profiles or any(
-                                     getattr(q.reliability, 'name', '') == 'RELIABLE'
-                                     for q in profiles))
+                qos = dict(transient_local=recorded_latched(c), reliable=not profiles or any(
+                    getattr(q.reliability, 'name', '') == 'RELIABLE' for q in profiles))
+                try:
+                    writer.add_topic(c.topic, c.msgtype, **qos)
+                except KeyError:   # a type beo_ros does not know: the bag's own definition
+                    writer.add_topic(c.topic, c.msgtype, **_own_definition(c), **qos)
                 topics.setdefault(c.topic, 0)
             # a repaired mcap file has no index: its messages in file order (the reader would
             # refuse stamps that go back, e.g. two topics; the new bag indexes them)
@@ -559,6 +566,29 @@ def recover_bag(src, dst, *, storage: str | None = None) -> dict:
                 topics[conn.topic] += 1
     return {'messages': sum(topics.values()), 'topics': topics, 'storage': storage,
             'lost_bytes': lost}
+
+
+def _own_definition(conn) -> dict:
+    """``{'msgdef', 'rihs01'}`` of a bag connection from the bag itself (an mcap file read
+    without metadata.yaml has no hash: it is computed from the definition); KeyError when the
+    bag has no ros2msg definition of it."""
+    from rosbags.interfaces import MessageDefinitionFormat
+    from rosbags.typesys import Stores, get_types_from_msg
+    from rosbags.typesys import get_typestore as rosbags_typestore
+    msgdef = conn.msgdef
+    if msgdef.format != MessageDefinitionFormat.MSG or not msgdef.data.strip():
+        raise KeyError(f'no message definition found for {conn.msgtype} (neither installed nor '
+                       'in the bag)')
+    rihs01 = conn.digest
+    if not rihs01:
+        try:
+            store = rosbags_typestore(Stores.EMPTY)
+            store.register(get_types_from_msg(msgdef.data, conn.msgtype))
+            rihs01 = store.hash_rihs01(conn.msgtype)
+        except Exception as e:  # noqa: BLE001 - rosbags' parse errors have no common base
+            raise KeyError(f'{conn.msgtype}: the definition in the bag does not parse '
+                           f'({e})') from None
+    return {'msgdef': msgdef.data, 'rihs01': rihs01}
 
 
 @contextlib.contextmanager
