@@ -791,6 +791,62 @@ def test_a_cloud_waiting_at_shutdown_is_counted(harness1, capfd):
     assert 'received but not published' in capfd.readouterr().err
 
 
+def test_ctrl_c_while_rclpy_destroys_the_node_does_not_leave_it_half_destroyed(
+        harness, capfd, monkeypatch):
+    """Before: a second Ctrl-C while rclpy's destroy_node ran escaped BeoNode.destroy_node
+    (beo-node ended with a traceback, 1 of 15 double Ctrl-Cs with service calls in flight) and
+    left the rest of the node undestroyed; now it is destroyed all the same."""
+    from rclpy.node import Node
+    harness.stop.set()
+    harness.thread.join(timeout=5.0)
+    node = harness.node
+    real, calls = Node.destroy_service, []
+
+    def interrupted(self, service):   # the Ctrl-C lands between two of rclpy's steps
+        calls.append(service)
+        if len(calls) == 1:
+            raise KeyboardInterrupt
+        return real(self, service)
+    monkeypatch.setattr(Node, 'destroy_service', interrupted)
+    assert len(list(node.services)) >= 2
+    node.destroy_node()
+    assert not list(node.services) and not list(node.publishers)
+    assert 'interrupted again: destroying the node all the same' in capfd.readouterr().err
+
+
+def test_main_shuts_down_in_full_after_a_ctrl_c_in_any_step(monkeypatch):
+    """Every one of main's last steps runs, each again after a Ctrl-C; a node whose own
+    destroy_node was cut short gets rclpy's."""
+    from rclpy.node import Node
+    import beo_ros.ros.node as node_mod
+    done = []
+
+    class Executor:
+        _executor = None
+        shut = 0
+
+        def shutdown(self, timeout_sec=None):
+            self.shut += 1
+            if self.shut == 1:
+                raise KeyboardInterrupt
+            done.append('executor')
+
+    class Stub:
+        def destroy_node(self):
+            raise KeyboardInterrupt
+    monkeypatch.setattr(Node, 'destroy_node', lambda self: done.append('rclpy destroy_node'))
+    shutdowns = []
+
+    def try_shutdown():
+        shutdowns.append(1)
+        if len(shutdowns) == 1:
+            raise KeyboardInterrupt
+        done.append('try_shutdown')
+    monkeypatch.setattr(node_mod.rclpy, 'try_shutdown', try_shutdown)
+    node_mod._shut_down(Executor(), Stub())
+    assert done == ['executor', 'rclpy destroy_node', 'try_shutdown']
+
+
 def test_second_ctrl_c_during_shutdown_does_not_wait_for_estimates(harness1, capfd):
     """destroy_node waits up to 30 s for the estimates in flight; a SIGINT during that wait
     (the user's second Ctrl-C) ends the wait at once, with a warning, and the node is still

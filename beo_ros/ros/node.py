@@ -1218,7 +1218,12 @@ class BeoNode(Node):
         if lost:
             log.info(f'{lost} service answer(s) computed while shutting down could not be '
                      'sent')
-        super().destroy_node()
+        while True:   # a further Ctrl-C must not leave the node half destroyed (rclpy's
+            try:      # destroy_node can be called again: it destroys what is left)
+                super().destroy_node()
+                break
+            except KeyboardInterrupt:
+                log.warning('interrupted again: destroying the node all the same')
 
 
 def make_executor(context=None):
@@ -1240,8 +1245,38 @@ def drain_executor(executor):
     """
     pool = getattr(executor, '_executor', None)
     if pool is not None:
-        pool.shutdown(wait=True)
+        try:
+            pool.shutdown(wait=True)
+        except KeyboardInterrupt:   # a further Ctrl-C: stop waiting for them
+            pool.shutdown(wait=False)
     executor.shutdown(timeout_sec=5.0)
+
+
+def _shut_down(executor, node):
+    """main's last steps: drain the executor, destroy the node, shut rclpy down. A further
+    Ctrl-C meanwhile cuts the waits short (see ``BeoNode.destroy_node``) but every step still
+    runs: before, one that came during the last steps ended the process with a traceback
+    (1 of 15 double Ctrl-Cs with service calls in flight)."""
+    tries = 0
+
+    def destroy():
+        nonlocal tries
+        tries += 1
+        if tries == 1:
+            node.destroy_node()
+        else:   # interrupted in its own steps (it is destroyed once): what rclpy needs
+            Node.destroy_node(node)
+
+    steps = ([lambda: drain_executor(executor)] if executor is not None else []) + (
+        [destroy] if node is not None else []) + [rclpy.try_shutdown]
+    for step in steps:
+        for _ in range(100):   # each step can run again and gets further on every try
+            try:
+                step()
+                break
+            except KeyboardInterrupt:
+                rclpy.logging.get_logger('beo.shutdown').warning(
+                    'interrupted again: shutting down all the same')
 
 
 USAGE = """usage: beo-node [-h] [--ros-args (-p NAME:=VALUE | --params-file FILE) ...]
@@ -1287,11 +1322,7 @@ def main(args=None):
         # a signal shut rclpy down while the node was starting (e.g. creating a publisher on
         # the dead context): a normal shutdown
     finally:
-        if executor is not None:
-            drain_executor(executor)
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+        _shut_down(executor, node)
     if failed:
         sys.exit(1)
 
