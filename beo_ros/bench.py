@@ -769,7 +769,19 @@ def _fmt(v, spec='.1f'):
 
 # ---------------------------------------------------------------------- main
 def parse_args(argv):
+    """beo-bench's options (``argv``; None: sys.argv) -> argparse Namespace, --quick
+    applied."""
     ap = argparse.ArgumentParser(prog='beo-bench', description=__doc__.split('\n')[0])
+    for add in (_add_data_options, _add_peer_options, _add_scaling_options, _add_node_options):
+        add(ap)
+    args = ap.parse_args(argv)
+    if args.quick:
+        _quick_sizes(args)
+    return args
+
+
+def _add_data_options(ap):
+    """--out, the data, the split and the seed."""
     ap.add_argument('--out', default='bench_out', help='output directory (bench.json, PNGs)')
     ap.add_argument('--data', default='', help="voxel npz (default: $BEO_DATA_DIR/"
                     f"{DEFAULT_DATA}, or generated boxes/cylinders when that file is "
@@ -785,6 +797,10 @@ def parse_args(argv):
                     help='cap training objects per class (default: all of the split)')
     ap.add_argument('--queries-per-class', type=count(1), default=10,
                     help='cap held-out queries per class (default 10)')
+
+
+def _add_peer_options(ap):
+    """Timing repeats, the peers' sizes and the --no-<phase> switches."""
     ap.add_argument('--repeats', type=count(1), default=3,
                     help='timing repeats per query (beo)')
     ap.add_argument('--slow-repeats', type=count(1), default=1,
@@ -804,6 +820,10 @@ def parse_args(argv):
     ap.add_argument('--no-scaling', action='store_true')
     ap.add_argument('--no-node', action='store_true')
     ap.add_argument('--no-plots', action='store_true')
+
+
+def _add_scaling_options(ap):
+    """The points of the scaling curves."""
     ap.add_argument('--scaling-train', type=count(1), nargs='+', default=[100, 200])
     ap.add_argument('--scaling-grids', type=count(4, 256), nargs='+', default=[24, 32, 48, 64])
     ap.add_argument('--scaling-yaw-steps', type=number(0, 360, lo_open=True), nargs='+',
@@ -811,6 +831,10 @@ def parse_args(argv):
     ap.add_argument('--scaling-classes', type=count(1), nargs='+', default=[2, 5, 10])
     ap.add_argument('--scaling-per-class', type=count(1), default=8)
     ap.add_argument('--scaling-queries', type=count(1), default=6)
+
+
+def _add_node_options(ap):
+    """The node benchmark: the bag, the replay rates and the node's own parameters."""
     ap.add_argument('--node-objects', type=count(1), default=20,
                     help='rendered clouds in the node bench bag (cycled)')
     ap.add_argument('--node-rounds', type=count(1), default=1,
@@ -831,35 +855,37 @@ def parse_args(argv):
     ap.add_argument('--node-blas-threads', type=count(0, 64), default=None,
                     help="the node's blas_threads parameter, 0..64 (default: the node's "
                          "default; 0: the BLAS library's own default)")
-    args = ap.parse_args(argv)
-    if args.quick:
-        p = data_path(args.data)
-        if p is not None and not args.classes:
-            try:
-                with np.load(p) as z:
-                    have = [str(c) for c in z['classes']]
-            except (OSError, KeyError, ValueError):
-                have = []   # the loader says what is wrong with the file
-            args.classes = (['chair', 'monitor'] if {'chair', 'monitor'} <= set(have)
-                            else have[:2] or None)
-        args.train_per_class = args.train_per_class or 12
-        args.queries_per_class = min(args.queries_per_class, 3)
-        args.repeats = min(args.repeats, 2)
-        args.beo_classifier_views = 0
-        args.beo_verifier_views = 0
-        args.icp_db_per_class = min(args.icp_db_per_class, 3)
-        args.icp_init_yaws = min(args.icp_init_yaws, 4)
-        args.k = min(args.k, 4 if p is None else 8)
-        args.scaling_train = [8]
-        args.scaling_grids = [12, 16] if p is None else [16, 24]
-        args.scaling_yaw_steps = [10.0, 5.0]
-        args.scaling_classes = [2]
-        args.scaling_per_class = 4
-        args.scaling_queries = 2
-        args.node_objects = min(args.node_objects, 4)
-        args.node_rates = [2.0, 4.0]
-        args.node_duration = min(args.node_duration, 1.5)
-    return args
+
+
+def _quick_sizes(args):
+    """--quick: small sizes in ``args`` (in place); two classes of the data file unless
+    --classes names them (chair and monitor when it has both)."""
+    p = data_path(args.data)
+    if p is not None and not args.classes:
+        try:
+            with np.load(p) as z:
+                have = [str(c) for c in z['classes']]
+        except (OSError, KeyError, ValueError):
+            have = []   # the loader says what is wrong with the file
+        args.classes = (['chair', 'monitor'] if {'chair', 'monitor'} <= set(have)
+                        else have[:2] or None)
+    args.train_per_class = args.train_per_class or 12
+    args.queries_per_class = min(args.queries_per_class, 3)
+    args.repeats = min(args.repeats, 2)
+    args.beo_classifier_views = 0
+    args.beo_verifier_views = 0
+    args.icp_db_per_class = min(args.icp_db_per_class, 3)
+    args.icp_init_yaws = min(args.icp_init_yaws, 4)
+    args.k = min(args.k, 4 if p is None else 8)
+    args.scaling_train = [8]
+    args.scaling_grids = [12, 16] if p is None else [16, 24]
+    args.scaling_yaw_steps = [10.0, 5.0]
+    args.scaling_classes = [2]
+    args.scaling_per_class = 4
+    args.scaling_queries = 2
+    args.node_objects = min(args.node_objects, 4)
+    args.node_rates = [2.0, 4.0]
+    args.node_duration = min(args.node_duration, 1.5)
 
 
 @interruptible('beo-bench')
@@ -900,7 +926,40 @@ def _bench(args, out, X, y, names, n, source, tr, te, bank, t_all):
     queries = make_queries(X, y, te, n, np.random.default_rng(args.seed + 1))
     log(f'data: {source}; {len(names)} classes, {len(tr)} training objects, '
         f'{len(queries)} queries')
-    res = {'setup': {
+    res = {'setup': _setup(args, source, names, n, tr, queries)}
+    bank = _bench_beo(args, res, X, y, tr, names, n, queries, bank)
+    if not args.no_paper:
+        res['paper'] = _bench_paper(args, X, y, tr, names, n, queries)
+    if not args.no_icp:
+        res['icp'] = _bench_icp(args, X, y, tr, names, n, queries)
+    if 'icp' in res:
+        res['speedup_vs_icp'] = res['icp']['p50_ms'] / res['beo']['p50_ms']
+    if 'paper' in res:
+        res['speedup_vs_paper'] = res['paper']['p50_ms'] / res['beo']['p50_ms']
+
+    res['scaling'] = ({'skipped': '--no-scaling'} if args.no_scaling else
+                      scaling(args, X, y, names, n, tr, queries, bank,
+                              np.random.default_rng(args.seed + 2)))
+    res['node'], node_failed = _bench_node(args, bank, X, n, te)
+    res['setup']['wall_s'] = time.perf_counter() - t_all
+
+    res = json_safe(res)
+    (out / 'bench.json').write_text(json.dumps(res, indent=2) + '\n')
+    (out / 'bench.md').write_text(markdown(res))
+    if not args.no_plots and all(p in res for p in ('beo', 'paper', 'icp')):
+        plots(res, out)
+    _print_summary(res)
+    print(f'wrote {out / "bench.json"}')
+    if node_failed:
+        print(f'beo-bench: error: the node benchmark failed ({node_failed}); the other '
+              'results are written', file=sys.stderr)
+        return 1
+    return 0
+
+
+def _setup(args, source, names, n, tr, queries):
+    """The 'setup' section of bench.json: data, sizes, protocol and the machine."""
+    return {
         'data': source, 'classes': names, 'grid': n, 'train_objects': int(len(tr)),
         'queries': len(queries), 'seed': args.seed, 'k': args.k, 'repeats': args.repeats,
         'slow_repeats': args.slow_repeats, 'quick': bool(args.quick),
@@ -908,9 +967,12 @@ def _bench(args, out, X, y, names, n, source, tr, te, bank, t_all):
                     'U[0,360), elevation U[10,50] deg (beo_ros.core.synthetic)',
         'cpu_count': os.cpu_count(),
         # other work on the machine shows here (the bench does not know what else runs)
-        'load_average_1min': round(os.getloadavg()[0], 2) if hasattr(os, 'getloadavg') else None}}
+        'load_average_1min': round(os.getloadavg()[0], 2) if hasattr(os, 'getloadavg') else None}
 
-    # ---- beo
+
+def _bench_beo(args, res, X, y, tr, names, n, queries, bank):
+    """beo's peer results into ``res['beo']`` (and how its bank came about into
+    ``res['setup']``); the bank: ``bank`` (--model) or one fitted on the objects ``tr``."""
     t0 = time.perf_counter()
     if bank is not None:
         res['setup']['beo_model'] = (f'{args.model} (given: valid only if it was not trained '
@@ -927,57 +989,49 @@ def _bench(args, out, X, y, names, n, source, tr, te, bank, t_all):
     bank.estimate(queries[0]['grid'])  # warm-up
     res['beo'] = run_peer('beo', beo_predict(bank), queries, args.repeats)
     res['beo'].update(fit_s=fit_s, index_mb=bank_nbytes(bank) / 2**20)
+    return bank
 
-    # ---- paper
-    if not args.no_paper:
-        from beo_ros.core.baselines import PaperPCA
-        log('[paper] fitting PCA and querying')
-        t0 = time.perf_counter()
-        paper = PaperPCA(k=args.k, n_yaws=args.paper_yaws).fit(X[tr], y[tr], names, n)
-        fit_s = time.perf_counter() - t0
-        res['paper'] = run_peer('paper', paper.predict, queries, args.slow_repeats)
-        res['paper'].update(fit_s=fit_s, index_mb=paper.nbytes / 2**20,
-                            yaw_candidates=args.paper_yaws)
-    # ---- icp
-    if not args.no_icp:
-        from beo_ros.core.baselines import ICPDatabase
-        log('[icp] building the database and querying')
-        t0 = time.perf_counter()
-        icp = ICPDatabase(per_class=args.icp_db_per_class, n_init_yaws=args.icp_init_yaws,
-                          seed=args.seed).fit(X[tr], y[tr], names, n)
-        fit_s = time.perf_counter() - t0
-        res['icp'] = run_peer('icp', icp.predict, queries, args.slow_repeats)
-        res['icp'].update(fit_s=fit_s, index_mb=icp.nbytes / 2**20, db_size=icp.size,
-                          db_per_class=args.icp_db_per_class, init_yaws=args.icp_init_yaws)
-    else:
-        icp = None
-    if 'icp' in res:
-        res['speedup_vs_icp'] = res['icp']['p50_ms'] / res['beo']['p50_ms']
-    if 'paper' in res:
-        res['speedup_vs_paper'] = res['paper']['p50_ms'] / res['beo']['p50_ms']
 
-    res['scaling'] = ({'skipped': '--no-scaling'} if args.no_scaling else
-                      scaling(args, X, y, names, n, tr, queries, bank,
-                              np.random.default_rng(args.seed + 2)))
-    node_failed = None
+def _bench_paper(args, X, y, tr, names, n, queries):
+    """The paper's plain PCA method fitted on the objects ``tr`` and queried; its results."""
+    from beo_ros.core.baselines import PaperPCA
+    log('[paper] fitting PCA and querying')
+    t0 = time.perf_counter()
+    paper = PaperPCA(k=args.k, n_yaws=args.paper_yaws).fit(X[tr], y[tr], names, n)
+    fit_s = time.perf_counter() - t0
+    r = run_peer('paper', paper.predict, queries, args.slow_repeats)
+    r.update(fit_s=fit_s, index_mb=paper.nbytes / 2**20, yaw_candidates=args.paper_yaws)
+    return r
+
+
+def _bench_icp(args, X, y, tr, names, n, queries):
+    """The ICP database built from the objects ``tr`` and queried; its results."""
+    from beo_ros.core.baselines import ICPDatabase
+    log('[icp] building the database and querying')
+    t0 = time.perf_counter()
+    icp = ICPDatabase(per_class=args.icp_db_per_class, n_init_yaws=args.icp_init_yaws,
+                      seed=args.seed).fit(X[tr], y[tr], names, n)
+    fit_s = time.perf_counter() - t0
+    r = run_peer('icp', icp.predict, queries, args.slow_repeats)
+    r.update(fit_s=fit_s, index_mb=icp.nbytes / 2**20, db_size=icp.size,
+             db_per_class=args.icp_db_per_class, init_yaws=args.icp_init_yaws)
+    return r
+
+
+def _bench_node(args, bank, X, n, te):
+    """The node phase -> (its ``res['node']``, None or what made it fail)."""
     if args.no_node:
-        res['node'] = {'skipped': '--no-node'}
-    else:
-        log('[node] bag replay (open loop) and closed loop through BeoNode')
-        try:
-            res['node'] = node_bench(bank, X, n, te, args,
-                                     np.random.default_rng(args.seed + 3))
-        except Exception as e:  # noqa: BLE001 - the peers' results are kept and written
-            log(f'[node] failed: {type(e).__name__}: {e}')
-            res['node'] = {'skipped': f'failed: {type(e).__name__}: {e}'}
-            node_failed = f'{type(e).__name__}: {e}'
-    res['setup']['wall_s'] = time.perf_counter() - t_all
+        return {'skipped': '--no-node'}, None
+    log('[node] bag replay (open loop) and closed loop through BeoNode')
+    try:
+        return node_bench(bank, X, n, te, args, np.random.default_rng(args.seed + 3)), None
+    except Exception as e:  # noqa: BLE001 - the peers' results are kept and written
+        log(f'[node] failed: {type(e).__name__}: {e}')
+        return {'skipped': f'failed: {type(e).__name__}: {e}'}, f'{type(e).__name__}: {e}'
 
-    res = json_safe(res)
-    (out / 'bench.json').write_text(json.dumps(res, indent=2) + '\n')
-    (out / 'bench.md').write_text(markdown(res))
-    if not args.no_plots and all(p in res for p in ('beo', 'paper', 'icp')):
-        plots(res, out)
+
+def _print_summary(res):
+    """The peers' table and speedups (when all three ran) and the node line, to stdout."""
     if all(p in res for p in ('beo', 'paper', 'icp')):
         print(table(res))
         print(f"speedup vs icp (p50): {res['speedup_vs_icp']:.1f}x, "
@@ -992,12 +1046,6 @@ def _bench(args, out, X, y, names, n, source, tr, te, bank, t_all):
               f"highest output {_fmt(node.get('max_objects_per_s'), '.2f')}/s")
     else:
         print(f"node: skipped ({node.get('skipped')})")
-    print(f'wrote {out / "bench.json"}')
-    if node_failed:
-        print(f'beo-bench: error: the node benchmark failed ({node_failed}); the other '
-              'results are written', file=sys.stderr)
-        return 1
-    return 0
 
 
 if __name__ == '__main__':

@@ -256,6 +256,30 @@ def _given(ap, args, names):
 
 @interruptible('beo-eval')
 def main(argv=None):
+    ap = _parser()
+    args, rest = ap.parse_known_args(argv)
+    if args.scans:
+        return _forward_to_scan_eval(ap, args, rest)
+    class_prior, out = _checked_args(ap, args, rest)
+    rng = np.random.default_rng(args.seed)
+    try:
+        X, y, names, n, bank = _load_inputs(args, class_prior)
+        # nothing written yet: a failure or Ctrl-C leaves no empty --out behind
+        with output_dir(out):
+            if args.cv:
+                summary, recs, examples, bank = _cross_validate(args, X, y, names, n,
+                                                                class_prior, rng)
+            else:
+                summary, recs, examples = _evaluate_held_out(args, bank, X, y, names, rng)
+            _report(summary, recs, examples, bank, out, argv)
+    except (ValueError, OSError) as e:
+        print(f'beo-eval: error: {e}', file=sys.stderr)
+        return 2
+    return 0
+
+
+def _parser():
+    """The ArgumentParser of beo-eval (--scans options of scan_eval pass through)."""
     ap = argparse.ArgumentParser(prog='beo-eval', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('--data', help='labelled voxel npz (shared format)')
@@ -284,17 +308,24 @@ def main(argv=None):
     ap.add_argument('--class-prior', default='', metavar='PRIOR',
                     help="prior over the classes: train, uniform or name=weight,... with every "
                          "class; default: the model's own (--cv: train)")
-    args, rest = ap.parse_known_args(argv)
-    if args.scans:
-        if args.class_prior:
-            ap.error('--class-prior is not used with --scans')
-        unused = _given(ap, args, ('data', 'model', 'cv', 'folds', 'train_views', 'max_objects',
-                                   'views', 'seed', 'verifier_views', 'jobs'))
-        if unused:
-            ap.error('not used with --scans: ' + ', '.join(unused))
-        from . import scan_eval
-        k = [] if args.k is None else ['--k', str(args.k)]
-        return scan_eval.main(['--scans', *args.scans, '--out', args.out, *k, *rest])
+    return ap
+
+
+def _forward_to_scan_eval(ap, args, rest):
+    """--scans: refuse the voxel modes' options, hand the rest to scan_eval; its exit code."""
+    if args.class_prior:
+        ap.error('--class-prior is not used with --scans')
+    unused = _given(ap, args, ('data', 'model', 'cv', 'folds', 'train_views', 'max_objects',
+                               'views', 'seed', 'verifier_views', 'jobs'))
+    if unused:
+        ap.error('not used with --scans: ' + ', '.join(unused))
+    from . import scan_eval
+    k = [] if args.k is None else ['--k', str(args.k)]
+    return scan_eval.main(['--scans', *args.scans, '--out', args.out, *k, *rest])
+
+
+def _checked_args(ap, args, rest):
+    """Refuse (``ap.error``) what the voxel modes cannot run -> (class prior, --out Path)."""
     if rest:
         ap.error(f'unrecognized arguments: {" ".join(rest)}')
     if not args.data:
@@ -318,50 +349,50 @@ def main(argv=None):
     problem = out_dir_problem(out)   # --out is made once the inputs have loaded
     if problem:
         ap.error(f'--out {out}: {problem}')
-    rng = np.random.default_rng(args.seed)
-    try:
-        X, y, names, n = load_voxel_npz(args.data)
-        if not len(X):
-            raise ValueError(f'{args.data}: no objects to evaluate')
-        if args.cv:
-            # classes named by the file but without objects: nothing to train a model on
-            present = [names[c] for c in np.unique(y)]
-            if len(present) < 2:
-                raise ValueError(f'--cv needs objects of at least 2 classes to train and test '
-                                 f'a classifier; {args.data} has objects of {present} only')
-            if len(present) < len(names):
-                print(f'beo-eval: classes without objects in {args.data} left out: '
-                      f'{[c for c in names if c not in present]}', file=sys.stderr)
-                X, y, names = select_classes(X, y, names, present, args.data)
-        else:
-            bank = load_models(args.model, class_prior)
-            # the classes of the objects, not the file's whole class list: a subset file may
-            # still name every class
-            present = {names[c] for c in np.unique(y)}
-            missing = present - set(bank.classes)
-            if missing:
-                raise ValueError(f'data classes {sorted(missing)} (of objects in {args.data}) '
-                                 f'are not in the model (classes {bank.classes})')
-            if n != bank.spec.size:
-                raise ValueError(f'{args.data}: objects on a {n}^3 grid, the model '
-                                 f'{args.model or "(shipped)"} is for {bank.spec.size}^3')
-        # nothing written yet: a failure or Ctrl-C leaves no empty --out behind
-        with output_dir(out):
-            if args.cv:
-                summary, recs, examples, bank = _cross_validate(args, X, y, names, n,
-                                                                class_prior, rng)
-            else:
-                te = np.arange(len(X))
-                if args.max_objects:
-                    te = stratified_subset(te, y, args.max_objects, rng)
-                summary, recs, examples = evaluate_bank(bank, X[te], y[te], names, rng,
-                                                         args.views, index=te)
-                summary['protocol'] = f'held-out: model {args.model or "shipped"} on {args.data}'
-            _report(summary, recs, examples, bank, out, argv)
-    except (ValueError, OSError) as e:
-        print(f'beo-eval: error: {e}', file=sys.stderr)
-        return 2
-    return 0
+    return class_prior, out
+
+
+def _load_inputs(args, class_prior):
+    """--data (and, held out, the model) checked to fit together -> (X (m, N^3), y, class
+    names, N, bank: None with --cv). Raises ValueError on a mismatch."""
+    X, y, names, n = load_voxel_npz(args.data)
+    if not len(X):
+        raise ValueError(f'{args.data}: no objects to evaluate')
+    if args.cv:
+        # classes named by the file but without objects: nothing to train a model on
+        present = [names[c] for c in np.unique(y)]
+        if len(present) < 2:
+            raise ValueError(f'--cv needs objects of at least 2 classes to train and test '
+                             f'a classifier; {args.data} has objects of {present} only')
+        if len(present) < len(names):
+            print(f'beo-eval: classes without objects in {args.data} left out: '
+                  f'{[c for c in names if c not in present]}', file=sys.stderr)
+            X, y, names = select_classes(X, y, names, present, args.data)
+        return X, y, names, n, None
+    bank = load_models(args.model, class_prior)
+    # the classes of the objects, not the file's whole class list: a subset file may
+    # still name every class
+    present = {names[c] for c in np.unique(y)}
+    missing = present - set(bank.classes)
+    if missing:
+        raise ValueError(f'data classes {sorted(missing)} (of objects in {args.data}) '
+                         f'are not in the model (classes {bank.classes})')
+    if n != bank.spec.size:
+        raise ValueError(f'{args.data}: objects on a {n}^3 grid, the model '
+                         f'{args.model or "(shipped)"} is for {bank.spec.size}^3')
+    return X, y, names, n, bank
+
+
+def _evaluate_held_out(args, bank, X, y, names, rng):
+    """Held-out mode: ``bank`` on (at most --max-objects of) the objects -> (summary,
+    records, examples)."""
+    te = np.arange(len(X))
+    if args.max_objects:
+        te = stratified_subset(te, y, args.max_objects, rng)
+    summary, recs, examples = evaluate_bank(bank, X[te], y[te], names, rng, args.views,
+                                             index=te)
+    summary['protocol'] = f'held-out: model {args.model or "shipped"} on {args.data}'
+    return summary, recs, examples
 
 
 def _cross_validate(args, X, y, names, n, class_prior, rng):

@@ -160,6 +160,17 @@ def test_eval_ctrl_c_one_line_130_and_no_empty_out(model, tmp_path, capsys, monk
     assert not out.exists()
 
 
+def test_eval_held_out_json_sections_in_order(model, tmp_path, capsys):
+    out = tmp_path / 'e'
+    assert call(evaluate.main, ['--model', str(model), '--data',
+                                str(write_npz(tmp_path / 'd.npz')), '--out', str(out)]) == 0
+    res = json.loads((out / 'eval.json').read_text())
+    assert list(res) == ['complete', 'partial', 'classes', 'protocol', 'class_prior', 'command']
+    assert res['protocol'].startswith('held-out: model ')
+    printed = capsys.readouterr().out.splitlines()
+    assert printed[0].split()[:3] == ['mode', 'n', 'acc'] and printed[-1].startswith('wrote ')
+
+
 # ---------------------------------------------------------------------- beo-eval --scans
 @pytest.mark.parametrize('extra', [['--grid', '0'], ['--yaw-step', '0'], ['--max-iter', '0'],
                                    ['--yaw-step', 'nan'], ['--voxel-size', '-1'],
@@ -245,6 +256,18 @@ def test_bench_failing_node_phase_exit_1_with_results(tmp_path, capsys, monkeypa
     assert 'node benchmark failed' in capsys.readouterr().err
     res = json.loads((out / 'bench.json').read_text())
     assert res['node']['skipped'].startswith('failed: RuntimeError') and 'beo' in res
+
+
+def test_bench_json_sections_in_order_and_skipped_phases_named(tmp_path, capsys):
+    out = tmp_path / 'b'
+    assert call(bench.main, QUICK + ['--data', str(write_npz(tmp_path / 'd.npz')),
+                                     '--out', str(out)]) == 0
+    res = json.loads((out / 'bench.json').read_text())
+    assert list(res) == ['setup', 'beo', 'scaling', 'node']
+    assert list(res['setup'])[-3:] == ['load_average_1min', 'beo_model', 'wall_s']
+    assert res['scaling'] == {'skipped': '--no-scaling'} and res['node'] == {'skipped': '--no-node'}
+    assert capsys.readouterr().out.splitlines() == ['node: skipped (--no-node)',
+                                                    f'wrote {out / "bench.json"}']
 
 
 def test_bench_ctrl_c_one_line_130_and_no_empty_out(tmp_path, capsys, monkeypatch):
