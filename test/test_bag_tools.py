@@ -320,6 +320,35 @@ def test_record_stores_the_qos_of_a_publisher_that_appears_after_it_started(
     assert stats.latched == ['/latched'] and stats.topics['/latched'].count == 1
 
 
+def test_record_stops_at_count_within_a_batch(ros_env_context, tmp_path):
+    """A burst longer than ``count`` arrives in one spin: only its first ``count`` messages are
+    written, the topics recorded only listed."""
+    from std_msgs.msg import String
+    pub_node = rclpy.create_node('talker', context=ros_env_context)
+    rec_node = rclpy.create_node('recorder', context=ros_env_context)
+    pub = pub_node.create_publisher(String, '/chatter', 100)
+    ready, result = threading.Event(), {}
+    th = threading.Thread(target=lambda: result.setdefault('s', bag.record(
+        rec_node, tmp_path / 'r', ['/chatter', '/never:std_msgs/msg/String'], storage='mcap',
+        count=5, ready=ready)))
+    th.start()
+    assert ready.wait(10)
+    end = time.monotonic() + 10
+    while pub.get_subscription_count() == 0 and time.monotonic() < end:
+        time.sleep(0.02)
+    for i in range(8):
+        pub.publish(String(data=f'm{i}'))
+    th.join(30)
+    assert not th.is_alive()
+    s = result['s']
+    assert (s.stopped_by, s.messages) == ('count', 5)
+    assert s.topics == {'/chatter': {'type': 'std_msgs/msg/String', 'count': 5},
+                        '/never': {'type': 'std_msgs/msg/String', 'count': 0}}
+    assert bag.bag_info(tmp_path / 'r')['topics'] == s.topics
+    assert [m.data for _, m, _ in bag.read_messages(tmp_path / 'r')] == [
+        f'm{i}' for i in range(5)]
+
+
 # ------------------------------------------------------------------------------------------
 # 8. bag_span_s counts only the messages sent
 # ------------------------------------------------------------------------------------------

@@ -332,6 +332,17 @@ def test_points_outside_a_metric_grid_are_refused():
         voxelize_view(pts * 1000 + [0, 0, 500], np.zeros(3), [0, 0, 1], spec)
 
 
+def test_points_outside_the_grid_message_says_what_they_span():
+    spec = GridSpec(16, units='metric', voxel_size=0.05)
+    pts = box_front(100) * 1000 + [0, 0, 500]   # aligned frame = input frame: up z, sensor at 0
+    span = (pts.max(axis=0) - pts.min(axis=0)).max()
+    with pytest.raises(ValueError) as e:
+        voxelize_view(pts, np.zeros(3), [0, 0, 1], spec)
+    assert str(e.value) == (f'none of the 100 points fall inside the 16^3 grid of 0.8 m; they '
+                            f'span {span:g} (input units): an object much larger than the '
+                            'grid, or points not in metres')
+
+
 def test_huge_up_vector_is_a_direction():
     # (0, 0, 1e300) is a valid direction: its norm must not overflow to inf (up -> 0)
     args = (box_front(100), np.zeros(3))

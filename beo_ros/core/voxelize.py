@@ -340,16 +340,45 @@ def voxelize_view(points, sensor_origin, up, spec: GridSpec, center=None, floor=
         center = _check_vec(center, 'center')
     if floor is not None:
         floor = _check_floor(floor)
-    o_pts = None
-    if occluders is not None:
-        o_pts = np.asarray(occluders, dtype=np.float64)
-        if o_pts.size and (o_pts.ndim != 2 or o_pts.shape[1] != 3):
-            raise ValueError(f'occluders must be an (m, 3) array of points, got shape '
-                             f'{o_pts.shape}')
-        o_pts = o_pts.reshape(-1, 3)
-    n = spec.size
+    o_pts = _check_occluders(occluders)
     rot = aligned_frame(upv, origin, pts.mean(axis=0))
-    q = pts @ rot  # aligned-frame coordinates (same origin as the input frame)
+    box_lo, box_hi, largest = _estimated_box(pts @ rot, spec, floor)
+    g2i, voxel = _place_grid(rot, box_lo, box_hi, largest, spec, center)
+    g = _to_grid(pts, g2i, rot, voxel)
+    inside, occ = _occupied_voxels(g, spec, voxel, largest)
+    origin_grid = _to_grid(origin, g2i, rot, voxel)
+    # the object's own points outside the grid (e.g. the top of an object taller than a metric
+    # grid) still hide what lies behind them: without them, the inside of the object reads free
+    blockers = [g[~inside]]
+    if o_pts is not None:
+        o_pts = o_pts[np.isfinite(o_pts).all(axis=1)]
+        blockers.append(_to_grid(o_pts, g2i, rot, voxel))
+    blockers = np.concatenate(blockers)
+    occ_vox = _relevant_occluders(blockers, origin_grid, spec.size) if len(blockers) else None
+    splats, half = _sparse_splats(g, inside, occ, close_holes)
+    grid = label_free_unknown(occ, origin_grid, close_holes=close_holes, occluder_voxels=occ_vox,
+                              splats=splats, splat_half=half)
+    return ViewGrid(grid=grid, grid_to_input=g2i, voxel_size_m=float(voxel),
+                    n_points=int(inside.sum()))
+
+
+def _check_occluders(occluders) -> np.ndarray | None:
+    """float64 (m, 3) ``occluders`` (None stays None; non-finite rows are kept); ValueError for
+    another shape."""
+    if occluders is None:
+        return None
+    o_pts = np.asarray(occluders, dtype=np.float64)
+    if o_pts.size and (o_pts.ndim != 2 or o_pts.shape[1] != 3):
+        raise ValueError(f'occluders must be an (m, 3) array of points, got shape '
+                         f'{o_pts.shape}')
+    return o_pts.reshape(-1, 3)
+
+
+def _estimated_box(q: np.ndarray, spec: GridSpec, floor) -> tuple:
+    """The object's box estimated from its aligned-frame points ``q`` (m, 3), as the placement
+    heuristic of :func:`voxelize_view` says -> (box_lo (3,), box_hi (3,), largest extent).
+
+    ValueError when the points span no more than MIN_EXTENT."""
     lo, hi = q.min(axis=0), q.max(axis=0)
     if not (hi - lo).max() > MIN_EXTENT:   # e.g. every point at one place
         raise ValueError(f'the points span {(hi - lo).max():g} (input units), not more than '
@@ -358,10 +387,16 @@ def voxelize_view(points, sensor_origin, up, spec: GridSpec, center=None, floor=
         lo[2] = min(lo[2], float(floor))
     ext = hi - lo
     depth = max(ext[0], ext[1])
-    box_lo = lo
     box_hi = np.array([lo[0] + depth, hi[1], hi[2]])
+    return lo, box_hi, float(max(depth, ext[1], ext[2]))
+
+
+def _place_grid(rot: np.ndarray, box_lo, box_hi, largest: float, spec: GridSpec,
+                center) -> tuple:
+    """Put the aligned-frame box's anchor point (or ``center``, input frame) at the grid's ->
+    (grid_to_input float64 (4, 4), voxel size in m)."""
+    n = spec.size
     if spec.units == 'normalized':
-        largest = float(max(depth, ext[1], ext[2]))
         voxel = largest / (spec.fill * n)
     else:
         voxel = float(spec.voxel_size)
@@ -377,38 +412,43 @@ def voxelize_view(points, sensor_origin, up, spec: GridSpec, center=None, floor=
     g2i = np.eye(4)
     g2i[:3, :3] = voxel * rot
     g2i[:3, 3] = anchor_in - voxel * rot @ anchor_idx
-    # points -> continuous grid index coords
-    g = (pts - g2i[:3, 3]) @ rot / voxel
+    return g2i, voxel
+
+
+def _to_grid(p: np.ndarray, g2i: np.ndarray, rot: np.ndarray, voxel: float) -> np.ndarray:
+    """Input-frame points (m, 3) (or one (3,)) -> continuous grid index coords."""
+    return (p - g2i[:3, 3]) @ rot / voxel
+
+
+def _occupied_voxels(g: np.ndarray, spec: GridSpec, voxel: float, largest: float) -> tuple:
+    """(inside bool (m,), occupied bool (N, N, N)) for points at grid index coords ``g`` (m, 3);
+    ValueError when none falls inside the grid."""
+    n = spec.size
     tol = 1e-6
     inside = np.all((g >= -0.5 - tol) & (g <= n - 0.5 + tol), axis=1)
     if not inside.any():   # e.g. a metric grid and points in millimetres
-        raise ValueError(f'none of the {len(pts)} points fall inside the {n}^3 grid of '
-                         f'{n * voxel:g} m; they span {float((hi - lo).max()):g} (input units): '
+        raise ValueError(f'none of the {len(g)} points fall inside the {n}^3 grid of '
+                         f'{n * voxel:g} m; they span {largest:g} (input units): '
                          'an object much larger than the grid, or points not in metres')
     idx = np.clip(np.floor(g[inside] + 0.5), 0, n - 1).astype(np.intp)
     occ = np.zeros(spec.shape, dtype=bool)
     occ[idx[:, 0], idx[:, 1], idx[:, 2]] = True
-    origin_grid = (origin - g2i[:3, 3]) @ rot / voxel
-    # the object's own points outside the grid (e.g. the top of an object taller than a metric
-    # grid) still hide what lies behind them: without them, the inside of the object reads free
-    blockers = [g[~inside]]
-    if o_pts is not None:
-        o_pts = o_pts[np.isfinite(o_pts).all(axis=1)]
-        blockers.append((o_pts - g2i[:3, 3]) @ rot / voxel)
-    blockers = np.concatenate(blockers)
-    occ_vox = _relevant_occluders(blockers, origin_grid, n) if len(blockers) else None
-    # a surface sampled more sparsely than the voxels (a small or distant object in a normalized
-    # grid) has gaps the closing does not bridge; squares as wide as the point spacing do
+    return inside, occ
+
+
+def _sparse_splats(g: np.ndarray, inside: np.ndarray, occ: np.ndarray,
+                   close_holes: bool) -> tuple:
+    """Squares to block rays with -> (splats (k, 3) grid coords or None, half-width in voxels).
+
+    A surface sampled more sparsely than the voxels (a small or distant object in a normalized
+    grid) has gaps the closing does not bridge; squares as wide as the point spacing do."""
     splats, half = None, 0.0
     # (3 points per occupied voxel or more: dense enough, and no KD-tree to build, 20 ms for 50k)
     if close_holes and inside.sum() < 3 * occ.sum():
         spacing = point_spacing(g[inside])
         if SPARSE_SPACING < spacing < np.inf:
             splats, half = g[inside], float(SPLAT_SCALE * spacing)
-    grid = label_free_unknown(occ, origin_grid, close_holes=close_holes, occluder_voxels=occ_vox,
-                              splats=splats, splat_half=half)
-    return ViewGrid(grid=grid, grid_to_input=g2i, voxel_size_m=float(voxel),
-                    n_points=int(inside.sum()))
+    return splats, half
 
 
 def grid_to_points(grid_or_prob, grid_to_input, threshold: float = 0.5) -> tuple:

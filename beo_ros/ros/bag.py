@@ -1219,6 +1219,115 @@ def _subscription_qos(node, topic: str, depth: int = 100):
                       else DurabilityPolicy.VOLATILE)
 
 
+class _Recorder:
+    """Subscribes ``topics`` ({topic: msgtype}) as their publishers appear, spinning ``node`` with
+    ``executor`` (added to it and shut down if ``own_exec``), and writes what they receive to the
+    open ``writer`` in batches, counted in ``stats``, as :func:`record` describes."""
+
+    def __init__(self, node, writer: BagWriter, topics: dict, stats: RecordStats, *, executor,
+                 own_exec: bool, commit_every: float):
+        self.node, self.writer, self.topics, self.stats = node, writer, topics, stats
+        self.executor, self.own_exec, self.commit_every = executor, own_exec, commit_every
+        self.subs = []
+        self.unsubscribed = dict(topics)
+        self._pending = []   # (topic, stamp ns, raw CDR) received and not yet written
+        self._lock = threading.Lock()
+        self._t0 = self._t_poll = self._t_commit = None   # monotonic times
+        self._uncommitted = False
+
+    def start(self, ready: threading.Event | None) -> None:
+        """List the topics, subscribe those with publishers, then signal ``ready``."""
+        for topic, typ in self.topics.items():
+            self.stats.topics[topic] = {'type': typ, 'count': 0}
+        self._subscribe_new()
+        if self.own_exec:
+            self.executor.add_node(self.node)
+        if ready is not None:
+            ready.set()
+        self._t0 = self._t_poll = self._t_commit = time.monotonic()
+
+    def run(self, count: int | None, duration: float | None, stop: threading.Event) -> None:
+        """Spin, subscribe, write and commit until ``count`` messages, ``duration`` s or
+        ``stop``; ``stats.stopped_by`` says which."""
+        while True:
+            self.executor.spin_once(timeout_sec=0.05)
+            if self.unsubscribed and time.monotonic() - self._t_poll > 0.05:
+                self._t_poll = time.monotonic()
+                self._subscribe_new()
+            self._write_pending(count)
+            self._commit_if_due()
+            stopped_by = self._stop_reason(count, duration, stop)
+            if stopped_by:
+                self.stats.stopped_by = stopped_by
+                break
+
+    def finish(self) -> None:
+        """Take the wall time, list the never-published topics in the bag (empty), drop the
+        subscriptions and the executor if it is ours."""
+        self.stats.wall_s = time.monotonic() - self._t0
+        for topic, typ in self.unsubscribed.items():   # never published: listed, empty
+            self.writer.add_topic(topic, typ, reliable=False)
+        for s in self.subs:
+            self.node.destroy_subscription(s)
+        if self.own_exec:
+            self.executor.remove_node(self.node)
+            self.executor.shutdown()
+
+    def _callback_for(self, topic: str):
+        """A raw subscription callback queueing the message of ``topic``, stamped at receipt."""
+        def cb(raw):
+            with self._lock:
+                self._pending.append((topic, self.node.get_clock().now().nanoseconds,
+                                      bytes(raw)))
+        return cb
+
+    def _subscribe_new(self) -> None:
+        """Subscribe to topics that now have publishers, with QoS adapted to their offers."""
+        node = self.node
+        for topic, typ in list(self.unsubscribed.items()):
+            if not node.get_publishers_info_by_topic(topic):
+                continue
+            qos = _subscription_qos(node, topic)
+            # the bag's offered QoS is that of the publishers matched now (a latched
+            # publisher that appears after the recording started is replayed latched)
+            self.writer.add_topic(topic, typ, reliable=qos.reliability.name == 'RELIABLE',
+                                  transient_local=qos.durability.name == 'TRANSIENT_LOCAL')
+            self.subs.append(node.create_subscription(import_msg_class(typ), topic,
+                                                      self._callback_for(topic), qos, raw=True))
+            del self.unsubscribed[topic]
+
+    def _write_pending(self, count: int | None) -> None:
+        """Write the messages received so far (none beyond ``count`` in total)."""
+        with self._lock:
+            batch, self._pending[:] = list(self._pending), []
+        for topic, t, raw in batch:
+            if count is not None and self.stats.messages >= count:
+                break
+            self.writer.write(topic, raw, t, self.topics[topic])
+            self.stats.topics[topic]['count'] += 1
+            self.stats.messages += 1
+            self._uncommitted = True
+
+    def _commit_if_due(self) -> None:
+        """Commit what is written if ``commit_every`` s passed since the last commit."""
+        # also when nothing new came: a burst followed by quiet is committed too
+        if self._uncommitted and time.monotonic() - self._t_commit >= self.commit_every:
+            self._t_commit = time.monotonic()
+            self.writer.commit()
+            self._uncommitted = False
+
+    def _stop_reason(self, count: int | None, duration: float | None,
+                     stop: threading.Event) -> str:
+        """'count', 'duration' or 'interrupt' when the recording is to end, else ''."""
+        if count is not None and self.stats.messages >= count:
+            return 'count'
+        if duration is not None and time.monotonic() - self._t0 >= duration:
+            return 'duration'
+        if stop.is_set():
+            return 'interrupt'
+        return ''
+
+
 def record(node, bag_path, topics, *, storage: str = 'sqlite3', wait: float = 10.0,
            duration: float | None = None, count: int | None = None,
            stop: threading.Event | None = None, ready: threading.Event | None = None,
@@ -1257,81 +1366,15 @@ def record(node, bag_path, topics, *, storage: str = 'sqlite3', wait: float = 10
     writer = BagWriter(bag_path, storage)
     own_exec = executor is None
     executor = executor or SingleThreadedExecutor(context=node.context)
-    subs = []
-    pending = []
-    lock = threading.Lock()
-
-    def callback_for(topic):
-        def cb(raw):
-            with lock:
-                pending.append((topic, node.get_clock().now().nanoseconds, bytes(raw)))
-        return cb
-
-    unsubscribed = dict(topics)
-
-    def subscribe_new():
-        """Subscribe to topics that now have publishers, with QoS adapted to their offers."""
-        for topic, typ in list(unsubscribed.items()):
-            if not node.get_publishers_info_by_topic(topic):
-                continue
-            qos = _subscription_qos(node, topic)
-            # the bag's offered QoS is that of the publishers matched now (a latched
-            # publisher that appears after the recording started is replayed latched)
-            writer.add_topic(topic, typ, reliable=qos.reliability.name == 'RELIABLE',
-                             transient_local=qos.durability.name == 'TRANSIENT_LOCAL')
-            subs.append(node.create_subscription(import_msg_class(typ), topic,
-                                                 callback_for(topic), qos, raw=True))
-            del unsubscribed[topic]
-
+    recorder = _Recorder(node, writer, topics, stats, executor=executor, own_exec=own_exec,
+                         commit_every=commit_every)
     try:
         with writer:
-            for topic, typ in topics.items():
-                stats.topics[topic] = {'type': typ, 'count': 0}
-            subscribe_new()
-            if own_exec:
-                executor.add_node(node)
-            if ready is not None:
-                ready.set()
-            t0 = t_poll = t_commit = time.monotonic()
-            uncommitted = False
+            recorder.start(ready)
             try:
-                while True:
-                    executor.spin_once(timeout_sec=0.05)
-                    if unsubscribed and time.monotonic() - t_poll > 0.05:
-                        t_poll = time.monotonic()
-                        subscribe_new()
-                    with lock:
-                        batch, pending[:] = list(pending), []
-                    for topic, t, raw in batch:
-                        if count is not None and stats.messages >= count:
-                            break
-                        writer.write(topic, raw, t, topics[topic])
-                        stats.topics[topic]['count'] += 1
-                        stats.messages += 1
-                        uncommitted = True
-                    # also when nothing new came: a burst followed by quiet is committed too
-                    if uncommitted and time.monotonic() - t_commit >= commit_every:
-                        t_commit = time.monotonic()
-                        writer.commit()
-                        uncommitted = False
-                    if count is not None and stats.messages >= count:
-                        stats.stopped_by = 'count'
-                        break
-                    if duration is not None and time.monotonic() - t0 >= duration:
-                        stats.stopped_by = 'duration'
-                        break
-                    if stop.is_set():
-                        stats.stopped_by = 'interrupt'
-                        break
+                recorder.run(count, duration, stop)
             finally:
-                stats.wall_s = time.monotonic() - t0
-                for topic, typ in unsubscribed.items():   # never published: listed, empty
-                    writer.add_topic(topic, typ, reliable=False)
-                for s in subs:
-                    node.destroy_subscription(s)
-                if own_exec:
-                    executor.remove_node(node)
-                    executor.shutdown()
+                recorder.finish()
     except storage_errors() as e:
         raise BagWriteError(_write_failure(writer, e)) from None
     return stats
