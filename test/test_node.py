@@ -814,10 +814,33 @@ def test_ctrl_c_while_rclpy_destroys_the_node_does_not_leave_it_half_destroyed(
     assert 'interrupted again: destroying the node all the same' in capfd.readouterr().err
 
 
+def test_destroy_node_cut_short_by_a_ctrl_c_does_the_rest_when_called_again(harness,
+                                                                             monkeypatch):
+    """A Ctrl-C in one of BeoNode's own shutdown steps ends its destroy_node; main calls it
+    again, and that call stops the processes, restores BLAS and destroys the rclpy node (it
+    returned at once before, as the node counted as destroyed)."""
+    harness.stop.set()
+    harness.thread.join(timeout=5.0)
+    node = harness.node
+    real, calls = node._restore_blas, []
+
+    def interrupted():
+        calls.append(1)
+        if len(calls) == 1:
+            raise KeyboardInterrupt
+        real()
+    monkeypatch.setattr(node, '_restore_blas', interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        node.destroy_node()
+    assert list(node.services)   # cut short before rclpy's part
+    node.destroy_node()
+    assert len(calls) == 2 and not list(node.services) and not list(node.publishers)
+    node.destroy_node()   # and then idempotent
+    assert len(calls) == 2
+
+
 def test_main_shuts_down_in_full_after_a_ctrl_c_in_any_step(monkeypatch):
-    """Every one of main's last steps runs, each again after a Ctrl-C; a node whose own
-    destroy_node was cut short gets rclpy's."""
-    from rclpy.node import Node
+    """Every one of main's last steps runs, each again after a Ctrl-C."""
     import beo_ros.ros.node as node_mod
     done = []
 
@@ -832,9 +855,13 @@ def test_main_shuts_down_in_full_after_a_ctrl_c_in_any_step(monkeypatch):
             done.append('executor')
 
     class Stub:
+        tries = 0
+
         def destroy_node(self):
-            raise KeyboardInterrupt
-    monkeypatch.setattr(Node, 'destroy_node', lambda self: done.append('rclpy destroy_node'))
+            self.tries += 1
+            if self.tries == 1:
+                raise KeyboardInterrupt
+            done.append('destroy_node')
     shutdowns = []
 
     def try_shutdown():
@@ -844,7 +871,7 @@ def test_main_shuts_down_in_full_after_a_ctrl_c_in_any_step(monkeypatch):
         done.append('try_shutdown')
     monkeypatch.setattr(node_mod.rclpy, 'try_shutdown', try_shutdown)
     node_mod._shut_down(Executor(), Stub())
-    assert done == ['executor', 'rclpy destroy_node', 'try_shutdown']
+    assert done == ['executor', 'destroy_node', 'try_shutdown']
 
 
 def test_second_ctrl_c_during_shutdown_does_not_wait_for_estimates(harness1, capfd):

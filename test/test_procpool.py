@@ -105,7 +105,7 @@ def test_idle_process_killed_breaks_pool(make_pool):
     end = time.monotonic() + WAIT
     while not pool.broken and time.monotonic() < end:
         time.sleep(0.01)
-    assert pool.broken
+    assert pool.broken and not pool.timed_out
     with pytest.raises((PoolRetired, BrokenProcessPool)):
         _estimate(pool)
     manager.join(WAIT)
@@ -164,7 +164,7 @@ def test_timeout_kills_and_breaks(make_pool, tmp_path):
             pass
     manager.join(WAIT)
     assert not manager.is_alive()
-    assert pool.broken
+    assert pool.broken and pool.timed_out
 
 
 def test_one_hang_is_one_timeout(make_pool):
@@ -197,6 +197,7 @@ def test_one_hang_is_one_timeout(make_pool):
                 pass
     assert sorted(e.__name__ for e in errors) == [
         'BrokenProcessPool', 'BrokenProcessPool', 'EstimateTimeout'], errors
+    assert pool.timed_out   # why it was killed, for whichever caller replaces it first
 
 
 def test_shutdown_ends_stopped_process(make_pool):

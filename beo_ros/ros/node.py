@@ -168,7 +168,8 @@ class BeoNode(Node):
         self._reload_lock = threading.Lock()   # one reload starts processes at a time
         self._reload_threads = set()   # under _svc_threads_lock, as the service threads
         self._pool_closed = False
-        self._destroyed = False
+        self._destroyed = False       # destroy_node has begun
+        self._rcl_destroyed = False   # ... and rclpy's part of it is done
         self._svc_threads = set()   # service calls being served (each in a thread of its own)
         self._svc_threads_lock = threading.Lock()
         try:
@@ -178,7 +179,7 @@ class BeoNode(Node):
             self._shutdown_pool()
             self._restore_blas()
             super().destroy_node()
-            self._destroyed = True
+            self._destroyed = self._rcl_destroyed = True
             raise
 
     # ------------------------------------------------------------------ setup
@@ -845,8 +846,10 @@ class BeoNode(Node):
                 return
             self._replacing = broken
             self._count('worker_restarts')
+            # the hung estimate's thread may come second: the pool knows why it was killed
             what = ('an estimate took longer than estimate_timeout' if isinstance(
-                err, EstimateTimeout) else 'a worker process died')
+                err, EstimateTimeout) or getattr(broken, 'timed_out', False)
+                else 'a worker process died')
             self.get_logger().error(f'{what} ({err}); restarting the {self._n_procs} worker '
                                     'process(es)')
         new = None
@@ -1192,11 +1195,18 @@ class BeoNode(Node):
         return rclpy.logging.get_logger(f'{self.get_name()}.shutdown')
 
     def destroy_node(self):
-        """Stop the worker threads and processes, then destroy the node (idempotent)."""
+        """Stop the worker threads and processes, then destroy the node. Idempotent; called
+        again after a Ctrl-C cut it short (main does), it does what is left without waiting for
+        the threads."""
+        if self._rcl_destroyed:
+            return
+        log = self._shutdown_logger()
         if self._destroyed:
+            self._shutdown_pool()
+            self._restore_blas()
+            self._destroy_rcl(log)
             return
         self._destroyed = True
-        log = self._shutdown_logger()
         try:
             self._shutdown_worker()
         except KeyboardInterrupt:   # a second Ctrl-C: do not wait for the estimates in flight
@@ -1218,12 +1228,18 @@ class BeoNode(Node):
         if lost:
             log.info(f'{lost} service answer(s) computed while shutting down could not be '
                      'sent')
-        while True:   # a further Ctrl-C must not leave the node half destroyed (rclpy's
-            try:      # destroy_node can be called again: it destroys what is left)
+        self._destroy_rcl(log)
+
+    def _destroy_rcl(self, log):
+        """rclpy's destroy_node, to the end: a further Ctrl-C must not leave the node half
+        destroyed (it can be called again: it destroys what is left)."""
+        while True:
+            try:
                 super().destroy_node()
                 break
             except KeyboardInterrupt:
                 log.warning('interrupted again: destroying the node all the same')
+        self._rcl_destroyed = True
 
 
 def make_executor(context=None):
@@ -1257,18 +1273,8 @@ def _shut_down(executor, node):
     Ctrl-C meanwhile cuts the waits short (see ``BeoNode.destroy_node``) but every step still
     runs: before, one that came during the last steps ended the process with a traceback
     (1 of 15 double Ctrl-Cs with service calls in flight)."""
-    tries = 0
-
-    def destroy():
-        nonlocal tries
-        tries += 1
-        if tries == 1:
-            node.destroy_node()
-        else:   # interrupted in its own steps (it is destroyed once): what rclpy needs
-            Node.destroy_node(node)
-
     steps = ([lambda: drain_executor(executor)] if executor is not None else []) + (
-        [destroy] if node is not None else []) + [rclpy.try_shutdown]
+        [node.destroy_node] if node is not None else []) + [rclpy.try_shutdown]
     for step in steps:
         for _ in range(100):   # each step can run again and gets further on every try
             try:

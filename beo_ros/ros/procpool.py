@@ -145,6 +145,7 @@ class EstimatorPool:
         self.n = int(n)
         self._closed = False
         self._killed = False   # kill() ran: the pool is broken, or about to be
+        self.timed_out = False   # ... because an estimate timed out (not a death)
         self._kill_lock = threading.Lock()
         self._pool = ProcessPoolExecutor(
             self.n, mp_context=multiprocessing.get_context('spawn'), initializer=_init,
@@ -233,6 +234,7 @@ class EstimatorPool:
                     return future.result()
                 with self._kill_lock:
                     first, self._killed = not self._killed, True
+                    self.timed_out = self.timed_out or first
                 if not first:
                     # another estimate's timeout (or a death) killed the processes before the
                     # executor failed this one: a hang is reported once, this cloud is retried
