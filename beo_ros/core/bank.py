@@ -1360,6 +1360,7 @@ def check_count(name, value):
             or value < 0:
         raise ValueError(f'{name} must be an integer >= 0, got {value!r}')
 
+
 def _probe_offsets(probe_deg):
     """``probe_deg`` of :meth:`ModelBank.estimate` (None, one number or several, a list or an
     array) as a tuple of offsets (degrees); ValueError unless each is a number in (0, 180]."""

@@ -18,7 +18,8 @@ from __future__ import annotations
 import numbers
 
 import numpy as np
-from sklearn.exceptions import NotFittedError
+from sklearn.base import BaseEstimator
+from sklearn.utils.validation import check_is_fitted
 
 from .grid import rotate_grid
 
@@ -60,12 +61,6 @@ def _check_training(X, y, names, n):
     return X, y, n
 
 
-def _check_fitted(model, attribute):
-    if not hasattr(model, attribute):
-        raise NotFittedError(f'This {type(model).__name__} instance is not fitted yet. Call '
-                             "'fit' with appropriate arguments before using this estimator.")
-
-
 def _check_query(grid, n):
     """The labelled query grid as an array, after checking its shape and that it has an object."""
     grid = np.asarray(grid)
@@ -76,7 +71,7 @@ def _check_query(grid, n):
     return grid
 
 
-class PaperPCA:
+class PaperPCA(BaseEstimator):
     """The paper's method, written plainly (per-candidate and per-class Python loops).
 
     Args:
@@ -116,7 +111,7 @@ class PaperPCA:
 
     @property
     def nbytes(self):
-        _check_fitted(self, 'W_')
+        check_is_fitted(self, 'W_')
         return int(sum(w.nbytes + m.nbytes for w, m in zip(self.W_, self.mu_)))
 
     def predict(self, grid):
@@ -124,7 +119,7 @@ class PaperPCA:
 
         Raises ValueError for a grid of another size than the fitted one or with no occupied voxel.
         """
-        _check_fitted(self, 'W_')
+        check_is_fitted(self, 'W_')
         grid = _check_query(grid, self.n_).astype(np.int8)
         n_yaws, ridge = int(self.n_yaws), float(self.ridge)
         best = (np.inf, 0, 0.0, None)
@@ -166,7 +161,7 @@ def _yaw_T(yaw):
     return T
 
 
-class ICPDatabase:
+class ICPDatabase(BaseEstimator):
     """Nearest training object under point-to-plane ICP.
 
     Args:
@@ -225,12 +220,12 @@ class ICPDatabase:
 
     @property
     def size(self):
-        _check_fitted(self, 'db_')
+        check_is_fitted(self, 'db_')
         return len(self.db_)
 
     @property
     def nbytes(self):
-        _check_fitted(self, 'db_')
+        check_is_fitted(self, 'db_')
         return int(self.n_points_ * 6 * 8)   # points + normals, float64
 
     def predict(self, grid):
@@ -238,7 +233,7 @@ class ICPDatabase:
 
         Raises ValueError for a grid of another size than the fitted one or with no occupied voxel.
         """
-        _check_fitted(self, 'db_')
+        check_is_fitted(self, 'db_')
         import open3d as o3d
         grid = _check_query(grid, self.n_)
         n_init_yaws, max_dist = int(self.n_init_yaws), float(self.max_dist)
