@@ -164,3 +164,40 @@ def test_a_type_beo_ros_does_not_know_is_copied_with_the_bags_own_definition(tmp
         assert (c.msgtype, c.msgdef.data.strip(), c.digest) == ('my_pkg/msg/Thing', 'int32 a',
                                                                 digest)
     assert [raw[4] for *_, raw in bag.read_bag(tmp_path / 'new')] == [0, 1, 2]
+
+
+def _records(data):
+    """(opcode, offset) of the top-level records of mcap bytes, up to the data end."""
+    pos, out = 8, []
+    while pos + 9 <= len(data):
+        op, length = data[pos], int.from_bytes(data[pos + 1:pos + 9], 'little')
+        out.append((op, pos))
+        if op in (0x02, 0x0f):
+            break
+        pos += 9 + length
+    return out
+
+
+def test_a_zstd_chunk_that_does_not_decompress_ends_what_is_recovered(tmp_path):
+    """ros2 bag records mcap with zstd chunks; one that fails to decompress (zstd raises its
+    own error type) ends the intact part. Before: a traceback from beo-bag-recover."""
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode
+    from std_msgs.msg import String
+    src = tmp_path / 'z'
+    w = bag.BagWriter(src, 'mcap')
+    w._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+    with w:
+        for batch in range(3):   # a chunk per commit
+            for i in range(4):
+                w.write('/s', String(data=f'{batch}.{i}'), 10 * batch + i)
+            w.commit()
+    data = bytearray(bag._bag_file(src).read_bytes()[:-37])   # no footer: never closed
+    chunks = [pos for op, pos in _records(data) if op == 0x06]
+    assert len(chunks) == 3
+    # the third chunk's zstd frame magic: after opcode and length (9), times, sizes and crc
+    # (28), the compression name (4 + 4) and the records' length (8)
+    data[chunks[2] + 9 + 28 + 8 + 8] ^= 0xFF
+    cut = tmp_path / 'cut.mcap'
+    cut.write_bytes(bytes(data))
+    assert bag.recover_main([str(cut), '-o', str(tmp_path / 'new')]) == 0
+    assert [t for _, _, t, _ in bag.read_bag(tmp_path / 'new')] == [0, 1, 2, 3, 10, 11, 12, 13]

@@ -290,7 +290,7 @@ class BagWriter:
     A write that fails (disk full, ...) marks the writer ``failed``: leaving the ``with`` block
     then aborts it instead of closing it, so that no metadata.yaml claims messages the storage
     lost (sqlite rolls the open transaction back on such errors). :meth:`commit` makes what is
-    written so far durable (sqlite3 only).
+    written so far survive a crash (:func:`recover_bag` reads it back).
     """
 
     def __init__(self, path, storage: str = 'sqlite3'):
@@ -330,7 +330,7 @@ class BagWriter:
             raise
 
     def abort(self):
-        """Close without metadata.yaml; sqlite3 keeps what :meth:`commit` committed."""
+        """Close without metadata.yaml; the file keeps what :meth:`commit` committed."""
         with contextlib.suppress(Exception):
             self._writer.abort()
 
@@ -457,7 +457,6 @@ def _mcap_intact_end(path) -> tuple[int, bool]:
     """-> (offset just past the last intact record of an mcap file's data section, whether the
     file was closed: it ends in a footer and the magic). A record is intact when all its bytes
     are there and, for a chunk, its records decompress to their stated size and checksum."""
-    from rosbags.rosbag2 import ReaderError
     from rosbags.rosbag2.storage_mcap import decompress
     size = os.path.getsize(path)
     with open(path, 'rb') as f:
@@ -493,7 +492,7 @@ def _mcap_intact_end(path) -> tuple[int, bool]:
                 data = body[32 + n + 8:]
                 try:
                     decompress(data, comp, usize, crc)
-                except (ReaderError, ValueError, RuntimeError, OSError):
+                except Exception:  # noqa: BLE001 - ReaderError, zstd's and lz4's own errors
                     break
             pos += 9 + length
             end = pos
@@ -523,8 +522,9 @@ def recover_bag(src, dst, *, storage: str | None = None) -> dict:
 
     ``src``: bag directory or its .db3 / .mcap file; ``storage``: dst's (default src's).
     -> ``{'messages', 'topics': {topic: count}, 'storage', 'lost_bytes'}``; ``lost_bytes``:
-    the tail of an mcap file that was cut off mid-record (0 for sqlite3). ValueError for a
-    source that is not a bag, or whose mcap data is unreadable from the start.
+    the tail of an mcap file after its last intact record (0 for sqlite3): a record cut off,
+    or a chunk that does not decompress to its size and checksum, and all after it. ValueError
+    for a source that is not a bag, or an mcap file cut off inside its header.
     """
     import tempfile
 
@@ -552,10 +552,11 @@ def recover_bag(src, dst, *, storage: str | None = None) -> dict:
                 profiles = getattr(getattr(c, 'ext', None), 'offered_qos_profiles', None) or []
                 qos = dict(transient_local=recorded_latched(c), reliable=not profiles or any(
                     getattr(q.reliability, 'name', '') == 'RELIABLE' for q in profiles))
-                try:
-                    writer.add_topic(c.topic, c.msgtype, **qos)
-                except KeyError:   # a type beo_ros does not know: the bag's own definition
-                    writer.add_topic(c.topic, c.msgtype, **_own_definition(c), **qos)
+                try:   # the bag's own definition: its bytes were written with it
+                    definition = _own_definition(c)
+                except KeyError:   # none in the bag: the installed one
+                    definition = {}
+                writer.add_topic(c.topic, c.msgtype, **definition, **qos)
                 topics.setdefault(c.topic, 0)
             # a repaired mcap file has no index: its messages in file order (the reader would
             # refuse stamps that go back, e.g. two topics; the new bag indexes them)
@@ -1103,8 +1104,8 @@ class BagWriteError(Exception):
 
 def _write_failure(writer, exc) -> str:
     """One line on a failed recording, after ``writer`` was aborted: the error, and what is
-    left of the bag (a .db3 with the committed messages, or nothing: an unreadable bag is
-    removed)."""
+    left of the bag (its .db3 / .mcap file with the committed messages, or nothing: a bag with
+    nothing committed is removed)."""
     reason = f'cannot write {writer.path}: {exc}'
     if not writer._opened:
         return reason
