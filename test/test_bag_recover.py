@@ -11,13 +11,14 @@ pytest.importorskip('rclpy')
 
 from beo_ros.ros import bag  # noqa: E402
 
-# writes argv[3] messages on /a (latched) and /b, commits, writes argv[4] more on /a, then
-# ends as SIGKILL would: no close, no flush of Python's buffers
+# writes argv[3] messages on /a (latched) and /b, commits, writes argv[4] more on /a (of
+# argv[5] bytes), then ends as SIGKILL would: no close, no flush of Python's buffers
 KILLED_WRITER = r'''
 import os, sys
 from std_msgs.msg import String
 from beo_ros.ros.bag import BagWriter
 storage, path, n, extra = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
+size = int(sys.argv[5]) if len(sys.argv) > 5 else 0
 w = BagWriter(path, storage).open()
 w.add_topic('/a', 'std_msgs/msg/String', transient_local=True)
 for i in range(n):
@@ -25,15 +26,15 @@ for i in range(n):
     w.write('/b', String(data=f'b{i}'), 500 + i)   # stamps behind /a's: file order != time order
 assert w.commit()
 for i in range(extra):
-    w.write('/a', String(data=f'lost{i}'), 5000 + i)
+    w.write('/a', String(data=f'lost{i}:' + 'y' * size), 5000 + i)
 os._exit(9)
 '''
 
 
-def _killed_bag(tmp_path, storage, n=400, extra=3):
+def _killed_bag(tmp_path, storage, n=400, extra=3, size=0):
     out = tmp_path / 'killed'
     p = subprocess.run([sys.executable, '-c', KILLED_WRITER, storage, str(out), str(n),
-                        str(extra)], capture_output=True, text=True, timeout=120)
+                        str(extra), str(size)], capture_output=True, text=True, timeout=120)
     assert p.returncode == 9, p.stderr
     assert not (out / 'metadata.yaml').exists()
     return out
@@ -201,3 +202,24 @@ def test_a_zstd_chunk_that_does_not_decompress_ends_what_is_recovered(tmp_path):
     cut.write_bytes(bytes(data))
     assert bag.recover_main([str(cut), '-o', str(tmp_path / 'new')]) == 0
     assert [t for _, _, t, _ in bag.read_bag(tmp_path / 'new')] == [0, 1, 2, 3, 10, 11, 12, 13]
+
+
+def test_a_sqlite3_bag_killed_mid_transaction_is_read_without_its_torn_pages(tmp_path):
+    """An uncommitted transaction larger than sqlite's page cache spills into the .db3 and
+    leaves a rollback journal; rosbags opens the file as immutable, ignoring the journal.
+    Before: read_bag and recover_bag read a torn database (committed messages missing or
+    duplicated, or 'database disk image is malformed'); now reading it directly is refused
+    and recover_bag rolls the journal back in a copy and gets exactly the committed ones."""
+    killed = _killed_bag(tmp_path, 'sqlite3', n=300, extra=1500, size=3000)   # 4.5 MB
+    journal = bag.hot_journal(killed)
+    assert journal is not None and journal.stat().st_size > 0
+    for path in (killed, bag._bag_file(killed)):
+        with pytest.raises(ValueError, match='beo-bag-recover'):
+            list(bag.read_bag(path))
+        with pytest.raises(ValueError, match='beo-bag-recover'):
+            bag.bag_info(path)
+    summary = bag.recover_bag(killed, tmp_path / 'new')
+    assert summary['topics'] == {'/a': 300, '/b': 300}
+    assert sorted(_texts(tmp_path / 'new')) == sorted(
+        [('/a', f'a{i}') for i in range(300)] + [('/b', f'b{i}') for i in range(300)])
+    assert journal.is_file()   # the source is left as it was

@@ -414,9 +414,31 @@ class BagWriter:
         self.counts[topic] += 1
 
 
+def hot_journal(bag_path) -> Path | None:
+    """The non-empty rollback journal beside a bag's .db3 file (a recording killed in the
+    middle of a transaction), or None. rosbags opens the database as immutable, ignoring it,
+    and would read pages of the unfinished transaction: a torn or malformed database."""
+    p = Path(bag_path)
+    dbs = [p] if p.suffix == '.db3' else (sorted(p.glob('*.db3')) if p.is_dir() else [])
+    for db in dbs:
+        journal = db.with_name(db.name + '-journal')
+        if journal.is_file() and journal.stat().st_size > 0:
+            return journal
+    return None
+
+
+def _check_no_hot_journal(bag_path):
+    journal = hot_journal(bag_path)
+    if journal is not None:
+        raise ValueError(f'{journal}: the bag was left in the middle of a write (its rollback '
+                         'journal is there): read it through beo-bag-recover BAG -o NEW')
+
+
 def read_bag(bag_path, topics=None):
-    """Yield ``(topic, msgtype, timestamp_ns, raw_cdr_bytes)`` in timestamp order."""
+    """Yield ``(topic, msgtype, timestamp_ns, raw_cdr_bytes)`` in timestamp order. ValueError
+    for a .db3 left in the middle of a write (see :func:`hot_journal`)."""
     from rosbags.rosbag2 import Reader
+    _check_no_hot_journal(bag_path)
     with Reader(Path(bag_path)) as reader:
         conns = [c for c in reader.connections if topics is None or c.topic in topics]
         if not conns:
@@ -438,6 +460,7 @@ def read_messages(bag_path, topics=None):
 def bag_info(bag_path) -> dict:
     """Storage, duration and ``{topic: {'type', 'count'}}`` of a bag."""
     from rosbags.rosbag2 import Reader
+    _check_no_hot_journal(bag_path)
     with Reader(Path(bag_path)) as reader:
         topics = {}
         for c in reader.connections:
@@ -535,12 +558,20 @@ def recover_bag(src, dst, *, storage: str | None = None) -> dict:
     lost = 0
     dst.parent.mkdir(parents=True, exist_ok=True)   # as rosbags' writer would
     with tempfile.TemporaryDirectory(prefix='.beo_recover_', dir=dst.parent) as tmp:
-        readable = path
+        readable, unindexed = path, False
+        journal = hot_journal(path)
+        if journal is not None:   # roll the unfinished transaction back, in a copy
+            import sqlite3
+            readable = Path(tmp) / path.name
+            shutil.copyfile(path, readable)
+            shutil.copyfile(journal, Path(tmp) / journal.name)
+            with contextlib.closing(sqlite3.connect(readable)) as db:
+                db.execute('SELECT COUNT(*) FROM sqlite_master').fetchone()
         if path.suffix == '.mcap':
             end, closed = _mcap_intact_end(path)
             if not closed:
                 lost = os.path.getsize(path) - end
-                readable = Path(tmp) / path.name
+                readable, unindexed = Path(tmp) / path.name, True
                 with open(path, 'rb') as fin, open(readable, 'wb') as fout:
                     shutil.copyfileobj(_limited(fin, end), fout, 1 << 20)
                     # data end (no crc), then a footer without a summary: readers scan the data
@@ -561,7 +592,7 @@ def recover_bag(src, dst, *, storage: str | None = None) -> dict:
             # a repaired mcap file has no index: its messages in file order (the reader would
             # refuse stamps that go back, e.g. two topics; the new bag indexes them)
             messages = (reader.storage.messages_scan(reader.connections)
-                        if readable is not path else reader.messages())
+                        if unindexed else reader.messages())
             for conn, t, raw in messages:
                 writer.write(conn.topic, bytes(raw), t, conn.msgtype)
                 topics[conn.topic] += 1
@@ -1065,6 +1096,7 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
     bag_path = Path(bag_path)
     n_passes = loops if loops is not None else (None if loop else 1)
     stats = ReplayStats(bag=str(bag_path), storage=detect_storage(bag_path), rate=float(rate))
+    _check_no_hot_journal(bag_path)
     try:
         with Reader(bag_path) as reader:
             conns = _replay_connections(reader, bag_path, topics, all_topics, remap)
