@@ -476,10 +476,11 @@ MCAP_MAGIC = b'\x89MCAP0\r\n'
 _MCAP_FOOTER_HEAD = b'\x02\x14' + bytes(7)   # opcode 2, length 20
 
 
-def _mcap_intact_end(path) -> tuple[int, bool]:
-    """-> (offset just past the last intact record of an mcap file's data section, whether the
-    file was closed: it ends in a footer and the magic). A record is intact when all its bytes
-    are there and, for a chunk, its records decompress to their stated size and checksum."""
+def _mcap_record_ends(path, trust_footer: bool = True) -> tuple[list, bool]:
+    """-> (offsets just past each intact record of an mcap file's data section, ascending, the
+    header's first; whether the file was closed: it ends in a footer and the magic, and
+    ``trust_footer``). A record is intact when all its bytes are there and, for a chunk, its
+    records decompress to their stated size (and checksum, if one was stored)."""
     from rosbags.rosbag2.storage_mcap import decompress
     size = os.path.getsize(path)
     with open(path, 'rb') as f:
@@ -488,38 +489,44 @@ def _mcap_intact_end(path) -> tuple[int, bool]:
             raise ValueError(f'{path}: empty file: nothing to recover')
         if magic != MCAP_MAGIC[:len(magic)]:
             raise ValueError(f'{path}: not an mcap file (no magic at its start)')
-        f.seek(8)
         head = f.read(9)
         if (len(head) < 9 or head[0] != 0x01
                 or 17 + int.from_bytes(head[1:], 'little') > size):
             raise ValueError(f'{path}: cut off before the end of its header record: nothing '
                              'to recover')
-        if size >= 8 + 37:
+        if trust_footer and size >= 8 + 37:
             f.seek(size - 37)
             tail = f.read(37)
             if tail[:9] == _MCAP_FOOTER_HEAD and tail[-8:] == MCAP_MAGIC:
-                return size, True
-        end = pos = 8
+                return [size], True
+        pos, ends = 8, []
         while pos + 9 <= size:
             f.seek(pos)
             op, length = f.read(1)[0], int.from_bytes(f.read(8), 'little')
             # 0x0f data end, 0x02 footer: the summary after them was being written
             if not 0x01 <= op <= 0x10 or op in (0x02, 0x0f) or pos + 9 + length > size:
                 break
-            if op == 0x06:   # chunk: start, end, uncompressed size, crc, compression, records
-                body = f.read(length)
-                usize = int.from_bytes(body[16:24], 'little')
-                crc = int.from_bytes(body[24:28], 'little')
-                n = int.from_bytes(body[28:32], 'little')
-                comp = body[32:32 + n].decode(errors='replace')
-                data = body[32 + n + 8:]
-                try:
-                    decompress(data, comp, usize, crc)
-                except Exception:  # noqa: BLE001 - ReaderError, zstd's and lz4's own errors
-                    break
+            if op == 0x06 and not _chunk_decompresses(f.read(length), decompress):
+                break
             pos += 9 + length
-            end = pos
-    return end, False
+            ends.append(pos)
+    return ends, False
+
+
+def _chunk_decompresses(body: bytes, decompress) -> bool:
+    """Whether a chunk record's body (start, end, uncompressed size, crc, compression, records)
+    holds records that decompress to their stated size (and crc, if not 0)."""
+    usize = int.from_bytes(body[16:24], 'little')
+    crc = int.from_bytes(body[24:28], 'little')
+    n = int.from_bytes(body[28:32], 'little')
+    if 32 + n + 8 > len(body) or 32 + n + 8 + int.from_bytes(body[32 + n:40 + n], 'little') \
+            != len(body):
+        return False
+    try:
+        decompress(body[40 + n:], body[32:32 + n].decode(errors='replace'), usize, crc)
+    except Exception:  # noqa: BLE001 - ReaderError, zstd's and lz4's own errors, MemoryError
+        return False
+    return True
 
 
 def _bag_file(src) -> Path:
@@ -538,6 +545,10 @@ def _bag_file(src) -> Path:
     return files[0]
 
 
+class _Damaged(Exception):
+    """rosbags could not read a (repaired) bag to its end."""
+
+
 def recover_bag(src, dst, *, storage: str | None = None) -> dict:
     """Copy every intact message of a bag that was never closed (a recording ended by SIGKILL,
     a crash or a full disk: no metadata.yaml, an mcap file without its footer) into a new,
@@ -545,41 +556,106 @@ def recover_bag(src, dst, *, storage: str | None = None) -> dict:
 
     ``src``: bag directory or its .db3 / .mcap file; ``storage``: dst's (default src's).
     -> ``{'messages', 'topics': {topic: count}, 'storage', 'lost_bytes'}``; ``lost_bytes``:
-    the tail of an mcap file after its last intact record (0 for sqlite3): a record cut off,
-    or a chunk that does not decompress to its size and checksum, and all after it. ValueError
-    for a source that is not a bag, or an mcap file cut off inside its header.
+    the tail of an mcap file after its last intact record (0 for sqlite3): a record cut off or
+    damaged, or a chunk that does not decompress to its size, and all after it. A closed mcap
+    file whose index does not read is read as if it had none. ValueError for a source that is
+    not a bag, an mcap file cut off inside its header, or a database that does not read.
     """
     import tempfile
-
-    from rosbags.rosbag2 import Reader
     path = _bag_file(src)
     storage = storage or ('mcap' if path.suffix == '.mcap' else 'sqlite3')
     dst = Path(dst)
-    lost = 0
+    ends, closed = _mcap_record_ends(path) if path.suffix == '.mcap' else ([], True)
     dst.parent.mkdir(parents=True, exist_ok=True)   # as rosbags' writer would
     with tempfile.TemporaryDirectory(prefix='.beo_recover_', dir=dst.parent) as tmp:
-        readable, unindexed = path, False
-        journal = hot_journal(path)
-        if journal is not None:   # roll the unfinished transaction back, in a copy
-            import sqlite3
-            readable = Path(tmp) / path.name
-            shutil.copyfile(path, readable)
-            shutil.copyfile(journal, Path(tmp) / journal.name)
-            with contextlib.closing(sqlite3.connect(readable)) as db:
-                db.execute('SELECT COUNT(*) FROM sqlite_master').fetchone()
-        if path.suffix == '.mcap':
-            end, closed = _mcap_intact_end(path)
-            if not closed:
-                lost = os.path.getsize(path) - end
-                readable, unindexed = Path(tmp) / path.name, True
-                with open(path, 'rb') as fin, open(readable, 'wb') as fout:
-                    shutil.copyfileobj(_limited(fin, end), fout, 1 << 20)
-                    # data end (no crc), then a footer without a summary: readers scan the data
-                    fout.write(b'\x0f' + (4).to_bytes(8, 'little') + bytes(4))
-                    fout.write(_MCAP_FOOTER_HEAD + bytes(20) + MCAP_MAGIC)
-        topics = {}
-        with Reader(readable) as reader, _removed_on_error(BagWriter(dst, storage)) as writer:
-            for c in reader.connections:
+        if path.suffix == '.db3':
+            try:
+                topics = _copy_messages(_rolled_back(path, Path(tmp)), dst, storage, False)
+            except _Damaged as e:
+                raise ValueError(f'{path}: {e}') from None
+            return {'messages': sum(topics.values()), 'topics': topics, 'storage': storage,
+                    'lost_bytes': 0}
+        if closed:
+            try:
+                topics = _copy_messages(path, dst, storage, False)
+                return {'messages': sum(topics.values()), 'topics': topics,
+                        'storage': storage, 'lost_bytes': 0}
+            except _Damaged:   # its summary (index) is damaged: scan the data instead
+                ends, _ = _mcap_record_ends(path, trust_footer=False)
+        # the longest prefix of whole records that rosbags reads to its end: the usual case is
+        # all of them; a record can be whole yet damaged inside, and damage ends what reads
+        try:
+            end = ends[-1]
+            topics = _copy_messages(_repaired(path, end, Path(tmp)), dst, storage, True)
+        except _Damaged:
+            lo, hi = -1, len(ends) - 2   # ends[lo] reads (-1: none known), none after hi does
+            while lo < hi:
+                mid = (lo + hi + 1) // 2
+                try:
+                    _copy_messages(_repaired(path, ends[mid], Path(tmp)), dst, storage, True)
+                except _Damaged:
+                    hi = mid - 1
+                    continue
+                shutil.rmtree(dst)
+                lo = mid
+            if lo < 0:
+                raise ValueError(f'{path}: no record after its header reads: nothing to '
+                                 'recover') from None
+            end = ends[lo]
+            topics = _copy_messages(_repaired(path, end, Path(tmp)), dst, storage, True)
+    return {'messages': sum(topics.values()), 'topics': topics, 'storage': storage,
+            'lost_bytes': os.path.getsize(path) - end}
+
+
+def _rolled_back(db: Path, tmp: Path) -> Path:
+    """``db``, or a copy of it in ``tmp`` with its hot journal rolled back (see
+    :func:`hot_journal`)."""
+    journal = hot_journal(db)
+    if journal is None:
+        return db
+    import sqlite3
+    copy = tmp / db.name
+    shutil.copyfile(db, copy)
+    shutil.copyfile(journal, tmp / journal.name)
+    with contextlib.closing(sqlite3.connect(copy)) as conn:
+        conn.execute('SELECT COUNT(*) FROM sqlite_master').fetchone()
+    return copy
+
+
+def _repaired(path: Path, end: int, tmp: Path) -> Path:
+    """A copy in ``tmp`` of the first ``end`` bytes of mcap file ``path`` (whole records),
+    closed by a data end and a footer without a summary: readers scan its data."""
+    out = tmp / path.name
+    with open(path, 'rb') as fin, open(out, 'wb') as fout:
+        shutil.copyfileobj(_limited(fin, end), fout, 1 << 20)
+        fout.write(b'\x0f' + (4).to_bytes(8, 'little') + bytes(4))   # data end, no crc
+        fout.write(_MCAP_FOOTER_HEAD + bytes(20) + MCAP_MAGIC)
+    return out
+
+
+def _copy_messages(readable: Path, dst: Path, storage: str, unindexed: bool) -> dict:
+    """Copy the topics and messages of bag file ``readable`` into a new bag ``dst`` ->
+    ``{topic: count}``. _Damaged (and no ``dst``) when rosbags cannot read it to its end;
+    the errors of writing ``dst`` (an unknown type, a full disk) as they are."""
+    from rosbags.rosbag2 import Reader
+    topics = {}
+    reader = Reader(readable)
+    try:
+        reader.open()
+        conns = list(reader.connections)
+        for c in conns:   # a damaged channel or schema record: no valid type name
+            normalize_msgtype(c.msgtype)
+        # an unindexed (repaired) mcap file: its messages in file order (the reader would
+        # refuse stamps that go back, e.g. two topics; the new bag indexes them)
+        messages = iter(reader.storage.messages_scan(conns) if unindexed
+                        else reader.messages())
+    except Exception as e:  # noqa: BLE001 - rosbags' errors, struct.error, MemoryError, ...
+        with contextlib.suppress(Exception):
+            reader.close()
+        raise _Damaged(_one_line(e)) from e
+    try:
+        with _removed_on_error(BagWriter(dst, storage)) as writer:
+            for c in conns:
                 profiles = getattr(getattr(c, 'ext', None), 'offered_qos_profiles', None) or []
                 qos = dict(transient_local=recorded_latched(c), reliable=not profiles or any(
                     getattr(q.reliability, 'name', '') == 'RELIABLE' for q in profiles))
@@ -589,15 +665,25 @@ def recover_bag(src, dst, *, storage: str | None = None) -> dict:
                     definition = {}
                 writer.add_topic(c.topic, c.msgtype, **definition, **qos)
                 topics.setdefault(c.topic, 0)
-            # a repaired mcap file has no index: its messages in file order (the reader would
-            # refuse stamps that go back, e.g. two topics; the new bag indexes them)
-            messages = (reader.storage.messages_scan(reader.connections)
-                        if unindexed else reader.messages())
-            for conn, t, raw in messages:
+            while True:
+                try:
+                    conn, t, raw = next(messages)
+                except StopIteration:
+                    break
+                except Exception as e:  # noqa: BLE001 - as above
+                    raise _Damaged(_one_line(e)) from e
                 writer.write(conn.topic, bytes(raw), t, conn.msgtype)
                 topics[conn.topic] += 1
-    return {'messages': sum(topics.values()), 'topics': topics, 'storage': storage,
-            'lost_bytes': lost}
+    finally:
+        with contextlib.suppress(Exception):
+            reader.close()
+    return topics
+
+
+def _one_line(exc) -> str:
+    """An exception as one line: its type and its message's lines joined."""
+    text = ' '.join(str(exc).split())
+    return f'{type(exc).__name__}: {text}' if text else type(exc).__name__
 
 
 def _own_definition(conn) -> dict:
@@ -904,6 +990,8 @@ def _replay_connections(reader, bag_path, topics, all_topics: bool, remap: dict)
         conns = [c for c in reader.connections if c.topic in wanted]
     elif all_topics:
         conns = list(reader.connections)
+        for c in conns:   # a damaged channel or schema record: no valid type name
+            normalize_msgtype(c.msgtype)
     else:
         conns = [c for c in reader.connections if c.msgtype == CLOUD_TYPE]
     unknown = set(remap) - {c.topic for c in reader.connections}
@@ -1838,8 +1926,8 @@ def recover_main(argv=None) -> int:
         print(json.dumps(summary, indent=2))
     else:
         topics = ' '.join(f'{t}: {n}' for t, n in summary['topics'].items()) or 'no topics'
-        lost = (f'; {summary["lost_bytes"]} bytes cut off mid-record were left out'
-                if summary['lost_bytes'] else '')
+        lost = (f'; {summary["lost_bytes"]} bytes after the last intact record were left '
+                'out' if summary['lost_bytes'] else '')
         print(f'{summary["messages"]} message(s) ({topics}) -> {args.output} '
               f'({summary["storage"]}){lost}')
     return 0
