@@ -274,3 +274,17 @@ def test_a_closed_mcap_file_whose_index_is_damaged_is_read_by_scanning(tmp_path)
     assert summary['messages'] == 12 and summary['lost_bytes'] == len(data) - summary_start + 13
     assert [t for _, _, t, _ in bag.read_bag(tmp_path / 'new')] == [
         0, 1, 2, 3, 10, 11, 12, 13, 20, 21, 22, 23]
+
+
+def test_the_largest_stamp_survives_recovery(tmp_path):
+    """rosbags' scan of an unindexed file ends before 2^63-1 unless told otherwise."""
+    from std_msgs.msg import String
+    src = tmp_path / 'max'
+    stamps = [0, 1, 2 ** 63 - 2, 2 ** 63 - 1]
+    with bag.BagWriter(src, 'mcap') as w:
+        for t in stamps:
+            w.write('/s', String(data=str(t)), t)
+    data = bag._bag_file(src).read_bytes()[:-37]   # never closed
+    (tmp_path / 'cut.mcap').write_bytes(data)
+    bag.recover_bag(tmp_path / 'cut.mcap', tmp_path / 'new')
+    assert [t for _, _, t, _ in bag.read_bag(tmp_path / 'new')] == stamps

@@ -647,7 +647,8 @@ def _copy_messages(readable: Path, dst: Path, storage: str, unindexed: bool) -> 
             normalize_msgtype(c.msgtype)
         # an unindexed (repaired) mcap file: its messages in file order (the reader would
         # refuse stamps that go back, e.g. two topics; the new bag indexes them)
-        messages = iter(reader.storage.messages_scan(conns) if unindexed
+        # (its end is exclusive: by default 2^63-1, the largest stamp there is)
+        messages = iter(reader.storage.messages_scan(conns, stop=1 << 64) if unindexed
                         else reader.messages())
     except Exception as e:  # noqa: BLE001 - rosbags' errors, struct.error, MemoryError, ...
         with contextlib.suppress(Exception):
