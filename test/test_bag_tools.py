@@ -259,6 +259,47 @@ def test_a_burst_followed_by_quiet_is_committed(tmp_path, ros_env_context):
     assert result['s'].messages == 5
 
 
+def test_a_write_error_leaves_no_subscription_behind(tmp_path, ros_env_context, monkeypatch):
+    """Before: a disk full while recording, with a topic that never had a publisher, failed
+    again while listing that topic in the bag, so the recorder's subscriptions and executor
+    were never destroyed (BagWriteError all the same)."""
+    from std_msgs.msg import String
+    pub_node = rclpy.create_node('talker', context=ros_env_context)
+    rec_node = rclpy.create_node('recorder', context=ros_env_context)
+    pub = pub_node.create_publisher(String, '/chatter', 100)
+    real_write, real_add = bag.BagWriter.write, bag.BagWriter.add_topic
+
+    def full(self, *args, **kwargs):
+        self.failed = True
+        raise OSError(28, 'No space left on device')
+
+    def add_topic(self, *args, **kwargs):   # a full disk takes no more writes at all
+        if self.failed:
+            full(self)
+        return real_add(self, *args, **kwargs)
+    monkeypatch.setattr(bag.BagWriter, 'write', full)
+    monkeypatch.setattr(bag.BagWriter, 'add_topic', add_topic)
+    errors = []
+
+    def run():
+        try:
+            bag.record(rec_node, tmp_path / 'rec', ['/chatter:std_msgs/msg/String',
+                                                    '/never:std_msgs/msg/String'], wait=0)
+        except bag.BagWriteError as e:
+            errors.append(e)
+    th = threading.Thread(target=run)
+    th.start()
+    end = time.monotonic() + 10
+    while th.is_alive() and time.monotonic() < end:
+        if pub.get_subscription_count():
+            pub.publish(String(data='x'))
+        time.sleep(0.05)
+    th.join(10)
+    monkeypatch.setattr(bag.BagWriter, 'write', real_write)
+    assert not th.is_alive() and len(errors) == 1 and 'No space left' in str(errors[0])
+    assert not list(rec_node.subscriptions)
+
+
 # ------------------------------------------------------------------------------------------
 # 3. beo-replay of a corrupt sqlite3 bag
 # ------------------------------------------------------------------------------------------

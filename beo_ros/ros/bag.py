@@ -1354,8 +1354,9 @@ class _Recorder:
         self.unsubscribed = dict(topics)
         self._pending = []   # (topic, stamp ns, raw CDR) received and not yet written
         self._lock = threading.Lock()
-        self._t0 = self._t_poll = self._t_commit = None   # monotonic times
+        self._t0 = self._t_poll = self._t_commit = time.monotonic()
         self._uncommitted = False
+        self._added = False   # the node is in our own executor
 
     def start(self, ready: threading.Event | None) -> None:
         """List the topics, subscribe those with publishers, then signal ``ready``."""
@@ -1364,6 +1365,7 @@ class _Recorder:
         self._subscribe_new()
         if self.own_exec:
             self.executor.add_node(self.node)
+            self._added = True
         if ready is not None:
             ready.set()
         self._t0 = self._t_poll = self._t_commit = time.monotonic()
@@ -1384,16 +1386,21 @@ class _Recorder:
                 break
 
     def finish(self) -> None:
-        """Take the wall time, list the never-published topics in the bag (empty), drop the
-        subscriptions and the executor if it is ours."""
+        """Take the wall time, list the never-published topics in the bag (empty, unless the
+        writer failed), drop the subscriptions and the executor if it is ours: also after a
+        failure part-way through :meth:`start`, or one of these writes."""
         self.stats.wall_s = time.monotonic() - self._t0
-        for topic, typ in self.unsubscribed.items():   # never published: listed, empty
-            self.writer.add_topic(topic, typ, reliable=False)
-        for s in self.subs:
-            self.node.destroy_subscription(s)
-        if self.own_exec:
-            self.executor.remove_node(self.node)
-            self.executor.shutdown()
+        try:
+            if not self.writer.failed:
+                for topic, typ in self.unsubscribed.items():   # never published: listed, empty
+                    self.writer.add_topic(topic, typ, reliable=False)
+        finally:
+            for s in self.subs:
+                self.node.destroy_subscription(s)
+            if self.own_exec:
+                if self._added:
+                    self.executor.remove_node(self.node)
+                self.executor.shutdown()
 
     def _callback_for(self, topic: str):
         """A raw subscription callback queueing the message of ``topic``, stamped at receipt."""
@@ -1492,8 +1499,8 @@ def record(node, bag_path, topics, *, storage: str = 'sqlite3', wait: float = 10
                          commit_every=commit_every)
     try:
         with writer:
-            recorder.start(ready)
             try:
+                recorder.start(ready)
                 recorder.run(count, duration, stop)
             finally:
                 recorder.finish()
