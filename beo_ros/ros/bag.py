@@ -567,44 +567,57 @@ def recover_bag(src, dst, *, storage: str | None = None) -> dict:
     dst = Path(dst)
     ends, closed = _mcap_record_ends(path) if path.suffix == '.mcap' else ([], True)
     dst.parent.mkdir(parents=True, exist_ok=True)   # as rosbags' writer would
+    end = os.path.getsize(path)
     with tempfile.TemporaryDirectory(prefix='.beo_recover_', dir=dst.parent) as tmp:
+        tmp = Path(tmp)
         if path.suffix == '.db3':
             try:
-                topics = _copy_messages(_rolled_back(path, Path(tmp)), dst, storage, False)
+                topics = _copy_messages(_rolled_back(path, tmp), dst, storage, False)
             except _Damaged as e:
                 raise ValueError(f'{path}: {e}') from None
-            return {'messages': sum(topics.values()), 'topics': topics, 'storage': storage,
-                    'lost_bytes': 0}
-        if closed:
-            try:
-                topics = _copy_messages(path, dst, storage, False)
-                return {'messages': sum(topics.values()), 'topics': topics,
-                        'storage': storage, 'lost_bytes': 0}
-            except _Damaged:   # its summary (index) is damaged: scan the data instead
-                ends, _ = _mcap_record_ends(path, trust_footer=False)
-        # the longest prefix of whole records that rosbags reads to its end: the usual case is
-        # all of them; a record can be whole yet damaged inside, and damage ends what reads
-        try:
-            end = ends[-1]
-            topics = _copy_messages(_repaired(path, end, Path(tmp)), dst, storage, True)
-        except _Damaged:
-            lo, hi = -1, len(ends) - 2   # ends[lo] reads (-1: none known), none after hi does
-            while lo < hi:
-                mid = (lo + hi + 1) // 2
+        else:
+            topics = None
+            if closed:
                 try:
-                    _copy_messages(_repaired(path, ends[mid], Path(tmp)), dst, storage, True)
-                except _Damaged:
-                    hi = mid - 1
-                    continue
-                shutil.rmtree(dst)
-                lo = mid
-            if lo < 0:
-                raise ValueError(f'{path}: no record after its header reads: nothing to '
-                                 'recover') from None
-            end = ends[lo]
-            topics = _copy_messages(_repaired(path, end, Path(tmp)), dst, storage, True)
+                    topics = _copy_messages(path, dst, storage, False)
+                except _Damaged:   # its summary (index) is damaged: scan the data instead
+                    ends, _ = _mcap_record_ends(path, trust_footer=False)
+            if topics is None:
+                topics, end = _longest_readable_prefix(path, ends, dst, storage, tmp)
     return {'messages': sum(topics.values()), 'topics': topics, 'storage': storage,
-            'lost_bytes': os.path.getsize(path) - end}
+            'lost_bytes': os.path.getsize(path) - end if path.suffix == '.mcap' else 0}
+
+
+def _longest_readable_prefix(path: Path, ends: list, dst: Path, storage: str, tmp: Path):
+    """Copy the longest prefix of whole records of mcap file ``path`` (ending at one of
+    ``ends``) that rosbags reads to its end into ``dst`` -> ({topic: count}, its end). The
+    usual case is all of them; a record can be whole yet damaged inside, and damage ends what
+    reads, so the rest is a bisection. Each try writes a bag under ``tmp``; the best one is
+    moved to ``dst``."""
+    def attempt(i):
+        trial = tmp / str(i) / dst.name
+        trial.parent.mkdir()
+        try:
+            return _copy_messages(_repaired(path, ends[i], tmp), trial, storage, True), trial
+        except _Damaged:
+            return None, None
+
+    best, bag_dir = attempt(len(ends) - 1)
+    lo = len(ends) - 1 if best is not None else -1   # ends[lo] reads (-1: none known)
+    hi = lo if best is not None else len(ends) - 2   # none after hi does
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        got, trial = attempt(mid)
+        if got is None:
+            hi = mid - 1
+            continue
+        if bag_dir is not None:
+            shutil.rmtree(bag_dir)
+        best, bag_dir, lo = got, trial, mid
+    if best is None:
+        raise ValueError(f'{path}: no record after its header reads: nothing to recover')
+    os.replace(bag_dir, dst)
+    return best, ends[lo]
 
 
 def _rolled_back(db: Path, tmp: Path) -> Path:
@@ -627,7 +640,13 @@ def _repaired(path: Path, end: int, tmp: Path) -> Path:
     closed by a data end and a footer without a summary: readers scan its data."""
     out = tmp / path.name
     with open(path, 'rb') as fin, open(out, 'wb') as fout:
-        shutil.copyfileobj(_limited(fin, end), fout, 1 << 20)
+        sent = 0
+        while sent < end:
+            n = os.sendfile(fout.fileno(), fin.fileno(), sent, end - sent)
+            if n == 0:
+                raise ValueError(f'{path}: shorter than {end} bytes')   # shrank meanwhile
+            sent += n
+        fout.seek(end)
         fout.write(b'\x0f' + (4).to_bytes(8, 'little') + bytes(4))   # data end, no crc
         fout.write(_MCAP_FOOTER_HEAD + bytes(20) + MCAP_MAGIC)
     return out
@@ -657,14 +676,12 @@ def _copy_messages(readable: Path, dst: Path, storage: str, unindexed: bool) -> 
     try:
         with _removed_on_error(BagWriter(dst, storage)) as writer:
             for c in conns:
-                profiles = getattr(getattr(c, 'ext', None), 'offered_qos_profiles', None) or []
-                qos = dict(transient_local=recorded_latched(c), reliable=not profiles or any(
-                    getattr(q.reliability, 'name', '') == 'RELIABLE' for q in profiles))
                 try:   # the bag's own definition: its bytes were written with it
                     definition = _own_definition(c)
                 except KeyError:   # none in the bag: the installed one
                     definition = {}
-                writer.add_topic(c.topic, c.msgtype, **definition, **qos)
+                writer.add_topic(c.topic, c.msgtype, reliable=recorded_reliable(c),
+                                 transient_local=recorded_latched(c), **definition)
                 topics.setdefault(c.topic, 0)
             while True:
                 try:
@@ -721,19 +738,6 @@ def _removed_on_error(writer):
             writer.abort()
             shutil.rmtree(writer.path, ignore_errors=True)
             raise
-
-
-def _limited(f, n: int):
-    """A reader of the first ``n`` bytes of file ``f`` (for shutil.copyfileobj)."""
-    class _Reader:
-        left = n
-
-        def read(self, size=-1):
-            size = self.left if size < 0 else min(size, self.left)
-            data = f.read(size)
-            self.left -= len(data)
-            return data
-    return _Reader()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -838,13 +842,25 @@ def make_qos(kind: str = 'reliable', depth: int = 10, latched: bool = False):
                       else DurabilityPolicy.VOLATILE)
 
 
+def _offered_profiles(conn) -> list:
+    """The offered QoS profiles a bag's metadata stores for a connection (maybe none)."""
+    return getattr(getattr(conn, 'ext', None), 'offered_qos_profiles', None) or []
+
+
 def recorded_latched(conn) -> bool:
     """Whether a bag connection was recorded from transient-local ("latched") publishers only,
     such as /tf_static: every offered QoS profile in the bag metadata is TRANSIENT_LOCAL."""
-    profiles = getattr(getattr(conn, 'ext', None), 'offered_qos_profiles', None) or []
+    profiles = _offered_profiles(conn)
     return bool(profiles) and all(
         getattr(getattr(q, 'durability', None), 'name', '') == 'TRANSIENT_LOCAL'
         for q in profiles)
+
+
+def recorded_reliable(conn) -> bool:
+    """Whether a bag connection had a reliable publisher (or the bag stores no QoS for it)."""
+    profiles = _offered_profiles(conn)
+    return not profiles or any(
+        getattr(getattr(q, 'reliability', None), 'name', '') == 'RELIABLE' for q in profiles)
 
 
 def _sleep_until(deadline: float, stop: threading.Event | None, tick=None,
@@ -1230,7 +1246,6 @@ def _write_failure(writer, exc) -> str:
     reason = f'cannot write {writer.path}: {exc}'
     if not writer._opened:
         return reason
-    kept = 0
     if writer.storage == 'sqlite3':
         import sqlite3
         try:
