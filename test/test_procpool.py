@@ -66,6 +66,28 @@ def _manager(pool):
     return pool._pool._executor_manager_thread
 
 
+def _callers(n, fn):
+    """``n`` threads (not started), each calling ``fn()``, and the list they append the type
+    of what it raises to."""
+    errors = []
+
+    def call():
+        try:
+            fn()
+        except BaseException as e:   # noqa: BLE001 - recorded, the test checks them
+            errors.append(type(e))
+    return [threading.Thread(target=call) for _ in range(n)], errors
+
+
+def _resume(pids):
+    """SIGCONT to the processes still there."""
+    for pid in pids:
+        try:
+            os.kill(pid, signal.SIGCONT)
+        except ProcessLookupError:
+            pass
+
+
 @pytest.fixture
 def make_pool():
     pools = []
@@ -167,10 +189,7 @@ def test_timeout_kills_and_breaks(make_pool, tmp_path):
         with pytest.raises(EstimateTimeout):
             pool.estimate(np.zeros((3, 3)), np.zeros(3), np.zeros(3), 10.0, 0.5, timeout=0.5)
     finally:
-        try:
-            os.kill(pool.pids[0], signal.SIGCONT)
-        except ProcessLookupError:
-            pass
+        _resume(pool.pids[:1])
     manager.join(WAIT)
     assert not manager.is_alive()
     assert pool.broken and pool.timed_out
@@ -184,26 +203,19 @@ def test_one_hang_is_one_timeout(make_pool):
     pool = make_pool()
     for pid in pool.pids:
         os.kill(pid, signal.SIGSTOP)
-    start, errors = threading.Barrier(3), []
+    start = threading.Barrier(3)
 
     def call():
         start.wait()
-        try:
-            pool.estimate(np.zeros((3, 3)), np.zeros(3), np.zeros(3), 10.0, 0.5, timeout=0.5)
-        except BaseException as e:   # noqa: BLE001 - recorded and checked below
-            errors.append(type(e))
-    threads = [threading.Thread(target=call) for _ in range(3)]
+        pool.estimate(np.zeros((3, 3)), np.zeros(3), np.zeros(3), 10.0, 0.5, timeout=0.5)
+    threads, errors = _callers(3, call)
     try:
         for t in threads:
             t.start()
         for t in threads:
             t.join(WAIT)
     finally:
-        for pid in pool.pids:
-            try:
-                os.kill(pid, signal.SIGCONT)
-            except ProcessLookupError:
-                pass
+        _resume(pool.pids)
     assert sorted(e.__name__ for e in errors) == [
         'BrokenProcessPool', 'BrokenProcessPool', 'EstimateTimeout'], errors
     assert pool.timed_out   # why it was killed, for whichever caller replaces it first
@@ -228,14 +240,7 @@ def test_estimates_queued_in_a_pool_that_is_shut_down_fail_as_broken(make_pool):
     which it retries on the new pool."""
     pool = make_pool(n=1)
     os.kill(pool.pids[0], signal.SIGSTOP)   # nothing is taken off the queue
-    errors = []
-
-    def call():
-        try:
-            _estimate(pool)
-        except BaseException as e:   # noqa: BLE001 - recorded and checked below
-            errors.append(type(e))
-    threads = [threading.Thread(target=call) for _ in range(4)]
+    threads, errors = _callers(4, lambda: _estimate(pool))
     try:
         for t in threads:
             t.start()
@@ -247,8 +252,5 @@ def test_estimates_queued_in_a_pool_that_is_shut_down_fail_as_broken(make_pool):
         for t in threads:
             t.join(WAIT)
     finally:
-        try:
-            os.kill(pool.pids[0], signal.SIGCONT)
-        except ProcessLookupError:
-            pass
+        _resume(pool.pids[:1])
     assert len(errors) == 4 and set(errors) == {BrokenProcessPool}, errors
