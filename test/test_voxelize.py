@@ -276,6 +276,20 @@ def test_label_free_unknown_single_voxel_and_hole_closing():
     assert closed[2, 4, 4] == UNKNOWN and closed[1, 4, 4] == FREE
 
 
+def test_far_sensor_keeps_voxel_precision():
+    # Embree's rays are float32: cast from 1e7 voxels away, origin and end point used to lose
+    # about a voxel (342 labels differed from the sensor at 1e4 on this object; 72 from 1e3,
+    # from the perspective alone, so 1e4 is the reference).
+    occ = np.zeros((N, N, N), bool)
+    occ[8:24, 10:22, 4:20] = True
+    occ[12:20, 14:18, 20:28] = True
+    d = np.array([0.6, -0.5, 0.62]) / np.linalg.norm([0.6, -0.5, 0.62])
+    near = label_free_unknown(occ, C + d * 1e4)
+    assert np.count_nonzero(near == UNKNOWN) > 4000
+    for r in (1e5, 1e6, 1e7):
+        np.testing.assert_array_equal(label_free_unknown(occ, C + d * r), near)
+
+
 @pytest.mark.parametrize('kwargs,match', [
     (dict(points=np.zeros((5, 2))), r'\(n, 3\)'),
     (dict(points=np.zeros(30)), r'\(n, 3\)'),

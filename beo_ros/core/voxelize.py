@@ -288,9 +288,17 @@ def label_free_unknown(occupied: np.ndarray, origin_grid, close_holes: bool = Tr
         dist = np.linalg.norm(d, axis=1)
         # scale so that t = 1 is _RAY_MARGIN voxels short of the centre
         scale = np.maximum(dist - _RAY_MARGIN, 0.0) / np.maximum(dist, 1e-12)
+        d *= scale[:, None]
+        # Embree works in float32: from a sensor far away (1e5 voxels and more) an origin and
+        # end point that large lose the voxel's position. Start each ray where it can first meet
+        # the geometry instead (all of it lies within `reach` of the grid centre).
+        c = np.full(3, (n - 1) / 2.0)
+        reach = np.sqrt(((verts.astype(np.float64) - c) ** 2).sum(axis=1).max()) + 1.0
+        t0 = np.maximum(np.linalg.norm(o - c) - reach, 0.0) / np.maximum(dist, 1e-12)
+        t0 = np.minimum(t0, 1.0)[:, None]
         rays = np.empty((len(d), 6), np.float32)
-        rays[:, :3] = o
-        rays[:, 3:] = d * scale[:, None]
+        rays[:, :3] = o + t0 * d
+        rays[:, 3:] = (1.0 - t0) * d
         hit = scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0, tfar=1.0).numpy()
         hit &= dist > _RAY_MARGIN
         out.reshape(-1)[hit] = UNKNOWN
