@@ -163,7 +163,7 @@ def _msg_search_dirs(pkg: str) -> list:
             dirs.append(Path(p) / 'msg')
     except Exception:  # noqa: BLE001
         pass
-    dirs.append(Path(__file__).resolve().parents[2] / pkg / 'msg')  # source checkout
+    dirs.append(Path(__file__).resolve().parents[3] / pkg / 'msg')  # source checkout
     return dirs
 
 
