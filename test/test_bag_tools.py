@@ -139,7 +139,7 @@ if limit:   # a full disk, as far as the writes of this process go (EFBIG; SIGXF
 import rclpy
 from std_msgs.msg import String
 from beo_ros.ros import bag
-bag.player.COMMIT_PERIOD_S = 0.0
+bag.recorder.COMMIT_PERIOD_S = 0.0
 
 def publish():
     ctx = rclpy.Context()
