@@ -925,8 +925,8 @@ def test_clock_ticks_never_pass_the_next_message_nor_the_deadline(monkeypatch):
     assert pub.stamps == [t0 + 200_000_000, t0 + 200_000_000] and stats.clock_messages == 2
 
     fake = [0.0]
-    monkeypatch.setattr(bag.time, 'monotonic', lambda: fake[0])
-    monkeypatch.setattr(bag.time, 'sleep', lambda d: fake.__setitem__(0, fake[0] + d))
+    monkeypatch.setattr(bag.player.time, 'monotonic', lambda: fake[0])
+    monkeypatch.setattr(bag.player.time, 'sleep', lambda d: fake.__setitem__(0, fake[0] + d))
     ticks = []
 
     def slow_tick(now):   # takes 4 ms

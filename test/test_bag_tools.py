@@ -63,7 +63,7 @@ def test_replay_waits_for_acknowledgements_before_the_history_wraps(tmp_path, mo
 
     def fake(node, msgtype, topic, qos, depth, latched=False):
         return pubs.setdefault(topic, FakePublisher(topic, depth, qos == 'reliable', acked))
-    monkeypatch.setattr(bag, '_publisher', fake)
+    monkeypatch.setattr(bag.player, '_publisher', fake)
     node = SimpleNamespace(get_topic_names_and_types=lambda: [])
     stats = bag.replay(tmp_path / 'b', node, rate=0, depth=3, ack_timeout=0)
     assert stats.messages == 7
@@ -139,7 +139,7 @@ if limit:   # a full disk, as far as the writes of this process go (EFBIG; SIGXF
 import rclpy
 from std_msgs.msg import String
 from beo_ros.ros import bag
-bag.COMMIT_PERIOD_S = 0.0
+bag.recorder.COMMIT_PERIOD_S = 0.0
 
 def publish():
     ctx = rclpy.Context()

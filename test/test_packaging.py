@@ -17,7 +17,7 @@ IMPORT_KEYS = {
     'open3d': 'python3-open3d-pip',
     'trimesh': 'python3-trimesh-pip',
     'rosbags': 'python3-rosbags-pip',
-    'apsw': 'python3-rosbags-pip',    # rosbags' sqlite3 reader; bag.py only catches its errors
+    'apsw': 'python3-rosbags-pip',    # rosbags' sqlite3 reader; bag/storage.py catches its errors
     'matplotlib': 'python3-matplotlib',
     'tqdm': 'python3-tqdm',
     # optional (blas_threads); not a confirmed rosdep key: it comes with python3-sklearn

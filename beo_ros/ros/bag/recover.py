@@ -1,0 +1,279 @@
+"""beo-bag-recover: the intact messages of a bag that was never closed, copied into a new bag."""
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+from pathlib import Path
+
+from beo_ros.ros.bag.msgtypes import normalize_msgtype
+from beo_ros.ros.bag.storage import (BagWriter, hot_journal, recorded_latched,
+                                     recorded_reliable)
+
+
+MCAP_MAGIC = b'\x89MCAP0\r\n'
+_MCAP_FOOTER_HEAD = b'\x02\x14' + bytes(7)   # opcode 2, length 20
+
+
+def _mcap_record_ends(path, trust_footer: bool = True) -> tuple[list, bool]:
+    """-> (offsets just past each intact record of an mcap file's data section, ascending, the
+    header's first; whether the file was closed: it ends in a footer and the magic, and
+    ``trust_footer``). A record is intact when all its bytes are there and, for a chunk, its
+    records decompress to their stated size (and checksum, if one was stored)."""
+    from rosbags.rosbag2.storage_mcap import decompress
+    size = os.path.getsize(path)
+    with open(path, 'rb') as f:
+        magic = f.read(8)
+        if not magic:
+            raise ValueError(f'{path}: empty file: nothing to recover')
+        if magic != MCAP_MAGIC[:len(magic)]:
+            raise ValueError(f'{path}: not an mcap file (no magic at its start)')
+        head = f.read(9)
+        if (len(head) < 9 or head[0] != 0x01
+                or 17 + int.from_bytes(head[1:], 'little') > size):
+            raise ValueError(f'{path}: cut off before the end of its header record: nothing '
+                             'to recover')
+        if trust_footer and size >= 8 + 37:
+            f.seek(size - 37)
+            tail = f.read(37)
+            if tail[:9] == _MCAP_FOOTER_HEAD and tail[-8:] == MCAP_MAGIC:
+                return [size], True
+        pos, ends = 8, []
+        while pos + 9 <= size:
+            f.seek(pos)
+            op, length = f.read(1)[0], int.from_bytes(f.read(8), 'little')
+            # 0x0f data end, 0x02 footer: the summary after them was being written
+            if not 0x01 <= op <= 0x10 or op in (0x02, 0x0f) or pos + 9 + length > size:
+                break
+            if op == 0x06 and not _chunk_decompresses(f.read(length), decompress):
+                break
+            pos += 9 + length
+            ends.append(pos)
+    return ends, False
+
+
+def _chunk_decompresses(body: bytes, decompress) -> bool:
+    """Whether a chunk record's body (start, end, uncompressed size, crc, compression, records)
+    holds records that decompress to their stated size (and crc, if not 0)."""
+    usize = int.from_bytes(body[16:24], 'little')
+    crc = int.from_bytes(body[24:28], 'little')
+    n = int.from_bytes(body[28:32], 'little')
+    if 32 + n + 8 > len(body) or 32 + n + 8 + int.from_bytes(body[32 + n:40 + n], 'little') \
+            != len(body):
+        return False
+    try:
+        decompress(body[40 + n:], body[32:32 + n].decode(errors='replace'), usize, crc)
+    except Exception:  # noqa: BLE001 - ReaderError, zstd's and lz4's own errors, MemoryError
+        return False
+    return True
+
+
+def _bag_file(src) -> Path:
+    """The .db3 / .mcap file of a bag directory (or the file itself)."""
+    p = Path(src)
+    if p.is_file():
+        if p.suffix not in ('.db3', '.mcap'):
+            raise ValueError(f'{src}: not a .db3 or .mcap file')
+        return p
+    if not p.is_dir():
+        raise ValueError(f'{src}: no such bag')
+    files = sorted(f for f in p.iterdir() if f.suffix in ('.db3', '.mcap'))
+    if len(files) != 1:
+        raise ValueError(f'{src}: expected one .db3 or .mcap file, found '
+                         f'{len(files) or "none"}')
+    return files[0]
+
+
+class _Damaged(Exception):
+    """rosbags could not read a (repaired) bag to its end."""
+
+
+def recover_bag(src, dst, *, storage: str | None = None) -> dict:
+    """Copy every intact message of a bag that was never closed (a recording ended by SIGKILL,
+    a crash or a full disk: no metadata.yaml, an mcap file without its footer) into a new,
+    closed bag ``dst``, as ``ros2 bag reindex`` and ``mcap recover`` would.
+
+    ``src``: bag directory or its .db3 / .mcap file; ``storage``: dst's (default src's).
+    -> ``{'messages', 'topics': {topic: count}, 'storage', 'lost_bytes'}``; ``lost_bytes``:
+    the tail of an mcap file after its last intact record (0 for sqlite3): a record cut off or
+    damaged, or a chunk that does not decompress to its size, and all after it. A closed mcap
+    file whose index does not read is read as if it had none. ValueError for a source that is
+    not a bag, an mcap file cut off inside its header, or a database that does not read.
+    """
+    import tempfile
+    path = _bag_file(src)
+    storage = storage or ('mcap' if path.suffix == '.mcap' else 'sqlite3')
+    dst = Path(dst)
+    ends, closed = _mcap_record_ends(path) if path.suffix == '.mcap' else ([], True)
+    dst.parent.mkdir(parents=True, exist_ok=True)   # as rosbags' writer would
+    end = os.path.getsize(path)
+    with tempfile.TemporaryDirectory(prefix='.beo_recover_', dir=dst.parent) as tmp:
+        tmp = Path(tmp)
+        if path.suffix == '.db3':
+            try:
+                topics = _copy_messages(_rolled_back(path, tmp), dst, storage, False)
+            except _Damaged as e:
+                raise ValueError(f'{path}: {e}') from None
+        else:
+            topics = None
+            if closed:
+                try:
+                    topics = _copy_messages(path, dst, storage, False)
+                except _Damaged:   # its summary (index) is damaged: scan the data instead
+                    ends, _ = _mcap_record_ends(path, trust_footer=False)
+            if topics is None:
+                topics, end = _longest_readable_prefix(path, ends, dst, storage, tmp)
+    return {'messages': sum(topics.values()), 'topics': topics, 'storage': storage,
+            'lost_bytes': os.path.getsize(path) - end if path.suffix == '.mcap' else 0}
+
+
+def _longest_readable_prefix(path: Path, ends: list, dst: Path, storage: str, tmp: Path):
+    """Copy the longest prefix of whole records of mcap file ``path`` (ending at one of
+    ``ends``) that rosbags reads to its end into ``dst`` -> ({topic: count}, its end). The
+    usual case is all of them; a record can be whole yet damaged inside, and damage ends what
+    reads, so the rest is a bisection. Each try writes a bag under ``tmp``; the best one is
+    moved to ``dst``."""
+    def attempt(i):
+        trial = tmp / str(i) / dst.name
+        trial.parent.mkdir()
+        try:
+            return _copy_messages(_repaired(path, ends[i], tmp), trial, storage, True), trial
+        except _Damaged:
+            return None, None
+
+    best, bag_dir = attempt(len(ends) - 1)
+    lo = len(ends) - 1 if best is not None else -1   # ends[lo] reads (-1: none known)
+    hi = lo if best is not None else len(ends) - 2   # none after hi does
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        got, trial = attempt(mid)
+        if got is None:
+            hi = mid - 1
+            continue
+        if bag_dir is not None:
+            shutil.rmtree(bag_dir)
+        best, bag_dir, lo = got, trial, mid
+    if best is None:
+        raise ValueError(f'{path}: no record after its header reads: nothing to recover')
+    os.replace(bag_dir, dst)
+    return best, ends[lo]
+
+
+def _rolled_back(db: Path, tmp: Path) -> Path:
+    """``db``, or a copy of it in ``tmp`` with its hot journal rolled back (see
+    :func:`hot_journal`)."""
+    journal = hot_journal(db)
+    if journal is None:
+        return db
+    import sqlite3
+    copy = tmp / db.name
+    shutil.copyfile(db, copy)
+    shutil.copyfile(journal, tmp / journal.name)
+    with contextlib.closing(sqlite3.connect(copy)) as conn:
+        conn.execute('SELECT COUNT(*) FROM sqlite_master').fetchone()
+    return copy
+
+
+def _repaired(path: Path, end: int, tmp: Path) -> Path:
+    """A copy in ``tmp`` of the first ``end`` bytes of mcap file ``path`` (whole records),
+    closed by a data end and a footer without a summary: readers scan its data."""
+    out = tmp / path.name
+    with open(path, 'rb') as fin, open(out, 'wb') as fout:
+        sent = 0
+        while sent < end:
+            n = os.sendfile(fout.fileno(), fin.fileno(), sent, end - sent)
+            if n == 0:
+                raise ValueError(f'{path}: shorter than {end} bytes')   # shrank meanwhile
+            sent += n
+        fout.seek(end)
+        fout.write(b'\x0f' + (4).to_bytes(8, 'little') + bytes(4))   # data end, no crc
+        fout.write(_MCAP_FOOTER_HEAD + bytes(20) + MCAP_MAGIC)
+    return out
+
+
+def _copy_messages(readable: Path, dst: Path, storage: str, unindexed: bool) -> dict:
+    """Copy the topics and messages of bag file ``readable`` into a new bag ``dst`` ->
+    ``{topic: count}``. _Damaged (and no ``dst``) when rosbags cannot read it to its end;
+    the errors of writing ``dst`` (an unknown type, a full disk) as they are."""
+    from rosbags.rosbag2 import Reader
+    topics = {}
+    reader = Reader(readable)
+    try:
+        reader.open()
+        conns = list(reader.connections)
+        for c in conns:   # a damaged channel or schema record: no valid type name
+            normalize_msgtype(c.msgtype)
+        # an unindexed (repaired) mcap file: its messages in file order (the reader would
+        # refuse stamps that go back, e.g. two topics; the new bag indexes them)
+        # (its end is exclusive: by default 2^63-1, the largest stamp there is)
+        messages = iter(reader.storage.messages_scan(conns, stop=1 << 64) if unindexed
+                        else reader.messages())
+    except Exception as e:  # noqa: BLE001 - rosbags' errors, struct.error, MemoryError, ...
+        with contextlib.suppress(Exception):
+            reader.close()
+        raise _Damaged(_one_line(e)) from e
+    try:
+        with _removed_on_error(BagWriter(dst, storage)) as writer:
+            for c in conns:
+                try:   # the bag's own definition: its bytes were written with it
+                    definition = _own_definition(c)
+                except KeyError:   # none in the bag: the installed one
+                    definition = {}
+                writer.add_topic(c.topic, c.msgtype, reliable=recorded_reliable(c),
+                                 transient_local=recorded_latched(c), **definition)
+                topics.setdefault(c.topic, 0)
+            while True:
+                try:
+                    conn, t, raw = next(messages)
+                except StopIteration:
+                    break
+                except Exception as e:  # noqa: BLE001 - as above
+                    raise _Damaged(_one_line(e)) from e
+                writer.write(conn.topic, bytes(raw), t, conn.msgtype)
+                topics[conn.topic] += 1
+    finally:
+        with contextlib.suppress(Exception):
+            reader.close()
+    return topics
+
+
+def _one_line(exc) -> str:
+    """An exception as one line: its type and its message's lines joined."""
+    text = ' '.join(str(exc).split())
+    return f'{type(exc).__name__}: {text}' if text else type(exc).__name__
+
+
+def _own_definition(conn) -> dict:
+    """``{'msgdef', 'rihs01'}`` of a bag connection from the bag itself (an mcap file read
+    without metadata.yaml has no hash: it is computed from the definition); KeyError when the
+    bag has no ros2msg definition of it."""
+    from rosbags.interfaces import MessageDefinitionFormat
+    from rosbags.typesys import Stores, get_types_from_msg
+    from rosbags.typesys import get_typestore as rosbags_typestore
+    msgdef = conn.msgdef
+    if msgdef.format != MessageDefinitionFormat.MSG or not msgdef.data.strip():
+        raise KeyError(f'no message definition found for {conn.msgtype} (neither installed nor '
+                       'in the bag)')
+    rihs01 = conn.digest
+    if not rihs01:
+        try:
+            store = rosbags_typestore(Stores.EMPTY)
+            store.register(get_types_from_msg(msgdef.data, conn.msgtype))
+            rihs01 = store.hash_rihs01(conn.msgtype)
+        except Exception as e:  # noqa: BLE001 - rosbags' parse errors have no common base
+            raise KeyError(f'{conn.msgtype}: the definition in the bag does not parse '
+                           f'({e})') from None
+    return {'msgdef': msgdef.data, 'rihs01': rihs01}
+
+
+@contextlib.contextmanager
+def _removed_on_error(writer):
+    """Open ``writer``; close it on success, abort it and remove its bag on any exception."""
+    with writer:
+        try:
+            yield writer
+        except BaseException:
+            writer.failed = True
+            writer.abort()
+            shutil.rmtree(writer.path, ignore_errors=True)
+            raise

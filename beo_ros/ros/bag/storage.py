@@ -1,0 +1,278 @@
+"""Bag storage: writing (:class:`BagWriter`), reading (:func:`read_bag`, :func:`bag_info`), the
+QoS a bag's metadata stores, and the rollback journal of a bag left in the middle of a write."""
+from __future__ import annotations
+
+import contextlib
+import re
+import shutil
+from pathlib import Path
+
+from beo_ros.ros.bag.msgtypes import (get_typestore, import_msg_class, msgtype_of,
+                                      normalize_msgtype)
+
+STORAGES = ('sqlite3', 'mcap')
+
+
+def _storage_plugin(storage: str):
+    from rosbags.rosbag2 import StoragePlugin
+    if storage not in STORAGES:
+        raise ValueError(f'storage must be one of {STORAGES}, got {storage!r}')
+    return StoragePlugin.SQLITE3 if storage == 'sqlite3' else StoragePlugin.MCAP
+
+
+def detect_storage(bag_path) -> str:
+    """'sqlite3' or 'mcap' for a bag directory (from metadata.yaml / file suffix) or file."""
+    p = Path(bag_path)
+    meta = p / 'metadata.yaml'
+    if meta.is_file():
+        m = re.search(r'storage_identifier:\s*(\S+)', meta.read_text(errors='replace'))
+        if not m:
+            raise ValueError(f'{meta}: no storage_identifier (not a rosbag2 metadata.yaml?)')
+        return m.group(1).strip('\'"')
+    files = [p] if p.is_file() else list(p.glob('*'))
+    for f in files:
+        if f.suffix == '.mcap':
+            return 'mcap'
+        if f.suffix == '.db3':
+            return 'sqlite3'
+    raise ValueError(f'{bag_path}: not a rosbag2 bag (no metadata.yaml, .db3 or .mcap)')
+
+
+def _qos_for_bag(reliable: bool = True, transient_local: bool = False):
+    """The offered QoS stored in the bag metadata (as ros2 bag writes it)."""
+    from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
+                                    QosReliability, QosTime)
+    zero = QosTime(sec=0, nsec=0)
+    return Qos(history=QosHistory.UNKNOWN, depth=0,
+               reliability=QosReliability.RELIABLE if reliable else QosReliability.BEST_EFFORT,
+               durability=QosDurability.TRANSIENT_LOCAL if transient_local
+               else QosDurability.VOLATILE,
+               deadline=zero, lifespan=zero, liveliness=QosLiveliness.AUTOMATIC,
+               liveliness_lease_duration=zero, avoid_ros_namespace_conventions=False)
+
+def _offered_profiles(conn) -> list:
+    """The offered QoS profiles a bag's metadata stores for a connection (maybe none)."""
+    return getattr(getattr(conn, 'ext', None), 'offered_qos_profiles', None) or []
+
+
+def recorded_latched(conn) -> bool:
+    """Whether a bag connection was recorded from transient-local ("latched") publishers only,
+    such as /tf_static: every offered QoS profile in the bag metadata is TRANSIENT_LOCAL."""
+    profiles = _offered_profiles(conn)
+    return bool(profiles) and all(
+        getattr(getattr(q, 'durability', None), 'name', '') == 'TRANSIENT_LOCAL'
+        for q in profiles)
+
+
+def recorded_reliable(conn) -> bool:
+    """Whether a bag connection had a reliable publisher (or the bag stores no QoS for it)."""
+    profiles = _offered_profiles(conn)
+    return not profiles or any(
+        getattr(getattr(q, 'reliability', None), 'name', '') == 'RELIABLE' for q in profiles)
+
+
+def storage_errors() -> tuple:
+    """Exception types of a failing bag write or read: the file system's (disk full, ...), the
+    sqlite3 databases' (``sqlite3.Error`` when writing, ``apsw.Error`` when reading) and
+    rosbags' own."""
+    import sqlite3
+
+    from rosbags.rosbag2 import ReaderError, WriterError
+    errors = [OSError, sqlite3.Error, ReaderError, WriterError]
+    try:
+        import apsw
+        errors.append(apsw.Error)
+    except ImportError:   # only the sqlite3 reader of rosbags uses it
+        pass
+    return tuple(errors)
+
+
+class BagWriter:
+    """Writes rclpy messages (or raw CDR bytes) to a new rosbag2 bag.
+
+    >>> with BagWriter(path, storage='mcap') as w:
+    ...     w.write('/beo/input', cloud_msg, stamp_ns)
+
+    A write that fails (disk full, ...) marks the writer ``failed``: leaving the ``with`` block
+    then aborts it instead of closing it, so that no metadata.yaml claims messages the storage
+    lost (sqlite rolls the open transaction back on such errors). :meth:`commit` makes what is
+    written so far survive a crash (:func:`recover_bag` reads it back).
+    """
+
+    def __init__(self, path, storage: str = 'sqlite3'):
+        from rosbags.rosbag2 import Writer
+        self.path = Path(path)
+        self.storage = storage
+        self._writer = Writer(self.path, version=Writer.VERSION_LATEST,
+                              storage_plugin=_storage_plugin(storage))
+        self._conns = {}
+        self.counts = {}
+        self.failed = False
+        self._opened = False
+        self.committed = 0   # messages made durable by the last commit()
+
+    @property
+    def storage_file(self) -> Path:
+        """The .db3 / .mcap file of the bag."""
+        return self.path / f'{self.path.name}.{"db3" if self.storage == "sqlite3" else "mcap"}'
+
+    def open(self):
+        existed = self.path.exists() or self.path.is_symlink()
+        try:
+            self._writer.open()
+        except Exception:
+            if not existed and self.path.is_dir():   # made, but no database in it
+                shutil.rmtree(self.path, ignore_errors=True)
+            raise
+        self._opened = True   # the directory is ours: it may be removed after a failure
+        return self
+
+    def close(self):
+        try:
+            self._writer.close()
+        except Exception:
+            self.failed = True
+            self.abort()
+            raise
+
+    def abort(self):
+        """Close without metadata.yaml; the file keeps what :meth:`commit` committed."""
+        with contextlib.suppress(Exception):
+            self._writer.abort()
+
+    def commit(self) -> bool:
+        """Make what is written so far survive a crash or SIGKILL -> True if done.
+
+        sqlite3: commit the transaction (the .db3 file then reads on its own, without
+        metadata.yaml). mcap: end the pending chunk and flush the file; without the footer
+        that :meth:`close` writes, :func:`recover_bag` reads it back."""
+        storage = self._writer.storage
+        try:
+            if self.storage == 'sqlite3':
+                conn = getattr(storage, 'conn', None)
+                if conn is None:
+                    return False
+                conn.commit()
+            else:
+                if storage is None or not hasattr(storage, 'close_chunk'):
+                    return False
+                if storage.chunk.bio.tell():
+                    storage.close_chunk()
+                storage.bio.flush()
+        except Exception:
+            self.failed = True
+            raise
+        self.committed = sum(self.counts.values())
+        return True
+
+    def __enter__(self):
+        return self.open()
+
+    def __exit__(self, *exc):
+        if self.failed:
+            self.abort()
+        else:
+            self.close()
+
+    def add_topic(self, topic: str, msgtype: str, *, reliable: bool = True,
+                  transient_local: bool = False, msgdef: str | None = None,
+                  rihs01: str | None = None):
+        """Add ``topic`` (once; another type for it is a ValueError). Its definition comes from
+        the typestore (KeyError for an unknown type), or is ``msgdef`` + ``rihs01`` as given
+        (copied from another bag)."""
+        msgtype = normalize_msgtype(msgtype)
+        if topic in self._conns:
+            if self._conns[topic].msgtype != msgtype:
+                raise ValueError(f'{topic}: already has type {self._conns[topic].msgtype}')
+            return self._conns[topic]
+        store = None if msgdef and rihs01 else get_typestore([msgtype])
+        try:
+            conn = self._writer.add_connection(
+                topic, msgtype, typestore=store, msgdef=msgdef if store is None else None,
+                rihs01=rihs01 if store is None else None,
+                offered_qos_profiles=[_qos_for_bag(reliable, transient_local)])
+        except storage_errors():
+            self.failed = True
+            raise
+        self._conns[topic] = conn
+        self.counts[topic] = 0
+        return conn
+
+    def write(self, topic: str, msg, stamp_ns: int, msgtype: str | None = None):
+        """Write one message; ``msg`` is an rclpy message, or CDR bytes with ``msgtype`` given."""
+        if isinstance(msg, (bytes, bytearray, memoryview)):
+            if msgtype is None and topic not in self._conns:
+                raise ValueError('raw bytes need msgtype for a new topic')
+            data = bytes(msg)
+        else:
+            from rclpy.serialization import serialize_message
+            msgtype = msgtype or msgtype_of(msg)
+            data = serialize_message(msg)
+        conn = self._conns.get(topic)
+        if conn is None or (msgtype is not None and msgtype != conn.msgtype):
+            # add_topic refuses a type other than the topic's: the bag would not deserialize
+            conn = self.add_topic(topic, msgtype)
+        try:
+            self._writer.write(conn, int(stamp_ns), data)
+        except storage_errors():
+            self.failed = True
+            raise
+        self.counts[topic] += 1
+
+
+def hot_journal(bag_path) -> Path | None:
+    """The non-empty rollback journal beside a bag's .db3 file (a recording killed in the
+    middle of a transaction), or None. rosbags opens the database as immutable, ignoring it,
+    and would read pages of the unfinished transaction: a torn or malformed database."""
+    p = Path(bag_path)
+    dbs = [p] if p.suffix == '.db3' else (sorted(p.glob('*.db3')) if p.is_dir() else [])
+    for db in dbs:
+        journal = db.with_name(db.name + '-journal')
+        if journal.is_file() and journal.stat().st_size > 0:
+            return journal
+    return None
+
+
+def _check_no_hot_journal(bag_path):
+    journal = hot_journal(bag_path)
+    if journal is not None:
+        raise ValueError(f'{journal}: the bag was left in the middle of a write (its rollback '
+                         'journal is there): read it through beo-bag-recover BAG -o NEW')
+
+
+def read_bag(bag_path, topics=None):
+    """Yield ``(topic, msgtype, timestamp_ns, raw_cdr_bytes)`` in timestamp order. ValueError
+    for a .db3 left in the middle of a write (see :func:`hot_journal`)."""
+    from rosbags.rosbag2 import Reader
+    _check_no_hot_journal(bag_path)
+    with Reader(Path(bag_path)) as reader:
+        conns = [c for c in reader.connections if topics is None or c.topic in topics]
+        if not conns:
+            return
+        for conn, t, raw in reader.messages(connections=conns):
+            yield conn.topic, conn.msgtype, t, bytes(raw)
+
+
+def read_messages(bag_path, topics=None):
+    """Yield ``(topic, rclpy_message, timestamp_ns)``, deserialized with rclpy."""
+    from rclpy.serialization import deserialize_message
+    classes = {}
+    for topic, msgtype, t, raw in read_bag(bag_path, topics):
+        if msgtype not in classes:
+            classes[msgtype] = import_msg_class(msgtype)
+        yield topic, deserialize_message(raw, classes[msgtype]), t
+
+
+def bag_info(bag_path) -> dict:
+    """Storage, duration and ``{topic: {'type', 'count'}}`` of a bag."""
+    from rosbags.rosbag2 import Reader
+    _check_no_hot_journal(bag_path)
+    with Reader(Path(bag_path)) as reader:
+        topics = {}
+        for c in reader.connections:
+            d = topics.setdefault(c.topic, {'type': c.msgtype, 'count': 0})
+            d['count'] += c.msgcount
+        return {'path': str(bag_path), 'storage': detect_storage(bag_path),
+                'start_ns': reader.start_time if reader.message_count else 0,
+                'duration_s': reader.duration / 1e9 if reader.message_count else 0.0,
+                'message_count': reader.message_count, 'topics': topics}
