@@ -130,7 +130,7 @@ def scene_cv_predictions(F, y, groups, kind='all', C=1.0):
     'unknown' check of ``ModelBank.classify_features`` is applied too.
     Returns (pred (m,), unknown (m,) bool).
     """
-    from .core.bank import classifier_probabilities
+    from .core.classifier import classifier_probabilities
     from .core.training import train_classifier
     F = np.asarray(F, dtype=np.float64)
     y = np.asarray(y)
@@ -184,12 +184,13 @@ def scene_cv_point_predictions(F, D, y, groups, C=1.0):
     F: (m, C, nf) out-of-fold features (only ``F[:, :, 0]``, the log-likelihood, is used);
     D: (m, 2) side-normal descriptors; every object's class from
     :func:`beo_ros.core.scan_training.train_point_classifier` fitted on the other groups'
-    objects, applied with ``bank.apply_point_classifier`` (the code ``ModelBank.estimate_points``
-    runs, 'unknown' check included). Objects with undefined (NaN) descriptors take the
-    maximum-likelihood class, as ``estimate_points`` falls back (and are left out of the fits).
+    objects, applied with ``classifier.apply_point_classifier`` (the code
+    ``ModelBank.estimate_points`` runs, 'unknown' check included). Objects with undefined (NaN)
+    descriptors take the maximum-likelihood class, as ``estimate_points`` falls back (and are
+    left out of the fits).
     Returns (pred (m,), unknown (m,) bool).
     """
-    from .core.bank import apply_point_classifier
+    from .core.classifier import apply_point_classifier
     from .core.scan_training import train_point_classifier
     F = np.asarray(F, dtype=np.float64)
     L = F[:, :, 0]

@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 
 from .cli import count, existing_parent, interruptible, number, writable_dir
-from .core.bank import (UNREADABLE, check_class_names, check_save_target, is_model_dir,
-                        parse_class_prior)
+from .core.classifier import parse_class_prior
 from .core.grid import GridSpec
+from .core.model_files import UNREADABLE, check_class_names, check_save_target, is_model_dir
 from .core.training import (check_class_counts, check_grid_size, drop_empty_objects, fit_bank,
                             load_meshes, load_voxel_npz, select_classes, training_data_hash)
 
@@ -220,7 +220,7 @@ def _check_mode_options(ap, args):
 def _train_mirror(args, class_prior, replace):
     """--scans --mirror: fit and save a maximum-likelihood bank on the scans and their mirror
     images (train_scan_bank); 0."""
-    from .core.bank import resolve_class_prior
+    from .core.classifier import resolve_class_prior
     from .core.scan_training import parse_scan_classes, train_scan_bank
     # a prior naming a class the scans lack fails before the fit, not after it
     scan_names = parse_scan_classes(args.scan_classes)[0]

@@ -256,7 +256,7 @@ def scan_point_descriptors(objs) -> np.ndarray:
 
 
 def train_point_classifier(loglik, descriptors, y, n_classes, C=1.0):
-    """The 'points' classifier of a ModelBank (see ``bank.check_point_classifier``).
+    """The 'points' classifier of a ModelBank (see ``classifier.check_point_classifier``).
 
     loglik: (m, C) per-class exact log-likelihood per known voxel of each training object under
     class models that did not see it (out-of-fold, e.g. ``oof_features.npz`` of

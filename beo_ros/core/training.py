@@ -11,11 +11,13 @@ import warnings
 
 import numpy as np
 
-from .bank import (UNREADABLE, ClassModel, ModelBank, check_class_names, classifier_input,
-                   coarse_noise, prior_offset, resolve_class_prior)
+from .bank import ModelBank
 from .calibration import OccupancyCalibration, calibration_sums, metrics_from_sums
+from .class_model import ClassModel, coarse_noise
+from .classifier import classifier_input, prior_offset, resolve_class_prior
 from .grid import yaw_error
 from .inference import FEATURE_NAMES
+from .model_files import UNREADABLE, check_class_names
 from .shape import shape_descriptors
 from .synthetic import random_partial_view
 from .verifier import TURNS, OrientationVerifier, turned_features
@@ -284,7 +286,7 @@ def cross_validated_report(F, y, records, C=1.0, folds=5, seed=0, row_standardiz
     ``groups`` (r,): the object of every row, when objects have several rows (views); all
     rows of an object then fall in the same fold. ``descriptors`` (r, D): shape descriptors
     appended to the classifier input (see ``classifier_input``). ``class_prior``: the prior
-    the probabilities are moved to (``bank.resolve_class_prior``; the rows' own class
+    the probabilities are moved to (``classifier.resolve_class_prior``; the rows' own class
     frequencies are the classifier's prior); ``prior_accuracy`` is the accuracy expected when
     classes occur with the prior's frequencies (sum of prior x recall; 'train': the accuracy,
     'uniform': the balanced accuracy). Every other number is on these rows as they are.
@@ -401,7 +403,7 @@ def fit_logistic(Z, y, n_classes, C=1.0):
     """Standardised logistic regression on input rows Z (m, n_in) with labels y (m,) ->
     dict(mean, scale (n_in,), coef (n_classes, n_in), intercept (n_classes,), class_counts
     (n_classes,): the rows per class, its prior) in the softmax form of
-    ``bank.classifier_probabilities``. Classes absent from y get intercept -30 (never
+    ``classifier.classifier_probabilities``. Classes absent from y get intercept -30 (never
     chosen); a binary fit becomes the two-class softmax with logits -z/2, +z/2: the regression's
     own probabilities (logits -z, +z would square the odds).
     """
@@ -442,7 +444,7 @@ def fit_mlp(Z, y, n_classes, hidden=MLP_HIDDEN, alpha=MLP_ALPHA, seed=0):
     ``alpha``) on standardised input rows Z (m, n_in) with labels y (m,) -> the dict of
     :func:`fit_logistic` plus hidden_coef (hidden, n_in) and hidden_intercept (hidden,); coef
     (n_classes, hidden) is then the softmax layer on the hidden units (see
-    ``bank.classifier_probabilities``). Absent classes and a binary fit as in fit_logistic."""
+    ``classifier.classifier_probabilities``). Absent classes and a binary fit as in fit_logistic."""
     Z, mean, scale = _standardized(Z)
     net = _network(hidden, alpha, seed).fit(Z, y)
     (w1, w2), (b1, b2) = net.coefs_, net.intercepts_
