@@ -200,36 +200,53 @@ def fit_class_bank(X, y, names, n, k):
 
 # ---------------------------------------------------------------------- scaling
 def scaling(args, X, y, names, n, tr, queries, bank, rng):
-    from beo_ros.core.baselines import ICPDatabase
-    from beo_ros.core.synthetic import random_partial_view
-    from scipy.ndimage import zoom
-    out = {}
+    """The 'scaling' section of bench.json: latency and peak memory of beo (and icp) vs
+    training objects, grid size, yaw step and classes, on the first ``--scaling-queries``
+    queries; ``rng`` draws the training subsets."""
     sq = queries[:args.scaling_queries]
-    reps = args.repeats
-    k = args.k
     Xtr, ytr = X[tr], y[tr]
+    # the grid and class curves: class models on a small training set
+    sub = np.sort(np.concatenate([np.flatnonzero(ytr == c)[:args.scaling_per_class]
+                                  for c in range(len(names))]))
+    return {
+        'train_objects': _scaling_train_objects(args, Xtr, ytr, names, n, sq, bank, rng),
+        'grid': _scaling_grid(args, X, Xtr[sub], ytr[sub], names, n, sq),
+        'yaw_step': _scaling_yaw_step(args, sq, bank),
+        'classes': _scaling_classes(args, Xtr[sub], ytr[sub], names, n, sq, bank),
+        'note': (f'{len(sq)} queries per point; grid and class curves use class models fitted '
+                 f'on {args.scaling_per_class} objects per class (latency does not depend on '
+                 'the training set size for beo)')}
 
-    # latency / memory vs training objects (beo refit on subsets; icp database = all of them)
-    sizes = sorted({s for s in args.scaling_train if s < len(tr)} | {len(tr)})
+
+def _scaling_train_objects(args, Xtr, ytr, names, n, sq, bank, rng):
+    """Latency / memory vs training objects (of the training split ``Xtr``, ``ytr``): beo
+    refitted on class-stratified subsets (``bank`` for all of them unless --model), the icp
+    database of all the subset's objects."""
+    from beo_ros.core.baselines import ICPDatabase
+    sizes = sorted({s for s in args.scaling_train if s < len(ytr)} | {len(ytr)})
     pts = []
     for s in sizes:
         sel = np.sort(np.concatenate([
             rng.permutation(np.flatnonzero(ytr == c))[:max(2, int(round(s * (ytr == c).mean())))]
             for c in range(len(names))]))
         log(f'[scaling] training objects {len(sel)}')
-        b = bank if len(sel) >= len(tr) and args.model is None else fit_class_bank(
-            Xtr[sel], ytr[sel], names, n, k)
-        bl, bm = latency_point(beo_predict(b), sq, reps)
+        b = bank if len(sel) >= len(ytr) and args.model is None else fit_class_bank(
+            Xtr[sel], ytr[sel], names, n, args.k)
+        bl, bm = latency_point(beo_predict(b), sq, args.repeats)
         db = ICPDatabase(per_class=None, n_init_yaws=args.icp_init_yaws, seed=args.seed).fit(
             Xtr[sel], ytr[sel], names, n)
         il, im = latency_point(lambda g: db.predict(g), sq[:max(1, len(sq) // 2)], 1)
         pts.append(dict(n_train=int(len(sel)), beo_ms=bl, beo_mb=bm, icp_ms=il, icp_mb=im,
                         icp_db_size=db.size))
-    out['train_objects'] = pts
+    return pts
 
-    # vs grid resolution: resampled data, class models only, a small training set
-    sub = np.sort(np.concatenate([np.flatnonzero(ytr == c)[:args.scaling_per_class]
-                                  for c in range(len(names))]))
+
+def _scaling_grid(args, X, Xs, ys, names, n, sq):
+    """Latency / memory vs grid resolution: class models on the objects ``Xs``, ``ys``
+    resampled to each ``--scaling-grids`` size, queried with new views of the queries'
+    objects (rows of ``X``) at that size."""
+    from beo_ros.core.synthetic import random_partial_view
+    from scipy.ndimage import zoom
     qidx = [q['index'] for q in sq]
     pts = []
     for g in args.scaling_grids:
@@ -238,37 +255,39 @@ def scaling(args, X, y, names, n, tr, queries, bank, rng):
 
         def rs(v):
             return zoom(v.reshape((n,) * 3), f, order=0).ravel() if g != n else v
-        Xg = np.array([rs(Xtr[i]) for i in sub], dtype=np.float32)
-        b = fit_class_bank(Xg, ytr[sub], names, g, k)
+        Xg = np.array([rs(x) for x in Xs], dtype=np.float32)
+        b = fit_class_bank(Xg, ys, names, g, args.k)
         qrng = np.random.default_rng(args.seed + 7)
         qs = [dict(grid=random_partial_view(rs(X[i]).reshape((g,) * 3) > 0.5, qrng)[0])
               for i in qidx]
-        bl, bm = latency_point(beo_predict(b), qs, reps)
+        bl, bm = latency_point(beo_predict(b), qs, args.repeats)
         pts.append(dict(grid=int(g), beo_ms=bl, beo_mb=bm, model_mb=bank_nbytes(b) / 2**20))
         del b, Xg
         gc.collect()
-    out['grid'] = pts
+    return pts
 
-    # vs yaw resolution (main bank, exhaustive search)
-    out['yaw_step'] = []
+
+def _scaling_yaw_step(args, sq, bank):
+    """Latency / memory vs yaw resolution (``bank``, exhaustive search)."""
+    pts = []
     for step in args.scaling_yaw_steps:
-        bl, bm = latency_point(beo_predict(bank, step), sq, reps)
-        out['yaw_step'].append(dict(yaw_step_deg=float(step), beo_ms=bl, beo_mb=bm))
+        bl, bm = latency_point(beo_predict(bank, step), sq, args.repeats)
+        pts.append(dict(yaw_step_deg=float(step), beo_ms=bl, beo_mb=bm))
+    return pts
 
-    # vs number of classes: class models on the small training set, first c classes
-    models = fit_class_bank(Xtr[sub], ytr[sub], names, n, k).models
+
+def _scaling_classes(args, Xs, ys, names, n, sq, bank):
+    """Latency / memory vs number of classes: the first c of the class models fitted on the
+    objects ``Xs``, ``ys``."""
     from beo_ros.core.bank import ModelBank
+    models = fit_class_bank(Xs, ys, names, n, args.k).models
     pts = []
     for c in sorted({min(c, len(names)) for c in args.scaling_classes}):
         log(f'[scaling] classes {c}')
-        b = ModelBank(models[:c], bank.spec, pose_components=min(8, k))
-        bl, bm = latency_point(beo_predict(b), sq, reps)
+        b = ModelBank(models[:c], bank.spec, pose_components=min(8, args.k))
+        bl, bm = latency_point(beo_predict(b), sq, args.repeats)
         pts.append(dict(classes=int(c), beo_ms=bl, beo_mb=bm))
-    out['classes'] = pts
-    out['note'] = (f'{len(sq)} queries per point; grid and class curves use class models fitted '
-                   f'on {args.scaling_per_class} objects per class (latency does not depend on '
-                   'the training set size for beo)')
-    return out
+    return pts
 
 
 # ---------------------------------------------------------------------- output
@@ -338,67 +357,88 @@ def table(res):
 
 def markdown(res):
     """Markdown tables of a bench.json dict (peers, scaling, node)."""
-    st = res.get('setup', {})
-    lines = [f"Data: {st.get('data')}; {len(st.get('classes', []))} classes, "
-             f"{st.get('train_objects')} training objects, {st.get('queries')} queries "
-             f"(seed {st.get('seed')}, k={st.get('k')}); beo: {st.get('beo_model')}; "
-             f"{st.get('cpu_count')} CPUs"
-             + (f", 1-min load average {st['load_average_1min']} at the start."
-                if st.get('load_average_1min') is not None else '.'), '']
+    lines = _md_setup(res.get('setup', {}))
     if all(p in res for p in ('beo', 'paper', 'icp')):
-        lines += [table(res), '']
-        extra = [f"speedup vs icp (p50) {res['speedup_vs_icp']:.1f}x",
-                 f"vs paper {res.get('speedup_vs_paper', float('nan')):.1f}x",
-                 f"icp database {res['icp'].get('db_size')} objects "
-                 f"({res['icp'].get('db_per_class')} per class, "
-                 f"{res['icp'].get('init_yaws')} initial yaws)"]
-        extra += [f"{p} index {res[p]['index_mb']:.1f} MB, fit {res[p]['fit_s']:.0f} s"
-                  for p in ('beo', 'paper', 'icp')]
-        extra += [f"{p} yaw median on correctly classified {res[p]['yaw_median_deg_correct_class']:.1f} deg"
-                  for p in ('beo', 'paper', 'icp')]
-        lines += ['- ' + e for e in extra] + ['']
+        lines += _md_peers(res)
     sc = res.get('scaling') or {}
     if 'train_objects' in sc:
-        lines += ['Latency / peak memory vs training objects:', '',
-                  '| training objects | beo ms | beo MB | icp ms | icp MB |', '|---|---|---|---|---|']
-        lines += [f"| {p['n_train']} | {p['beo_ms']:.1f} | {p['beo_mb']:.1f} | {p['icp_ms']:.0f} "
-                  f"| {p['icp_mb']:.1f} |" for p in sc['train_objects']]
-        lines += ['', 'vs grid size:', '', '| N | beo ms | beo MB | model MB |', '|---|---|---|---|']
-        lines += [f"| {p['grid']} | {p['beo_ms']:.1f} | {p['beo_mb']:.1f} | {p['model_mb']:.1f} |"
-                  for p in sc['grid']]
-        lines += ['', 'vs yaw step:', '', '| yaw step (deg) | beo ms | beo MB |', '|---|---|---|']
-        lines += [f"| {p['yaw_step_deg']:g} | {p['beo_ms']:.1f} | {p['beo_mb']:.1f} |"
-                  for p in sc['yaw_step']]
-        lines += ['', 'vs classes:', '', '| classes | beo ms | beo MB |', '|---|---|---|']
-        lines += [f"| {p['classes']} | {p['beo_ms']:.1f} | {p['beo_mb']:.1f} |"
-                  for p in sc['classes']]
-        lines += ['', f"({sc.get('note')})", '']
-    node = res.get('node') or {}
-    if 'objects_per_s' in node:
-        sus = node.get('sustained_rate_hz')
-        lines += [f"Node (real rclpy, bag replay, workers={node.get('workers')}, "
-                  f"worker_processes={node.get('worker_processes', 0)}): "
-                  + (f"sustains {sus:g} Hz: {_fmt(node['objects_per_s'], '.2f')} objects/s out, "
-                     if sus else 'sustains none of the rates; at the lowest: '
-                     f"{_fmt(node['objects_per_s'], '.2f')} objects/s out, ")
-                  + f"{node['dropped_stale']} dropped, {node['lost']} lost, end-to-end publish -> "
-                  f"estimate p50 {_fmt(node['e2e_p50_ms'])} ms, p95 {_fmt(node['e2e_p95_ms'])} ms; "
-                  f"highest output rate {_fmt(node.get('max_objects_per_s'), '.2f')}/s; "
-                  f"{node['mode']}.", '']
-        if node.get('rates'):
-            lines += ['| replay Hz | sent | estimates | out/s | dropped stale | lost | '
-                      'e2e p50 ms | e2e p95 ms |', '|---|---|---|---|---|---|---|---|']
-            lines += [f"| {r['rate_hz']:g} | {r['sent']} | {r['estimates']} | "
-                      f"{_fmt(r['objects_per_s'], '.2f')} | {r['dropped_stale']} | {r['lost']} | "
-                      f"{_fmt(r['e2e_p50_ms'])} | {_fmt(r['e2e_p95_ms'])} |" for r in node['rates']]
-        cl = node.get('closed_loop') or {}
-        if cl:
-            lines += ['', f"Closed loop ({cl['objects']} objects, {cl['lost']} lost): "
-                      f"{_fmt(cl['objects_per_s'], '.2f')} objects/s, e2e p50 "
-                      f"{_fmt(cl['e2e_p50_ms'])} ms, p95 {_fmt(cl['e2e_p95_ms'])} ms."]
-    else:
-        lines += [f"Node: skipped ({node.get('skipped')})."]
+        lines += _md_scaling(sc)
+    lines += _md_node(res.get('node') or {})
     return '\n'.join(lines) + '\n'
+
+
+def _md_setup(st):
+    """The data / sizes / machine line of bench.md (``st``: the 'setup' section)."""
+    return [f"Data: {st.get('data')}; {len(st.get('classes', []))} classes, "
+            f"{st.get('train_objects')} training objects, {st.get('queries')} queries "
+            f"(seed {st.get('seed')}, k={st.get('k')}); beo: {st.get('beo_model')}; "
+            f"{st.get('cpu_count')} CPUs"
+            + (f", 1-min load average {st['load_average_1min']} at the start."
+               if st.get('load_average_1min') is not None else '.'), '']
+
+
+def _md_peers(res):
+    """The peers' table and a list of speedups, index sizes and fit times."""
+    extra = [f"speedup vs icp (p50) {res['speedup_vs_icp']:.1f}x",
+             f"vs paper {res.get('speedup_vs_paper', float('nan')):.1f}x",
+             f"icp database {res['icp'].get('db_size')} objects "
+             f"({res['icp'].get('db_per_class')} per class, "
+             f"{res['icp'].get('init_yaws')} initial yaws)"]
+    extra += [f"{p} index {res[p]['index_mb']:.1f} MB, fit {res[p]['fit_s']:.0f} s"
+              for p in ('beo', 'paper', 'icp')]
+    extra += [f"{p} yaw median on correctly classified "
+              f"{res[p]['yaw_median_deg_correct_class']:.1f} deg"
+              for p in ('beo', 'paper', 'icp')]
+    return [table(res), ''] + ['- ' + e for e in extra] + ['']
+
+
+def _md_scaling(sc):
+    """The scaling tables (``sc``: the 'scaling' section)."""
+    lines = ['Latency / peak memory vs training objects:', '',
+             '| training objects | beo ms | beo MB | icp ms | icp MB |',
+             '|---|---|---|---|---|']
+    lines += [f"| {p['n_train']} | {p['beo_ms']:.1f} | {p['beo_mb']:.1f} | {p['icp_ms']:.0f} "
+              f"| {p['icp_mb']:.1f} |" for p in sc['train_objects']]
+    lines += ['', 'vs grid size:', '', '| N | beo ms | beo MB | model MB |',
+              '|---|---|---|---|']
+    lines += [f"| {p['grid']} | {p['beo_ms']:.1f} | {p['beo_mb']:.1f} | {p['model_mb']:.1f} |"
+              for p in sc['grid']]
+    lines += ['', 'vs yaw step:', '', '| yaw step (deg) | beo ms | beo MB |', '|---|---|---|']
+    lines += [f"| {p['yaw_step_deg']:g} | {p['beo_ms']:.1f} | {p['beo_mb']:.1f} |"
+              for p in sc['yaw_step']]
+    lines += ['', 'vs classes:', '', '| classes | beo ms | beo MB |', '|---|---|---|']
+    lines += [f"| {p['classes']} | {p['beo_ms']:.1f} | {p['beo_mb']:.1f} |"
+              for p in sc['classes']]
+    return lines + ['', f"({sc.get('note')})", '']
+
+
+def _md_node(node):
+    """The node's headline, its per-rate table and the closed loop (``node``: the 'node'
+    section), or why it was skipped."""
+    if 'objects_per_s' not in node:
+        return [f"Node: skipped ({node.get('skipped')})."]
+    sus = node.get('sustained_rate_hz')
+    lines = [f"Node (real rclpy, bag replay, workers={node.get('workers')}, "
+             f"worker_processes={node.get('worker_processes', 0)}): "
+             + (f"sustains {sus:g} Hz: {_fmt(node['objects_per_s'], '.2f')} objects/s out, "
+                if sus else 'sustains none of the rates; at the lowest: '
+                f"{_fmt(node['objects_per_s'], '.2f')} objects/s out, ")
+             + f"{node['dropped_stale']} dropped, {node['lost']} lost, end-to-end publish -> "
+             f"estimate p50 {_fmt(node['e2e_p50_ms'])} ms, p95 {_fmt(node['e2e_p95_ms'])} ms; "
+             f"highest output rate {_fmt(node.get('max_objects_per_s'), '.2f')}/s; "
+             f"{node['mode']}.", '']
+    if node.get('rates'):
+        lines += ['| replay Hz | sent | estimates | out/s | dropped stale | lost | '
+                  'e2e p50 ms | e2e p95 ms |', '|---|---|---|---|---|---|---|---|']
+        lines += [f"| {r['rate_hz']:g} | {r['sent']} | {r['estimates']} | "
+                  f"{_fmt(r['objects_per_s'], '.2f')} | {r['dropped_stale']} | {r['lost']} | "
+                  f"{_fmt(r['e2e_p50_ms'])} | {_fmt(r['e2e_p95_ms'])} |" for r in node['rates']]
+    cl = node.get('closed_loop') or {}
+    if cl:
+        lines += ['', f"Closed loop ({cl['objects']} objects, {cl['lost']} lost): "
+                  f"{_fmt(cl['objects_per_s'], '.2f')} objects/s, e2e p50 "
+                  f"{_fmt(cl['e2e_p50_ms'])} ms, p95 {_fmt(cl['e2e_p95_ms'])} ms."]
+    return lines
 
 
 def _fmt(v, spec='.1f'):
