@@ -26,24 +26,19 @@ import json
 import math
 import os
 import sys
-import threading
 import time
 import tracemalloc
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 
+from .bench_node import log, node_bench
 from .cli import count, interruptible, number
 from .core.grid import yaw_error
 from .cli import json_safe, out_dir_problem, output_dir
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = 'modelnet10/modelnet10_vox32_train.npz'
-
-
-def log(*a):
-    print(*a, file=sys.stderr, flush=True)
 
 
 # ---------------------------------------------------------------------- data
@@ -205,36 +200,53 @@ def fit_class_bank(X, y, names, n, k):
 
 # ---------------------------------------------------------------------- scaling
 def scaling(args, X, y, names, n, tr, queries, bank, rng):
-    from beo_ros.core.baselines import ICPDatabase
-    from beo_ros.core.synthetic import random_partial_view
-    from scipy.ndimage import zoom
-    out = {}
+    """The 'scaling' section of bench.json: latency and peak memory of beo (and icp) vs
+    training objects, grid size, yaw step and classes, on the first ``--scaling-queries``
+    queries; ``rng`` draws the training subsets."""
     sq = queries[:args.scaling_queries]
-    reps = args.repeats
-    k = args.k
     Xtr, ytr = X[tr], y[tr]
+    # the grid and class curves: class models on a small training set
+    sub = np.sort(np.concatenate([np.flatnonzero(ytr == c)[:args.scaling_per_class]
+                                  for c in range(len(names))]))
+    return {
+        'train_objects': _scaling_train_objects(args, Xtr, ytr, names, n, sq, bank, rng),
+        'grid': _scaling_grid(args, X, Xtr[sub], ytr[sub], names, n, sq),
+        'yaw_step': _scaling_yaw_step(args, sq, bank),
+        'classes': _scaling_classes(args, Xtr[sub], ytr[sub], names, n, sq, bank),
+        'note': (f'{len(sq)} queries per point; grid and class curves use class models fitted '
+                 f'on {args.scaling_per_class} objects per class (latency does not depend on '
+                 'the training set size for beo)')}
 
-    # latency / memory vs training objects (beo refit on subsets; icp database = all of them)
-    sizes = sorted({s for s in args.scaling_train if s < len(tr)} | {len(tr)})
+
+def _scaling_train_objects(args, Xtr, ytr, names, n, sq, bank, rng):
+    """Latency / memory vs training objects (of the training split ``Xtr``, ``ytr``): beo
+    refitted on class-stratified subsets (``bank`` for all of them unless --model), the icp
+    database of all the subset's objects."""
+    from beo_ros.core.baselines import ICPDatabase
+    sizes = sorted({s for s in args.scaling_train if s < len(ytr)} | {len(ytr)})
     pts = []
     for s in sizes:
         sel = np.sort(np.concatenate([
             rng.permutation(np.flatnonzero(ytr == c))[:max(2, int(round(s * (ytr == c).mean())))]
             for c in range(len(names))]))
         log(f'[scaling] training objects {len(sel)}')
-        b = bank if len(sel) >= len(tr) and args.model is None else fit_class_bank(
-            Xtr[sel], ytr[sel], names, n, k)
-        bl, bm = latency_point(beo_predict(b), sq, reps)
+        b = bank if len(sel) >= len(ytr) and args.model is None else fit_class_bank(
+            Xtr[sel], ytr[sel], names, n, args.k)
+        bl, bm = latency_point(beo_predict(b), sq, args.repeats)
         db = ICPDatabase(per_class=None, n_init_yaws=args.icp_init_yaws, seed=args.seed).fit(
             Xtr[sel], ytr[sel], names, n)
         il, im = latency_point(lambda g: db.predict(g), sq[:max(1, len(sq) // 2)], 1)
         pts.append(dict(n_train=int(len(sel)), beo_ms=bl, beo_mb=bm, icp_ms=il, icp_mb=im,
                         icp_db_size=db.size))
-    out['train_objects'] = pts
+    return pts
 
-    # vs grid resolution: resampled data, class models only, a small training set
-    sub = np.sort(np.concatenate([np.flatnonzero(ytr == c)[:args.scaling_per_class]
-                                  for c in range(len(names))]))
+
+def _scaling_grid(args, X, Xs, ys, names, n, sq):
+    """Latency / memory vs grid resolution: class models on the objects ``Xs``, ``ys``
+    resampled to each ``--scaling-grids`` size, queried with new views of the queries'
+    objects (rows of ``X``) at that size."""
+    from beo_ros.core.synthetic import random_partial_view
+    from scipy.ndimage import zoom
     qidx = [q['index'] for q in sq]
     pts = []
     for g in args.scaling_grids:
@@ -243,393 +255,39 @@ def scaling(args, X, y, names, n, tr, queries, bank, rng):
 
         def rs(v):
             return zoom(v.reshape((n,) * 3), f, order=0).ravel() if g != n else v
-        Xg = np.array([rs(Xtr[i]) for i in sub], dtype=np.float32)
-        b = fit_class_bank(Xg, ytr[sub], names, g, k)
+        Xg = np.array([rs(x) for x in Xs], dtype=np.float32)
+        b = fit_class_bank(Xg, ys, names, g, args.k)
         qrng = np.random.default_rng(args.seed + 7)
         qs = [dict(grid=random_partial_view(rs(X[i]).reshape((g,) * 3) > 0.5, qrng)[0])
               for i in qidx]
-        bl, bm = latency_point(beo_predict(b), qs, reps)
+        bl, bm = latency_point(beo_predict(b), qs, args.repeats)
         pts.append(dict(grid=int(g), beo_ms=bl, beo_mb=bm, model_mb=bank_nbytes(b) / 2**20))
         del b, Xg
         gc.collect()
-    out['grid'] = pts
+    return pts
 
-    # vs yaw resolution (main bank, exhaustive search)
-    out['yaw_step'] = []
+
+def _scaling_yaw_step(args, sq, bank):
+    """Latency / memory vs yaw resolution (``bank``, exhaustive search)."""
+    pts = []
     for step in args.scaling_yaw_steps:
-        bl, bm = latency_point(beo_predict(bank, step), sq, reps)
-        out['yaw_step'].append(dict(yaw_step_deg=float(step), beo_ms=bl, beo_mb=bm))
+        bl, bm = latency_point(beo_predict(bank, step), sq, args.repeats)
+        pts.append(dict(yaw_step_deg=float(step), beo_ms=bl, beo_mb=bm))
+    return pts
 
-    # vs number of classes: class models on the small training set, first c classes
-    models = fit_class_bank(Xtr[sub], ytr[sub], names, n, k).models
+
+def _scaling_classes(args, Xs, ys, names, n, sq, bank):
+    """Latency / memory vs number of classes: the first c of the class models fitted on the
+    objects ``Xs``, ``ys``."""
     from beo_ros.core.bank import ModelBank
+    models = fit_class_bank(Xs, ys, names, n, args.k).models
     pts = []
     for c in sorted({min(c, len(names)) for c in args.scaling_classes}):
         log(f'[scaling] classes {c}')
-        b = ModelBank(models[:c], bank.spec, pose_components=min(8, k))
-        bl, bm = latency_point(beo_predict(b), sq, reps)
+        b = ModelBank(models[:c], bank.spec, pose_components=min(8, args.k))
+        bl, bm = latency_point(beo_predict(b), sq, args.repeats)
         pts.append(dict(classes=int(c), beo_ms=bl, beo_mb=bm))
-    out['classes'] = pts
-    out['note'] = (f'{len(sq)} queries per point; grid and class curves use class models fitted '
-                   f'on {args.scaling_per_class} objects per class (latency does not depend on '
-                   'the training set size for beo)')
-    return out
-
-
-# ---------------------------------------------------------------------- node
-BAG_HZ = 10.0       # message spacing in the bench bag; replay rate factor = rate / BAG_HZ
-
-
-def _node_clouds(X, n, idx, limit, rng):
-    """Rendered partial views (points (m, 3) float32, sensor at the origin) of ``limit`` objects.
-
-    Each cloud is rendered from its own viewpoint; it is translated so its sensor is at the
-    origin, which is the node's (fixed) ``sensor_origin``."""
-    from beo_ros.core.synthetic import random_partial_view, render_view_points
-    clouds = []
-    for i in idx[:limit]:
-        occ = X[i].reshape((n,) * 3) > 0.5
-        _, yaw, az, el, _ = random_partial_view(occ, rng)
-        pts, origin = render_view_points(occ, yaw, az, el, rng=rng)
-        if len(pts) >= 100:  # the node rejects clouds below min_points; keep real objects
-            clouds.append(np.asarray(pts - origin, dtype=np.float32))
-    return clouds
-
-
-def _write_node_bag(path, clouds, n_msgs):
-    """A rosbag2 (sqlite3) of ``n_msgs`` clouds on /beo/input, cycling ``clouds``, BAG_HZ apart;
-    each header stamp equals its bag stamp (unique, so estimates can be matched to sends)."""
-    from std_msgs.msg import Header
-
-    from beo_ros.ros.bag import T0_NS, BagWriter
-    from beo_ros.ros.conversions import stamp_from_ns, xyz_to_cloud
-    with BagWriter(path) as w:
-        for j in range(n_msgs):
-            t = T0_NS + int(round(j * 1e9 / BAG_HZ))
-            hdr = Header(frame_id='camera', stamp=stamp_from_ns(t))
-            w.write('/beo/input', xyz_to_cloud(clouds[j % len(clouds)], hdr), t)
-
-
-def _pct(a, q):
-    return float(np.percentile(a, q)) if len(a) else float('nan')
-
-
-def _replay_probe(cfg_json=None):
-    """Child process of :func:`node_bench`: a separate ROS process, like ``ros2 bag play``
-    plus a consumer. Replays the bag at one rate until ``n`` clouds are sent and records, per
-    header stamp, when each cloud was published and when its ``~/estimates`` arrived
-    (``time.monotonic``: CLOCK_MONOTONIC, the same clock in every process). Prints JSON."""
-    cfg = json.loads(cfg_json if cfg_json is not None else sys.argv[1])
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
-
-    from beo_ros.ros.bag import replay
-    from beo_ros.ros.conversions import interfaces, ns_from_stamp
-    ctx = Context()
-    rclpy.init(args=[], context=ctx, domain_id=int(cfg['domain']))
-    node = rclpy.create_node('beo_bench_player', context=ctx)
-    sent, got = {}, {}
-    lock = threading.Lock()
-
-    def on_est(m):
-        with lock:
-            got[ns_from_stamp(m.header.stamp)] = time.monotonic()
-    node.create_subscription(interfaces().ObjectEstimate, '/beo/estimates', on_est, 1000)
-    ex = SingleThreadedExecutor(context=ctx)
-    ex.add_node(node)
-    th = threading.Thread(target=ex.spin, daemon=True)
-    th.start()
-    end = time.monotonic() + 20
-    while node.count_publishers('/beo/estimates') < 1 and time.monotonic() < end:
-        time.sleep(0.05)
-    time.sleep(0.5)  # let the node's estimates publisher match our subscription
-    stop = threading.Event()
-    n = int(cfg['n'])
-
-    def on_publish(topic, data, stamp_ns):
-        sent[stamp_ns] = time.monotonic()
-        if len(sent) >= n:
-            stop.set()
-    stats = replay(cfg['bag'], node, topics=['/beo/input'], rate=float(cfg['rate']) / BAG_HZ,
-                   stop=stop, on_publish=on_publish, wait_subscribers=1, wait_timeout=20.0)
-    quiet = time.monotonic()
-    last = -1
-    while time.monotonic() - quiet < float(cfg.get('quiet_s', 1.5)):  # estimates still coming
-        time.sleep(0.05)
-        with lock:
-            if len(got) != last:
-                last, quiet = len(got), time.monotonic()
-    with lock:
-        print(json.dumps({'sent': {str(k): v for k, v in sent.items()},
-                          'got': {str(k): v for k, v in got.items()}, 'wall_s': stats.wall_s}),
-              flush=True)
-    rclpy.try_shutdown(context=ctx)   # ends ex.spin()
-    th.join(timeout=5.0)
-    ex.shutdown(timeout_sec=2.0)
-    node.destroy_node()
-
-
-def bench_domain(pid):
-    """The ROS domain id of the node phase for process ``pid``: 215-232, the upper of the
-    two ranges whose DDS ports stay clear of Linux's ephemeral ports (ROS 2 "About Domain
-    ID"; the tests' subprocesses use 10-99 of the lower one)."""
-    return 215 + int(pid) % 18
-
-
-def _node_ros():
-    """The ROS names the node phase uses; raises when ROS, rosbags or beo_interfaces is
-    missing."""
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.parameter import Parameter
-    from rclpy.qos import qos_profile_sensor_data
-    from sensor_msgs.msg import PointCloud2
-    from std_msgs.msg import Header
-
-    __import__('rosbags')  # the bag and its player need it
-    from beo_ros.ros.conversions import interfaces, ns_from_stamp, stamp_from_ns, xyz_to_cloud
-    from beo_ros.ros.node import BeoNode, make_executor
-    return SimpleNamespace(
-        rclpy=rclpy, Context=Context, Parameter=Parameter,
-        qos_profile_sensor_data=qos_profile_sensor_data, PointCloud2=PointCloud2, Header=Header,
-        ns_from_stamp=ns_from_stamp, stamp_from_ns=stamp_from_ns, xyz_to_cloud=xyz_to_cloud,
-        BeoNode=BeoNode, make_executor=make_executor, msgs=interfaces())
-
-
-class _BenchNode:
-    """The BeoNode under test and a client node (publishes /beo/input, receives
-    ``~/estimates``) spun by the executor of beo-node in a thread of their own."""
-
-    def __init__(self, ros, ctx, clouds):
-        self.ros, self.ctx, self.clouds = ros, ctx, clouds
-        self.node = self.client = self.executor = None
-        self.got = {}   # header stamp (ns) -> perf_counter when the estimate arrived
-        self.cond = threading.Condition()
-
-    def start(self, bank, args):
-        """Create the nodes (``close`` destroys what was created, also after a failure)."""
-        ros = self.ros
-        overrides = [ros.Parameter('input_topics', value=['/beo/input'])]
-        if args.node_workers:
-            overrides.append(ros.Parameter('workers', value=int(args.node_workers)))
-        if args.node_blas_threads is not None:
-            overrides.append(ros.Parameter('blas_threads', value=int(args.node_blas_threads)))
-        if args.node_worker_processes >= 0:
-            overrides.append(ros.Parameter('worker_processes',
-                                           value=int(args.node_worker_processes)))
-        self.node = ros.BeoNode('beo', context=self.ctx, bank=bank,
-                                parameter_overrides=overrides)
-        self.workers = int(self.node.worker_threads)  # threads used (>= worker_processes)
-        self.procs = int(self.node.get_parameter('worker_processes').value)
-        self.client = ros.rclpy.create_node('beo_bench_client', context=self.ctx)
-        self.client.create_subscription(ros.msgs.ObjectEstimate, '/beo/estimates',
-                                        self._on_estimate, 1000)
-        self.pub = self.client.create_publisher(ros.PointCloud2, '/beo/input',
-                                                ros.qos_profile_sensor_data)
-        self.executor = ros.make_executor(self.ctx)  # the executor of beo-node
-        self.executor.add_node(self.node)
-        self.executor.add_node(self.client)
-        threading.Thread(target=self.executor.spin, daemon=True).start()
-
-    def _on_estimate(self, m):
-        with self.cond:
-            self.got[self.ros.ns_from_stamp(m.header.stamp)] = time.perf_counter()
-            self.cond.notify_all()
-
-    def send(self, j, stamp_ns):
-        """Publish cloud ``j`` (cycling) stamped ``stamp_ns``; perf_counter when sent."""
-        hdr = self.ros.Header(frame_id='camera', stamp=self.ros.stamp_from_ns(stamp_ns))
-        msg = self.ros.xyz_to_cloud(self.clouds[j % len(self.clouds)], hdr)
-        t = time.perf_counter()
-        self.pub.publish(msg)
-        return t
-
-    def wait_first_estimate(self, timeout=60):
-        """Warm-up / discovery: republish until the first estimate arrives."""
-        end = time.monotonic() + timeout
-        while time.monotonic() < end and not self.got:
-            self.send(0, 1)
-            with self.cond:
-                self.cond.wait_for(lambda: bool(self.got), timeout=0.5)
-        if not self.got:   # a node that answers nothing: a failure, not a skipped phase
-            raise RuntimeError('no estimate from the node within 60 s')
-
-    def settle(self, timeout=30.0):
-        """Wait until the node has accounted for every cloud it received and is idle."""
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            c = self.node.counters()
-            done = c['processed'] + c['dropped_stale'] + c['rejected'] + c['errors']
-            backlog = self.node.backlog()
-            if done == c['received'] and not backlog['waiting'] and backlog['in_flight'] == 0:
-                time.sleep(0.3)  # clouds still in transit?
-                if self.node.counters()['received'] == c['received']:
-                    return
-            time.sleep(0.02)
-
-    def close(self):
-        if self.executor is not None:
-            self.executor.shutdown(timeout_sec=5.0)
-        if self.client is not None:
-            self.client.destroy_node()
-        if self.node is not None:
-            self.node.destroy_node()
-
-
-def _replay_rate(bench, rate, args, bag_path, domain):
-    """Open loop at one rate: the bag replayed by :func:`_replay_probe` in a process of its
-    own; the row of ``rates`` in the result."""
-    import subprocess
-    bench.settle()
-    with bench.cond:
-        bench.got.clear()
-    c0 = bench.node.counters()
-    n_send = max(int(round(rate * args.node_duration)), 1)
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain),
-               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
-    cfg = json.dumps({'bag': str(bag_path), 'rate': rate, 'n': n_send,
-                      'domain': domain})
-    proc = subprocess.run(
-        [sys.executable, '-c', 'from beo_ros.bench import _replay_probe; _replay_probe()',
-         cfg], env=env, capture_output=True, text=True, timeout=120 + 2 * n_send / rate)
-    if proc.returncode != 0:
-        raise RuntimeError(f'bag player failed: {proc.stderr[-2000:]}')
-    probe = json.loads(proc.stdout.strip().splitlines()[-1])
-    bench.settle()
-    c1 = bench.node.counters()
-    d = {k: c1[k] - c0.get(k, 0) for k in c1}
-    row = _rate_row(rate, probe, d, args.node_max_drop)
-    log(f"[node] {rate:g} Hz: {row['estimates']}/{row['sent']} estimates, "
-        f"{row['objects_per_s']:.2f} out/s, dropped {row['dropped_stale']}, "
-        f"lost {row['lost']}, e2e p50 {row['e2e_p50_ms']:.0f} ms "
-        f"p95 {row['e2e_p95_ms']:.0f} ms")
-    return row
-
-
-def _rate_row(rate, probe, d, max_drop):
-    """One rate's row from the player's ``probe`` and the node's counter increments ``d``."""
-    sent = {int(k): v for k, v in probe['sent'].items()}
-    arrived = {int(k): v for k, v in probe['got'].items() if int(k) in sent}
-    lat = np.array([arrived[k] - sent[k] for k in arrived]) * 1e3
-    # output rate: estimates per second from the first to the last estimate
-    span = (max(arrived.values()) - min(arrived.values())) if arrived else 0.0
-    stats_wall = probe['wall_s']
-    row = {
-        'rate_hz': rate, 'sent': len(sent),
-        'sent_per_s': (len(sent) - 1) / stats_wall if stats_wall > 0 else rate,
-        'received': d['received'], 'estimates': len(arrived),
-        'dropped_stale': d['dropped_stale'], 'rejected': d['rejected'],
-        'errors': d['errors'], 'lost': len(sent) - d['received'],
-        'missing_estimates': d['processed'] - len(arrived),
-        'order_waits': d.get('order_waits', 0),
-        'objects_per_s': (len(arrived) - 1) / span if span > 0 else 0.0,
-        'e2e_p50_ms': _pct(lat, 50), 'e2e_p95_ms': _pct(lat, 95),
-        'e2e_max_ms': float(lat.max()) if len(lat) else float('nan'),
-    }
-    row['sustained'] = bool(row['dropped_stale'] <= max_drop * row['sent']
-                            and row['lost'] == 0 and row['rejected'] == 0
-                            and row['errors'] == 0 and row['missing_estimates'] == 0)
-    return row
-
-
-def _closed_loop(bench, rounds):
-    """Latency without queueing: the next cloud is published when the previous estimate
-    arrived, ``rounds`` times over the clouds."""
-    bench.settle()
-    lat, lost, busy = [], 0, 0.0
-    for j in range(len(bench.clouds) * rounds):
-        stamp = 1000 + j
-        t_sent = bench.send(j, stamp)
-        with bench.cond:
-            ok = bench.cond.wait_for(lambda: stamp in bench.got, timeout=30)
-        if ok:  # time waiting for lost clouds is not counted in the rate
-            lat.append(bench.got[stamp] - t_sent)
-            busy += time.perf_counter() - t_sent
-        else:
-            lost += 1
-    lat = np.asarray(lat) * 1e3
-    return {'objects': int(len(lat)), 'lost': int(lost),
-            'objects_per_s': float(len(lat) / max(busy, 1e-9)),
-            'e2e_p50_ms': _pct(lat, 50), 'e2e_p95_ms': _pct(lat, 95)}
-
-
-def _node_result(per_rate, closed, core, counters, workers, procs, clouds, rates, args):
-    """The ``node`` entry of bench.json: the highest sustained rate, all rows, the closed loop
-    and the node's stage latencies (``core``, s) and counters."""
-    sustained = [r for r in per_rate if r['sustained']]
-    best = max(sustained, key=lambda r: r['rate_hz']) if sustained else per_rate[0]
-    return {
-        # headline: the highest replay rate the node kept up with (no drops, nothing lost)
-        'max_drop_fraction': float(args.node_max_drop),
-        'objects_per_s': best['objects_per_s'], 'sustained_rate_hz': (
-            best['rate_hz'] if sustained else None),
-        'e2e_p50_ms': best['e2e_p50_ms'], 'e2e_p95_ms': best['e2e_p95_ms'],
-        'objects': int(best['estimates']), 'lost': int(best['lost']),
-        'dropped_stale': int(best['dropped_stale']),
-        'max_objects_per_s': max(r['objects_per_s'] for r in per_rate),
-        'rates': per_rate, 'closed_loop': closed, 'workers': workers,
-        'worker_processes': procs,
-        'duration_s': float(args.node_duration), 'clouds': len(clouds),
-        'cloud_points_median': float(np.median([len(c) for c in clouds])),
-        'node_stage_p50_ms': {k: v * 1e3 for k, v in core.items()},
-        'node_counters': counters,
-        'mode': (f'open loop: rosbag2 of {len(clouds)} rendered clouds replayed by a separate '
-                 f'process (beo-replay\'s replay(), which also receives the estimates) at '
-                 f'{", ".join(f"{r:g}" for r in rates)} Hz for {args.node_duration:g} s each '
-                 f'into BeoNode (workers={workers}, worker_processes={procs}, '
-                 f'SingleThreadedExecutor); sustained = stale '
-                 f'drops <= {args.node_max_drop:g} of the clouds, nothing lost'),
-    }
-
-
-def node_bench(bank, X, n, idx, args, rng):
-    """A real BeoNode fed by a rosbag2 replay (open loop) at fixed rates, plus a closed loop.
-
-    Open loop (the sustained rate): for every rate in ``--node-rates`` the bench bag is replayed
-    with :func:`beo_ros.ros.bag.replay` (real rclpy publisher, one cloud every 1/rate s, for
-    ``--node-duration`` s) whatever the node does; estimates out per second, stale drops (the
-    node keeps only the newest unprocessed cloud per topic), clouds lost in transport and
-    publish -> ``~/estimates`` latency are measured per rate. A rate is sustained when at most
-    ``--node-max-drop`` of its clouds were dropped as stale and none was lost, rejected or left
-    without an estimate. Closed loop (latency without queueing): the next cloud is published
-    when the previous estimate arrived.
-    """
-    # the bag player runs in its own process (like ros2 bag play), so discovery stays on the
-    # local host, on a domain of our own
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    domain = bench_domain(os.getpid())
-    try:
-        import tempfile
-        ros = _node_ros()
-    except Exception as e:  # noqa: BLE001 - ROS, rosbags or interfaces missing
-        return {'skipped': f'{type(e).__name__}: {e}'}
-
-    clouds = _node_clouds(X, n, idx, args.node_objects, rng)
-    if not clouds:
-        return {'skipped': 'no objects'}
-    rates = sorted(float(r) for r in args.node_rates)
-    n_msgs = int(math.ceil(max(rates) * args.node_duration)) + 1
-    tmp = tempfile.TemporaryDirectory(prefix='beo_bench_bag_')
-    bag_path = Path(tmp.name) / 'clouds'
-    _write_node_bag(bag_path, clouds, n_msgs)
-
-    ctx = ros.Context()
-    ros.rclpy.init(args=[], context=ctx, domain_id=domain)
-    bench = _BenchNode(ros, ctx, clouds)
-    try:
-        bench.start(bank, args)
-        bench.wait_first_estimate()
-        per_rate = [_replay_rate(bench, rate, args, bag_path, domain) for rate in rates]
-        closed = _closed_loop(bench, args.node_rounds)
-        core = bench.node.latency_p50()
-        counters = bench.node.counters()
-    finally:
-        bench.close()
-        ros.rclpy.try_shutdown(context=ctx)
-        tmp.cleanup()
-    return _node_result(per_rate, closed, core, counters, bench.workers, bench.procs, clouds,
-                        rates, args)
+    return pts
 
 
 # ---------------------------------------------------------------------- output
@@ -699,67 +357,88 @@ def table(res):
 
 def markdown(res):
     """Markdown tables of a bench.json dict (peers, scaling, node)."""
-    st = res.get('setup', {})
-    lines = [f"Data: {st.get('data')}; {len(st.get('classes', []))} classes, "
-             f"{st.get('train_objects')} training objects, {st.get('queries')} queries "
-             f"(seed {st.get('seed')}, k={st.get('k')}); beo: {st.get('beo_model')}; "
-             f"{st.get('cpu_count')} CPUs"
-             + (f", 1-min load average {st['load_average_1min']} at the start."
-                if st.get('load_average_1min') is not None else '.'), '']
+    lines = _md_setup(res.get('setup', {}))
     if all(p in res for p in ('beo', 'paper', 'icp')):
-        lines += [table(res), '']
-        extra = [f"speedup vs icp (p50) {res['speedup_vs_icp']:.1f}x",
-                 f"vs paper {res.get('speedup_vs_paper', float('nan')):.1f}x",
-                 f"icp database {res['icp'].get('db_size')} objects "
-                 f"({res['icp'].get('db_per_class')} per class, "
-                 f"{res['icp'].get('init_yaws')} initial yaws)"]
-        extra += [f"{p} index {res[p]['index_mb']:.1f} MB, fit {res[p]['fit_s']:.0f} s"
-                  for p in ('beo', 'paper', 'icp')]
-        extra += [f"{p} yaw median on correctly classified {res[p]['yaw_median_deg_correct_class']:.1f} deg"
-                  for p in ('beo', 'paper', 'icp')]
-        lines += ['- ' + e for e in extra] + ['']
+        lines += _md_peers(res)
     sc = res.get('scaling') or {}
     if 'train_objects' in sc:
-        lines += ['Latency / peak memory vs training objects:', '',
-                  '| training objects | beo ms | beo MB | icp ms | icp MB |', '|---|---|---|---|---|']
-        lines += [f"| {p['n_train']} | {p['beo_ms']:.1f} | {p['beo_mb']:.1f} | {p['icp_ms']:.0f} "
-                  f"| {p['icp_mb']:.1f} |" for p in sc['train_objects']]
-        lines += ['', 'vs grid size:', '', '| N | beo ms | beo MB | model MB |', '|---|---|---|---|']
-        lines += [f"| {p['grid']} | {p['beo_ms']:.1f} | {p['beo_mb']:.1f} | {p['model_mb']:.1f} |"
-                  for p in sc['grid']]
-        lines += ['', 'vs yaw step:', '', '| yaw step (deg) | beo ms | beo MB |', '|---|---|---|']
-        lines += [f"| {p['yaw_step_deg']:g} | {p['beo_ms']:.1f} | {p['beo_mb']:.1f} |"
-                  for p in sc['yaw_step']]
-        lines += ['', 'vs classes:', '', '| classes | beo ms | beo MB |', '|---|---|---|']
-        lines += [f"| {p['classes']} | {p['beo_ms']:.1f} | {p['beo_mb']:.1f} |"
-                  for p in sc['classes']]
-        lines += ['', f"({sc.get('note')})", '']
-    node = res.get('node') or {}
-    if 'objects_per_s' in node:
-        sus = node.get('sustained_rate_hz')
-        lines += [f"Node (real rclpy, bag replay, workers={node.get('workers')}, "
-                  f"worker_processes={node.get('worker_processes', 0)}): "
-                  + (f"sustains {sus:g} Hz: {_fmt(node['objects_per_s'], '.2f')} objects/s out, "
-                     if sus else 'sustains none of the rates; at the lowest: '
-                     f"{_fmt(node['objects_per_s'], '.2f')} objects/s out, ")
-                  + f"{node['dropped_stale']} dropped, {node['lost']} lost, end-to-end publish -> "
-                  f"estimate p50 {_fmt(node['e2e_p50_ms'])} ms, p95 {_fmt(node['e2e_p95_ms'])} ms; "
-                  f"highest output rate {_fmt(node.get('max_objects_per_s'), '.2f')}/s; "
-                  f"{node['mode']}.", '']
-        if node.get('rates'):
-            lines += ['| replay Hz | sent | estimates | out/s | dropped stale | lost | '
-                      'e2e p50 ms | e2e p95 ms |', '|---|---|---|---|---|---|---|---|']
-            lines += [f"| {r['rate_hz']:g} | {r['sent']} | {r['estimates']} | "
-                      f"{_fmt(r['objects_per_s'], '.2f')} | {r['dropped_stale']} | {r['lost']} | "
-                      f"{_fmt(r['e2e_p50_ms'])} | {_fmt(r['e2e_p95_ms'])} |" for r in node['rates']]
-        cl = node.get('closed_loop') or {}
-        if cl:
-            lines += ['', f"Closed loop ({cl['objects']} objects, {cl['lost']} lost): "
-                      f"{_fmt(cl['objects_per_s'], '.2f')} objects/s, e2e p50 "
-                      f"{_fmt(cl['e2e_p50_ms'])} ms, p95 {_fmt(cl['e2e_p95_ms'])} ms."]
-    else:
-        lines += [f"Node: skipped ({node.get('skipped')})."]
+        lines += _md_scaling(sc)
+    lines += _md_node(res.get('node') or {})
     return '\n'.join(lines) + '\n'
+
+
+def _md_setup(st):
+    """The data / sizes / machine line of bench.md (``st``: the 'setup' section)."""
+    return [f"Data: {st.get('data')}; {len(st.get('classes', []))} classes, "
+            f"{st.get('train_objects')} training objects, {st.get('queries')} queries "
+            f"(seed {st.get('seed')}, k={st.get('k')}); beo: {st.get('beo_model')}; "
+            f"{st.get('cpu_count')} CPUs"
+            + (f", 1-min load average {st['load_average_1min']} at the start."
+               if st.get('load_average_1min') is not None else '.'), '']
+
+
+def _md_peers(res):
+    """The peers' table and a list of speedups, index sizes and fit times."""
+    extra = [f"speedup vs icp (p50) {res['speedup_vs_icp']:.1f}x",
+             f"vs paper {res.get('speedup_vs_paper', float('nan')):.1f}x",
+             f"icp database {res['icp'].get('db_size')} objects "
+             f"({res['icp'].get('db_per_class')} per class, "
+             f"{res['icp'].get('init_yaws')} initial yaws)"]
+    extra += [f"{p} index {res[p]['index_mb']:.1f} MB, fit {res[p]['fit_s']:.0f} s"
+              for p in ('beo', 'paper', 'icp')]
+    extra += [f"{p} yaw median on correctly classified "
+              f"{res[p]['yaw_median_deg_correct_class']:.1f} deg"
+              for p in ('beo', 'paper', 'icp')]
+    return [table(res), ''] + ['- ' + e for e in extra] + ['']
+
+
+def _md_scaling(sc):
+    """The scaling tables (``sc``: the 'scaling' section)."""
+    lines = ['Latency / peak memory vs training objects:', '',
+             '| training objects | beo ms | beo MB | icp ms | icp MB |',
+             '|---|---|---|---|---|']
+    lines += [f"| {p['n_train']} | {p['beo_ms']:.1f} | {p['beo_mb']:.1f} | {p['icp_ms']:.0f} "
+              f"| {p['icp_mb']:.1f} |" for p in sc['train_objects']]
+    lines += ['', 'vs grid size:', '', '| N | beo ms | beo MB | model MB |',
+              '|---|---|---|---|']
+    lines += [f"| {p['grid']} | {p['beo_ms']:.1f} | {p['beo_mb']:.1f} | {p['model_mb']:.1f} |"
+              for p in sc['grid']]
+    lines += ['', 'vs yaw step:', '', '| yaw step (deg) | beo ms | beo MB |', '|---|---|---|']
+    lines += [f"| {p['yaw_step_deg']:g} | {p['beo_ms']:.1f} | {p['beo_mb']:.1f} |"
+              for p in sc['yaw_step']]
+    lines += ['', 'vs classes:', '', '| classes | beo ms | beo MB |', '|---|---|---|']
+    lines += [f"| {p['classes']} | {p['beo_ms']:.1f} | {p['beo_mb']:.1f} |"
+              for p in sc['classes']]
+    return lines + ['', f"({sc.get('note')})", '']
+
+
+def _md_node(node):
+    """The node's headline, its per-rate table and the closed loop (``node``: the 'node'
+    section), or why it was skipped."""
+    if 'objects_per_s' not in node:
+        return [f"Node: skipped ({node.get('skipped')})."]
+    sus = node.get('sustained_rate_hz')
+    lines = [f"Node (real rclpy, bag replay, workers={node.get('workers')}, "
+             f"worker_processes={node.get('worker_processes', 0)}): "
+             + (f"sustains {sus:g} Hz: {_fmt(node['objects_per_s'], '.2f')} objects/s out, "
+                if sus else 'sustains none of the rates; at the lowest: '
+                f"{_fmt(node['objects_per_s'], '.2f')} objects/s out, ")
+             + f"{node['dropped_stale']} dropped, {node['lost']} lost, end-to-end publish -> "
+             f"estimate p50 {_fmt(node['e2e_p50_ms'])} ms, p95 {_fmt(node['e2e_p95_ms'])} ms; "
+             f"highest output rate {_fmt(node.get('max_objects_per_s'), '.2f')}/s; "
+             f"{node['mode']}.", '']
+    if node.get('rates'):
+        lines += ['| replay Hz | sent | estimates | out/s | dropped stale | lost | '
+                  'e2e p50 ms | e2e p95 ms |', '|---|---|---|---|---|---|---|---|']
+        lines += [f"| {r['rate_hz']:g} | {r['sent']} | {r['estimates']} | "
+                  f"{_fmt(r['objects_per_s'], '.2f')} | {r['dropped_stale']} | {r['lost']} | "
+                  f"{_fmt(r['e2e_p50_ms'])} | {_fmt(r['e2e_p95_ms'])} |" for r in node['rates']]
+    cl = node.get('closed_loop') or {}
+    if cl:
+        lines += ['', f"Closed loop ({cl['objects']} objects, {cl['lost']} lost): "
+                  f"{_fmt(cl['objects_per_s'], '.2f')} objects/s, e2e p50 "
+                  f"{_fmt(cl['e2e_p50_ms'])} ms, p95 {_fmt(cl['e2e_p95_ms'])} ms."]
+    return lines
 
 
 def _fmt(v, spec='.1f'):

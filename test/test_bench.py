@@ -358,14 +358,14 @@ def test_markdown_writes_n_a_for_missing_latencies():
 def test_bench_domain_is_in_the_linux_safe_range():
     """The node phase's domain keeps its DDS ports clear of Linux's ephemeral ports
     (215-232) and of the tests' own subprocess domains (10-99)."""
-    from beo_ros.bench import bench_domain
+    from beo_ros.bench_node import bench_domain
     domains = {bench_domain(pid) for pid in range(1, 5000)}
     assert domains == set(range(215, 233))
 
 
 def test_rate_row_of_a_replay():
     """Sent / arrived matched by stamp, counter increments, sustained only without losses."""
-    from beo_ros.bench import _rate_row
+    from beo_ros.bench_node import _rate_row
     probe = {'sent': {'1': 0.0, '2': 0.1, '3': 0.2}, 'got': {'1': 0.05, '2': 0.2, '9': 0.3},
              'wall_s': 0.2}
     d = {'received': 3, 'processed': 2, 'dropped_stale': 1, 'rejected': 0, 'errors': 0}
@@ -401,7 +401,7 @@ def test_bench_node_settles_through_the_public_api(monkeypatch):
     import time
     import types
 
-    import beo_ros.bench as bench
+    import beo_ros.bench_node as bench
     # bench's own reference only: the time module's sleep serves every thread of the session
     monkeypatch.setattr(bench, 'time', types.SimpleNamespace(sleep=lambda s: None,
                                                              monotonic=time.monotonic))

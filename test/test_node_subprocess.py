@@ -165,7 +165,7 @@ def test_signal_to_the_group_while_worker_processes_start(ros_domain_id, sig):
 
 def test_config_lists_every_parameter_with_its_default():
     cfg = yaml.safe_load(CONFIG.read_text())['/**/beo']['ros__parameters']
-    src = (ROOT / 'beo_ros' / 'ros' / 'node.py').read_text()
+    src = (ROOT / 'beo_ros' / 'ros' / 'params.py').read_text()
     declared = {}
     for call in ast.walk(ast.parse(src)):
         if (isinstance(call, ast.Call) and isinstance(call.func, ast.Name)

@@ -20,7 +20,6 @@ were received, even when several of its clouds are in flight on different worker
 from __future__ import annotations
 
 import collections
-import math
 import sys
 import threading
 import time
@@ -29,8 +28,7 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
-from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
-                                ParameterType, SetParametersResult)
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.exceptions import ParameterUninitializedException
@@ -42,30 +40,30 @@ from rclpy.task import Future
 from rclpy.time import Time
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
-from visualization_msgs.msg import Marker, MarkerArray
+from visualization_msgs.msg import MarkerArray
 
-from beo_ros.core.bank import (check_step, load_models, parse_class_prior, resolve_model_dir,
-                               shipped_models)
-from beo_ros.core.bank import default_model_dir as shipped_model_dir
-from beo_ros.core.outliers import OUTLIER_MADS, OUTLIER_NEIGHBORS
-from beo_ros.core.voxelize import MAX_COORDINATE, MIN_POINTS
+from beo_ros.core.bank import load_models, parse_class_prior, resolve_model_dir, shipped_models
 from beo_ros.ros.conversions import (CloudFormatError, cloud_to_xyz, completed_cloud,
-                                     estimate_to_msg, interfaces, object_dimensions)
+                                     estimate_to_msg, interfaces)
+from beo_ros.ros.markers import object_markers
+from beo_ros.ros.params import (CHECKED_AT_START, VALUES, declare, default_model_dir, refusal,
+                                vector_reason)
 from beo_ros.ros.procpool import (BrokenProcessPool, EstimateTimeout, EstimatorPool, PoolRetired,
                                   warm_up_points)
+
+# the public names (default_model_dir: re-exported from beo_ros.ros.params)
+__all__ = ['BeoNode', 'InputRejected', 'StartupError', 'default_model_dir', 'drain_executor',
+           'load_bank', 'main', 'make_executor', 'prior_text', 'with_class_prior']
 
 try:  # optional: TF gives the up vector when base_frame is set
     import tf2_ros
 except ImportError:  # tf2_ros is not on PyPI; parameters are used instead
     tf2_ros = None
 
-DEFAULT_MODEL = 'modelnet10_32'
-MIN_ESTIMATE_TIMEOUT = 1.0  # s; an estimate takes 0.03-0.1 s
 LOG_THROTTLE_SEC = 5.0
 LATENCY_WINDOW = 200  # samples kept per stage for the p50 in diagnostics
 # a message-lost report of this many or more is garbage (seen from Fast DDS: 2^31 - 1, 2^64 - 1)
 MAX_PLAUSIBLE_LOST = 2**31 - 1
-INPUT_RELIABILITY = ('best_effort', 'reliable')
 BASE_FRAME_WITHOUT_TF = ('base_frame is set but tf2_ros is not installed; using the '
                          'sensor_origin and up_vector parameters')
 
@@ -80,11 +78,6 @@ class InputRejected(ValueError):
     def __init__(self, message: str, kind: str = 'rejected'):
         super().__init__(message)
         self.kind = kind
-
-
-def default_model_dir() -> str:
-    """Shipped model dir: the installed share dir when present, else the package source tree."""
-    return str(shipped_model_dir(DEFAULT_MODEL))
 
 
 def with_class_prior(bank, text: str):
@@ -114,32 +107,6 @@ def load_bank(model_dir: str):
         return load_models(str(path))
     except Exception as e:  # ModelError names the bad file; anything else is wrapped
         raise StartupError(f"cannot load models from '{path}': {type(e).__name__}: {e}") from e
-
-
-def _vector_reason(name, value, nonzero=False):
-    v = list(value)
-    if len(v) != 3:
-        return f'{name} must have 3 elements, got {len(v)}'
-    if not all(math.isfinite(x) for x in v):
-        return f'{name} must be finite, got {v}'
-    if max(abs(x) for x in v) > MAX_COORDINATE:
-        return f'{name} components must be within +-{MAX_COORDINATE:g}, got {v}'
-    if nonzero and math.hypot(*v) < 1e-9:
-        return f'{name} must be non-zero'
-    return None
-
-
-def _fdesc(description, lo=None, hi=None, read_only=False):
-    d = ParameterDescriptor(description=description, read_only=read_only)
-    if lo is not None:
-        d.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi),
-                                                     step=0.0)]
-    return d
-
-
-def _idesc(description, lo, hi, read_only=False):
-    return ParameterDescriptor(description=description, read_only=read_only,
-                               integer_range=[IntegerRange(from_value=lo, to_value=hi, step=1)])
 
 
 class BeoNode(Node):
@@ -238,12 +205,9 @@ class BeoNode(Node):
             # an empty array override ('[]') leaves the parameter without a type or value
             raise StartupError(f'invalid parameter: {e} (an empty array is not a value: give '
                                'at least one element)') from None
-        for name in ('sensor_origin', 'up_vector', 'min_points', 'max_points', 'workers',
-                     'worker_processes', 'completion_threshold', 'yaw_step_deg',
-                     'input_reliability', 'estimate_timeout'):
-            reason = self._check(name, params[name], params)
-            if reason:
-                raise StartupError(f'invalid parameter: {reason}')
+        reason = refusal(((name, params[name]) for name in CHECKED_AT_START), params)
+        if reason:
+            raise StartupError(f'invalid parameter: {reason}')
         return params, self._resolve_topics(input_topics)
 
     def _resolve_topics(self, input_topics) -> list:
@@ -419,126 +383,17 @@ class BeoNode(Node):
             limits.restore_original_limits()
 
     def _declare_parameters(self):
-        d = self.declare_parameter
-        d('model_dir', default_model_dir(), ParameterDescriptor(
-            description="Directory of the trained BEO model bank ('' = the shipped "
-                        f"models/{DEFAULT_MODEL}; a shipped model's name such as 'tabletop_32' "
-                        "is that model); changing it reloads the models",
-            type=ParameterType.PARAMETER_STRING))
-        d('input_topics', ['/beo/input'], ParameterDescriptor(
-            description='PointCloud2 topics of segmented objects (one object per cloud)',
-            type=ParameterType.PARAMETER_STRING_ARRAY, read_only=True))
-        d('input_reliability', 'best_effort', ParameterDescriptor(
-            description="QoS reliability of the input_topics subscriptions (depth 5 either "
-                        "way): 'best_effort' (sensor-data QoS; matches every publisher) or "
-                        "'reliable' (needs reliable publishers; with Fast DDS, clouds of more "
-                        'than about 0.5 MB between processes arrive only this way). Read-only',
-            type=ParameterType.PARAMETER_STRING, read_only=True))
-        d('base_frame', '', ParameterDescriptor(
-            description="Gravity-aligned frame (z up) looked up in TF to get the up vector; "
-                        "'' uses the up_vector parameter (TF only when tf2_ros is installed)",
-            type=ParameterType.PARAMETER_STRING))
-        d('sensor_origin', [0.0, 0.0, 0.0], ParameterDescriptor(
-            description='Sensor position in the cloud frame (m), for free-space carving',
-            type=ParameterType.PARAMETER_DOUBLE_ARRAY))
-        d('up_vector', [0.0, 0.0, 1.0], ParameterDescriptor(
-            description='Gravity-up direction in the cloud frame (e.g. [0.0, -1.0, 0.0] for a '
-                        'camera optical frame held level; floats, with a decimal point)',
-            type=ParameterType.PARAMETER_DOUBLE_ARRAY))
-        d('yaw_step_deg', 1.0, _fdesc('Resolution of the returned yaw (degrees); the search '
-                                      'over all classes runs at max(2, this)', 0.05, 45.0))
-        d('min_points', 30, _idesc('Fewer finite points than this: the cloud is rejected',
-                                   MIN_POINTS, 1_000_000))
-        d('max_points', 50000, _idesc('More points than this: random downsampling (fixed seed)',
-                                      10, 100_000_000))
-        d('outlier_mads', OUTLIER_MADS, _fdesc(
-            'Statistical outlier removal before the voxelization (the extent of the points '
-            'places the grid, so one stray point far away spoils it): a point whose mean '
-            'distance to its outlier_neighbors nearest points is more than this many scaled '
-            'MADs above the median is removed (counted in outlier_points); 0: off', 0.0, 1000.0))
-        d('outlier_neighbors', OUTLIER_NEIGHBORS, _idesc(
-            'Neighbours per point of the outlier removal', 1, 100))
-        d('cluster_tolerance', 0.0, _fdesc(
-            'After the outlier removal keep only the largest cluster of points (m; points '
-            'closer than this are always in one cluster, a gap of 3.5x this always separates '
-            'two), for segments that caught part of another surface or object; the others '
-            'are counted in off_cluster_points; 0: off', 0.0, 100.0))
-        d('completion_threshold', 0.5, _fdesc(
-            'Occupancy probability for a voxel to be in the completed cloud (0 refused)',
-            0.0, 1.0))
-        d('publish_completed', True, ParameterDescriptor(
-            description='Publish ~/completed (x y z probability)',
-            type=ParameterType.PARAMETER_BOOL))
-        d('class_prior', '', ParameterDescriptor(
-            description="Prior over the classes: '' = the model directory's, 'train' = the "
-                        "training set's class frequencies, 'uniform', or 'name=weight,...' "
-                        'with every class (e.g. a kitchen: more chairs than beds)',
-            type=ParameterType.PARAMETER_STRING))
-        d('diagnostics_period', 1.0, _fdesc('Seconds between /diagnostics messages', 0.1, 60.0))
-        d('workers', 1, _idesc('Estimation worker threads (concurrent estimates, services '
-                               'included); at least worker_processes are used. Without worker '
-                               'processes more than 1 helps only with idle cores to spare '
-                               '(the GIL). Read-only', 1, 64, read_only=True))
-        d('worker_processes', 0, _idesc('Processes that run the estimates, each with its own '
-                                        'copy of the models (0: in the worker threads); '
-                                        'several estimate in parallel without sharing the '
-                                        "node's GIL. Read-only", 0, 64, read_only=True))
-        d('estimate_timeout', 30.0, _fdesc(
-            'Seconds a worker process may take for one estimate (worker_processes > 0 only): '
-            'after that its processes are taken for hung, killed and restarted, and the cloud '
-            f'counted in errors and worker_timeouts; 0: no limit, else at least '
-            f'{MIN_ESTIMATE_TIMEOUT:g}', 0.0, 3600.0))
-        d('blas_threads', 1, _idesc('Threads of the BLAS library for the node process and '
-                                    'each worker process (0: leave its default); parallelism '
-                                    'comes from the workers. Read-only', 0, 64, read_only=True))
+        declare(self.declare_parameter)
 
     def _params(self) -> dict:
-        return {p: self.get_parameter(p).value for p in (
-            'model_dir', 'input_reliability', 'base_frame', 'sensor_origin', 'up_vector',
-            'yaw_step_deg',
-            'min_points', 'max_points', 'outlier_mads', 'outlier_neighbors', 'cluster_tolerance',
-            'completion_threshold', 'publish_completed',
-            'class_prior', 'diagnostics_period', 'workers', 'worker_processes', 'blas_threads',
-            'estimate_timeout')}
-
-    @staticmethod
-    def _check(name, value, merged) -> str | None:
-        """Reason why ``value`` is invalid for parameter ``name`` (None when it is fine)."""
-        if name == 'sensor_origin':
-            return _vector_reason(name, value)
-        if name == 'up_vector':
-            return _vector_reason(name, value, nonzero=True)
-        if name in ('min_points', 'max_points') and merged['min_points'] > merged['max_points']:
-            return (f"min_points ({merged['min_points']}) must not exceed max_points "
-                    f"({merged['max_points']})")
-        if name == 'input_reliability' and value not in INPUT_RELIABILITY:
-            return f'input_reliability must be one of {INPUT_RELIABILITY}, got {value!r}'
-        if name == 'yaw_step_deg':
-            # rclpy's range check lets values within 1e-6 (relative) of a bound pass
-            try:
-                check_step(name, value)
-            except ValueError as e:
-                return str(e)
-        if name == 'estimate_timeout' and 0 < value < MIN_ESTIMATE_TIMEOUT:
-            # each timeout kills and restarts the worker processes (seconds): a limit below
-            # what an estimate takes would restart them for every cloud
-            return (f'estimate_timeout must be 0 (no limit) or at least '
-                    f'{MIN_ESTIMATE_TIMEOUT:g} s, got {value!r}')
-        if name == 'completion_threshold' and not 0 < value <= 1:
-            return f'completion_threshold must be in (0, 1], got {value!r}'
-        if name == 'workers' and not (isinstance(value, int) and 1 <= value <= 64):
-            return f'workers must be an integer in 1 .. 64, got {value!r}'
-        if name == 'worker_processes' and not (isinstance(value, int) and 0 <= value <= 64):
-            return f'worker_processes must be an integer in 0 .. 64, got {value!r}'
-        return None
+        return {p: self.get_parameter(p).value for p in VALUES}
 
     def _on_set_parameters(self, params) -> SetParametersResult:
         merged = self._params()
         merged.update({p.name: p.value for p in params})
-        for p in params:
-            reason = self._check(p.name, p.value, merged)
-            if reason:
-                return SetParametersResult(successful=False, reason=reason)
+        reason = refusal(((p.name, p.value) for p in params), merged)
+        if reason:
+            return SetParametersResult(successful=False, reason=reason)
         new = {p.name: p.value for p in params}
         # against the models answering (a failed background reload leaves the old ones)
         want_dir = str(resolve_model_dir(new['model_dir'])) if 'model_dir' in new else None
@@ -741,7 +596,7 @@ class BeoNode(Node):
         if origin is None:
             origin = p['sensor_origin']
         for name, v, nz in (('sensor_origin', origin, False), ('up', up, True)):
-            reason = _vector_reason(name, v, nonzero=nz)
+            reason = vector_reason(name, v, nonzero=nz)
             if reason:
                 raise InputRejected(reason)
         return pts, np.asarray(origin, dtype=np.float64), np.asarray(up, dtype=np.float64)
@@ -973,27 +828,7 @@ class BeoNode(Node):
     def _markers(self, est, out, header, topic, up) -> MarkerArray:
         """Label text above the object and its box, ids unique per input topic."""
         idx = self._topic_index.get(topic, len(self._topic_index))
-        up = np.asarray(up, dtype=np.float64)
-        up = up / np.linalg.norm(up)
-        centre = np.array([out.pose.position.x, out.pose.position.y, out.pose.position.z])
-        d = object_dimensions(est)
-        if est.completed_points is not None and len(est.completed_points):
-            height = float(np.max((np.asarray(est.completed_points) - centre) @ up))
-        else:
-            height = 0.0
-        box = Marker(header=header, ns='beo', id=2 * idx, type=Marker.CUBE, action=Marker.ADD)
-        box.pose = out.pose
-        box.scale.x, box.scale.y, box.scale.z = (max(float(v), 0.01) for v in d)
-        box.color.r, box.color.g, box.color.b, box.color.a = 0.1, 0.8, 0.3, 0.35
-        text = Marker(header=header, ns='beo', id=2 * idx + 1, type=Marker.TEXT_VIEW_FACING,
-                      action=Marker.ADD)
-        pos = centre + up * (max(height, 0.0) + 0.08)
-        text.pose.position.x, text.pose.position.y, text.pose.position.z = (float(v) for v in pos)
-        text.pose.orientation.w = 1.0
-        text.scale.z = 0.08
-        text.color.r = text.color.g = text.color.b = text.color.a = 1.0
-        text.text = f'{out.label} {out.probability:.0%}'
-        return MarkerArray(markers=[box, text])
+        return object_markers(est, out, header, idx, up)
 
     # ------------------------------------------------------------------ services
     async def _on_classify(self, request, response):
