@@ -57,7 +57,7 @@ def data_path(arg):
 def load_data(args, rng):
     """(X, y, names, n, source) with optional class selection / subsampling."""
     from beo_ros.core.synthetic import primitive_shapes
-    from beo_ros.core.training import load_voxel_npz, select_classes
+    from beo_ros.core.datasets import load_voxel_npz, select_classes
     path = data_path(args.data)
     if path is not None and not path.is_file():
         # only --data none or a missing default file fall back to generated shapes

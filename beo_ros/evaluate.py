@@ -29,8 +29,8 @@ from .core.bank import load_models, parse_class_prior
 from .core.calibration import calibration_sums, metrics_from_sums
 from .core.grid import GridSpec, symmetric_turns, yaw_error, yaw_error_up_to
 from .core.synthetic import random_partial_view
-from .core.training import (fit_bank, load_voxel_npz, progress_bar, select_classes,
-                            stratified_folds)
+from .core.datasets import load_voxel_npz, select_classes
+from .core.training import fit_bank, progress_bar, stratified_folds
 
 
 def one_fold_parser(description, json_help):

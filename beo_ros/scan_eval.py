@@ -126,12 +126,12 @@ def scene_cv_predictions(F, y, groups, kind='all', C=1.0):
     without its scene); y: (m,) labels; groups: (m,) scene ids. Every object's class comes from
     a logistic regression fitted on the objects of the *other* groups only (features
     standardised with their mean and std). For ``kind='all'`` this is
-    :func:`beo_ros.core.training.train_classifier` (the shipped classifier format) and the
-    'unknown' check of ``ModelBank.classify_features`` is applied too.
+    :func:`beo_ros.core.classifier_training.train_classifier` (the shipped classifier format)
+    and the 'unknown' check of ``ModelBank.classify_features`` is applied too.
     Returns (pred (m,), unknown (m,) bool).
     """
     from .core.classifier import classifier_probabilities
-    from .core.training import train_classifier
+    from .core.classifier_training import train_classifier
     F = np.asarray(F, dtype=np.float64)
     y = np.asarray(y)
     groups = np.asarray(groups)
@@ -154,7 +154,7 @@ def scene_cv_predictions(F, y, groups, kind='all', C=1.0):
 
 
 def _logistic_predict(Z_train, y_train, Z_test, n_classes, C):
-    from .core.training import fit_logistic
+    from .core.classifier_training import fit_logistic
     clf = fit_logistic(Z_train, y_train, n_classes, C)
     z = (Z_test - clf['mean']) / clf['scale']
     return np.argmax(z @ clf['coef'].T + clf['intercept'], axis=1)

@@ -17,8 +17,9 @@ from .cli import count, existing_parent, interruptible, number, writable_dir
 from .core.classifier import parse_class_prior
 from .core.grid import GridSpec
 from .core.model_files import UNREADABLE, check_class_names, check_save_target, is_model_dir
-from .core.training import (check_class_counts, check_grid_size, drop_empty_objects, fit_bank,
-                            load_meshes, load_voxel_npz, select_classes, training_data_hash)
+from .core.datasets import (drop_empty_objects, load_meshes, load_voxel_npz, select_classes,
+                            training_data_hash)
+from .core.training import check_class_counts, check_grid_size, fit_bank
 
 
 # the values of the auto|on|off options, as fit_bank takes them

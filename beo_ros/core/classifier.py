@@ -20,7 +20,7 @@ MODES = ('complete', 'partial')
 POINTS_MODE = 'points'
 POINT_CLASSIFIER_KEYS = ('mean', 'scale', 'coef', 'intercept', 'unknown_threshold')
 OPTIONAL_CLASSIFIER_KEYS = ('class_counts',)
-# a grid classifier's optional hidden layer (training.fit_mlp): both arrays or neither
+# a grid classifier's optional hidden layer (classifier_training.fit_mlp): both arrays or neither
 HIDDEN_CLASSIFIER_KEYS = ('hidden_coef', 'hidden_intercept')
 # named class priors: 'train' keeps the classifier's own probabilities (its training rows'
 # class frequencies are its prior); 'uniform' treats every class as equally likely a priori
@@ -161,11 +161,11 @@ def classifier_probabilities(clf, Z, loglik, offset=None):
     'unknown': the winner explains the object far worse than its own training objects, or the
     classes that do explain it hold less than half the probability (the classifier compares
     classes with each other, so random clutter that only one class tolerates can still win).
-    How far below is set where the bounds are fitted (``training.loglik_bounds``).
+    How far below is set where the bounds are fitted (``classifier_training.loglik_bounds``).
     """
     L = np.atleast_2d(np.asarray(loglik, dtype=np.float64))
     z = (np.atleast_2d(np.asarray(Z, dtype=np.float64)) - clf['mean']) / clf['scale']
-    if 'hidden_coef' in clf:   # one ReLU layer (training.fit_mlp) before the softmax layer
+    if 'hidden_coef' in clf:   # classifier_training.fit_mlp's ReLU layer before the softmax one
         z = np.maximum(z @ np.asarray(clf['hidden_coef'], dtype=np.float64).T
                        + clf['hidden_intercept'], 0.0)
     logits = z @ np.asarray(clf['coef'], dtype=np.float64).T + clf['intercept']

@@ -262,11 +262,12 @@ def train_point_classifier(loglik, descriptors, y, n_classes, C=1.0):
     class models that did not see it (out-of-fold, e.g. ``oof_features.npz`` of
     ``beo-eval --scans``: ``features[:, :, 0]``); descriptors: (m, 2) finite side-normal
     descriptors; y: (m,) labels. A standardised logistic regression on the C + 2 inputs
-    (``training.fit_logistic``); ``unknown_threshold`` from ``training.loglik_bounds`` at
-    6 MADs (the shipped ``tabletop_32`` 'points' classifier was measured with it).
+    (``classifier_training.fit_logistic``); ``unknown_threshold`` from
+    ``classifier_training.loglik_bounds`` at 6 MADs (the shipped ``tabletop_32`` 'points'
+    classifier was measured with it).
     Returns dict(mean, scale, coef (C, C+2), intercept (C,), unknown_threshold (C,)).
     """
-    from .training import fit_logistic, loglik_bounds
+    from .classifier_training import fit_logistic, loglik_bounds
     L = np.asarray(loglik, dtype=np.float64).reshape(len(y), n_classes)
     D = np.asarray(descriptors, dtype=np.float64).reshape(len(y), -1)
     y = np.asarray(y)

@@ -1,8 +1,9 @@
-"""Training: per-class VBPCA models, out-of-fold classifier features, data loading."""
+"""Training: per-class VBPCA models, out-of-fold classifier features, the occupancy
+calibration and the orientation verifier, put together by :func:`fit_bank`. The classifier's
+fitting and choice are in :mod:`classifier_training`, data loading in :mod:`datasets`; their
+names are re-exported here."""
 from __future__ import annotations
 
-import hashlib
-import json
 import os
 import signal
 import sys
@@ -14,15 +15,34 @@ import numpy as np
 from .bank import ModelBank
 from .calibration import OccupancyCalibration, calibration_sums, metrics_from_sums
 from .class_model import ClassModel, coarse_noise
-from .classifier import classifier_input, prior_offset, resolve_class_prior
+from .classifier import resolve_class_prior
+from .classifier_training import (C_OPTIONS, CLASSIFIER_KINDS, MLP_ALPHA, MLP_HIDDEN,
+                                  MLP_MAX_ITER, UNKNOWN_MADS, _check_kind,
+                                  cross_validated_report, expected_calibration_error,
+                                  fit_logistic, fit_mlp, loglik_bounds, select_classifier,
+                                  train_classifier)
+from .datasets import (drop_empty_objects, load_meshes, load_voxel_npz, mesh_class_name,
+                       select_classes, training_data_hash)
 from .grid import yaw_error
-from .inference import FEATURE_NAMES
-from .model_files import UNREADABLE, check_class_names
+from .model_files import check_class_names
 from .shape import shape_descriptors
 from .synthetic import random_partial_view
 from .verifier import TURNS, OrientationVerifier, turned_features
 from .vbpca import VBPCA
 
+__all__ = [
+    # defined here
+    'progress_bar', 'fit_class_models', 'check_class_counts', 'stratified_folds',
+    'VERIFIER_CHUNK', 'verifier_training_set', 'fit_verifier', 'view_features',
+    'fit_occupancy_calibration', 'check_grid_size', 'fit_bank',
+    # re-exported from classifier_training
+    'MLP_HIDDEN', 'MLP_ALPHA', 'MLP_MAX_ITER', 'CLASSIFIER_KINDS', 'cross_validated_report',
+    'C_OPTIONS', 'UNKNOWN_MADS', 'expected_calibration_error', 'loglik_bounds', 'fit_logistic',
+    'fit_mlp', 'train_classifier', 'select_classifier',
+    # re-exported from datasets
+    'load_voxel_npz', 'drop_empty_objects', 'training_data_hash', 'select_classes',
+    'mesh_class_name', 'load_meshes',
+]
 
 def progress_bar(it, desc, total=None, disable=False):
     try:
@@ -248,278 +268,6 @@ def fit_occupancy_calibration(X, y, names, spec, k=20, folds=5, seed=0, views=1,
                       brier=float(np.sum(n_occ * (1 - q) ** 2 + n_free * q ** 2) / m),
                       log_loss=float(-np.sum(n_occ * np.log(qc) + n_free * np.log(1 - qc)) / m)))
     return cal, report
-
-
-# the network that select_classifier tries beside the logistic regression: one ReLU layer of
-# MLP_HIDDEN units, L2 penalty MLP_ALPHA (5-fold CV, mean over 2-3 fold seeds, on the
-# ModelNet10 out-of-fold rows, row-standardised + 43 descriptors, complete / partial accuracy:
-# logistic C = 0.1 0.911 / 0.895; 128 units at alpha 1 0.917 / 0.898 (ECE 0.01), at 0.1
-# 0.915 / 0.893 (ECE 0.04-0.06), at 3 0.911 / 0.894; 256 units at alpha 1 0.916; two layers
-# of 64 or the mean of five seeds' networks 0.917-0.918)
-MLP_HIDDEN = 128
-MLP_ALPHA = 1.0
-MLP_MAX_ITER = 1000
-CLASSIFIER_KINDS = ('logistic', 'mlp')
-
-
-def _network(hidden, alpha, seed):
-    """The unfitted one-layer ReLU network of :func:`fit_mlp` and of its cross-validation."""
-    from sklearn.neural_network import MLPClassifier
-    return MLPClassifier((int(hidden),), alpha=alpha, max_iter=MLP_MAX_ITER, random_state=seed)
-
-
-def _check_kind(kind, name):
-    """ValueError unless ``kind`` is one of CLASSIFIER_KINDS or 'auto'."""
-    if kind not in CLASSIFIER_KINDS + ('auto',):
-        raise ValueError(f"{name} must be one of {CLASSIFIER_KINDS + ('auto',)}, got {kind!r}")
-
-
-def cross_validated_report(F, y, records, C=1.0, folds=5, seed=0, row_standardize=False,
-                           groups=None, descriptors=None, class_prior='train', hidden=0,
-                           alpha=MLP_ALPHA):
-    """Accuracy (and, for partial views, yaw and IoU) of the classifier on out-of-fold features,
-    itself cross-validated: every object's class comes from a classifier that never saw it.
-
-    The classifier is the logistic regression at ``C``, or with ``hidden`` > 0 the one-layer
-    ReLU network of :func:`fit_mlp` with that many units and L2 penalty ``alpha``.
-
-    ``groups`` (r,): the object of every row, when objects have several rows (views); all
-    rows of an object then fall in the same fold. ``descriptors`` (r, D): shape descriptors
-    appended to the classifier input (see ``classifier_input``). ``class_prior``: the prior
-    the probabilities are moved to (``classifier.resolve_class_prior``; the rows' own class
-    frequencies are the classifier's prior); ``prior_accuracy`` is the accuracy expected when
-    classes occur with the prior's frequencies (sum of prior x recall; 'train': the accuracy,
-    'uniform': the balanced accuracy). Every other number is on these rows as they are.
-    """
-    from sklearn.linear_model import LogisticRegression
-    from sklearn.model_selection import StratifiedGroupKFold, StratifiedKFold, cross_val_predict
-    from sklearn.pipeline import make_pipeline
-    from sklearn.preprocessing import StandardScaler
-    if hidden:
-        clf = make_pipeline(StandardScaler(), _network(hidden, alpha, seed))
-    else:
-        clf = make_pipeline(StandardScaler(), LogisticRegression(C=C, max_iter=2000))
-    if groups is not None and len(np.unique(groups)) < len(y):
-        per_class = min(len(np.unique(groups[y == c])) for c in np.unique(y))
-        cv = StratifiedGroupKFold(n_splits=min(folds, per_class), shuffle=True, random_state=seed)
-    else:
-        groups = None
-        # counts of the classes present: a class index without rows (all its views skipped)
-        # is not a class of this cross-validation
-        cv = StratifiedKFold(n_splits=min(folds, int(np.unique(y, return_counts=True)[1].min())),
-                             shuffle=True, random_state=seed)
-    nf = len(FEATURE_NAMES)
-    P = cross_val_predict(clf, classifier_input(F, F.shape[1] // nf, row_standardize,
-                                                descriptors), y, cv=cv, groups=groups,
-                          method='predict_proba')
-    classes = np.unique(y)
-    n_classes = F.shape[1] // nf
-    counts = np.bincount(y, minlength=n_classes).astype(np.float64)
-    weights = resolve_class_prior(class_prior, range(n_classes))
-
-    def under(prior):  # the cross-validated probabilities moved to another class prior
-        if prior is None:
-            return P
-        Q = P * np.exp(prior_offset(counts, prior))[classes]
-        return Q / Q.sum(axis=1, keepdims=True)
-
-    uniform = np.full(n_classes, 1.0 / n_classes)
-    train_pred, uniform_pred = (classes[np.argmax(under(w), axis=1)] for w in (None, uniform))
-    P = under(weights)
-    pred = classes[np.argmax(P, axis=1)]
-    ml = np.argmax(F[:, 0::nf], axis=1)
-    recall = np.array([np.mean(pred[y == c] == c) for c in classes])
-    prior = counts[classes] / counts.sum() if weights is None else weights[classes]
-    p_true = P[np.arange(len(y)), np.searchsorted(classes, y)]
-    rep = dict(n=int(len(y)), accuracy=float(np.mean(pred == y)),
-               balanced_accuracy=float(np.mean(recall)),
-               prior_accuracy=float(prior @ recall / prior.sum()),
-               accuracy_max_likelihood=float(np.mean(ml == y)),
-               log_loss=float(-np.mean(np.log(np.maximum(p_true, 1e-12)))),
-               ece=expected_calibration_error(P.max(axis=1), pred == y))
-    # the same classifier under the two named priors, whichever was asked for
-    for name, pr in (('train', train_pred), ('uniform', uniform_pred)):
-        rep[f'accuracy_{name}_prior'] = float(np.mean(pr == y))
-        rep[f'balanced_accuracy_{name}_prior'] = float(np.mean([np.mean(pr[y == c] == c)
-                                                                for c in classes]))
-    if records and 'yaw_err' in records[0]:
-        err = np.rad2deg([r['yaw_err'][p] for r, p in zip(records, pred)])
-        err_true = np.rad2deg([r['yaw_err'][t] for r, t in zip(records, y)])
-        rep.update(yaw_within_10=float(np.mean(err <= 10)),
-                   yaw_within_10_or_flip=float(np.mean((err <= 10) | (err >= 170))),
-                   yaw_median_deg=float(np.median(err)),
-                   yaw_within_10_true_class=float(np.mean(err_true <= 10)),
-                   iou=float(np.mean([r['iou'][p] for r, p in zip(records, pred)])))
-    return {k: round(v, 4) if isinstance(v, float) else v for k, v in rep.items()}
-
-
-# regularisation strengths of the logistic regression that fit_bank cross-validates: with the
-# 72 inputs of the 12-descriptor classifier C = 1 overfits a little (5-fold CV on the
-# ModelNet10 out-of-fold features, complete / partial: C = 1 0.900 / 0.883, ECE 0.022 / 0.029;
-# C = 0.1 0.909 / 0.887, ECE 0.017 / 0.013); with the 103 inputs of the 43 descriptors
-# C = 1 0.909 / 0.889, C = 0.1 0.913 / 0.894)
-C_OPTIONS = (0.1, 0.3, 1.0)
-# the grid classifiers' 'unknown' bound, in scaled MADs below the median (see loglik_bounds)
-UNKNOWN_MADS = 8.0
-
-
-def expected_calibration_error(confidence, correct, bins=10):
-    """Expected calibration error: the mean over 10 equal-width confidence bins of
-    |mean confidence - accuracy|, weighted by the share of rows in the bin."""
-    confidence, correct = np.asarray(confidence, dtype=np.float64), np.asarray(correct)
-    edges = np.linspace(0.0, 1.0, bins + 1)
-    ece = 0.0
-    for a, b in zip(edges[:-1], edges[1:]):
-        m = (confidence > a) & (confidence <= b)
-        if m.any():
-            ece += m.mean() * abs(confidence[m].mean() - correct[m].mean())
-    return float(ece)
-
-
-def loglik_bounds(ll, y, n_classes, mads=UNKNOWN_MADS):
-    """Per-class lower bounds (C,) of the 'unknown' test from out-of-fold log-likelihoods.
-
-    ll: (m, C) per-voxel log-likelihood of every training object under every class; y: (m,).
-    The winning class must explain an object about as well as its own out-of-fold objects: a
-    robust bound (median - ``mads`` scaled MADs of their log-likelihood), so a single outlier
-    among them cannot drag it down; -inf for a class with fewer than 5 objects.
-    Every 'unknown' answer for an object of a known class is an error, so the bound is set by
-    how many of those it makes: on the ModelNet10 out-of-fold rows (shape-descriptor
-    classifier) 8 MADs flag 0.6 % of the complete objects and 0.3 % of the partial views,
-    6 MADs 1.4 % and 0.9 % (four fifths of them classified right), and both reject the same
-    random grids (10 % and >= 20 % of the voxels occupied; 15 % reads as night stand).
-    """
-    thr = np.full(n_classes, -np.inf)
-    for c in range(n_classes):
-        own = ll[y == c, c]
-        if len(own) >= 5:
-            med = np.median(own)
-            mad = 1.4826 * np.median(np.abs(own - med))
-            thr[c] = med - mads * max(mad, 1e-3)
-    return thr
-
-
-def fit_logistic(Z, y, n_classes, C=1.0):
-    """Standardised logistic regression on input rows Z (m, n_in) with labels y (m,) ->
-    dict(mean, scale (n_in,), coef (n_classes, n_in), intercept (n_classes,), class_counts
-    (n_classes,): the rows per class, its prior) in the softmax form of
-    ``classifier.classifier_probabilities``. Classes absent from y get intercept -30 (never
-    chosen); a binary fit becomes the two-class softmax with logits -z/2, +z/2: the regression's
-    own probabilities (logits -z, +z would square the odds).
-    """
-    from sklearn.linear_model import LogisticRegression
-    Z, mean, scale = _standardized(Z)
-    lr = LogisticRegression(C=C, max_iter=2000).fit(Z, y)
-    return dict(mean=mean, scale=scale,
-                **_softmax_head(lr.classes_, lr.coef_, lr.intercept_, n_classes, y))
-
-
-def _standardized(Z):
-    """(Z standardised per column, mean, scale) of input rows Z (m, n_in)."""
-    Z = np.asarray(Z, dtype=np.float64)
-    mean = Z.mean(axis=0)
-    scale = Z.std(axis=0) + 1e-9
-    return (Z - mean) / scale, mean, scale
-
-
-def _softmax_head(classes, coef_, intercept_, n_classes, y):
-    """coef (n_classes, n_in), intercept (n_classes,) and class_counts of a fitted scikit-learn
-    linear output layer (coef_ (K, n_in), intercept_ (K,) over the K ``classes`` present; one
-    row for a binary fit). Absent classes get intercept -30 (never chosen); a binary fit's one
-    logit z becomes the two-class softmax with logits -z/2, +z/2 (its own probabilities:
-    logits -z, +z would square the odds)."""
-    coef = np.zeros((n_classes, coef_.shape[1]))
-    intercept = np.full(n_classes, -30.0)
-    if len(classes) > 2:
-        coef[classes], intercept[classes] = coef_, intercept_
-    else:
-        coef[classes] = np.vstack([-coef_, coef_]) / 2
-        intercept[classes] = np.hstack([-intercept_, intercept_]) / 2
-    return dict(coef=coef, intercept=intercept,
-                class_counts=np.bincount(np.asarray(y), minlength=n_classes).astype(np.float64))
-
-
-def fit_mlp(Z, y, n_classes, hidden=MLP_HIDDEN, alpha=MLP_ALPHA, seed=0):
-    """A one-layer ReLU network (scikit-learn's MLPClassifier, ``hidden`` units, L2 penalty
-    ``alpha``) on standardised input rows Z (m, n_in) with labels y (m,) -> the dict of
-    :func:`fit_logistic` plus hidden_coef (hidden, n_in) and hidden_intercept (hidden,); coef
-    (n_classes, hidden) is then the softmax layer on the hidden units (see
-    ``classifier.classifier_probabilities``). Absent classes and a binary fit as in fit_logistic."""
-    Z, mean, scale = _standardized(Z)
-    net = _network(hidden, alpha, seed).fit(Z, y)
-    (w1, w2), (b1, b2) = net.coefs_, net.intercepts_
-    return dict(mean=mean, scale=scale, hidden_coef=w1.T.copy(), hidden_intercept=b1.copy(),
-                **_softmax_head(net.classes_, w2.T, b2, n_classes, y))
-
-
-def train_classifier(F, y, n_classes, C=1.0, row_standardize=False, descriptors=None, hidden=0,
-                     alpha=MLP_ALPHA, seed=0):
-    """Standardised multinomial logistic regression (or, with ``hidden`` > 0, the network of
-    :func:`fit_mlp`) on features F (r, C*F) [+ shape descriptors (r, D)] -> arrays dict
-    (``row_standardize``, ``descriptors``: see ``classifier_input``; ``descriptor_count``: D,
-    the first D of ``shape.DESCRIPTOR_NAMES``)."""
-    Z = classifier_input(F, n_classes, row_standardize, descriptors)
-    clf = fit_mlp(Z, y, n_classes, hidden, alpha, seed) if hidden else \
-        fit_logistic(Z, y, n_classes, C)
-    out = dict(clf, unknown_threshold=loglik_bounds(F[:, 0::len(FEATURE_NAMES)], y, n_classes),
-               row_standardize=np.asarray(bool(row_standardize)),
-               descriptors=np.asarray(descriptors is not None))
-    if descriptors is not None:
-        out['descriptor_count'] = np.asarray(np.shape(descriptors)[1], dtype=np.int64)
-    return out
-
-
-def select_classifier(F, y, records, objects, D, n_classes, C=C_OPTIONS, seed=0,
-                      row_standardize='auto', descriptors='auto', class_prior='train',
-                      kind='auto'):
-    """Cross-validate every classifier input (raw or row-standardised features, with or
-    without the shape descriptors D (r, D)) and model (the logistic regression at each
-    regularisation strength in ``C``, a number or a sequence, and the one-layer network of
-    :func:`fit_mlp`; ``kind``: 'logistic', 'mlp' or 'auto' for both) on out-of-fold features
-    F (r, C*F) with labels y and the object of every row, keep the most accurate under
-    ``class_prior`` (its ``prior_accuracy``; the first of equals, in that order: logistic
-    before the network), train it on all rows.
-
-    Returns (classifier dict, report dict: the winner's ``cross_validated_report`` plus its
-    row_standardize, descriptors, kind and C (logistic) or hidden and alpha (network), and
-    every option's accuracy).
-    """
-    _check_kind(kind, 'kind')
-    if row_standardize == 'auto':
-        rs_options = [False, True] if n_classes >= 3 else [False]
-    else:
-        rs_options = [row_standardize]
-    c_options = [float(c) for c in np.atleast_1d(C)]
-    models = ([('logistic', c) for c in c_options] if kind in ('auto', 'logistic') else []) \
-        + ([('mlp', MLP_ALPHA)] if kind in ('auto', 'mlp') else [])
-    options = [(r, d, m) for d in ([False, True] if descriptors == 'auto' else [descriptors])
-               for r in rs_options for m in models]
-
-    def model_args(m):
-        return dict(C=m[1]) if m[0] == 'logistic' else dict(hidden=MLP_HIDDEN, alpha=m[1])
-
-    reports = [cross_validated_report(F, y, records, seed=seed, row_standardize=r,
-                                      groups=objects, descriptors=D if d else None,
-                                      class_prior=class_prior, **model_args(m))
-               for r, d, m in options]
-    accs = [r['prior_accuracy'] for r in reports]
-    best = int(np.argmax(accs))
-    rs, use_d, m_best = options[best]
-    report = dict(reports[best], row_standardize=rs, descriptors=use_d, kind=m_best[0],
-                  **model_args(m_best),
-                  class_prior=class_prior if isinstance(class_prior, str) else
-                  [float(w) for w in resolve_class_prior(class_prior, range(n_classes))])
-    if len(options) > 1:
-        def label(r, d, m):
-            name = ('row-standardised' if r else 'raw') + (' + descriptors' if d else '')
-            if m[0] == 'mlp':
-                return name + f', MLP {MLP_HIDDEN} alpha={m[1]:g}'
-            return name + (f', C={m[1]:g}' if len(c_options) > 1 else '')
-        report['accuracy_other_input'] = max(a for j, a in enumerate(accs) if j != best)
-        report['accuracy_by_input'] = {label(*o): a for o, a in zip(options, accs)}
-    return train_classifier(F, y, n_classes, row_standardize=rs,
-                            descriptors=D if use_d else None, seed=seed,
-                            **model_args(m_best)), report
 
 
 def check_grid_size(n, verifier=False):
@@ -748,193 +496,3 @@ def _save_out_of_fold_rows(path, rows):
     from pathlib import Path
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     np.savez(path, **arrays)
-
-
-# ---------------------------------------------------------------------- data loading
-def _decode_voxels(path, vox, shape):
-    """(m, N^3) voxel rows and N from the 'voxels' array (and the 'shape' key, or None) of a
-    voxel npz: bit-packed (m, ceil(N^3 / 8)) uint8 rows when 'shape' says (N, N, N) is more
-    than the row holds; otherwise unpacked (m, N^3) or (m, N, N, N) values in {0, 1}."""
-    if not (vox.dtype == np.bool_ or np.issubdtype(vox.dtype, np.integer)
-            or np.issubdtype(vox.dtype, np.floating)):
-        raise ValueError(f'{path}: voxels must be numbers, got dtype {vox.dtype}')
-    if vox.ndim not in (2, 4):
-        raise ValueError(f'{path}: voxels must be (n, N^3) (bit-packed or not) or (n, N, N, N), '
-                         f'got shape {vox.shape}')
-    if shape is not None:
-        if len(shape) != 3 or len(set(shape)) != 1 or shape[0] < 1:
-            raise ValueError(f"{path}: 'shape' key must be (N, N, N), got {shape}")
-        n = shape[0]
-        packed_len = -(-n ** 3 // 8)
-        if vox.ndim == 2 and vox.dtype == np.uint8 and vox.shape[1] == packed_len and \
-                packed_len != n ** 3:
-            return np.unpackbits(vox, axis=1, count=n ** 3), n
-        if vox.shape[1:] not in ((n ** 3,), (n, n, n)):
-            raise ValueError(f"{path}: 'shape' key {shape} does not match voxels of shape "
-                             f'{vox.shape} (bit-packed: (n, {packed_len}) uint8; unpacked: '
-                             f'(n, {n ** 3}) or (n, {n}, {n}, {n}))')
-    elif vox.ndim == 4:
-        n = vox.shape[1]
-        if vox.shape[2:] != (n, n):
-            raise ValueError(f'{path}: voxel grids of shape {vox.shape[1:]} are not cubes')
-    else:
-        n = int(round(vox.shape[1] ** (1 / 3)))
-        if n ** 3 != vox.shape[1]:
-            hint = ''
-            if vox.dtype == np.uint8:
-                hint = (" (bit-packed voxels need the 'shape' key (N, N, N); this file has "
-                        "no 'shape' key)")
-            raise ValueError(f'{path}: voxel rows of {vox.shape[1]} values are not a cube{hint}')
-    X = vox.reshape(len(vox), -1)
-    bad = (X != 0) & (X != 1)
-    if bad.any():
-        v = X[bad][0].item()
-        hint = ''
-        if vox.dtype == np.uint8 and vox.ndim == 2:
-            hint = (" (bit-packed rows? they need the 'shape' key (N, N, N), which this file "
-                    "does not have)" if shape is None else
-                    f" (bit-packed rows? the 'shape' key {shape} makes rows of "
-                    f'{vox.shape[1]} values unpacked)')
-        raise ValueError(f'{path}: voxel values must be 0 or 1, found {v!r} in '
-                         f'{int(bad.any(axis=1).sum())} of {len(X)} objects{hint}')
-    return X, n
-
-
-def _check_labels(path, labels, names, m):
-    """labels as an int array after checking they index ``names``, one per object (m)."""
-    if labels.ndim != 1:
-        raise ValueError(f'{path}: labels must be a 1-D array, got shape {labels.shape}')
-    if len(labels) != m:
-        raise ValueError(f'{path}: {len(labels)} labels for {m} objects (voxels); need one '
-                         'label per object')
-    if labels.dtype == np.bool_ or np.issubdtype(labels.dtype, np.integer):
-        pass
-    elif np.issubdtype(labels.dtype, np.floating):
-        if not (np.isfinite(labels).all() and (labels == np.round(labels)).all()):
-            raise ValueError(f'{path}: labels must be integers (class indices), got '
-                             'non-integral values')
-    else:
-        raise ValueError(f'{path}: labels must be integers (class indices), got dtype '
-                         f'{labels.dtype}')
-    bad = (labels < 0) | (labels >= len(names))
-    if bad.any():
-        raise ValueError(f'{path}: labels must be in [0, {len(names)}) (indices into its '
-                         f'{len(names)} classes), found {labels[bad][0].item()!r} in '
-                         f'{int(bad.sum())} of {m} objects (first: object '
-                         f'{int(np.flatnonzero(bad)[0])})')
-    return labels.astype(int)
-
-
-def _head(path, n=8):
-    """The first ``n`` bytes of a file, or None when it cannot be read."""
-    try:
-        with open(path, 'rb') as f:
-            return f.read(n)
-    except OSError:
-        return None
-
-
-def load_voxel_npz(path, classes=None):
-    """(X (m, N^3) float32, labels (m,), class names, N) from a voxel npz in the shared format.
-
-    Keys: 'voxels', bit-packed (m, N^3 / 8) uint8 rows with a 'shape' key (N, N, N), or
-    unpacked (m, N^3) or (m, N, N, N) values in {0, 1} ('shape', if given, must match);
-    'labels', m integers in [0, len(classes)); 'classes', the class names. ValueError naming
-    the file for anything else.
-    """
-    try:
-        z = np.load(path, allow_pickle=False)
-        if not isinstance(z, np.lib.npyio.NpzFile):   # np.save output: one bare array
-            raise ValueError(f'{path}: holds a single array (an .npy file?), not a voxel npz '
-                             "with keys 'voxels', 'labels', 'classes'")
-        with z:
-            for key in ('voxels', 'labels', 'classes'):
-                if key not in z.files:
-                    raise ValueError(f'{path}: missing key {key!r} (has {z.files})')
-            vox, labels = z['voxels'], z['labels']
-            names = [str(c) for c in np.atleast_1d(z['classes'])]
-            shape = z['shape'] if 'shape' in z.files else None
-    except UNREADABLE as e:
-        if str(path) in str(e):
-            raise
-        head = _head(path)
-        if head is not None and not head.startswith((b'PK', b'\x93NUMPY')):
-            # numpy's own message here is about pickles, which says nothing useful
-            raise ValueError(f'{path}: not an npz file (it starts with {head!r})') from None
-        raise ValueError(f'{path}: not a readable voxel npz ({type(e).__name__}: {e})') from None
-    if shape is not None:
-        if not (np.issubdtype(shape.dtype, np.number) and np.isfinite(shape).all()
-                and (shape == np.round(shape)).all()):
-            raise ValueError(f"{path}: 'shape' key must be integers (N, N, N), got {shape!r}")
-        shape = tuple(int(s) for s in shape.ravel())
-    X, n = _decode_voxels(path, vox, shape)
-    labels = _check_labels(path, labels, names, len(X))
-    X = X.astype(np.float32)
-    if classes:
-        X, labels, names = select_classes(X, labels, names, classes, path)
-    return X, labels, names, n
-
-
-def drop_empty_objects(X, y, names):
-    """(X, y, dropped) without the objects that have no occupied voxel (nothing to learn a
-    shape from); ``dropped``: {class name: count} of the classes that lost objects. ValueError
-    when a class has no object left."""
-    empty = ~(np.asarray(X) > 0.5).any(axis=1)
-    counts = np.bincount(np.asarray(y, dtype=int)[empty], minlength=len(names))
-    dropped = {name: int(c) for name, c in zip(names, counts) if c}
-    left = np.bincount(np.asarray(y, dtype=int)[~empty], minlength=len(names))
-    gone = [name for name, c, e in zip(names, left, counts) if e and not c]
-    if gone:
-        raise ValueError(f'classes {gone} have no object with an occupied voxel '
-                         f'(empty objects per class: {dropped})')
-    return X[~empty], y[~empty], dropped
-
-
-def training_data_hash(X, y, names):
-    """SHA-256 (hex) of a training set's occupancy (X > 0.5), labels and class names: recorded
-    in the manifest so that ``beo-train --calibrate-only`` can tell other data apart."""
-    X = np.asarray(X)
-    h = hashlib.sha256(json.dumps([list(map(str, names)), list(X.shape)]).encode())
-    h.update(np.packbits(X > 0.5, axis=-1).tobytes())
-    h.update(np.asarray(y, dtype='<i8').tobytes())
-    return h.hexdigest()
-
-
-def select_classes(X, labels, names, classes, where):
-    """(X, labels, names) of only the objects of ``classes``, labels renumbered in that order;
-    ValueError naming ``where`` for a class not in ``names`` or given twice."""
-    twice = sorted({c for c in classes if list(classes).count(c) > 1})
-    if twice:
-        raise ValueError(f'{where}: classes {twice} given more than once')
-    keep = [names.index(c) if c in names else None for c in classes]
-    missing = [c for c, k in zip(classes, keep) if k is None]
-    if missing:
-        raise ValueError(f'{where}: classes {missing} not in {names}')
-    remap = {old: new for new, old in enumerate(keep)}
-    sel = np.isin(labels, keep)
-    return X[sel], np.array([remap[v] for v in labels[sel]], dtype=int), list(classes)
-
-
-def mesh_class_name(path) -> str:
-    """The class of a mesh file: the name before a last '_' followed by digits only, as in
-    ModelNet's ``chair_0001.off`` (``night_stand_0001.off`` -> 'night_stand'), else the name
-    of the folder holding it (``mugs/red_mug.off`` -> 'mugs')."""
-    from pathlib import Path
-    path = Path(path)
-    head, sep, tail = path.stem.rpartition('_')
-    if sep and head and tail.isdigit():
-        return head
-    return path.absolute().parent.name
-
-
-def load_meshes(paths, size):
-    """Voxelize mesh files; the class of each is :func:`mesh_class_name`."""
-    from pathlib import Path
-    from .meshes import load_mesh, voxelize_mesh
-    X, names_of = [], []
-    for p in paths:
-        p = Path(p)
-        X.append(voxelize_mesh(load_mesh(p), size).ravel())
-        names_of.append(mesh_class_name(p))
-    names = sorted(set(names_of))
-    return np.array(X, dtype=np.float32), np.array([names.index(s) for s in names_of]), names
