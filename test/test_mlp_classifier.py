@@ -1,4 +1,4 @@
-"""The one-layer network classifier (training.fit_mlp) in the shipped classifier format."""
+"""The one-layer network classifier (classifier_training.fit_mlp) in the shipped classifier format."""
 import numpy as np
 import pytest
 
