@@ -75,6 +75,21 @@ def _output_problem(path) -> str | None:
     return None
 
 
+def _refuse_output(p, path):
+    """Exit with the parser's usage error (2) when a new bag cannot be made at ``path``."""
+    problem = _output_problem(path)
+    if problem:
+        p.error(problem)
+
+
+def _valid(p, check, *args):
+    """``check(*args)``, its ValueError turned into the parser's usage error (exit 2)."""
+    try:
+        return check(*args)
+    except ValueError as e:
+        p.error(str(e))
+
+
 def _nothing_to_play(args, stats) -> str:
     """Why a replay sent nothing: its topics are empty, or the bag has none that matches."""
     if stats.topics:
@@ -128,11 +143,8 @@ def replay_main(argv=None) -> int:
     args = p.parse_args(argv)
     if args.topics and args.all_topics:
         p.error('--topics and --all-topics exclude each other')
-    try:
-        remap = parse_remaps(args.remap)
-        check_node_name(args.node_name)
-    except ValueError as e:
-        p.error(str(e))
+    remap = _valid(p, parse_remaps, args.remap)
+    _valid(p, check_node_name, args.node_name)
     if not Path(args.bag).exists():
         p.error(f'no such bag: {args.bag}')
     code = 0
@@ -200,14 +212,9 @@ def record_main(argv=None) -> int:
     p.add_argument('--node-name', default='beo_record')
     p.add_argument('--json', action='store_true', help='print the report as JSON')
     args = p.parse_args(argv)
-    try:
-        specs = parse_topic_specs(args.topics)
-        check_node_name(args.node_name)
-    except ValueError as e:
-        p.error(str(e))
-    problem = _output_problem(args.output)
-    if problem:
-        p.error(problem)
+    specs = _valid(p, parse_topic_specs, args.topics)
+    _valid(p, check_node_name, args.node_name)
+    _refuse_output(p, args.output)
     code = 0
     with _cli_node(args.node_name) as (node, stop):
         try:
@@ -257,13 +264,8 @@ def pcd2bag_main(argv=None) -> int:
     missing = [s for s in args.scenes if not Path(s).is_file()]
     if missing:
         p.error(f'no such file: {", ".join(missing)}')
-    try:
-        check_topic_name(args.topic)
-    except ValueError as e:
-        p.error(str(e))
-    problem = _output_problem(args.output)
-    if problem:
-        p.error(problem)
+    _valid(p, check_topic_name, args.topic)
+    _refuse_output(p, args.output)
     try:
         summary = pcd_to_bag(args.scenes, args.output, storage=args.storage, topic=args.topic,
                              frame_id=args.frame, period=args.period,
@@ -306,9 +308,7 @@ def recover_main(argv=None) -> int:
                    help="the new bag's storage (default: the old one's)")
     p.add_argument('--json', action='store_true', help='print the summary as JSON')
     args = p.parse_args(argv)
-    problem = _output_problem(args.output)
-    if problem:
-        p.error(problem)
+    _refuse_output(p, args.output)
     try:
         summary = recover_bag(args.bag, args.output, storage=args.storage)
     except (ValueError, KeyError) as e:   # not a bag, nothing intact, a type without a definition
