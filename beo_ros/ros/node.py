@@ -46,7 +46,7 @@ from beo_ros.core.bank import load_models, parse_class_prior, resolve_model_dir,
 from beo_ros.ros.conversions import (CloudFormatError, cloud_to_xyz, completed_cloud,
                                      estimate_to_msg, interfaces)
 from beo_ros.ros.markers import object_markers
-from beo_ros.ros.params import (CHECKED_AT_START, VALUES, declare, default_model_dir, refusal,
+from beo_ros.ros.params import (CHECKED_AT_START, declare, default_model_dir, refusal,
                                 vector_reason)
 from beo_ros.ros.procpool import (BrokenProcessPool, EstimateTimeout, EstimatorPool, PoolRetired,
                                   warm_up_points)
@@ -383,10 +383,11 @@ class BeoNode(Node):
             limits.restore_original_limits()
 
     def _declare_parameters(self):
-        declare(self.declare_parameter)
+        # what _params reads: every parameter but input_topics (read once, at start-up)
+        self._values = tuple(n for n in declare(self.declare_parameter) if n != 'input_topics')
 
     def _params(self) -> dict:
-        return {p: self.get_parameter(p).value for p in VALUES}
+        return {p: self.get_parameter(p).value for p in self._values}
 
     def _on_set_parameters(self, params) -> SetParametersResult:
         merged = self._params()

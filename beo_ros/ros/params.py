@@ -17,13 +17,6 @@ from beo_ros.core.voxelize import MAX_COORDINATE, MIN_POINTS
 DEFAULT_MODEL = 'modelnet10_32'
 MIN_ESTIMATE_TIMEOUT = 1.0  # s; an estimate takes 0.03-0.1 s
 INPUT_RELIABILITY = ('best_effort', 'reliable')
-# what BeoNode._params reads (every parameter but input_topics)
-VALUES = ('model_dir', 'input_reliability', 'base_frame', 'sensor_origin', 'up_vector',
-          'yaw_step_deg',
-          'min_points', 'max_points', 'outlier_mads', 'outlier_neighbors', 'cluster_tolerance',
-          'completion_threshold', 'publish_completed',
-          'class_prior', 'diagnostics_period', 'workers', 'worker_processes', 'blas_threads',
-          'estimate_timeout')
 # checked with check() when the node starts (class_prior and model_dir: by loading the models)
 CHECKED_AT_START = ('sensor_origin', 'up_vector', 'min_points', 'max_points', 'workers',
                     'worker_processes', 'completion_threshold', 'yaw_step_deg',
@@ -63,10 +56,15 @@ def _idesc(description, lo, hi, read_only=False):
                                integer_range=[IntegerRange(from_value=lo, to_value=hi, step=1)])
 
 
-def declare(declare_parameter):
+def declare(declare_parameter) -> tuple:
     """Declare every parameter (name, default value, ParameterDescriptor) with
-    ``declare_parameter`` (a node's), in this order."""
-    d = declare_parameter
+    ``declare_parameter`` (a node's), in this order; returns their names."""
+    names = []
+
+    def d(name, value, descriptor):
+        names.append(name)
+        declare_parameter(name, value, descriptor)
+
     d('model_dir', default_model_dir(), ParameterDescriptor(
         description="Directory of the trained BEO model bank ('' = the shipped "
                     f"models/{DEFAULT_MODEL}; a shipped model's name such as 'tabletop_32' "
@@ -138,6 +136,7 @@ def declare(declare_parameter):
     d('blas_threads', 1, _idesc('Threads of the BLAS library for the node process and '
                                 'each worker process (0: leave its default); parallelism '
                                 'comes from the workers. Read-only', 0, 64, read_only=True))
+    return tuple(names)
 
 
 def check(name, value, merged) -> str | None:
