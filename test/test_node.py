@@ -1555,3 +1555,23 @@ def test_node_is_warm_before_it_subscribes(ros_context, ros_tiny_model_dir):
         assert 'warm_up' in node.latency_p50()
     finally:
         node.destroy_node()
+
+
+def test_the_warm_up_estimate_counts_no_removed_points(ros_context, ros_tiny_model_dir):
+    """The warm-up's synthetic cloud is no input: before, with outlier_mads 2.0 and
+    cluster_tolerance 0.01 (legal values) its removed points were counted in outlier_points and
+    off_cluster_points before any cloud arrived."""
+    from beo_ros.ros.node import BeoNode
+    from beo_ros.core.outliers import clean_points
+    from beo_ros.ros.procpool import warm_up_points
+    _, n_out, n_off = clean_points(warm_up_points(), 2.0, 8, 0.01)
+    assert n_out > 0 and n_off > 0   # the warm-up cloud loses points to these settings
+    node = BeoNode(context=ros_context, parameter_overrides=[
+        Parameter('model_dir', value=ros_tiny_model_dir), Parameter('outlier_mads', value=2.0),
+        Parameter('cluster_tolerance', value=0.01)])
+    try:
+        assert 'warm_up' in node.latency_p50()
+        c = node.counters()
+        assert c['outlier_points'] == 0 and c['off_cluster_points'] == 0, c
+    finally:
+        node.destroy_node()

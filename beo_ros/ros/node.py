@@ -456,7 +456,8 @@ class BeoNode(Node):
             self._counters[key] += n
 
     def _count_removed(self, est):
-        """Count the points the estimator removed before the voxelization."""
+        """Count the points the estimator removed from an input cloud before the voxelization
+        (not from the warm-up's synthetic one)."""
         with self._stats_lock:
             self._counters['outlier_points'] += est.n_outliers
             self._counters['off_cluster_points'] += est.n_off_cluster
@@ -646,7 +647,6 @@ class BeoNode(Node):
                         timeout=p['estimate_timeout'] or None)
                 except ValueError as e:
                     raise InputRejected(f'estimator rejected the cloud: {e}') from e
-                self._count_removed(est)
                 return est, classes
             bank = self._bank  # one bank per estimate, even if model_dir is reloaded meanwhile
             try:
@@ -655,7 +655,6 @@ class BeoNode(Node):
                                            **cleaning)
             except ValueError as e:
                 raise InputRejected(f'estimator rejected the cloud: {e}') from e
-            self._count_removed(est)
             return est, list(bank.classes)
         finally:
             self._est_slots.release()
@@ -800,6 +799,7 @@ class BeoNode(Node):
             except InputRejected as e:
                 self._reject(topic, e)
                 return
+            self._count_removed(est)
             t2 = time.monotonic()
             self._record('estimate', t2 - t1)
             for stage, sec in (est.timings or {}).items():
@@ -896,6 +896,7 @@ class BeoNode(Node):
                 up = [u.x, u.y, u.z]
             pts, origin, up = self._prepare(request.cloud, p, origin, up)
             est, classes = self._estimate(pts, origin, up, p, threshold, priority=True)
+            self._count_removed(est)
             header = request.cloud.header
             response.estimate = estimate_to_msg(
                 est, header, name, time.monotonic() - t0, include_cloud=False,
