@@ -1575,3 +1575,25 @@ def test_the_warm_up_estimate_counts_no_removed_points(ros_context, ros_tiny_mod
         assert c['outlier_points'] == 0 and c['off_cluster_points'] == 0, c
     finally:
         node.destroy_node()
+
+
+def test_a_service_call_during_destroy_node_is_counted(harness1, capfd):
+    """A call that comes while destroy_node waits for a cloud in flight is answered 'the node
+    is shutting down' and, as the README says, counted in service_dropped_shutdown and logged
+    (before: counted nowhere, not even in service_calls)."""
+    harness = harness1
+    node, gated, msg = _gated_node(harness, 1)
+    node._on_cloud(msg, '/beo/input')
+    gated.wait(lambda g: len(g.entered) == 1)
+    destroying = threading.Thread(target=node.destroy_node)
+    try:
+        destroying.start()
+        assert _until(lambda: node._destroyed)
+        r = harness.call(harness.classify, harness.good_request())
+        assert not r.success and r.message == 'the node is shutting down'
+        c = node.counters()
+        assert c['service_calls'] == 1 and c['service_dropped_shutdown'] == 1, c
+    finally:
+        gated.gate.set()
+        destroying.join(timeout=TIMEOUT)
+    assert 'the call came during the shutdown' in capfd.readouterr().err

@@ -868,7 +868,12 @@ class BeoNode(Node):
 
         thread = threading.Thread(target=run, name='beo_service', daemon=True)
         with self._svc_threads_lock:
-            if self._destroyed:
+            if self._destroyed:   # a call cut short by the shutdown: counted as in _serve
+                self._count('service_calls')
+                self._count('service_dropped_shutdown')
+                self._shutdown_logger().info(
+                    f"~/{'complete' if complete else 'classify'}: call not served, the node "
+                    'is shutting down')
                 response.success = False
                 response.message = 'the node is shutting down'
                 return response
@@ -1063,8 +1068,8 @@ class BeoNode(Node):
                      'estimated while shutting down')
         lost = self._counters['service_dropped_shutdown']
         if lost:
-            log.info(f'{lost} service answer(s) computed while shutting down could not be '
-                     'sent')
+            log.info(f'{lost} service answer(s) not given: computed while shutting down, too '
+                     'late to be sent, or the call came during the shutdown')
         self._destroy_rcl(log)
 
     def _destroy_rcl(self, log):
