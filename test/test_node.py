@@ -1626,3 +1626,39 @@ def test_the_warm_up_estimate_is_not_rejected_by_a_small_cluster_tolerance(
         assert node.counters()['off_cluster_points'] == 0
     finally:
         node.destroy_node()
+
+
+def test_the_warm_up_estimate_fits_a_small_metric_grid(ros_context, ros_tiny_model_dir,
+                                                         tmp_path, monkeypatch):
+    """A metric model whose grid is smaller than the 0.4 m warm-up face (16 x 5 mm = 8 cm,
+    for small objects): before, no warm-up point fell inside the grid, the warm-up estimate
+    was rejected (the node's and the worker processes') and the first real cloud paid it."""
+    import dataclasses
+
+    from beo_ros.core.bank import load_models
+    from beo_ros.ros.node import BeoNode
+    from beo_ros.ros.procpool import warm_up_points
+    bank = load_models(ros_tiny_model_dir)
+    bank.spec = dataclasses.replace(bank.spec, units='metric', voxel_size=0.005)
+    bank.save(tmp_path / 'small')
+    outcomes = []
+    estimate = BeoNode._estimate
+
+    def recording(self, *args, **kwargs):
+        try:
+            out = estimate(self, *args, **kwargs)
+        except Exception as e:
+            outcomes.append(e)
+            raise
+        outcomes.append('ok')
+        return out
+
+    monkeypatch.setattr(BeoNode, '_estimate', recording)
+    node = BeoNode(context=ros_context, parameter_overrides=[
+        Parameter('model_dir', value=str(tmp_path / 'small'))])
+    try:
+        assert outcomes == ['ok']
+    finally:
+        node.destroy_node()
+    bank = load_models(tmp_path / 'small')
+    bank.estimate_points(warm_up_points(bank.spec))   # the worker processes' warm-up

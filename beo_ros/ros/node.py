@@ -505,7 +505,8 @@ class BeoNode(Node):
         # and the first real cloud paid the warm-up
         p = dict(self._params(), outlier_mads=0.0, cluster_tolerance=0.0)
         try:
-            self._estimate(warm_up_points(), np.zeros(3), np.array([0.0, 0.0, 1.0]), p, 0.5)
+            self._estimate(warm_up_points(self._bank.spec), np.zeros(3),
+                           np.array([0.0, 0.0, 1.0]), p, 0.5)
         except Exception as e:  # warm-up is best effort
             self.get_logger().debug(f'warm-up estimate failed: {type(e).__name__}: {e}')
         self._record('warm_up', time.monotonic() - t0)
