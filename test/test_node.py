@@ -1662,3 +1662,24 @@ def test_the_warm_up_estimate_fits_a_small_metric_grid(ros_context, ros_tiny_mod
         node.destroy_node()
     bank = load_models(tmp_path / 'small')
     bank.estimate_points(warm_up_points(bank.spec))   # the worker processes' warm-up
+
+
+def test_a_cloud_that_comes_during_destroy_node_is_counted(harness1):
+    """A cloud that the executor (still spinning) hands over while destroy_node waits for the
+    cloud in flight: no worker takes it; it is counted in dropped_shutdown (before: in
+    received only, and the README's identity no longer held)."""
+    harness = harness1
+    node, gated, msg = _gated_node(harness, 1)
+    node._on_cloud(msg, '/beo/input')
+    gated.wait(lambda g: len(g.entered) == 1)
+    destroying = threading.Thread(target=node.destroy_node)
+    try:
+        destroying.start()
+        assert _until(lambda: node._stop)
+        node._on_cloud(msg, '/beo/input2')
+    finally:
+        gated.gate.set()
+        destroying.join(timeout=TIMEOUT)
+    c = node.counters()
+    assert (c['received'], c['processed'], c['dropped_shutdown']) == (2, 1, 1), c
+    assert not node._slots

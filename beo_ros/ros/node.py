@@ -489,6 +489,9 @@ class BeoNode(Node):
         """Subscription callback: keep only the latest cloud per topic."""
         with self._cond:
             self._count('received')
+            if self._stop:   # destroy_node has begun: no worker takes it any more
+                self._count('dropped_shutdown')
+                return
             if topic in self._slots:
                 self._count('dropped_stale')
             self._slots[topic] = (msg, time.monotonic())
