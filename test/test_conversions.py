@@ -143,6 +143,22 @@ def test_empty_cloud_without_data():
     assert out.shape == (0, 3) and dropped == 0
 
 
+def test_empty_cloud_without_fields_is_empty():
+    # the completed_cloud the node leaves empty in its ObjectEstimate (and a failed Complete
+    # response's) is PointCloud2() with its header: before, the package's own parser refused
+    # it ('lacks field(s) x, y, z'); a cloud with points and no fields still is refused
+    from beo_ros.ros.conversions import estimate_to_msg
+    from beo_ros.core.estimate import Estimate
+    z = np.zeros((4, 4, 4), np.float32)
+    est = Estimate(label='chair', scores={'chair': 1.0}, yaw=0.0, completion=z, variance=z)
+    msg = estimate_to_msg(est, Header(frame_id='cam'))
+    out, dropped = cloud_to_xyz(msg.completed_cloud)
+    assert out.shape == (0, 3) and dropped == 0
+    msg.completed_cloud.width = msg.completed_cloud.height = 1
+    with pytest.raises(CloudFormatError, match='lacks field'):
+        cloud_to_xyz(msg.completed_cloud)
+
+
 def test_unorganized_zero_row_step_tolerated(pts):
     msg = hand_cloud(pts, [('x', 0, F32), ('y', 4, F32), ('z', 8, F32)], 12)
     msg.row_step = 0

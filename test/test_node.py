@@ -1555,3 +1555,131 @@ def test_node_is_warm_before_it_subscribes(ros_context, ros_tiny_model_dir):
         assert 'warm_up' in node.latency_p50()
     finally:
         node.destroy_node()
+
+
+def test_the_warm_up_estimate_counts_no_removed_points(ros_context, ros_tiny_model_dir):
+    """The warm-up's synthetic cloud is no input: before, with outlier_mads 2.0 and
+    cluster_tolerance 0.01 (legal values) its removed points were counted in outlier_points and
+    off_cluster_points before any cloud arrived."""
+    from beo_ros.ros.node import BeoNode
+    from beo_ros.core.outliers import clean_points
+    from beo_ros.ros.procpool import warm_up_points
+    _, n_out, n_off = clean_points(warm_up_points(), 2.0, 8, 0.01)
+    assert n_out > 0 and n_off > 0   # the warm-up cloud loses points to these settings
+    node = BeoNode(context=ros_context, parameter_overrides=[
+        Parameter('model_dir', value=ros_tiny_model_dir), Parameter('outlier_mads', value=2.0),
+        Parameter('cluster_tolerance', value=0.01)])
+    try:
+        assert 'warm_up' in node.latency_p50()
+        c = node.counters()
+        assert c['outlier_points'] == 0 and c['off_cluster_points'] == 0, c
+    finally:
+        node.destroy_node()
+
+
+def test_a_service_call_during_destroy_node_is_counted(harness1, capfd):
+    """A call that comes while destroy_node waits for a cloud in flight is answered 'the node
+    is shutting down' and, as the README says, counted in service_dropped_shutdown and logged
+    (before: counted nowhere, not even in service_calls)."""
+    harness = harness1
+    node, gated, msg = _gated_node(harness, 1)
+    node._on_cloud(msg, '/beo/input')
+    gated.wait(lambda g: len(g.entered) == 1)
+    destroying = threading.Thread(target=node.destroy_node)
+    try:
+        destroying.start()
+        assert _until(lambda: node._destroyed)
+        r = harness.call(harness.classify, harness.good_request())
+        assert not r.success and r.message == 'the node is shutting down'
+        c = node.counters()
+        assert c['service_calls'] == 1 and c['service_dropped_shutdown'] == 1, c
+    finally:
+        gated.gate.set()
+        destroying.join(timeout=TIMEOUT)
+    assert 'the call came during the shutdown' in capfd.readouterr().err
+
+
+def test_the_warm_up_estimate_is_not_rejected_by_a_small_cluster_tolerance(
+        ros_context, ros_tiny_model_dir, monkeypatch):
+    """cluster_tolerance 0.005 (for a dense sensor) is below the warm-up face's point spacing:
+    before, the warm-up estimate was rejected (a debug line) and the first real cloud paid the
+    warm-up (0.49 s instead of 0.08 s with the shipped models)."""
+    from beo_ros.ros.node import BeoNode
+    outcomes = []
+    estimate = BeoNode._estimate
+
+    def recording(self, *args, **kwargs):
+        try:
+            out = estimate(self, *args, **kwargs)
+        except Exception as e:
+            outcomes.append(e)
+            raise
+        outcomes.append('ok')
+        return out
+
+    monkeypatch.setattr(BeoNode, '_estimate', recording)
+    node = BeoNode(context=ros_context, parameter_overrides=[
+        Parameter('model_dir', value=ros_tiny_model_dir),
+        Parameter('cluster_tolerance', value=0.005)])
+    try:
+        assert outcomes == ['ok']
+        assert node.counters()['off_cluster_points'] == 0
+    finally:
+        node.destroy_node()
+
+
+def test_the_warm_up_estimate_fits_a_small_metric_grid(ros_context, ros_tiny_model_dir,
+                                                         tmp_path, monkeypatch):
+    """A metric model whose grid is smaller than the 0.4 m warm-up face (16 x 5 mm = 8 cm,
+    for small objects): before, no warm-up point fell inside the grid, the warm-up estimate
+    was rejected (the node's and the worker processes') and the first real cloud paid it."""
+    import dataclasses
+
+    from beo_ros.core.bank import load_models
+    from beo_ros.ros.node import BeoNode
+    from beo_ros.ros.procpool import warm_up_points
+    bank = load_models(ros_tiny_model_dir)
+    bank.spec = dataclasses.replace(bank.spec, units='metric', voxel_size=0.005)
+    bank.save(tmp_path / 'small')
+    outcomes = []
+    estimate = BeoNode._estimate
+
+    def recording(self, *args, **kwargs):
+        try:
+            out = estimate(self, *args, **kwargs)
+        except Exception as e:
+            outcomes.append(e)
+            raise
+        outcomes.append('ok')
+        return out
+
+    monkeypatch.setattr(BeoNode, '_estimate', recording)
+    node = BeoNode(context=ros_context, parameter_overrides=[
+        Parameter('model_dir', value=str(tmp_path / 'small'))])
+    try:
+        assert outcomes == ['ok']
+    finally:
+        node.destroy_node()
+    bank = load_models(tmp_path / 'small')
+    bank.estimate_points(warm_up_points(bank.spec))   # the worker processes' warm-up
+
+
+def test_a_cloud_that_comes_during_destroy_node_is_counted(harness1):
+    """A cloud that the executor (still spinning) hands over while destroy_node waits for the
+    cloud in flight: no worker takes it; it is counted in dropped_shutdown (before: in
+    received only, and the README's identity no longer held)."""
+    harness = harness1
+    node, gated, msg = _gated_node(harness, 1)
+    node._on_cloud(msg, '/beo/input')
+    gated.wait(lambda g: len(g.entered) == 1)
+    destroying = threading.Thread(target=node.destroy_node)
+    try:
+        destroying.start()
+        assert _until(lambda: node._stop)
+        node._on_cloud(msg, '/beo/input2')
+    finally:
+        gated.gate.set()
+        destroying.join(timeout=TIMEOUT)
+    c = node.counters()
+    assert (c['received'], c['processed'], c['dropped_shutdown']) == (2, 1, 1), c
+    assert not node._slots

@@ -52,7 +52,9 @@ def cloud_to_xyz(msg: PointCloud2):
 
     Returns:
         ``(points, n_dropped)``: points float64 (n, 3) in ``msg.header.frame_id``; n_dropped is
-        the number of points removed as non-finite. An empty cloud gives ``(zeros((0, 3)), 0)``.
+        the number of points removed as non-finite. An empty cloud gives ``(zeros((0, 3)), 0)``,
+        also one without fields (``PointCloud2()``, as the ``completed_cloud`` the node leaves
+        empty in its ObjectEstimate).
 
     Raises:
         CloudFormatError: missing, duplicate, overlapping or non-float x/y/z, a field
@@ -62,6 +64,8 @@ def cloud_to_xyz(msg: PointCloud2):
     height, width = int(msg.height), int(msg.width)
     point_step, row_step = int(msg.point_step), int(msg.row_step)
     n_points = height * width
+    if n_points == 0 and not msg.fields:   # a default PointCloud2(), e.g. an unfilled field
+        return np.zeros((0, 3), dtype=np.float64), 0
     fields = {}
     for f in msg.fields:
         # only x, y, z must be unique (PCD pads with repeated '_' fields, others are ignored)

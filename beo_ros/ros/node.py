@@ -456,7 +456,8 @@ class BeoNode(Node):
             self._counters[key] += n
 
     def _count_removed(self, est):
-        """Count the points the estimator removed before the voxelization."""
+        """Count the points the estimator removed from an input cloud before the voxelization
+        (not from the warm-up's synthetic one)."""
         with self._stats_lock:
             self._counters['outlier_points'] += est.n_outliers
             self._counters['off_cluster_points'] += est.n_off_cluster
@@ -488,6 +489,9 @@ class BeoNode(Node):
         """Subscription callback: keep only the latest cloud per topic."""
         with self._cond:
             self._count('received')
+            if self._stop:   # destroy_node has begun: no worker takes it any more
+                self._count('dropped_shutdown')
+                return
             if topic in self._slots:
                 self._count('dropped_stale')
             self._slots[topic] = (msg, time.monotonic())
@@ -499,9 +503,13 @@ class BeoNode(Node):
         if self._n_procs:
             return
         t0 = time.monotonic()
+        # without the point cleaning (nothing in it to warm up): a cluster_tolerance below the
+        # synthetic face's point spacing (2 cm) left too few points, the estimate was rejected
+        # and the first real cloud paid the warm-up
+        p = dict(self._params(), outlier_mads=0.0, cluster_tolerance=0.0)
         try:
-            self._estimate(warm_up_points(), np.zeros(3), np.array([0.0, 0.0, 1.0]),
-                           self._params(), 0.5)
+            self._estimate(warm_up_points(self._bank.spec), np.zeros(3),
+                           np.array([0.0, 0.0, 1.0]), p, 0.5)
         except Exception as e:  # warm-up is best effort
             self.get_logger().debug(f'warm-up estimate failed: {type(e).__name__}: {e}')
         self._record('warm_up', time.monotonic() - t0)
@@ -646,7 +654,6 @@ class BeoNode(Node):
                         timeout=p['estimate_timeout'] or None)
                 except ValueError as e:
                     raise InputRejected(f'estimator rejected the cloud: {e}') from e
-                self._count_removed(est)
                 return est, classes
             bank = self._bank  # one bank per estimate, even if model_dir is reloaded meanwhile
             try:
@@ -655,7 +662,6 @@ class BeoNode(Node):
                                            **cleaning)
             except ValueError as e:
                 raise InputRejected(f'estimator rejected the cloud: {e}') from e
-            self._count_removed(est)
             return est, list(bank.classes)
         finally:
             self._est_slots.release()
@@ -800,6 +806,7 @@ class BeoNode(Node):
             except InputRejected as e:
                 self._reject(topic, e)
                 return
+            self._count_removed(est)
             t2 = time.monotonic()
             self._record('estimate', t2 - t1)
             for stage, sec in (est.timings or {}).items():
@@ -868,7 +875,12 @@ class BeoNode(Node):
 
         thread = threading.Thread(target=run, name='beo_service', daemon=True)
         with self._svc_threads_lock:
-            if self._destroyed:
+            if self._destroyed:   # a call cut short by the shutdown: counted as in _serve
+                self._count('service_calls')
+                self._count('service_dropped_shutdown')
+                self._shutdown_logger().info(
+                    f"~/{'complete' if complete else 'classify'}: call not served, the node "
+                    'is shutting down')
                 response.success = False
                 response.message = 'the node is shutting down'
                 return response
@@ -896,6 +908,7 @@ class BeoNode(Node):
                 up = [u.x, u.y, u.z]
             pts, origin, up = self._prepare(request.cloud, p, origin, up)
             est, classes = self._estimate(pts, origin, up, p, threshold, priority=True)
+            self._count_removed(est)
             header = request.cloud.header
             response.estimate = estimate_to_msg(
                 est, header, name, time.monotonic() - t0, include_cloud=False,
@@ -1062,8 +1075,8 @@ class BeoNode(Node):
                      'estimated while shutting down')
         lost = self._counters['service_dropped_shutdown']
         if lost:
-            log.info(f'{lost} service answer(s) computed while shutting down could not be '
-                     'sent')
+            log.info(f'{lost} service answer(s) not given: computed while shutting down, too '
+                     'late to be sent, or the call came during the shutdown')
         self._destroy_rcl(log)
 
     def _destroy_rcl(self, log):

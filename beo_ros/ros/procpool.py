@@ -37,10 +37,15 @@ class EstimateTimeout(TimeoutError):
     broken; estimates waiting on it get BrokenProcessPool)."""
 
 
-def warm_up_points() -> np.ndarray:
-    """(400, 3) points on the face of a box 0.8 m ahead of a sensor at the origin, z up."""
+def warm_up_points(spec=None) -> np.ndarray:
+    """(400, 3) points on the face of a box 0.8 m ahead of a sensor at the origin, z up: 0.4 m
+    across, or half the grid of a metric ``spec`` (a model's GridSpec) when that is smaller (a
+    face larger than the grid has no point in it and the warm-up estimate is rejected)."""
+    side = 0.4
+    if spec is not None and spec.units == 'metric':
+        side = min(side, 0.5 * spec.size * spec.voxel_size)
     rng = np.random.default_rng(0)
-    pts = rng.uniform(-0.2, 0.2, size=(400, 3)) + [1.0, 0.0, 0.0]
+    pts = rng.uniform(-side / 2, side / 2, size=(400, 3)) + [1.0, 0.0, 0.0]
     pts[:, 0] = 0.8
     return pts
 
@@ -75,7 +80,7 @@ def _init(bank, blas_threads, parent_pid=None):
             pass
     _bank = bank
     try:  # the first estimate fills caches; no real cloud should pay for it
-        _bank.estimate_points(warm_up_points())
+        _bank.estimate_points(warm_up_points(_bank.spec))
     except Exception:  # noqa: BLE001 - warm-up is best effort
         pass
 
