@@ -192,7 +192,8 @@ def point_spacing(points: np.ndarray, n_queries: int = 2000) -> float:
 
 
 def facing_squares(points: np.ndarray, origin: np.ndarray, half: float) -> tuple:
-    """A square of half-width ``half`` around each point, facing ``origin`` (same units).
+    """A square of half-width ``half`` around each point, facing ``origin`` (same units); a
+    point at ``origin`` faces no way and gets a square of no size (it blocks no ray).
 
     Returns (vertices float32 (4k, 3), triangles uint32 (2k, 3)).
     """
@@ -203,7 +204,8 @@ def facing_squares(points: np.ndarray, origin: np.ndarray, half: float) -> tuple
     helper = np.zeros_like(d)
     helper[np.arange(len(d)), np.argmin(np.abs(d), axis=1)] = 1.0
     u = np.cross(d, helper)
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    # (d = 0 at the origin: u stays 0, not NaN, which would make Embree miss every ray)
+    u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-12)
     w = np.cross(d, u) * half
     u *= half
     v = np.stack([p - u - w, p + u - w, p + u + w, p - u + w], axis=1).reshape(-1, 3)
@@ -278,6 +280,9 @@ def label_free_unknown(occupied: np.ndarray, origin_grid, close_holes: bool = Tr
         ov, ot = cube_soup(np.asarray(occluder_voxels))
         verts, tris = np.concatenate([verts, ov]), np.concatenate([tris, ot + len(verts)])
     if splats is not None and len(splats) and splat_half > 0:
+        # nor do points in it (a self-return would otherwise hide the whole view behind it)
+        splats = np.asarray(splats, dtype=np.float64)
+        splats = splats[np.any(np.floor(splats + 0.5) != sensor_voxel, axis=1)]
         sv, st = facing_squares(splats, o, splat_half)
         verts, tris = np.concatenate([verts, sv]), np.concatenate([tris, st + len(verts)])
     if len(tris):
