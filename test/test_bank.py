@@ -775,6 +775,20 @@ def test_estimate_points_pose_and_points(tiny):
     assert 'voxelize' in e.timings and e.label in tiny.classes + ['unknown']
 
 
+def test_estimate_points_pose_keeps_its_precision_far_from_the_origin(tiny):
+    # the pose is float64: its centre came from the float32 completed points, 1-13 mm off at
+    # 1e4-1e6 m (a map frame), while the grid placement (float64) stayed exact
+    occ = tiny.models[0].mean.reshape((N,) * 3) > 0.5
+    pts, origin = render_view_points(occ, 0.5, 0.3, np.deg2rad(30), distance=2.0, size=0.4)
+    e0 = tiny.estimate_points(pts, sensor_origin=origin, outlier_mads=None)
+    shift = np.array([9e5, -7e5, 10.0])
+    e = tiny.estimate_points(pts + shift, sensor_origin=origin + shift, outlier_mads=None)
+    np.testing.assert_allclose(e.grid_to_input[:3, 3] - shift, e0.grid_to_input[:3, 3],
+                               atol=1e-6)
+    np.testing.assert_allclose(e.pose[:3, 3] - shift, e0.pose[:3, 3], atol=1e-6)
+    assert e.completed_points.dtype == np.float32
+
+
 def test_estimate_points_heading_is_the_same_from_every_side(tiny):
     # yaw is in the grid frame, whose x axis follows the bearing from the sensor; yaw +
     # heading_offset is the heading in the input frame (here up = +z: from the x axis)

@@ -716,10 +716,12 @@ class ModelBank:
         R_grid = T[:3, :3] / np.linalg.norm(T[:3, :3], axis=0)
         pose = np.eye(4)
         pose[:3, :3] = R_grid @ yaw_matrix(est.yaw)
-        pts, prob = grid_to_points(est.completion, T, threshold)
+        # float64 points for the pose: float32 ones are centimetres off at 1e6 m
+        pts, prob = grid_to_points(est.completion, T, threshold, dtype=np.float64)
         c = (self.spec.size - 1) / 2.0
-        pose[:3, 3] = object_centre(pts if len(pts) else grid_to_points(view.grid, T, 1)[0],
-                                    pose[:3, :3], T @ np.array([c, c, c, 1.0]))
+        pose[:3, 3] = object_centre(
+            pts if len(pts) else grid_to_points(view.grid, T, 1, dtype=np.float64)[0],
+            pose[:3, :3], T @ np.array([c, c, c, 1.0]))
         est.pose = pose
         est.heading_offset = heading_offset(R_grid, up)
         est.grid_to_input = T

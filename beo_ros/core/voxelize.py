@@ -464,14 +464,16 @@ def _sparse_splats(g: np.ndarray, inside: np.ndarray, occ: np.ndarray,
     return splats, half
 
 
-def grid_to_points(grid_or_prob, grid_to_input, threshold: float = 0.5) -> tuple:
+def grid_to_points(grid_or_prob, grid_to_input, threshold: float = 0.5,
+                   dtype=np.float32) -> tuple:
     """Centres of voxels with value >= ``threshold``, in the input frame.
 
     Args:
         grid_or_prob: (N, N, N) labelled grid or occupancy probabilities, indexed [x, y, z].
         grid_to_input: (4, 4) homogeneous grid index coords -> input frame.
+        dtype: of the points (float32 rounds coordinates of 1e5 m to 8 mm).
 
-    Returns (points float32 (m, 3), values float32 (m,)).
+    Returns (points ``dtype`` (m, 3), values float32 (m,)).
     """
     g = np.asarray(grid_or_prob)
     if g.ndim != 3:
@@ -481,4 +483,4 @@ def grid_to_points(grid_or_prob, grid_to_input, threshold: float = 0.5) -> tuple
         raise ValueError('grid_to_input must be a finite (4, 4) matrix')
     idx = np.argwhere(g >= threshold)
     pts = idx @ t[:3, :3].T + t[:3, 3]
-    return pts.astype(np.float32), g[tuple(idx.T)].astype(np.float32)
+    return pts.astype(dtype), g[tuple(idx.T)].astype(np.float32)
