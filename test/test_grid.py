@@ -145,6 +145,17 @@ def test_gridspec_dict_round_trip(spec):
     assert spec.shape == (spec.size,) * 3
 
 
+def test_gridspec_of_numpy_scalars_goes_into_json():
+    # a voxel size computed from a float32 cloud: the manifest's json.dumps refused
+    # np.float32 when ModelBank.save wrote it, after every class file
+    import json
+    spec = GridSpec(size=np.int64(16), units='metric', voxel_size=np.float32(0.32) / 16,
+                    fill=np.float32(0.5))
+    d = json.loads(json.dumps(spec.to_dict()))
+    assert type(d['voxel_size']) is float and d['voxel_size'] == pytest.approx(0.02)
+    assert GridSpec.from_dict(d) == spec
+
+
 def _shape(n=16):
     g = np.zeros((n, n, n), bool)
     g[3:13, 5:11, 0:6] = True     # a 10 x 6 slab: the same after half a turn only

@@ -51,6 +51,9 @@ class GridSpec:
             raise ValueError(f'GridSpec.voxel_size must be a number, got {self.voxel_size!r}')
         if not 0 < _real(self.fill) <= 1:
             raise ValueError(f'GridSpec.fill must be in (0, 1], got {self.fill!r}')
+        # plain floats: a numpy scalar (np.float32(0.01)) would not go into the JSON manifest
+        object.__setattr__(self, 'voxel_size', voxel_size)
+        object.__setattr__(self, 'fill', _real(self.fill))
         if self.anchor not in ANCHORS:
             raise ValueError(f'GridSpec.anchor must be one of {ANCHORS}, got {self.anchor!r}')
 
