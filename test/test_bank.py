@@ -68,6 +68,19 @@ def test_save_load_round_trip_gives_identical_estimates(tiny_dir, tiny, tmp_path
     assert m1['files'] == m2['files']
 
 
+def test_save_writes_numpy_scalars_of_the_training_settings(tiny, tmp_path):
+    # fit_bank(k=np.int64(20)) records k in ``training``: json.dumps refused the manifest
+    bank = ModelBank(tiny.models, tiny.spec, tiny.classifier,
+                     dict(tiny.training, k=np.int64(4), fill=np.float32(0.5),
+                          sizes=np.arange(2)), tiny.pose_components)
+    loaded = ModelBank.load(bank.save(tmp_path / 'm'))
+    assert loaded.training['k'] == 4 and loaded.training['fill'] == 0.5
+    assert loaded.training['sizes'] == [0, 1]
+    with pytest.raises(TypeError, match='manifest cannot hold'):
+        ModelBank(tiny.models, tiny.spec, training={'x': object()}).save(tmp_path / 'n')
+    assert not (tmp_path / 'n').exists()
+
+
 @pytest.mark.parametrize('which', [0, 1])
 def test_estimate_contract(tiny, which):
     grid = views()[which]

@@ -266,7 +266,8 @@ class ModelBank:
             'features': list(FEATURE_NAMES),
             'training': self.training, 'files': files,
         }
-        (path / 'manifest.json').write_text(json.dumps(manifest, indent=2) + '\n')
+        (path / 'manifest.json').write_text(json.dumps(manifest, indent=2, default=_json_value)
+                                            + '\n')
 
     @classmethod
     def load(cls, path, class_prior=None):
@@ -735,6 +736,14 @@ class ModelBank:
             est.timings['point_descriptors'] = t2 - t1
         est.timings['total'] = time.perf_counter() - t0
         return est
+
+
+def _json_value(value):
+    """A numpy scalar or array in the manifest (e.g. ``training=dict(k=np.int64(20))``) as the
+    JSON value of its Python equivalent; TypeError for anything else JSON cannot hold."""
+    if isinstance(value, (np.generic, np.ndarray)):
+        return value.tolist()
+    raise TypeError(f'the manifest cannot hold {type(value).__name__} {value!r} (JSON)')
 
 
 def object_centre(points, rotation, fallback) -> np.ndarray:
