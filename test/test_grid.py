@@ -3,8 +3,8 @@ itself, and GridSpec."""
 import numpy as np
 import pytest
 
-from beo_ros.core.grid import (GridSpec, rotate_grid, symmetric_turns, yaw_error_up_to, yaw_matrix,
-                                wrap_yaw, yaw_source_index)
+from beo_ros.core.grid import (GridSpec, rotate_grid, symmetric_turns, yaw_error, yaw_error_up_to,
+                                yaw_matrix, wrap_yaw, yaw_source_index)
 
 
 def test_rotate_90_moves_x_to_y_odd_grid():
@@ -130,6 +130,15 @@ def test_wrap_yaw_stays_below_pi():
         w = wrap_yaw(y)
         assert -np.pi <= w < np.pi and w == pytest.approx(-np.pi), y
     assert wrap_yaw(0.5) == 0.5 and wrap_yaw(-0.5 - 2 * np.pi) == pytest.approx(-0.5)
+
+
+def test_wrap_yaw_of_a_huge_yaw_is_its_angle():
+    # 1e20 + pi == 1e20 in float64: the wrapped yaw was another angle than np.mod(1e20, 2 pi),
+    # the one the rotation maps use, so estimate(grid, yaw=1e20) reported a yaw it did not use
+    from beo_ros.core.inference import yaw_key
+    for y in (1e16, -1e16, 1e20, 2.0 ** 80, 7.0):
+        assert yaw_error(wrap_yaw(y), yaw_key(y)) < 1e-8, y
+        assert yaw_error(wrap_yaw(y), np.mod(y, 2 * np.pi)) < 1e-12, y
 
 
 @pytest.mark.parametrize('spec', [

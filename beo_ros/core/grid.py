@@ -111,6 +111,9 @@ def yaw_grid(step_deg) -> np.ndarray:
 
 def wrap_yaw(yaw) -> float:
     """A yaw in radians as a float in [-pi, pi)."""
+    yaw = float(yaw)
+    if abs(yaw) > 2 * np.pi:   # whole turns off first: yaw + pi rounds away a huge yaw's angle
+        yaw = float(np.mod(yaw, 2 * np.pi))
     y = float(np.mod(yaw + np.pi, 2 * np.pi) - np.pi)
     return -np.pi if y >= np.pi else y   # np.mod rounds a yaw just below -pi up to 2 pi
 
