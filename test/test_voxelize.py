@@ -310,6 +310,9 @@ def test_far_sensor_keeps_voxel_precision():
     (dict(center=[0, 0, 1e9]), 'center must lie within'),
     (dict(points=np.ones((100, 3))), 'not an object'),                  # all at one place
     (dict(points=np.ones((100, 3)), floor=-1.0), 'not an object'),      # floor adds no extent
+    # a TypeError (cannot cast) before: x, y, z records, as a PCD or PointCloud2 reader gives
+    (dict(points=np.rec.fromarrays(box_front(100).T, names='x,y,z')), 'array of numbers'),
+    (dict(points={'x': 1.0}), 'points must be an'),
 ])
 def test_validation(kwargs, match):
     args = dict(points=box_front(100), sensor_origin=np.zeros(3), up=[0, 0, 1], spec=GridSpec(8))

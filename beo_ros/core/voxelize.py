@@ -54,7 +54,11 @@ class ViewGrid:
 # ----------------------------------------------------------------------------------- validation
 
 def _check_points(points, min_points: int) -> np.ndarray:
-    pts = np.asarray(points, dtype=np.float64)
+    try:
+        pts = np.asarray(points, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError):   # a structured array, text, a dict, ...
+        dtype = getattr(points, 'dtype', type(points).__name__)
+        raise ValueError(f'points must be an (n, 3) array of numbers, got {dtype}') from None
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f'points must be an (n, 3) array, got shape {pts.shape}')
     pts = pts[np.isfinite(pts).all(axis=1)]
