@@ -667,6 +667,18 @@ def test_a_single_array_under_an_npz_name_is_named(tmp_path, tiny_dir):
             ModelBank.load(q)
 
 
+def test_a_classifier_array_without_a_mode_is_named(tmp_path, tiny_dir):
+    # it was called 'unreadable: ValueError: not enough values to unpack'
+    from beo_ros.core.bank import _sha256
+    p = _copy(tiny_dir, tmp_path)
+    np.savez(p / 'classifier.npz', stray=np.zeros(2))
+    m = _manifest(p)
+    m['files']['classifier.npz'] = _sha256(p / 'classifier.npz')
+    _write_manifest(p, m)
+    with pytest.raises(ModelError, match="array 'stray' is not named '<mode>__<array>'"):
+        ModelBank.load(p)
+
+
 @pytest.mark.parametrize('text', ['{"format": ' + '9' * 5000 + '}', '[' * 100000 + ']' * 100000])
 def test_a_manifest_json_cannot_parse_is_named(tmp_path, tiny_dir, text):
     # an integer of over 4300 digits (ValueError) and deep nesting (RecursionError)
