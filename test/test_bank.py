@@ -876,6 +876,19 @@ def test_pose_centre_is_the_middle_of_a_short_object_on_a_bottom_grid():
     assert np.linalg.norm(e.pose[:2, 3]) < 0.03, e.pose[:3, 3]
 
 
+def test_too_few_points_left_by_the_cleaning_says_so(tiny):
+    # 100 finite points, 98 off the largest cluster: the error said "need at least 10 finite
+    # points, got 2", as if the cloud had 2 finite points
+    rng = np.random.default_rng(0)
+    pts = np.c_[np.full(100, 1.0), rng.uniform(-0.05, 0.05, 100), rng.uniform(0, 0.1, 100)]
+    with pytest.raises(ValueError, match=r'got 2 of the 100 finite ones after removing 0 '
+                                         r'outliers .* and 98 outside the largest cluster '
+                                         r'\(cluster_tolerance 0.001\)'):
+        tiny.estimate_points(pts, cluster_tolerance=0.001)
+    with pytest.raises(ValueError, match='need at least 10 finite points, got 5'):
+        tiny.estimate_points(pts[:5])
+
+
 @pytest.mark.parametrize('threshold', [float('nan'), 0.0, -1.0, 1.5, True])
 def test_estimate_points_refuses_a_threshold_that_is_no_probability(tiny, threshold):
     occ = tiny.models[0].mean.reshape((N,) * 3) > 0.5

@@ -696,13 +696,20 @@ class ModelBank:
         grows faster than the points (5 s for a million): downsample big clouds first, as the
         node does (``max_points``).
         """
-        from .voxelize import finite_points, grid_to_points, unit_direction, voxelize_view
+        from .voxelize import (MIN_POINTS, finite_points, grid_to_points, unit_direction,
+                               voxelize_view)
         if isinstance(threshold, (bool, np.bool_)) or not 0 < threshold <= 1:   # and NaN
             raise ValueError(f'threshold must be an occupancy probability in (0, 1], got '
                              f'{threshold}')
         t0 = time.perf_counter()
+        finite = finite_points(points)
         pts_in, n_outliers, n_off_cluster = clean_points(
-            finite_points(points), outlier_mads, outlier_neighbors, cluster_tolerance)
+            finite, outlier_mads, outlier_neighbors, cluster_tolerance)
+        if len(pts_in) < MIN_POINTS:   # voxelize_view would say "finite points": name why
+            raise ValueError(f'need at least {MIN_POINTS} points, got {len(pts_in)} of the '
+                             f'{len(finite)} finite ones after removing {n_outliers} outliers '
+                             f'(outlier_mads {outlier_mads}) and {n_off_cluster} outside the '
+                             f'largest cluster (cluster_tolerance {cluster_tolerance})')
         t_out = time.perf_counter()
         view = voxelize_view(pts_in, sensor_origin, up, self.spec, center=center)
         t1 = time.perf_counter()
