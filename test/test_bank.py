@@ -889,7 +889,7 @@ def test_too_few_points_left_by_the_cleaning_says_so(tiny):
         tiny.estimate_points(pts[:5])
 
 
-@pytest.mark.parametrize('threshold', [float('nan'), 0.0, -1.0, 1.5, True])
+@pytest.mark.parametrize('threshold', [float('nan'), 0.0, -1.0, 1.5, True, '0.5', None])
 def test_estimate_points_refuses_a_threshold_that_is_no_probability(tiny, threshold):
     occ = tiny.models[0].mean.reshape((N,) * 3) > 0.5
     pts, origin = render_view_points(occ, 0.5, 0.3, np.deg2rad(30), distance=2.0, size=0.4)
@@ -1724,7 +1724,11 @@ def test_estimate_refuses_a_yaw_that_is_not_a_finite_number(tiny, yaw):
                                 dict(refine_deg=1e9), dict(stage2_window_deg=float('nan')),
                                 dict(stage2_window_deg=-5), dict(n_hypotheses=-1),
                                 dict(n_hypotheses=2.5), dict(stage2_modes=-2),
-                                dict(stage2_modes=True)])
+                                dict(stage2_modes=True),
+                                # no numbers: TypeErrors of '<=' before
+                                dict(refine_deg='3'), dict(refine_deg=None),
+                                dict(stage2_window_deg=[15]), dict(refine_deg=1j),
+                                dict(point_features='ab'), dict(point_features=[0.5, 'x'])])
 def test_estimate_refuses_bad_search_settings(tiny, kw):
     n = tiny.spec.size
     grid = np.zeros((n,) * 3, dtype=np.int8)

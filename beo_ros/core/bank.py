@@ -24,7 +24,8 @@ from .classifier import (CLASS_PRIORS, HIDDEN_CLASSIFIER_KEYS, MODES, OPTIONAL_C
                          classifier_probabilities, descriptor_count, parse_class_prior,
                          prior_offset, resolve_class_prior, uses_descriptors)
 from .estimate import UNKNOWN_LABEL, Estimate, Hypothesis
-from .grid import GridSpec, symmetric_turns, unit_vector, wrap_yaw as _wrap, yaw_grid, yaw_matrix
+from .grid import (GridSpec, _real, symmetric_turns, unit_vector, wrap_yaw as _wrap, yaw_grid,
+                   yaw_matrix)
 from .inference import FEATURE_NAMES, InferenceEngine, observed_edt, top_modes, top_yaw_modes
 from .model_files import (CLASS_KEYS, FORMAT, OPTIONAL_CLASS_KEYS, OPTIONAL_FILES, UNREADABLE,
                           VERSION, _check_checksums, _check_manifest_settings, _load_class_models,
@@ -619,7 +620,11 @@ class ModelBank:
         mode = 'complete' if (grid < 0).mean() < 0.01 else 'partial'
         rule, note = None, ''
         if point_features is not None:
-            point_features = np.asarray(point_features, dtype=np.float64).reshape(-1)
+            try:
+                point_features = np.asarray(point_features, dtype=np.float64).reshape(-1)
+            except (TypeError, ValueError):
+                raise ValueError(f'point_features must be 2 numbers (r4, frac10), got '
+                                 f'{point_features!r}') from None
             if point_features.shape != (2,):
                 raise ValueError(f'point_features must be 2 values (r4, frac10), got shape '
                                  f'{point_features.shape}')
@@ -698,9 +703,9 @@ class ModelBank:
         """
         from .voxelize import (MIN_POINTS, finite_points, grid_to_points, unit_direction,
                                voxelize_view)
-        if isinstance(threshold, (bool, np.bool_)) or not 0 < threshold <= 1:   # and NaN
+        if not 0 < _real(threshold) <= 1:   # NaN for NaN and what is no real number
             raise ValueError(f'threshold must be an occupancy probability in (0, 1], got '
-                             f'{threshold}')
+                             f'{threshold!r}')
         t0 = time.perf_counter()
         finite = finite_points(points)
         pts_in, n_outliers, n_off_cluster = clean_points(
@@ -846,8 +851,8 @@ def _check_estimate_options(yaw_step_deg, search_step_deg, probe_deg, refine_deg
     if stage2_window_deg is None:
         stage2_window_deg = 0.0
     for name, value in (('refine_deg', refine_deg), ('stage2_window_deg', stage2_window_deg)):
-        if isinstance(value, (bool, np.bool_)) or not 0 <= value <= 180:   # and NaN
-            raise ValueError(f'{name} must be in [0, 180] degrees, got {value}')
+        if not 0 <= _real(value) <= 180:   # NaN for NaN and what is no real number
+            raise ValueError(f'{name} must be in [0, 180] degrees, got {value!r}')
     check_count('n_hypotheses', n_hypotheses)
     if stage2_modes is not None:
         check_count('stage2_modes', stage2_modes)
