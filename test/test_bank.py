@@ -68,6 +68,19 @@ def test_save_load_round_trip_gives_identical_estimates(tiny_dir, tiny, tmp_path
     assert m1['files'] == m2['files']
 
 
+def test_save_writes_numpy_scalars_of_the_training_settings(tiny, tmp_path):
+    # fit_bank(k=np.int64(20)) records k in ``training``: json.dumps refused the manifest
+    bank = ModelBank(tiny.models, tiny.spec, tiny.classifier,
+                     dict(tiny.training, k=np.int64(4), fill=np.float32(0.5),
+                          sizes=np.arange(2)), tiny.pose_components)
+    loaded = ModelBank.load(bank.save(tmp_path / 'm'))
+    assert loaded.training['k'] == 4 and loaded.training['fill'] == 0.5
+    assert loaded.training['sizes'] == [0, 1]
+    with pytest.raises(TypeError, match='manifest cannot hold'):
+        ModelBank(tiny.models, tiny.spec, training={'x': object()}).save(tmp_path / 'n')
+    assert not (tmp_path / 'n').exists()
+
+
 @pytest.mark.parametrize('which', [0, 1])
 def test_estimate_contract(tiny, which):
     grid = views()[which]
@@ -654,6 +667,18 @@ def test_a_single_array_under_an_npz_name_is_named(tmp_path, tiny_dir):
             ModelBank.load(q)
 
 
+def test_a_classifier_array_without_a_mode_is_named(tmp_path, tiny_dir):
+    # it was called 'unreadable: ValueError: not enough values to unpack'
+    from beo_ros.core.bank import _sha256
+    p = _copy(tiny_dir, tmp_path)
+    np.savez(p / 'classifier.npz', stray=np.zeros(2))
+    m = _manifest(p)
+    m['files']['classifier.npz'] = _sha256(p / 'classifier.npz')
+    _write_manifest(p, m)
+    with pytest.raises(ModelError, match="array 'stray' is not named '<mode>__<array>'"):
+        ModelBank.load(p)
+
+
 @pytest.mark.parametrize('text', ['{"format": ' + '9' * 5000 + '}', '[' * 100000 + ']' * 100000])
 def test_a_manifest_json_cannot_parse_is_named(tmp_path, tiny_dir, text):
     # an integer of over 4300 digits (ValueError) and deep nesting (RecursionError)
@@ -775,6 +800,20 @@ def test_estimate_points_pose_and_points(tiny):
     assert 'voxelize' in e.timings and e.label in tiny.classes + ['unknown']
 
 
+def test_estimate_points_pose_keeps_its_precision_far_from_the_origin(tiny):
+    # the pose is float64: its centre came from the float32 completed points, 1-13 mm off at
+    # 1e4-1e6 m (a map frame), while the grid placement (float64) stayed exact
+    occ = tiny.models[0].mean.reshape((N,) * 3) > 0.5
+    pts, origin = render_view_points(occ, 0.5, 0.3, np.deg2rad(30), distance=2.0, size=0.4)
+    e0 = tiny.estimate_points(pts, sensor_origin=origin, outlier_mads=None)
+    shift = np.array([9e5, -7e5, 10.0])
+    e = tiny.estimate_points(pts + shift, sensor_origin=origin + shift, outlier_mads=None)
+    np.testing.assert_allclose(e.grid_to_input[:3, 3] - shift, e0.grid_to_input[:3, 3],
+                               atol=1e-6)
+    np.testing.assert_allclose(e.pose[:3, 3] - shift, e0.pose[:3, 3], atol=1e-6)
+    assert e.completed_points.dtype == np.float32
+
+
 def test_estimate_points_heading_is_the_same_from_every_side(tiny):
     # yaw is in the grid frame, whose x axis follows the bearing from the sensor; yaw +
     # heading_offset is the heading in the input frame (here up = +z: from the x axis)
@@ -837,7 +876,20 @@ def test_pose_centre_is_the_middle_of_a_short_object_on_a_bottom_grid():
     assert np.linalg.norm(e.pose[:2, 3]) < 0.03, e.pose[:3, 3]
 
 
-@pytest.mark.parametrize('threshold', [float('nan'), 0.0, -1.0, 1.5, True])
+def test_too_few_points_left_by_the_cleaning_says_so(tiny):
+    # 100 finite points, 98 off the largest cluster: the error said "need at least 10 finite
+    # points, got 2", as if the cloud had 2 finite points
+    rng = np.random.default_rng(0)
+    pts = np.c_[np.full(100, 1.0), rng.uniform(-0.05, 0.05, 100), rng.uniform(0, 0.1, 100)]
+    with pytest.raises(ValueError, match=r'got 2 of the 100 finite ones after removing 0 '
+                                         r'outliers .* and 98 outside the largest cluster '
+                                         r'\(cluster_tolerance 0.001\)'):
+        tiny.estimate_points(pts, cluster_tolerance=0.001)
+    with pytest.raises(ValueError, match='need at least 10 finite points, got 5'):
+        tiny.estimate_points(pts[:5])
+
+
+@pytest.mark.parametrize('threshold', [float('nan'), 0.0, -1.0, 1.5, True, '0.5', None])
 def test_estimate_points_refuses_a_threshold_that_is_no_probability(tiny, threshold):
     occ = tiny.models[0].mean.reshape((N,) * 3) > 0.5
     pts, origin = render_view_points(occ, 0.5, 0.3, np.deg2rad(30), distance=2.0, size=0.4)
@@ -1672,7 +1724,11 @@ def test_estimate_refuses_a_yaw_that_is_not_a_finite_number(tiny, yaw):
                                 dict(refine_deg=1e9), dict(stage2_window_deg=float('nan')),
                                 dict(stage2_window_deg=-5), dict(n_hypotheses=-1),
                                 dict(n_hypotheses=2.5), dict(stage2_modes=-2),
-                                dict(stage2_modes=True)])
+                                dict(stage2_modes=True),
+                                # no numbers: TypeErrors of '<=' before
+                                dict(refine_deg='3'), dict(refine_deg=None),
+                                dict(stage2_window_deg=[15]), dict(refine_deg=1j),
+                                dict(point_features='ab'), dict(point_features=[0.5, 'x'])])
 def test_estimate_refuses_bad_search_settings(tiny, kw):
     n = tiny.spec.size
     grid = np.zeros((n,) * 3, dtype=np.int8)

@@ -3,8 +3,8 @@ itself, and GridSpec."""
 import numpy as np
 import pytest
 
-from beo_ros.core.grid import (GridSpec, rotate_grid, symmetric_turns, yaw_error_up_to, yaw_matrix,
-                                wrap_yaw, yaw_source_index)
+from beo_ros.core.grid import (GridSpec, rotate_grid, symmetric_turns, yaw_error, yaw_error_up_to,
+                                yaw_matrix, wrap_yaw, yaw_source_index)
 
 
 def test_rotate_90_moves_x_to_y_odd_grid():
@@ -132,6 +132,15 @@ def test_wrap_yaw_stays_below_pi():
     assert wrap_yaw(0.5) == 0.5 and wrap_yaw(-0.5 - 2 * np.pi) == pytest.approx(-0.5)
 
 
+def test_wrap_yaw_of_a_huge_yaw_is_its_angle():
+    # 1e20 + pi == 1e20 in float64: the wrapped yaw was another angle than np.mod(1e20, 2 pi),
+    # the one the rotation maps use, so estimate(grid, yaw=1e20) reported a yaw it did not use
+    from beo_ros.core.inference import yaw_key
+    for y in (1e16, -1e16, 1e20, 2.0 ** 80, 7.0):
+        assert yaw_error(wrap_yaw(y), yaw_key(y)) < 1e-8, y
+        assert yaw_error(wrap_yaw(y), np.mod(y, 2 * np.pi)) < 1e-12, y
+
+
 @pytest.mark.parametrize('spec', [
     GridSpec(), GridSpec(size=16, fill=0.8, anchor='bottom'),
     GridSpec(size=24, units='metric', voxel_size=0.02, anchor='bottom'),
@@ -143,6 +152,17 @@ def test_gridspec_dict_round_trip(spec):
     # unknown keys (as in a manifest) are ignored
     assert GridSpec.from_dict(dict(d, axes='xyz', up='+z')) == spec
     assert spec.shape == (spec.size,) * 3
+
+
+def test_gridspec_of_numpy_scalars_goes_into_json():
+    # a voxel size computed from a float32 cloud: the manifest's json.dumps refused
+    # np.float32 when ModelBank.save wrote it, after every class file
+    import json
+    spec = GridSpec(size=np.int64(16), units='metric', voxel_size=np.float32(0.32) / 16,
+                    fill=np.float32(0.5))
+    d = json.loads(json.dumps(spec.to_dict()))
+    assert type(d['voxel_size']) is float and d['voxel_size'] == pytest.approx(0.02)
+    assert GridSpec.from_dict(d) == spec
 
 
 def _shape(n=16):

@@ -165,6 +165,18 @@ def test_ascii_packed_colour_typed_f_as_integer_or_float_text(tmp_path, name):
     np.testing.assert_array_equal(read_pcd(path)['intensity'], np.float32([16744455.0] * 4))
 
 
+@pytest.mark.parametrize('kind', ['ascii', 'binary', 'binary_compressed'])
+def test_packed_colour_typed_f_round_trips_whatever_its_bits(tmp_path, kind):
+    # an opaque colour whose red is >= 128 (white: 0xFFFFFFFF) has the bits of a float NaN:
+    # the ascii writer printed 'nan' and the colour read back as 0x7fc00000
+    colours = np.array([0xFFFFFFFF, 0xFF8007, 0xFF802030, 0x7F800001, 0], dtype=np.uint32)
+    path = tmp_path / 'c.pcd'
+    write_pcd(path, {'x': np.zeros(5, np.float32), 'rgb': colours.view(np.float32)}, data=kind)
+    got = read_pcd(path)['rgb']
+    assert got.dtype == np.float32
+    np.testing.assert_array_equal(got.view(np.uint32), colours)
+
+
 def test_tab_separated_header_is_read(tmp_path):
     # PCL splits header lines on any whitespace
     path = tmp_path / 'tabs.pcd'

@@ -310,6 +310,9 @@ def test_far_sensor_keeps_voxel_precision():
     (dict(center=[0, 0, 1e9]), 'center must lie within'),
     (dict(points=np.ones((100, 3))), 'not an object'),                  # all at one place
     (dict(points=np.ones((100, 3)), floor=-1.0), 'not an object'),      # floor adds no extent
+    # a TypeError (cannot cast) before: x, y, z records, as a PCD or PointCloud2 reader gives
+    (dict(points=np.rec.fromarrays(box_front(100).T, names='x,y,z')), 'array of numbers'),
+    (dict(points={'x': 1.0}), 'points must be an'),
 ])
 def test_validation(kwargs, match):
     args = dict(points=box_front(100), sensor_origin=np.zeros(3), up=[0, 0, 1], spec=GridSpec(8))
@@ -383,3 +386,22 @@ def test_sensor_in_an_occupied_voxel_still_sees_free_space():
     assert (g[5:11, 6:10, 6:10] == FREE).all()
     assert (g[13:, 6:10, 6:10] == UNKNOWN).all()
     assert g[12, 8, 8] == OCCUPIED
+
+
+def test_a_self_return_does_not_blind_the_splats():
+    # a sparse wall blocks rays as squares facing the sensor; a point in the sensor's own voxel
+    # made a square right at the sensor that hid the whole view (0.1 voxel off), or, exactly at
+    # the sensor, NaN vertices with which Embree missed every ray (nothing unknown behind)
+    from beo_ros.core.voxelize import facing_squares
+    yy, zz = np.meshgrid(np.arange(4, 12, 1.5), np.arange(4, 12, 1.5))
+    wall = np.c_[np.full(yy.size, 12.0), yy.ravel(), zz.ravel()]
+    sensor = np.array([3.0, 8.0, 8.0])
+    for extra in (sensor, sensor + [0.1, 0, 0]):
+        pts = np.r_[wall, [extra]]
+        occ = np.zeros((16, 16, 16), bool)
+        occ[tuple(np.floor(pts + 0.5).astype(int).T)] = True
+        g = label_free_unknown(occ, sensor, splats=pts, splat_half=1.0)
+        assert (g[5:11, 6:10, 6:10] == FREE).all()
+        assert (g[13:, 6:10, 6:10] == UNKNOWN).all()
+    v, _ = facing_squares(np.array([[0.0, 0, 0], [2.0, 0, 0]]), np.zeros(3), 0.5)
+    assert np.isfinite(v).all() and (v[:4] == 0).all()

@@ -24,7 +24,8 @@ from .classifier import (CLASS_PRIORS, HIDDEN_CLASSIFIER_KEYS, MODES, OPTIONAL_C
                          classifier_probabilities, descriptor_count, parse_class_prior,
                          prior_offset, resolve_class_prior, uses_descriptors)
 from .estimate import UNKNOWN_LABEL, Estimate, Hypothesis
-from .grid import GridSpec, symmetric_turns, unit_vector, wrap_yaw as _wrap, yaw_grid, yaw_matrix
+from .grid import (GridSpec, _real, symmetric_turns, unit_vector, wrap_yaw as _wrap, yaw_grid,
+                   yaw_matrix)
 from .inference import FEATURE_NAMES, InferenceEngine, observed_edt, top_modes, top_yaw_modes
 from .model_files import (CLASS_KEYS, FORMAT, OPTIONAL_CLASS_KEYS, OPTIONAL_FILES, UNREADABLE,
                           VERSION, _check_checksums, _check_manifest_settings, _load_class_models,
@@ -266,7 +267,8 @@ class ModelBank:
             'features': list(FEATURE_NAMES),
             'training': self.training, 'files': files,
         }
-        (path / 'manifest.json').write_text(json.dumps(manifest, indent=2) + '\n')
+        (path / 'manifest.json').write_text(json.dumps(manifest, indent=2, default=_json_value)
+                                            + '\n')
 
     @classmethod
     def load(cls, path, class_prior=None):
@@ -618,7 +620,11 @@ class ModelBank:
         mode = 'complete' if (grid < 0).mean() < 0.01 else 'partial'
         rule, note = None, ''
         if point_features is not None:
-            point_features = np.asarray(point_features, dtype=np.float64).reshape(-1)
+            try:
+                point_features = np.asarray(point_features, dtype=np.float64).reshape(-1)
+            except (TypeError, ValueError):
+                raise ValueError(f'point_features must be 2 numbers (r4, frac10), got '
+                                 f'{point_features!r}') from None
             if point_features.shape != (2,):
                 raise ValueError(f'point_features must be 2 values (r4, frac10), got shape '
                                  f'{point_features.shape}')
@@ -695,13 +701,20 @@ class ModelBank:
         grows faster than the points (5 s for a million): downsample big clouds first, as the
         node does (``max_points``).
         """
-        from .voxelize import finite_points, grid_to_points, unit_direction, voxelize_view
-        if isinstance(threshold, (bool, np.bool_)) or not 0 < threshold <= 1:   # and NaN
+        from .voxelize import (MIN_POINTS, finite_points, grid_to_points, unit_direction,
+                               voxelize_view)
+        if not 0 < _real(threshold) <= 1:   # NaN for NaN and what is no real number
             raise ValueError(f'threshold must be an occupancy probability in (0, 1], got '
-                             f'{threshold}')
+                             f'{threshold!r}')
         t0 = time.perf_counter()
+        finite = finite_points(points)
         pts_in, n_outliers, n_off_cluster = clean_points(
-            finite_points(points), outlier_mads, outlier_neighbors, cluster_tolerance)
+            finite, outlier_mads, outlier_neighbors, cluster_tolerance)
+        if len(pts_in) < MIN_POINTS:   # voxelize_view would say "finite points": name why
+            raise ValueError(f'need at least {MIN_POINTS} points, got {len(pts_in)} of the '
+                             f'{len(finite)} finite ones after removing {n_outliers} outliers '
+                             f'(outlier_mads {outlier_mads}) and {n_off_cluster} outside the '
+                             f'largest cluster (cluster_tolerance {cluster_tolerance})')
         t_out = time.perf_counter()
         view = voxelize_view(pts_in, sensor_origin, up, self.spec, center=center)
         t1 = time.perf_counter()
@@ -716,10 +729,12 @@ class ModelBank:
         R_grid = T[:3, :3] / np.linalg.norm(T[:3, :3], axis=0)
         pose = np.eye(4)
         pose[:3, :3] = R_grid @ yaw_matrix(est.yaw)
-        pts, prob = grid_to_points(est.completion, T, threshold)
+        # float64 points for the pose: float32 ones are centimetres off at 1e6 m
+        pts, prob = grid_to_points(est.completion, T, threshold, dtype=np.float64)
         c = (self.spec.size - 1) / 2.0
-        pose[:3, 3] = object_centre(pts if len(pts) else grid_to_points(view.grid, T, 1)[0],
-                                    pose[:3, :3], T @ np.array([c, c, c, 1.0]))
+        pose[:3, 3] = object_centre(
+            pts if len(pts) else grid_to_points(view.grid, T, 1, dtype=np.float64)[0],
+            pose[:3, :3], T @ np.array([c, c, c, 1.0]))
         est.pose = pose
         est.heading_offset = heading_offset(R_grid, up)
         est.grid_to_input = T
@@ -733,6 +748,14 @@ class ModelBank:
             est.timings['point_descriptors'] = t2 - t1
         est.timings['total'] = time.perf_counter() - t0
         return est
+
+
+def _json_value(value):
+    """A numpy scalar or array in the manifest (e.g. ``training=dict(k=np.int64(20))``) as the
+    JSON value of its Python equivalent; TypeError for anything else JSON cannot hold."""
+    if isinstance(value, (np.generic, np.ndarray)):
+        return value.tolist()
+    raise TypeError(f'the manifest cannot hold {type(value).__name__} {value!r} (JSON)')
 
 
 def object_centre(points, rotation, fallback) -> np.ndarray:
@@ -828,8 +851,8 @@ def _check_estimate_options(yaw_step_deg, search_step_deg, probe_deg, refine_deg
     if stage2_window_deg is None:
         stage2_window_deg = 0.0
     for name, value in (('refine_deg', refine_deg), ('stage2_window_deg', stage2_window_deg)):
-        if isinstance(value, (bool, np.bool_)) or not 0 <= value <= 180:   # and NaN
-            raise ValueError(f'{name} must be in [0, 180] degrees, got {value}')
+        if not 0 <= _real(value) <= 180:   # NaN for NaN and what is no real number
+            raise ValueError(f'{name} must be in [0, 180] degrees, got {value!r}')
     check_count('n_hypotheses', n_hypotheses)
     if stage2_modes is not None:
         check_count('stage2_modes', stage2_modes)

@@ -51,6 +51,9 @@ class GridSpec:
             raise ValueError(f'GridSpec.voxel_size must be a number, got {self.voxel_size!r}')
         if not 0 < _real(self.fill) <= 1:
             raise ValueError(f'GridSpec.fill must be in (0, 1], got {self.fill!r}')
+        # plain floats: a numpy scalar (np.float32(0.01)) would not go into the JSON manifest
+        object.__setattr__(self, 'voxel_size', voxel_size)
+        object.__setattr__(self, 'fill', _real(self.fill))
         if self.anchor not in ANCHORS:
             raise ValueError(f'GridSpec.anchor must be one of {ANCHORS}, got {self.anchor!r}')
 
@@ -108,6 +111,9 @@ def yaw_grid(step_deg) -> np.ndarray:
 
 def wrap_yaw(yaw) -> float:
     """A yaw in radians as a float in [-pi, pi)."""
+    yaw = float(yaw)
+    if abs(yaw) > 2 * np.pi:   # whole turns off first: yaw + pi rounds away a huge yaw's angle
+        yaw = float(np.mod(yaw, 2 * np.pi))
     y = float(np.mod(yaw + np.pi, 2 * np.pi) - np.pi)
     return -np.pi if y >= np.pi else y   # np.mod rounds a yaw just below -pi up to 2 pi
 

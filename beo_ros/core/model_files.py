@@ -284,12 +284,15 @@ def _load_classifier(path, files, n_classes):
     fp = path / 'classifier.npz'
     try:
         with _load_npz(fp) as z:
-            classifier = {}
-            for key in z.files:
-                mode, name = key.split('__', 1)
-                classifier.setdefault(mode, {})[name] = z[key]
+            arrays = {k: z[k] for k in z.files}
     except UNREADABLE as e:
         raise ModelError(f'{fp}: unreadable: {type(e).__name__}: {e}') from None
+    classifier = {}
+    for key, a in arrays.items():
+        mode, sep, name = key.partition('__')
+        if not sep:   # ValueError inside the try above: called 'unreadable'
+            raise ModelError(f"{fp}: array {key!r} is not named '<mode>__<array>'")
+        classifier.setdefault(mode, {})[name] = a
     for mode, clf in classifier.items():
         if mode == POINTS_MODE:
             check_point_classifier(clf, n_classes, str(fp))

@@ -369,7 +369,8 @@ def write_pcd(path, fields: dict, width: int | None = None, height: int = 1,
     """Write ``fields`` (name -> (n,) or (n, count) array) as a PCD v0.7 file.
 
     ``width * height`` must equal n (``width`` defaults to n / height). ``data`` is 'binary'
-    (default), 'ascii' or 'binary_compressed' (pure-Python LZF; slow for big clouds).
+    (default), 'ascii' or 'binary_compressed' (pure-Python LZF; slow for big clouds). In ascii,
+    a packed colour (``rgb``/``rgba``) typed F 4 is written as its integer, as PCL writes it.
     """
     if not fields:
         raise PCDError('write_pcd needs at least one field')
@@ -405,7 +406,11 @@ def write_pcd(path, fields: dict, width: int | None = None, height: int = 1,
         f.write(header.encode('ascii'))
         if data == 'ascii':
             cols = []
-            for (_, a), (t, _) in zip(arrays, types):
+            for (name, a), (t, s), dt in zip(arrays, types, dts):
+                if name in COLOUR_FIELDS and (t, s) == ('F', 4):
+                    # the colour as its integer, as PCL writes it: the float with the bits of
+                    # an opaque colour whose red is >= 128 is a NaN, printed 'nan' (lost)
+                    a, t = a.astype(dt).view(np.uint32), 'U'
                 for j in range(a.shape[1]):
                     v = a[:, j]
                     cols.append([repr(float(x)) if t == 'F' else str(int(x)) for x in v])

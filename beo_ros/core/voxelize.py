@@ -54,7 +54,11 @@ class ViewGrid:
 # ----------------------------------------------------------------------------------- validation
 
 def _check_points(points, min_points: int) -> np.ndarray:
-    pts = np.asarray(points, dtype=np.float64)
+    try:
+        pts = np.asarray(points, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError):   # a structured array, text, a dict, ...
+        dtype = getattr(points, 'dtype', type(points).__name__)
+        raise ValueError(f'points must be an (n, 3) array of numbers, got {dtype}') from None
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f'points must be an (n, 3) array, got shape {pts.shape}')
     pts = pts[np.isfinite(pts).all(axis=1)]
@@ -192,7 +196,8 @@ def point_spacing(points: np.ndarray, n_queries: int = 2000) -> float:
 
 
 def facing_squares(points: np.ndarray, origin: np.ndarray, half: float) -> tuple:
-    """A square of half-width ``half`` around each point, facing ``origin`` (same units).
+    """A square of half-width ``half`` around each point, facing ``origin`` (same units); a
+    point at ``origin`` faces no way and gets a square of no size (it blocks no ray).
 
     Returns (vertices float32 (4k, 3), triangles uint32 (2k, 3)).
     """
@@ -203,7 +208,8 @@ def facing_squares(points: np.ndarray, origin: np.ndarray, half: float) -> tuple
     helper = np.zeros_like(d)
     helper[np.arange(len(d)), np.argmin(np.abs(d), axis=1)] = 1.0
     u = np.cross(d, helper)
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    # (d = 0 at the origin: u stays 0, not NaN, which would make Embree miss every ray)
+    u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-12)
     w = np.cross(d, u) * half
     u *= half
     v = np.stack([p - u - w, p + u - w, p + u + w, p - u + w], axis=1).reshape(-1, 3)
@@ -278,6 +284,9 @@ def label_free_unknown(occupied: np.ndarray, origin_grid, close_holes: bool = Tr
         ov, ot = cube_soup(np.asarray(occluder_voxels))
         verts, tris = np.concatenate([verts, ov]), np.concatenate([tris, ot + len(verts)])
     if splats is not None and len(splats) and splat_half > 0:
+        # nor do points in it (a self-return would otherwise hide the whole view behind it)
+        splats = np.asarray(splats, dtype=np.float64)
+        splats = splats[np.any(np.floor(splats + 0.5) != sensor_voxel, axis=1)]
         sv, st = facing_squares(splats, o, splat_half)
         verts, tris = np.concatenate([verts, sv]), np.concatenate([tris, st + len(verts)])
     if len(tris):
@@ -459,14 +468,16 @@ def _sparse_splats(g: np.ndarray, inside: np.ndarray, occ: np.ndarray,
     return splats, half
 
 
-def grid_to_points(grid_or_prob, grid_to_input, threshold: float = 0.5) -> tuple:
+def grid_to_points(grid_or_prob, grid_to_input, threshold: float = 0.5,
+                   dtype=np.float32) -> tuple:
     """Centres of voxels with value >= ``threshold``, in the input frame.
 
     Args:
         grid_or_prob: (N, N, N) labelled grid or occupancy probabilities, indexed [x, y, z].
         grid_to_input: (4, 4) homogeneous grid index coords -> input frame.
+        dtype: of the points (float32 rounds coordinates of 1e5 m to 8 mm).
 
-    Returns (points float32 (m, 3), values float32 (m,)).
+    Returns (points ``dtype`` (m, 3), values float32 (m,)).
     """
     g = np.asarray(grid_or_prob)
     if g.ndim != 3:
@@ -476,4 +487,4 @@ def grid_to_points(grid_or_prob, grid_to_input, threshold: float = 0.5) -> tuple
         raise ValueError('grid_to_input must be a finite (4, 4) matrix')
     idx = np.argwhere(g >= threshold)
     pts = idx @ t[:3, :3].T + t[:3, 3]
-    return pts.astype(np.float32), g[tuple(idx.T)].astype(np.float32)
+    return pts.astype(dtype), g[tuple(idx.T)].astype(np.float32)
