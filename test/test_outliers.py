@@ -105,10 +105,13 @@ def test_estimate_points_is_not_spoilt_by_a_stray_point(tiny):
 
 def test_estimate_points_names_bad_outlier_arguments(tiny):
     pts, origin = _view(tiny)
-    with pytest.raises(ValueError, match='mads must be'):
+    # under the names estimate_points (and the node's parameters) give them
+    with pytest.raises(ValueError, match='^outlier_mads must be'):
         tiny.estimate_points(pts, sensor_origin=origin, outlier_mads=0.0)
-    with pytest.raises(ValueError, match='neighbors must be'):
+    with pytest.raises(ValueError, match='^outlier_neighbors must be'):
         tiny.estimate_points(pts, sensor_origin=origin, outlier_neighbors=0)
+    with pytest.raises(ValueError, match='^cluster_tolerance must be'):
+        tiny.estimate_points(pts, sensor_origin=origin, cluster_tolerance=-0.01)
 
 
 def test_estimate_points_on_a_metric_grid_keeps_a_stray_point_out_of_the_placement():

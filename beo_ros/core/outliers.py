@@ -30,6 +30,14 @@ def _positive(value, name) -> float:
     return x
 
 
+def _count(value, name) -> int:
+    """``value`` as a positive int; ValueError naming ``name`` otherwise."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) \
+            or value < 1:
+        raise ValueError(f'{name} must be a positive integer, got {value!r}')
+    return int(value)
+
+
 def _points(points) -> np.ndarray:
     """float64 (n, 3) finite ``points``; ValueError otherwise."""
     pts = np.asarray(points, dtype=np.float64)
@@ -56,9 +64,7 @@ def statistical_outliers(points, neighbors: int = OUTLIER_NEIGHBORS,
     Raises ValueError for points that are not a finite (n, 3) array, ``neighbors`` that is
     not a positive integer or ``mads`` that is not a positive finite number.
     """
-    if isinstance(neighbors, (bool, np.bool_)) or not isinstance(neighbors, (int, np.integer)) \
-            or neighbors < 1:
-        raise ValueError(f'neighbors must be a positive integer, got {neighbors!r}')
+    _count(neighbors, 'neighbors')
     cut = _positive(mads, 'mads')
     pts = _points(points)
     if len(pts) <= neighbors:
@@ -119,6 +125,12 @@ def clean_points(points, outlier_mads=OUTLIER_MADS, outlier_neighbors=OUTLIER_NE
     None: none removed) and, with a ``cluster_tolerance``, only their largest cluster
     (:func:`outside_largest_cluster`). -> (float64 (m, 3) points, number of outliers, number
     of points outside the largest cluster)."""
+    # the options under the names the caller gave them (estimate_points, the node)
+    if outlier_mads is not None:
+        _positive(outlier_mads, 'outlier_mads')
+        _count(outlier_neighbors, 'outlier_neighbors')
+    if cluster_tolerance is not None:
+        _positive(cluster_tolerance, 'cluster_tolerance')
     pts = _points(points)
     n_outliers = n_off_cluster = 0
     if outlier_mads is not None:
