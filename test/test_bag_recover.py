@@ -225,6 +225,23 @@ def test_a_sqlite3_bag_killed_mid_transaction_is_read_without_its_torn_pages(tmp
     assert journal.is_file()   # the source is left as it was
 
 
+def test_a_sqlite3_bag_killed_with_a_few_messages_uncommitted_reads_directly(tmp_path):
+    """kill -9 with a few messages written since the last commit (a recording of a steady
+    topic) leaves a journal whose header was never written (first byte 0): sqlite ignores
+    it, the database holds exactly the committed messages. Before: read_bag, bag_info and
+    beo-replay of the .db3 were refused ('left in the middle of a write'), against the docs
+    ('play or read its .db3 file itself')."""
+    killed = _killed_bag(tmp_path, 'sqlite3')
+    db = bag._bag_file(killed)
+    journal = db.with_name(db.name + '-journal')
+    assert journal.is_file() and journal.stat().st_size > 0
+    assert journal.read_bytes()[:1] == b'\0'
+    assert bag.hot_journal(killed) is None
+    assert sorted(_texts(db)) == sorted([('/a', f'a{i}') for i in range(400)]
+                                        + [('/b', f'b{i}') for i in range(400)])
+    assert bag.bag_info(db)['message_count'] == 800
+
+
 def _three_chunk_bag(tmp_path, close):
     """An mcap bag of three chunks of 4 messages on /s (stamps 0-3, 10-13, 20-23) -> its bytes
     (without the footer, as if killed, unless ``close``) and the chunks' offsets."""

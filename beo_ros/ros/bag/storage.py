@@ -221,15 +221,20 @@ class BagWriter:
 
 
 def hot_journal(bag_path) -> Path | None:
-    """The non-empty rollback journal beside a bag's .db3 file (a recording killed in the
-    middle of a transaction), or None. rosbags opens the database as immutable, ignoring it,
-    and would read pages of the unfinished transaction: a torn or malformed database."""
+    """The hot rollback journal beside a bag's .db3 file (a recording killed in the middle of
+    a transaction that had begun to change the database), or None. rosbags opens the database
+    as immutable, ignoring it, and would read pages of the unfinished transaction: a torn or
+    malformed database. As sqlite decides it, a journal is hot when its first byte is not 0:
+    one killed before its header was written (the usual kill -9 of a recording, a few
+    messages uncommitted) changed nothing in the database."""
     p = Path(bag_path)
     dbs = [p] if p.suffix == '.db3' else (sorted(p.glob('*.db3')) if p.is_dir() else [])
     for db in dbs:
         journal = db.with_name(db.name + '-journal')
-        if journal.is_file() and journal.stat().st_size > 0:
-            return journal
+        if journal.is_file():
+            with open(journal, 'rb') as f:
+                if f.read(1) not in (b'', b'\0'):
+                    return journal
     return None
 
 
