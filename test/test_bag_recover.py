@@ -242,6 +242,22 @@ def test_a_sqlite3_bag_killed_with_a_few_messages_uncommitted_reads_directly(tmp
     assert bag.bag_info(db)['message_count'] == 800
 
 
+@pytest.mark.parametrize('storage', bag.STORAGES)
+def test_a_bag_directory_without_metadata_names_what_is_missing_and_what_to_do(
+        tmp_path, storage, capsys, keep_signal_handlers):
+    """Before: 'Expected metadata file 'BAG' does not exist.' (rosbags names the directory as
+    the missing file) from beo-replay BAG, read_bag and bag_info of a recording that was not
+    closed; now: no metadata.yaml, its file to play directly or beo-bag-recover."""
+    killed = _killed_bag(tmp_path, storage, n=3, extra=0)
+    for read in (lambda: list(bag.read_bag(killed)), lambda: bag.bag_info(killed)):
+        with pytest.raises(ValueError, match='no metadata.yaml') as e:
+            read()
+        assert str(bag._bag_file(killed)) in str(e.value) and 'beo-bag-recover' in str(e.value)
+    assert bag.replay_main([str(killed)]) == 2
+    err = capsys.readouterr().err
+    assert err.count('\n') == 1 and 'no metadata.yaml' in err and 'beo-bag-recover' in err, err
+
+
 def _three_chunk_bag(tmp_path, close):
     """An mcap bag of three chunks of 4 messages on /s (stamps 0-3, 10-13, 20-23) -> its bytes
     (without the footer, as if killed, unless ``close``) and the chunks' offsets."""
