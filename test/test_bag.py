@@ -413,6 +413,16 @@ def test_cli_replay_of_what_is_not_a_bag_exits_2_with_a_message(tmp_path, capsys
         assert 'beo-replay: cannot read' in err and why in err and 'Traceback' not in err, err
 
 
+def test_cli_replay_of_a_metadata_yaml_that_does_not_parse_is_one_line(tmp_path, capsys):
+    """Before: the YAML error's own lines (the bad line, a caret) followed the message."""
+    (tmp_path / 'b').mkdir()
+    (tmp_path / 'b' / 'metadata.yaml').write_text(
+        'rosbag2_bagfile_information:\n\tstorage_identifier: sqlite3\n')
+    assert bag.replay_main([str(tmp_path / 'b')]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith('beo-replay: cannot read') and err.count('\n') == 1, err
+
+
 @pytest.mark.parametrize('extra, message', [
     (['--rate', 'nan'], "argument --rate: must be a finite number, got 'nan'"),
     (['--rate', 'inf'], "argument --rate: must be a finite number, got 'inf'"),

@@ -90,6 +90,11 @@ def _valid(p, check, *args):
         p.error(str(e))
 
 
+def _one_line(exc) -> str:
+    """An error's message on one line (a YAML error spans several: the bad line and a caret)."""
+    return ' '.join(str(exc).split())
+
+
 def _nothing_to_play(args, stats) -> str:
     """Why a replay sent nothing: its topics are empty, or the bag has none that matches."""
     if stats.topics:
@@ -184,11 +189,11 @@ def replay_main(argv=None) -> int:
             if e.stats.messages:
                 print(json.dumps(e.stats.to_dict(), indent=2) if args.json
                       else e.stats.table())
-            print(f'beo-replay: cannot read {args.bag}: {e} (after {e.stats.messages} '
+            print(f'beo-replay: cannot read {args.bag}: {_one_line(e)} (after {e.stats.messages} '
                   'message(s))', file=sys.stderr)
             code = 2
         except (ValueError, *storage_errors()) as e:   # not a bag, or a corrupt one
-            print(f'beo-replay: cannot read {args.bag}: {e}', file=sys.stderr)
+            print(f'beo-replay: cannot read {args.bag}: {_one_line(e)}', file=sys.stderr)
             code = 2
     return code
 
