@@ -562,6 +562,28 @@ def test_cli_sigint_before_anything_is_played_or_recorded_exits_130(tmp_path, ro
     assert not (tmp_path / 'r').exists()
 
 
+def test_cli_record_terminated_while_waiting_for_a_publisher_exits_143(tmp_path, ros_domain_id):
+    """SIGTERM before the recording started: 143 and 'terminated', as SIGTERM anywhere else.
+    Before: 130 and 'interrupted', the exit code of Ctrl-C."""
+    import signal
+    code = ('import sys; from beo_ros.ros.bag import record_main; '
+            'sys.exit(record_main(sys.argv[1:]))')
+    p = subprocess.Popen([sys.executable, '-c', code, '/nopub', '-o', str(tmp_path / 'r'),
+                          '--wait', '30'], env=cli_env(ros_domain_id), stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    try:
+        wait_for_nodes(ros_domain_id, {'beo_record'})
+        time.sleep(1.0)   # from its node's appearance to its wait: well under a second
+        p.send_signal(signal.SIGTERM)
+        _, err = p.communicate(timeout=30)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 143, err
+    assert 'beo-record: terminated while waiting for publishers of: /nopub' in err, err
+    assert 'Traceback' not in err and not (tmp_path / 'r').exists()
+
+
 def test_cli_loop_replay_ended_by_sigint_exits_0(tmp_path, ros_domain_id):
     """With --loop, Ctrl-C is the normal end once the replay plays."""
     import signal
@@ -803,7 +825,8 @@ def test_pcd2bag_osd(tmp_path, storage):
 def test_cli_record_stops_on_sigint_and_duration(tmp_path, ros_domain_id):
     import signal
     env = cli_env(ros_domain_id)
-    code = 'import sys; from beo_ros.ros.bag import record_main; sys.exit(record_main(sys.argv[1:]))'
+    code = ('import sys; from beo_ros.ros.bag import record_main; '
+            'sys.exit(record_main(sys.argv[1:]))')
     out = tmp_path / 'sig'
     rec = subprocess.Popen([sys.executable, '-c', code, '/nobody:std_msgs/msg/String', '-o',
                             str(out), '--storage', 'mcap'], env=env, stdout=subprocess.PIPE,

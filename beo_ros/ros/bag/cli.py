@@ -10,7 +10,7 @@ import threading
 import time
 from pathlib import Path
 
-from beo_ros.cli import INTERRUPTED, count, interruptible, number
+from beo_ros.cli import INTERRUPTED, TERMINATED, count, interruptible, number
 from beo_ros.ros.bag.msgtypes import CLOUD_TYPE, check_node_name, check_topic_name
 from beo_ros.ros.bag.player import ACK_TIMEOUT_S, BagReadError, parse_remaps, replay
 from beo_ros.ros.bag.recorder import BagWriteError, parse_topic_specs, record
@@ -22,6 +22,12 @@ from beo_ros.ros.bag.storage import STORAGES, bag_info, storage_errors
 MAX_PERIOD_S = 86_400.0            # --period / --object-period bound of beo-pcd2bag
 
 
+class _Stop(threading.Event):
+    """The stop event of a command-line tool; ``signum``: the signal that set it."""
+
+    signum = None
+
+
 def _install_sigint(stop: threading.Event, sigterm: bool = True):
     """SIGINT (and SIGTERM with ``sigterm``) sets ``stop``; a second one raises
     KeyboardInterrupt. Without ``sigterm``, SIGTERM keeps :func:`interruptible`'s handler
@@ -29,6 +35,7 @@ def _install_sigint(stop: threading.Event, sigterm: bool = True):
     def handler(signum, frame):  # noqa: ARG001
         if stop.is_set():  # second Ctrl-C: give up immediately
             raise KeyboardInterrupt
+        stop.signum = signum
         stop.set()
     signal.signal(signal.SIGINT, handler)
     if sigterm:
@@ -50,7 +57,7 @@ def _cli_node(name, sigterm_stops: bool = True):
     on the way out."""
     _ros_setup()
     import rclpy
-    stop = threading.Event()
+    stop = _Stop()
     # no command-line arguments: rcl would take the tool's own ones (-r OLD:=NEW) as remap rules
     rclpy.init(args=[], signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
     node = rclpy.create_node(name)
@@ -239,8 +246,11 @@ def record_main(argv=None) -> int:
             print(f'beo-record: cannot write {args.output}: {e}', file=sys.stderr)
             code = 2
         except KeyboardInterrupt as e:   # before recording started (while waiting for types)
-            print(f'beo-record: {e.args[0] if e.args else "interrupted"}', file=sys.stderr)
+            why = e.args[0] if e.args else 'interrupted'
             code = INTERRUPTED
+            if stop.signum == signal.SIGTERM:   # 143, as for SIGTERM anywhere else
+                why, code = why.replace('interrupted', 'terminated', 1), TERMINATED
+            print(f'beo-record: {why}', file=sys.stderr)
     return code
 
 
