@@ -258,6 +258,39 @@ def test_a_bag_directory_without_metadata_names_what_is_missing_and_what_to_do(
     assert err.count('\n') == 1 and 'no metadata.yaml' in err and 'beo-bag-recover' in err, err
 
 
+# beo-bag-recover with a file size limit: a full disk, as far as the writes of this process go
+FULL_DISK_RECOVER = r'''
+import resource, signal, sys
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)   # EFBIG instead
+resource.setrlimit(resource.RLIMIT_FSIZE, (int(sys.argv[1]), int(sys.argv[1])))
+from beo_ros.ros import bag
+sys.exit(bag.recover_main(sys.argv[2:]))
+'''
+
+
+def _recover_onto_a_full_disk(tmp_path, storage, closed):
+    """beo-bag-recover of a killed (or a ``closed``) bag of 20 messages onto a disk that holds
+    20 kB -> (the new bag's path, the finished process)."""
+    src = _killed_bag(tmp_path, storage, n=20, extra=0)
+    if closed:
+        bag.recover_bag(src, tmp_path / 'closed')
+        src = tmp_path / 'closed'
+    out = tmp_path / 'out' / 'new'
+    return out, subprocess.run([sys.executable, '-c', FULL_DISK_RECOVER, '20000', str(src),
+                                '-o', str(out)], capture_output=True, text=True, timeout=120)
+
+
+@pytest.mark.parametrize('storage', bag.STORAGES)
+@pytest.mark.parametrize('closed', [True, False])
+def test_cli_recover_onto_a_full_disk_names_the_new_bag(tmp_path, storage, closed):
+    """Before: 'beo-bag-recover: SRC: disk I/O error' (or 'File too large'), as if the source
+    bag were damaged; now the new bag it could not write is named, and nothing is left."""
+    out, p = _recover_onto_a_full_disk(tmp_path, storage, closed)
+    assert p.returncode == 2, p.stderr
+    assert p.stderr.startswith(f'beo-bag-recover: cannot write {out}: ') and \
+        p.stderr.count('\n') == 1, p.stderr
+
+
 def _three_chunk_bag(tmp_path, close):
     """An mcap bag of three chunks of 4 messages on /s (stamps 0-3, 10-13, 20-23) -> its bytes
     (without the footer, as if killed, unless ``close``) and the chunks' offsets."""

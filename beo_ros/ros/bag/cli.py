@@ -330,6 +330,9 @@ def recover_main(argv=None) -> int:
         print(f'beo-bag-recover: {e.args[0] if isinstance(e, KeyError) else e}',
               file=sys.stderr)
         return 2
+    except BagWriteError as e:   # a full disk, ...
+        print(f'beo-bag-recover: {e}', file=sys.stderr)
+        return 2
     except storage_errors() as e:
         print(f'beo-bag-recover: {args.bag}: {e}', file=sys.stderr)
         return 2
