@@ -291,6 +291,14 @@ def test_cli_recover_onto_a_full_disk_names_the_new_bag(tmp_path, storage, close
         p.stderr.count('\n') == 1, p.stderr
 
 
+def test_a_recovery_that_fails_while_closing_leaves_no_new_bag(tmp_path):
+    """A closed mcap bag copied onto a full disk fails when the new bag is closed (its summary
+    is written). Before: the half-written new bag (its .mcap, no metadata.yaml) was left."""
+    out, p = _recover_onto_a_full_disk(tmp_path, 'mcap', closed=True)
+    assert p.returncode == 2, p.stderr
+    assert list((tmp_path / 'out').iterdir()) == []
+
+
 def _three_chunk_bag(tmp_path, close):
     """An mcap bag of three chunks of 4 messages on /s (stamps 0-3, 10-13, 20-23) -> its bytes
     (without the footer, as if killed, unless ``close``) and the chunks' offsets."""

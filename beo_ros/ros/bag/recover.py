@@ -273,12 +273,17 @@ def _own_definition(conn) -> dict:
 
 @contextlib.contextmanager
 def _removed_on_error(writer):
-    """Open ``writer``; close it on success, abort it and remove its bag on any exception."""
-    with writer:
-        try:
-            yield writer
-        except BaseException:
-            writer.failed = True
+    """Open ``writer``; close it on success, abort it and remove its bag on any exception,
+    closing's own included (a full disk when the mcap summary or metadata.yaml is written)."""
+    try:
+        with writer:
+            try:
+                yield writer
+            except BaseException:
+                writer.failed = True   # aborted, not closed
+                raise
+    except BaseException:
+        if writer._opened:   # the directory is ours, not one that was there
             writer.abort()
             shutil.rmtree(writer.path, ignore_errors=True)
-            raise
+        raise
