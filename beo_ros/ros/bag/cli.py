@@ -288,7 +288,7 @@ def pcd2bag_main(argv=None) -> int:
     except ValueError as e:   # PCDError and bad scenes (no table plane, ...) are ValueErrors
         print(f'beo-pcd2bag: {e}', file=sys.stderr)
         return 2
-    except OSError as e:
+    except storage_errors() as e:   # a full disk: OSError, or sqlite3's own error
         print(f'beo-pcd2bag: cannot write {args.output}: {e}', file=sys.stderr)
         return 2
     for s in summary['skipped']:
