@@ -18,6 +18,7 @@ import argparse
 import json
 import math
 import os
+import sqlite3
 import sys
 import tempfile
 import threading
@@ -301,7 +302,7 @@ def main(argv=None) -> int:
         # a failure or Ctrl-C before anything is written leaves no empty --out behind
         with output_dir(args.out) as out:
             return _demo(args, bank, model_dir, out, t_start)
-    except OSError as e:
+    except (OSError, sqlite3.Error) as e:   # a full disk (the demo bag: sqlite3's own error)
         print(f'beo-demo: error: {e}', file=sys.stderr)
         return 2
 
