@@ -313,6 +313,28 @@ def test_record_in_process_then_read_back(ros_env_context, tmp_path):
     assert planes == [[0.0, 0.0, 1.0, float(i)] for i in range(4)]
 
 
+def test_record_warns_of_publishers_of_another_type_than_recorded(ros_env_context, tmp_path,
+                                                                   ros_domain_id):
+    """/chatter:std_msgs/msg/Int32 while /chatter's publisher sends String: nothing can be
+    recorded. Before: 0 messages and not a word; now a warning names the type left out."""
+    ctx = rclpy.Context()   # another participant, as another process would be
+    rclpy.init(args=[], context=ctx, domain_id=ros_domain_id)
+    try:
+        pub_node = rclpy.create_node('talker', context=ctx)
+        rec_node = rclpy.create_node('recorder', context=ros_env_context)
+        pub_node.create_publisher(String, '/chatter', 10)
+        assert wait_for(lambda: rec_node.get_publishers_info_by_topic('/chatter'), 10)
+        warned = []
+        rec_node.get_logger().warning = lambda msg, **kw: warned.append(msg)
+        stats = bag.record(rec_node, tmp_path / 'r', ['/chatter:std_msgs/msg/Int32'],
+                           duration=0.2)
+    finally:
+        rclpy.try_shutdown(context=ctx)
+    assert stats.messages == 0
+    assert warned == ['/chatter has publishers of std_msgs/msg/String: their messages are not '
+                      'recorded (the topic is recorded as std_msgs/msg/Int32)']
+
+
 def test_record_unknown_topic_times_out(ros_env_context, tmp_path):
     node = rclpy.create_node('recorder', context=ros_env_context)
     with pytest.raises(KeyError, match='/nobody'):
