@@ -615,6 +615,23 @@ def test_cli_loop_replay_ended_by_sigint_exits_0(tmp_path, ros_domain_id):
     assert 'interrupted' in out and 'Traceback' not in err
 
 
+def test_cli_tools_that_cannot_start_ros_say_so_in_one_line(tmp_path, monkeypatch, capsys,
+                                                           keep_signal_handlers):
+    """ROS_DOMAIN_ID=abc: one line and exit code 1, as beo-node ('cannot start'). Before: a
+    traceback of rclpy's RCLError."""
+    write_test_bag(tmp_path / 'b', 'sqlite3', n=1)
+    monkeypatch.setenv('ROS_DOMAIN_ID', 'abc')
+    for prog, run in (('beo-replay', lambda: bag.replay_main([str(tmp_path / 'b')])),
+                      ('beo-record', lambda: bag.record_main(['/x', '-o', str(tmp_path / 'r')]))):
+        with pytest.raises(SystemExit) as e:
+            run()
+        assert e.value.code == 1
+        err = capsys.readouterr().err
+        assert err.startswith(f'{prog}: cannot start ROS: RCLError: ') and 'ROS_DOMAIN_ID' in err
+        assert err.count('\n') == 1, err
+    assert not (tmp_path / 'r').exists()
+
+
 def test_cli_node_ignores_the_tools_own_remap_arguments(monkeypatch, keep_signal_handlers):
     # rclpy.init(args=None) took sys.argv: beo-replay -r /a:=/b became a global rcl remap too
     monkeypatch.setattr(sys, 'argv', ['beo-replay', 'bag', '-r', '/a:=/b', '-r', '/b:=/a'])

@@ -51,16 +51,23 @@ def _ros_setup():
 
 
 @contextlib.contextmanager
-def _cli_node(name, sigterm_stops: bool = True):
+def _cli_node(name, sigterm_stops: bool = True, prog: str = 'beo'):
     """rclpy context and node for a command-line tool; yields (node, stop event set on
     SIGINT, and on SIGTERM with ``sigterm_stops``), and destroys the node and shuts rclpy down
-    on the way out."""
+    on the way out. If ROS does not start (a ROS_DOMAIN_ID that is not a number, ...): one
+    line ``PROG: cannot start ROS: ...`` and exit code 1, as beo-node."""
     _ros_setup()
     import rclpy
     stop = _Stop()
-    # no command-line arguments: rcl would take the tool's own ones (-r OLD:=NEW) as remap rules
-    rclpy.init(args=[], signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
-    node = rclpy.create_node(name)
+    try:
+        # no command-line arguments: rcl would take the tool's own ones (-r OLD:=NEW) as remap
+        # rules
+        rclpy.init(args=[], signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+        node = rclpy.create_node(name)
+    except Exception as e:  # noqa: BLE001 - rclpy's RCLError and the like
+        rclpy.try_shutdown()
+        print(f'{prog}: cannot start ROS: {type(e).__name__}: {e}', file=sys.stderr)
+        raise SystemExit(1) from None
     _install_sigint(stop, sigterm_stops)
     try:
         yield node, stop
@@ -161,7 +168,7 @@ def replay_main(argv=None) -> int:
         p.error(f'no such bag: {args.bag}')
     code = 0
     # SIGTERM ends a replay with 143 (interruptible); SIGINT is how a --loop replay stops
-    with _cli_node(args.node_name, sigterm_stops=False) as (node, stop):
+    with _cli_node(args.node_name, sigterm_stops=False, prog='beo-replay') as (node, stop):
         try:
             stats = replay(args.bag, node, topics=args.topics, all_topics=args.all_topics,
                            remap=remap, rate=args.rate, loop=args.loop, qos=args.qos,
@@ -228,7 +235,7 @@ def record_main(argv=None) -> int:
     _valid(p, check_node_name, args.node_name)
     _refuse_output(p, args.output)
     code = 0
-    with _cli_node(args.node_name) as (node, stop):
+    with _cli_node(args.node_name, prog='beo-record') as (node, stop):
         try:
             stats = record(node, args.output, specs, storage=args.storage, wait=args.wait,
                            duration=args.duration, count=args.count, stop=stop)
