@@ -437,6 +437,19 @@ def test_demo_on_a_full_disk_is_one_line_exit_2(tmp_path, ros_tiny_model_dir, mo
     assert not out.exists()
 
 
+def test_demo_that_cannot_start_ros_says_so_in_one_line(tmp_path, ros_tiny_model_dir,
+                                                         monkeypatch, capsys):
+    """ROS_DOMAIN_ID=abc: one line and exit code 1, as beo-node. Before: a traceback of
+    rclpy's RCLError."""
+    from beo_ros.ros import demo
+    monkeypatch.setenv('ROS_DOMAIN_ID', 'abc')
+    out = tmp_path / 'demo_out'
+    assert demo.main(['--out', str(out), '--model', str(ros_tiny_model_dir)]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith('beo-demo: cannot start ROS: RCLError: ') and err.count('\n') == 1, err
+    assert not out.exists()
+
+
 def test_demo_default_model(tmp_path):
     """beo-demo as shipped: no --model, the shipped model (skipped until it is in models/)."""
     try:
