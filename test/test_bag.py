@@ -313,6 +313,28 @@ def test_record_in_process_then_read_back(ros_env_context, tmp_path):
     assert planes == [[0.0, 0.0, 1.0, float(i)] for i in range(4)]
 
 
+def test_record_warns_of_publishers_of_another_type_than_recorded(ros_env_context, tmp_path,
+                                                                   ros_domain_id):
+    """/chatter:std_msgs/msg/Int32 while /chatter's publisher sends String: nothing can be
+    recorded. Before: 0 messages and not a word; now a warning names the type left out."""
+    ctx = rclpy.Context()   # another participant, as another process would be
+    rclpy.init(args=[], context=ctx, domain_id=ros_domain_id)
+    try:
+        pub_node = rclpy.create_node('talker', context=ctx)
+        rec_node = rclpy.create_node('recorder', context=ros_env_context)
+        pub_node.create_publisher(String, '/chatter', 10)
+        assert wait_for(lambda: rec_node.get_publishers_info_by_topic('/chatter'), 10)
+        warned = []
+        rec_node.get_logger().warning = lambda msg, **kw: warned.append(msg)
+        stats = bag.record(rec_node, tmp_path / 'r', ['/chatter:std_msgs/msg/Int32'],
+                           duration=0.2)
+    finally:
+        rclpy.try_shutdown(context=ctx)
+    assert stats.messages == 0
+    assert warned == ['/chatter has publishers of std_msgs/msg/String: their messages are not '
+                      'recorded (the topic is recorded as std_msgs/msg/Int32)']
+
+
 def test_record_unknown_topic_times_out(ros_env_context, tmp_path):
     node = rclpy.create_node('recorder', context=ros_env_context)
     with pytest.raises(KeyError, match='/nobody'):
@@ -411,6 +433,16 @@ def test_cli_replay_of_what_is_not_a_bag_exits_2_with_a_message(tmp_path, capsys
         assert bag.replay_main([str(tmp_path / name)]) == 2, name
         err = capsys.readouterr().err
         assert 'beo-replay: cannot read' in err and why in err and 'Traceback' not in err, err
+
+
+def test_cli_replay_of_a_metadata_yaml_that_does_not_parse_is_one_line(tmp_path, capsys):
+    """Before: the YAML error's own lines (the bad line, a caret) followed the message."""
+    (tmp_path / 'b').mkdir()
+    (tmp_path / 'b' / 'metadata.yaml').write_text(
+        'rosbag2_bagfile_information:\n\tstorage_identifier: sqlite3\n')
+    assert bag.replay_main([str(tmp_path / 'b')]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith('beo-replay: cannot read') and err.count('\n') == 1, err
 
 
 @pytest.mark.parametrize('extra, message', [
@@ -552,6 +584,28 @@ def test_cli_sigint_before_anything_is_played_or_recorded_exits_130(tmp_path, ro
     assert not (tmp_path / 'r').exists()
 
 
+def test_cli_record_terminated_while_waiting_for_a_publisher_exits_143(tmp_path, ros_domain_id):
+    """SIGTERM before the recording started: 143 and 'terminated', as SIGTERM anywhere else.
+    Before: 130 and 'interrupted', the exit code of Ctrl-C."""
+    import signal
+    code = ('import sys; from beo_ros.ros.bag import record_main; '
+            'sys.exit(record_main(sys.argv[1:]))')
+    p = subprocess.Popen([sys.executable, '-c', code, '/nopub', '-o', str(tmp_path / 'r'),
+                          '--wait', '30'], env=cli_env(ros_domain_id), stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    try:
+        wait_for_nodes(ros_domain_id, {'beo_record'})
+        time.sleep(1.0)   # from its node's appearance to its wait: well under a second
+        p.send_signal(signal.SIGTERM)
+        _, err = p.communicate(timeout=30)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 143, err
+    assert 'beo-record: terminated while waiting for publishers of: /nopub' in err, err
+    assert 'Traceback' not in err and not (tmp_path / 'r').exists()
+
+
 def test_cli_loop_replay_ended_by_sigint_exits_0(tmp_path, ros_domain_id):
     """With --loop, Ctrl-C is the normal end once the replay plays."""
     import signal
@@ -559,6 +613,23 @@ def test_cli_loop_replay_ended_by_sigint_exits_0(tmp_path, ros_domain_id):
     rc, out, err = signal_loop_replay(tmp_path, ros_domain_id, signal.SIGINT, settle=2.0)
     assert rc == 0, err
     assert 'interrupted' in out and 'Traceback' not in err
+
+
+def test_cli_tools_that_cannot_start_ros_say_so_in_one_line(tmp_path, monkeypatch, capsys,
+                                                           keep_signal_handlers):
+    """ROS_DOMAIN_ID=abc: one line and exit code 1, as beo-node ('cannot start'). Before: a
+    traceback of rclpy's RCLError."""
+    write_test_bag(tmp_path / 'b', 'sqlite3', n=1)
+    monkeypatch.setenv('ROS_DOMAIN_ID', 'abc')
+    for prog, run in (('beo-replay', lambda: bag.replay_main([str(tmp_path / 'b')])),
+                      ('beo-record', lambda: bag.record_main(['/x', '-o', str(tmp_path / 'r')]))):
+        with pytest.raises(SystemExit) as e:
+            run()
+        assert e.value.code == 1
+        err = capsys.readouterr().err
+        assert err.startswith(f'{prog}: cannot start ROS: RCLError: ') and 'ROS_DOMAIN_ID' in err
+        assert err.count('\n') == 1, err
+    assert not (tmp_path / 'r').exists()
 
 
 def test_cli_node_ignores_the_tools_own_remap_arguments(monkeypatch, keep_signal_handlers):
@@ -793,7 +864,8 @@ def test_pcd2bag_osd(tmp_path, storage):
 def test_cli_record_stops_on_sigint_and_duration(tmp_path, ros_domain_id):
     import signal
     env = cli_env(ros_domain_id)
-    code = 'import sys; from beo_ros.ros.bag import record_main; sys.exit(record_main(sys.argv[1:]))'
+    code = ('import sys; from beo_ros.ros.bag import record_main; '
+            'sys.exit(record_main(sys.argv[1:]))')
     out = tmp_path / 'sig'
     rec = subprocess.Popen([sys.executable, '-c', code, '/nobody:std_msgs/msg/String', '-o',
                             str(out), '--storage', 'mcap'], env=env, stdout=subprocess.PIPE,

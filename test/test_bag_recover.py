@@ -225,6 +225,80 @@ def test_a_sqlite3_bag_killed_mid_transaction_is_read_without_its_torn_pages(tmp
     assert journal.is_file()   # the source is left as it was
 
 
+def test_a_sqlite3_bag_killed_with_a_few_messages_uncommitted_reads_directly(tmp_path):
+    """kill -9 with a few messages written since the last commit (a recording of a steady
+    topic) leaves a journal whose header was never written (first byte 0): sqlite ignores
+    it, the database holds exactly the committed messages. Before: read_bag, bag_info and
+    beo-replay of the .db3 were refused ('left in the middle of a write'), against the docs
+    ('play or read its .db3 file itself')."""
+    killed = _killed_bag(tmp_path, 'sqlite3')
+    db = bag._bag_file(killed)
+    journal = db.with_name(db.name + '-journal')
+    assert journal.is_file() and journal.stat().st_size > 0
+    assert journal.read_bytes()[:1] == b'\0'
+    assert bag.hot_journal(killed) is None
+    assert sorted(_texts(db)) == sorted([('/a', f'a{i}') for i in range(400)]
+                                        + [('/b', f'b{i}') for i in range(400)])
+    assert bag.bag_info(db)['message_count'] == 800
+
+
+@pytest.mark.parametrize('storage', bag.STORAGES)
+def test_a_bag_directory_without_metadata_names_what_is_missing_and_what_to_do(
+        tmp_path, storage, capsys, keep_signal_handlers):
+    """Before: 'Expected metadata file 'BAG' does not exist.' (rosbags names the directory as
+    the missing file) from beo-replay BAG, read_bag and bag_info of a recording that was not
+    closed; now: no metadata.yaml, its file to play directly or beo-bag-recover."""
+    killed = _killed_bag(tmp_path, storage, n=3, extra=0)
+    for read in (lambda: list(bag.read_bag(killed)), lambda: bag.bag_info(killed)):
+        with pytest.raises(ValueError, match='no metadata.yaml') as e:
+            read()
+        assert str(bag._bag_file(killed)) in str(e.value) and 'beo-bag-recover' in str(e.value)
+    assert bag.replay_main([str(killed)]) == 2
+    err = capsys.readouterr().err
+    assert err.count('\n') == 1 and 'no metadata.yaml' in err and 'beo-bag-recover' in err, err
+
+
+# beo-bag-recover with a file size limit: a full disk, as far as the writes of this process go
+FULL_DISK_RECOVER = r'''
+import resource, signal, sys
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)   # EFBIG instead
+resource.setrlimit(resource.RLIMIT_FSIZE, (int(sys.argv[1]), int(sys.argv[1])))
+from beo_ros.ros import bag
+sys.exit(bag.recover_main(sys.argv[2:]))
+'''
+
+
+def _recover_onto_a_full_disk(tmp_path, storage, closed):
+    """beo-bag-recover of a killed (or a ``closed``) bag of 20 messages onto a disk that holds
+    20 kB -> (the new bag's path, the finished process)."""
+    src = _killed_bag(tmp_path, storage, n=20, extra=0)
+    if closed:
+        bag.recover_bag(src, tmp_path / 'closed')
+        src = tmp_path / 'closed'
+    out = tmp_path / 'out' / 'new'
+    return out, subprocess.run([sys.executable, '-c', FULL_DISK_RECOVER, '20000', str(src),
+                                '-o', str(out)], capture_output=True, text=True, timeout=120)
+
+
+@pytest.mark.parametrize('storage', bag.STORAGES)
+@pytest.mark.parametrize('closed', [True, False])
+def test_cli_recover_onto_a_full_disk_names_the_new_bag(tmp_path, storage, closed):
+    """Before: 'beo-bag-recover: SRC: disk I/O error' (or 'File too large'), as if the source
+    bag were damaged; now the new bag it could not write is named, and nothing is left."""
+    out, p = _recover_onto_a_full_disk(tmp_path, storage, closed)
+    assert p.returncode == 2, p.stderr
+    assert p.stderr.startswith(f'beo-bag-recover: cannot write {out}: ') and \
+        p.stderr.count('\n') == 1, p.stderr
+
+
+def test_a_recovery_that_fails_while_closing_leaves_no_new_bag(tmp_path):
+    """A closed mcap bag copied onto a full disk fails when the new bag is closed (its summary
+    is written). Before: the half-written new bag (its .mcap, no metadata.yaml) was left."""
+    out, p = _recover_onto_a_full_disk(tmp_path, 'mcap', closed=True)
+    assert p.returncode == 2, p.stderr
+    assert list((tmp_path / 'out').iterdir()) == []
+
+
 def _three_chunk_bag(tmp_path, close):
     """An mcap bag of three chunks of 4 messages on /s (stamps 0-3, 10-13, 20-23) -> its bytes
     (without the footer, as if killed, unless ``close``) and the chunks' offsets."""

@@ -489,6 +489,22 @@ def test_cli_pcd2bag_without_any_cloud_exits_2_and_writes_no_bag(tmp_path, capsy
     assert not out.exists()
 
 
+def test_cli_pcd2bag_onto_a_full_disk_is_one_line_exit_2_and_no_bag(tmp_path):
+    """Before: a traceback of sqlite3.OperationalError 'disk I/O error', exit 1 (an mcap bag
+    gave OSError, which was caught)."""
+    scene = write_scene_pcd(tmp_path / 's.pcd')
+    out = tmp_path / 'b'
+    code = ('import resource, signal, sys; signal.signal(signal.SIGXFSZ, signal.SIG_IGN); '
+            'resource.setrlimit(resource.RLIMIT_FSIZE, (6000, 6000)); '
+            'from beo_ros.ros import bag; sys.exit(bag.pcd2bag_main(sys.argv[1:]))')
+    p = subprocess.run([sys.executable, '-c', code, str(scene), '-o', str(out)],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2, p.stderr
+    assert p.stderr.startswith(f'beo-pcd2bag: cannot write {out}: ') and \
+        p.stderr.count('\n') == 1, p.stderr
+    assert not out.exists()
+
+
 def test_cli_replay_says_why_there_is_nothing_to_play(tmp_path, capsys, keep_signal_handlers):
     from std_msgs.msg import String
     with bag.BagWriter(tmp_path / 'empty', 'sqlite3') as w:   # a cloud topic with 0 messages

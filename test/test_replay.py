@@ -418,6 +418,38 @@ def test_demo_runs_end_to_end(tmp_path, ros_tiny_model_dir):
     print(f'demo on the tiny bank: {time.monotonic() - t:.1f} s')
 
 
+def test_demo_on_a_full_disk_is_one_line_exit_2(tmp_path, ros_tiny_model_dir, monkeypatch,
+                                                capsys):
+    """The demo bag written with sqlite3 storage onto a full disk. Before: a traceback of
+    sqlite3.OperationalError (only OSError was caught); now one line, exit 2, no --out left."""
+    import sqlite3
+
+    from beo_ros.ros import demo
+
+    def full_disk(*args, **kwargs):
+        raise sqlite3.OperationalError('disk I/O error')
+    monkeypatch.setattr(demo, 'write_bag', full_disk)
+    out = tmp_path / 'demo_out'
+    assert demo.main(['--out', str(out), '--model', str(ros_tiny_model_dir), '--storage',
+                      'sqlite3']) == 2
+    err = capsys.readouterr().err
+    assert err == 'beo-demo: error: disk I/O error\n', err
+    assert not out.exists()
+
+
+def test_demo_that_cannot_start_ros_says_so_in_one_line(tmp_path, ros_tiny_model_dir,
+                                                         monkeypatch, capsys):
+    """ROS_DOMAIN_ID=abc: one line and exit code 1, as beo-node. Before: a traceback of
+    rclpy's RCLError."""
+    from beo_ros.ros import demo
+    monkeypatch.setenv('ROS_DOMAIN_ID', 'abc')
+    out = tmp_path / 'demo_out'
+    assert demo.main(['--out', str(out), '--model', str(ros_tiny_model_dir)]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith('beo-demo: cannot start ROS: RCLError: ') and err.count('\n') == 1, err
+    assert not out.exists()
+
+
 def test_demo_default_model(tmp_path):
     """beo-demo as shipped: no --model, the shipped model (skipped until it is in models/)."""
     try:

@@ -18,6 +18,7 @@ import argparse
 import json
 import math
 import os
+import sqlite3
 import sys
 import tempfile
 import threading
@@ -130,10 +131,13 @@ def _run_node_on_bag(bag_path, model_dir, bank, up, origin, timeout):
 
     from beo_ros.ros import bag
     from beo_ros.ros.conversions import interfaces, ns_from_stamp
-    from beo_ros.ros.node import BeoNode, drain_executor
+    from beo_ros.ros.node import BeoNode, StartupError, drain_executor
     msgs = interfaces()
     ctx = rclpy.Context()
-    rclpy.init(args=[], context=ctx)   # not sys.argv: no remap rules from the command line
+    try:
+        rclpy.init(args=[], context=ctx)   # not sys.argv: no remap rules from the command line
+    except Exception as e:  # noqa: BLE001 - rclpy's RCLError: a ROS_DOMAIN_ID that is no number
+        raise StartupError(f'cannot start ROS: {type(e).__name__}: {e}') from None
     estimates, completed = {}, {}
     lock = threading.Lock()
     got = threading.Condition(lock)
@@ -301,7 +305,10 @@ def main(argv=None) -> int:
         # a failure or Ctrl-C before anything is written leaves no empty --out behind
         with output_dir(args.out) as out:
             return _demo(args, bank, model_dir, out, t_start)
-    except OSError as e:
+    except StartupError as e:   # ROS or the node did not start: as beo-node, exit code 1
+        print(f'beo-demo: {e}', file=sys.stderr)
+        return 1
+    except (OSError, sqlite3.Error) as e:   # a full disk (the demo bag: sqlite3's own error)
         print(f'beo-demo: error: {e}', file=sys.stderr)
         return 2
 

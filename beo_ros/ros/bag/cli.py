@@ -10,7 +10,7 @@ import threading
 import time
 from pathlib import Path
 
-from beo_ros.cli import INTERRUPTED, count, interruptible, number
+from beo_ros.cli import INTERRUPTED, TERMINATED, count, interruptible, number
 from beo_ros.ros.bag.msgtypes import CLOUD_TYPE, check_node_name, check_topic_name
 from beo_ros.ros.bag.player import ACK_TIMEOUT_S, BagReadError, parse_remaps, replay
 from beo_ros.ros.bag.recorder import BagWriteError, parse_topic_specs, record
@@ -22,6 +22,12 @@ from beo_ros.ros.bag.storage import STORAGES, bag_info, storage_errors
 MAX_PERIOD_S = 86_400.0            # --period / --object-period bound of beo-pcd2bag
 
 
+class _Stop(threading.Event):
+    """The stop event of a command-line tool; ``signum``: the signal that set it."""
+
+    signum = None
+
+
 def _install_sigint(stop: threading.Event, sigterm: bool = True):
     """SIGINT (and SIGTERM with ``sigterm``) sets ``stop``; a second one raises
     KeyboardInterrupt. Without ``sigterm``, SIGTERM keeps :func:`interruptible`'s handler
@@ -29,6 +35,7 @@ def _install_sigint(stop: threading.Event, sigterm: bool = True):
     def handler(signum, frame):  # noqa: ARG001
         if stop.is_set():  # second Ctrl-C: give up immediately
             raise KeyboardInterrupt
+        stop.signum = signum
         stop.set()
     signal.signal(signal.SIGINT, handler)
     if sigterm:
@@ -44,16 +51,23 @@ def _ros_setup():
 
 
 @contextlib.contextmanager
-def _cli_node(name, sigterm_stops: bool = True):
+def _cli_node(name, sigterm_stops: bool = True, prog: str = 'beo'):
     """rclpy context and node for a command-line tool; yields (node, stop event set on
     SIGINT, and on SIGTERM with ``sigterm_stops``), and destroys the node and shuts rclpy down
-    on the way out."""
+    on the way out. If ROS does not start (a ROS_DOMAIN_ID that is not a number, ...): one
+    line ``PROG: cannot start ROS: ...`` and exit code 1, as beo-node."""
     _ros_setup()
     import rclpy
-    stop = threading.Event()
-    # no command-line arguments: rcl would take the tool's own ones (-r OLD:=NEW) as remap rules
-    rclpy.init(args=[], signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
-    node = rclpy.create_node(name)
+    stop = _Stop()
+    try:
+        # no command-line arguments: rcl would take the tool's own ones (-r OLD:=NEW) as remap
+        # rules
+        rclpy.init(args=[], signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+        node = rclpy.create_node(name)
+    except Exception as e:  # noqa: BLE001 - rclpy's RCLError and the like
+        rclpy.try_shutdown()
+        print(f'{prog}: cannot start ROS: {type(e).__name__}: {e}', file=sys.stderr)
+        raise SystemExit(1) from None
     _install_sigint(stop, sigterm_stops)
     try:
         yield node, stop
@@ -88,6 +102,11 @@ def _valid(p, check, *args):
         return check(*args)
     except ValueError as e:
         p.error(str(e))
+
+
+def _one_line(exc) -> str:
+    """An error's message on one line (a YAML error spans several: the bad line and a caret)."""
+    return ' '.join(str(exc).split())
 
 
 def _nothing_to_play(args, stats) -> str:
@@ -149,7 +168,7 @@ def replay_main(argv=None) -> int:
         p.error(f'no such bag: {args.bag}')
     code = 0
     # SIGTERM ends a replay with 143 (interruptible); SIGINT is how a --loop replay stops
-    with _cli_node(args.node_name, sigterm_stops=False) as (node, stop):
+    with _cli_node(args.node_name, sigterm_stops=False, prog='beo-replay') as (node, stop):
         try:
             stats = replay(args.bag, node, topics=args.topics, all_topics=args.all_topics,
                            remap=remap, rate=args.rate, loop=args.loop, qos=args.qos,
@@ -184,11 +203,11 @@ def replay_main(argv=None) -> int:
             if e.stats.messages:
                 print(json.dumps(e.stats.to_dict(), indent=2) if args.json
                       else e.stats.table())
-            print(f'beo-replay: cannot read {args.bag}: {e} (after {e.stats.messages} '
+            print(f'beo-replay: cannot read {args.bag}: {_one_line(e)} (after {e.stats.messages} '
                   'message(s))', file=sys.stderr)
             code = 2
         except (ValueError, *storage_errors()) as e:   # not a bag, or a corrupt one
-            print(f'beo-replay: cannot read {args.bag}: {e}', file=sys.stderr)
+            print(f'beo-replay: cannot read {args.bag}: {_one_line(e)}', file=sys.stderr)
             code = 2
     return code
 
@@ -216,7 +235,7 @@ def record_main(argv=None) -> int:
     _valid(p, check_node_name, args.node_name)
     _refuse_output(p, args.output)
     code = 0
-    with _cli_node(args.node_name) as (node, stop):
+    with _cli_node(args.node_name, prog='beo-record') as (node, stop):
         try:
             stats = record(node, args.output, specs, storage=args.storage, wait=args.wait,
                            duration=args.duration, count=args.count, stop=stop)
@@ -234,8 +253,11 @@ def record_main(argv=None) -> int:
             print(f'beo-record: cannot write {args.output}: {e}', file=sys.stderr)
             code = 2
         except KeyboardInterrupt as e:   # before recording started (while waiting for types)
-            print(f'beo-record: {e.args[0] if e.args else "interrupted"}', file=sys.stderr)
+            why = e.args[0] if e.args else 'interrupted'
             code = INTERRUPTED
+            if stop.signum == signal.SIGTERM:   # 143, as for SIGTERM anywhere else
+                why, code = why.replace('interrupted', 'terminated', 1), TERMINATED
+            print(f'beo-record: {why}', file=sys.stderr)
     return code
 
 
@@ -273,7 +295,7 @@ def pcd2bag_main(argv=None) -> int:
     except ValueError as e:   # PCDError and bad scenes (no table plane, ...) are ValueErrors
         print(f'beo-pcd2bag: {e}', file=sys.stderr)
         return 2
-    except OSError as e:
+    except storage_errors() as e:   # a full disk: OSError, or sqlite3's own error
         print(f'beo-pcd2bag: cannot write {args.output}: {e}', file=sys.stderr)
         return 2
     for s in summary['skipped']:
@@ -314,6 +336,9 @@ def recover_main(argv=None) -> int:
     except (ValueError, KeyError) as e:   # not a bag, nothing intact, a type without a definition
         print(f'beo-bag-recover: {e.args[0] if isinstance(e, KeyError) else e}',
               file=sys.stderr)
+        return 2
+    except BagWriteError as e:   # a full disk, ...
+        print(f'beo-bag-recover: {e}', file=sys.stderr)
         return 2
     except storage_errors() as e:
         print(f'beo-bag-recover: {args.bag}: {e}', file=sys.stderr)

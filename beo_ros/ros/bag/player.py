@@ -11,7 +11,7 @@ from pathlib import Path
 
 from beo_ros.ros.bag.msgtypes import (CLOUD_TYPE, check_topic_name, import_msg_class,
                                       normalize_msgtype)
-from beo_ros.ros.bag.storage import (_check_no_hot_journal, detect_storage, recorded_latched,
+from beo_ros.ros.bag.storage import (_check_readable, detect_storage, recorded_latched,
                                      storage_errors)
 
 
@@ -451,7 +451,7 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
     bag_path = Path(bag_path)
     n_passes = loops if loops is not None else (None if loop else 1)
     stats = ReplayStats(bag=str(bag_path), storage=detect_storage(bag_path), rate=float(rate))
-    _check_no_hot_journal(bag_path)
+    _check_readable(bag_path)
     try:
         with Reader(bag_path) as reader:
             conns = _replay_connections(reader, bag_path, topics, all_topics, remap)

@@ -209,8 +209,14 @@ class _Recorder:
         """Subscribe to topics that now have publishers, with QoS adapted to their offers."""
         node = self.node
         for topic, typ in list(self.unsubscribed.items()):
-            if not node.get_publishers_info_by_topic(topic):
+            infos = node.get_publishers_info_by_topic(topic)
+            if not infos:
                 continue
+            others = sorted({normalize_msgtype(i.topic_type) for i in infos} - {typ})
+            if others:   # a subscription of one type gets nothing of theirs
+                node.get_logger().warning(
+                    f'{topic} has publishers of {", ".join(others)}: their messages are not '
+                    f'recorded (the topic is recorded as {typ})')
             qos = _subscription_qos(node, topic)
             # the bag's offered QoS is that of the publishers matched now (a latched
             # publisher that appears after the recording started is replayed latched)

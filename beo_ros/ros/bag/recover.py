@@ -7,8 +7,9 @@ import shutil
 from pathlib import Path
 
 from beo_ros.ros.bag.msgtypes import normalize_msgtype
+from beo_ros.ros.bag.recorder import BagWriteError
 from beo_ros.ros.bag.storage import (BagWriter, hot_journal, recorded_latched,
-                                     recorded_reliable)
+                                     recorded_reliable, storage_errors)
 
 
 MCAP_MAGIC = b'\x89MCAP0\r\n'
@@ -98,31 +99,35 @@ def recover_bag(src, dst, *, storage: str | None = None) -> dict:
     the tail of an mcap file after its last intact record (0 for sqlite3): a record cut off or
     damaged, or a chunk that does not decompress to its size, and all after it. A closed mcap
     file whose index does not read is read as if it had none. ValueError for a source that is
-    not a bag, an mcap file cut off inside its header, or a database that does not read.
+    not a bag, an mcap file cut off inside its header, or a database that does not read;
+    :class:`BagWriteError` when the new bag cannot be written (a full disk: nothing is left).
     """
     import tempfile
     path = _bag_file(src)
     storage = storage or ('mcap' if path.suffix == '.mcap' else 'sqlite3')
     dst = Path(dst)
     ends, closed = _mcap_record_ends(path) if path.suffix == '.mcap' else ([], True)
-    dst.parent.mkdir(parents=True, exist_ok=True)   # as rosbags' writer would
-    end = os.path.getsize(path)
-    with tempfile.TemporaryDirectory(prefix='.beo_recover_', dir=dst.parent) as tmp:
-        tmp = Path(tmp)
-        if path.suffix == '.db3':
-            try:
-                topics = _copy_messages(_rolled_back(path, tmp), dst, storage, False)
-            except _Damaged as e:
-                raise ValueError(f'{path}: {e}') from None
-        else:
-            topics = None
-            if closed:
+    try:
+        dst.parent.mkdir(parents=True, exist_ok=True)   # as rosbags' writer would
+        end = os.path.getsize(path)
+        with tempfile.TemporaryDirectory(prefix='.beo_recover_', dir=dst.parent) as tmp:
+            tmp = Path(tmp)
+            if path.suffix == '.db3':
                 try:
-                    topics = _copy_messages(path, dst, storage, False)
-                except _Damaged:   # its summary (index) is damaged: scan the data instead
-                    ends, _ = _mcap_record_ends(path, trust_footer=False)
-            if topics is None:
-                topics, end = _longest_readable_prefix(path, ends, dst, storage, tmp)
+                    topics = _copy_messages(_rolled_back(path, tmp), dst, storage, False)
+                except _Damaged as e:
+                    raise ValueError(f'{path}: {e}') from None
+            else:
+                topics = None
+                if closed:
+                    try:
+                        topics = _copy_messages(path, dst, storage, False)
+                    except _Damaged:   # its summary (index) is damaged: scan the data instead
+                        ends, _ = _mcap_record_ends(path, trust_footer=False)
+                if topics is None:
+                    topics, end = _longest_readable_prefix(path, ends, dst, storage, tmp)
+    except storage_errors() as e:   # the source reads (above, or as _Damaged): a full disk, ...
+        raise BagWriteError(f'cannot write {dst}: {e}') from e
     return {'messages': sum(topics.values()), 'topics': topics, 'storage': storage,
             'lost_bytes': os.path.getsize(path) - end if path.suffix == '.mcap' else 0}
 
@@ -268,12 +273,17 @@ def _own_definition(conn) -> dict:
 
 @contextlib.contextmanager
 def _removed_on_error(writer):
-    """Open ``writer``; close it on success, abort it and remove its bag on any exception."""
-    with writer:
-        try:
-            yield writer
-        except BaseException:
-            writer.failed = True
+    """Open ``writer``; close it on success, abort it and remove its bag on any exception,
+    closing's own included (a full disk when the mcap summary or metadata.yaml is written)."""
+    try:
+        with writer:
+            try:
+                yield writer
+            except BaseException:
+                writer.failed = True   # aborted, not closed
+                raise
+    except BaseException:
+        if writer._opened:   # the directory is ours, not one that was there
             writer.abort()
             shutil.rmtree(writer.path, ignore_errors=True)
-            raise
+        raise

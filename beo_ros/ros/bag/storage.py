@@ -221,15 +221,20 @@ class BagWriter:
 
 
 def hot_journal(bag_path) -> Path | None:
-    """The non-empty rollback journal beside a bag's .db3 file (a recording killed in the
-    middle of a transaction), or None. rosbags opens the database as immutable, ignoring it,
-    and would read pages of the unfinished transaction: a torn or malformed database."""
+    """The hot rollback journal beside a bag's .db3 file (a recording killed in the middle of
+    a transaction that had begun to change the database), or None. rosbags opens the database
+    as immutable, ignoring it, and would read pages of the unfinished transaction: a torn or
+    malformed database. As sqlite decides it, a journal is hot when its first byte is not 0:
+    one killed before its header was written (the usual kill -9 of a recording, a few
+    messages uncommitted) changed nothing in the database."""
     p = Path(bag_path)
     dbs = [p] if p.suffix == '.db3' else (sorted(p.glob('*.db3')) if p.is_dir() else [])
     for db in dbs:
         journal = db.with_name(db.name + '-journal')
-        if journal.is_file() and journal.stat().st_size > 0:
-            return journal
+        if journal.is_file():
+            with open(journal, 'rb') as f:
+                if f.read(1) not in (b'', b'\0'):
+                    return journal
     return None
 
 
@@ -240,11 +245,24 @@ def _check_no_hot_journal(bag_path):
                          'journal is there): read it through beo-bag-recover BAG -o NEW')
 
 
+def _check_readable(bag_path):
+    """ValueError for a .db3 left in the middle of a write (:func:`hot_journal`), or a bag
+    directory without metadata.yaml (a recording that was not closed), saying what to do;
+    rosbags would call the directory itself the missing metadata file."""
+    _check_no_hot_journal(bag_path)
+    p = Path(bag_path)
+    if p.is_dir() and not (p / 'metadata.yaml').exists():
+        files = sorted(f.name for f in p.iterdir() if f.suffix in ('.db3', '.mcap'))
+        how = f'play or read {p / files[0]} itself, or ' if len(files) == 1 else ''
+        raise ValueError(f'{bag_path}: no metadata.yaml (a recording that was not closed?): '
+                         f'{how}make a closed bag of it with beo-bag-recover {bag_path} -o NEW')
+
+
 def read_bag(bag_path, topics=None):
     """Yield ``(topic, msgtype, timestamp_ns, raw_cdr_bytes)`` in timestamp order. ValueError
     for a .db3 left in the middle of a write (see :func:`hot_journal`)."""
     from rosbags.rosbag2 import Reader
-    _check_no_hot_journal(bag_path)
+    _check_readable(bag_path)
     with Reader(Path(bag_path)) as reader:
         conns = [c for c in reader.connections if topics is None or c.topic in topics]
         if not conns:
@@ -266,7 +284,7 @@ def read_messages(bag_path, topics=None):
 def bag_info(bag_path) -> dict:
     """Storage, duration and ``{topic: {'type', 'count'}}`` of a bag."""
     from rosbags.rosbag2 import Reader
-    _check_no_hot_journal(bag_path)
+    _check_readable(bag_path)
     with Reader(Path(bag_path)) as reader:
         topics = {}
         for c in reader.connections:
