@@ -539,11 +539,12 @@ def _add_node_options(ap):
 def _quick_sizes(args):
     """--quick: small sizes in ``args`` (in place); two classes of the data file unless
     --classes names them (chair and monitor when it has both)."""
+    from beo_ros.core.datasets import npz_class_names
     p = data_path(args.data)
     if p is not None and not args.classes:
         try:
             with np.load(p) as z:
-                have = [str(c) for c in z['classes']]
+                have = npz_class_names(z['classes'], p)
         except (OSError, KeyError, ValueError):
             have = []   # the loader says what is wrong with the file
         args.classes = (['chair', 'monitor'] if {'chair', 'monitor'} <= set(have)

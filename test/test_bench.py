@@ -315,6 +315,9 @@ def test_quick_takes_the_files_own_classes_without_chair_and_monitor(tmp_path):
     from beo_ros.bench import parse_args
     args = parse_args(['--quick', '--data', str(_npz(tmp_path / 'd.npz', ('mug', 'bowl')))])
     assert args.classes == ['mug', 'bowl']
+    # bytes names (an 'S' array) are the same classes, not "b'mug'"
+    args = parse_args(['--quick', '--data', str(_npz(tmp_path / 'b.npz', (b'mug', b'bowl')))])
+    assert args.classes == ['mug', 'bowl']
 
 
 @pytest.mark.parametrize('rates', [['0'], ['10', '-2'], ['nan']])
