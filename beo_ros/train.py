@@ -276,9 +276,10 @@ def _training_info(args, X, y, names, masks):
 def _congeal(args, X, y, names, masks, spec):
     """(X, masks) with the yaw of the objects aligned within each class (--congeal)."""
     from .core.congeal import congeal_classes
-    # fit_bank's check, before minutes of congealing
+    # fit_bank's check, before minutes of congealing: the folds count when a classifier or
+    # a calibration is fitted (--calibration-views unset: one only with a classifier)
     check_class_counts(y, names, args.folds if args.views > 0
-                       or args.calibration_views != 0 else 0)
+                       or args.calibration_views else 0)
     if masks is not None:
         X, masks = congeal_classes(X, y, spec.size, masks=masks, verbose=True)
     else:

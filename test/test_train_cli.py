@@ -392,3 +392,17 @@ def test_congeal_checks_the_class_counts_first(tmp_path, capsys, monkeypatch):
     assert train.main([str(p), '-o', str(tmp_path / 'm'), '--congeal'] + FAST) == 2
     assert 'has 1 training objects' in capsys.readouterr().err
     assert calls == [] and not (tmp_path / 'm').exists()
+
+
+def test_congeal_with_views_0_needs_only_two_objects_per_class(tmp_path, capsys, monkeypatch):
+    # no classifier and no calibration: 2 objects per class do, as without --congeal (the
+    # check before congealing used to ask for the out-of-fold folds' count)
+    from beo_ros.core import congeal
+    p = write_npz(tmp_path / 'd.npz', count=2)
+    monkeypatch.setattr(congeal, 'congeal_classes', lambda X, *a, **k: X)
+    assert train.main([str(p), '-o', str(tmp_path / 'm'), '--congeal'] + FAST) == 0
+    assert ModelBank.load(tmp_path / 'm').training['congeal'] is True
+    # with a calibration the folds count again
+    assert train.main([str(p), '-o', str(tmp_path / 'm2'), '--congeal',
+                       '--calibration-views', '1'] + FAST) == 2
+    assert 'has 2 training objects' in capsys.readouterr().err
