@@ -596,6 +596,9 @@ def run(args):
         bank = load_models(args.model)
         if list(bank.classes) != list(names):
             raise ValueError(f'--model classes {bank.classes} differ from the data {names}')
+        if bank.spec.size != n:
+            raise ValueError(f'--model {args.model} is for a {bank.spec.size}^3 grid, the data '
+                             f'{source} is on {n}^3')
     # the inputs are valid: the work starts (a failure or Ctrl-C leaves no empty --out)
     with output_dir(out):
         return _bench(args, out, X, y, names, n, source, tr, te, bank, t_all)

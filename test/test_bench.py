@@ -304,6 +304,18 @@ def test_bench_model_classes_differ_exit_2(tmp_path, capsys):
     assert 'beo-bench: error: --model classes' in capsys.readouterr().err
 
 
+def test_bench_model_grid_differs_exit_2(tmp_path, capsys):
+    # the same classes on another grid used to fail at the first query, after --out was
+    # made, with a message about 'grid' naming neither the model nor the data
+    from beo_ros.bench import main
+    from beo_ros.core.synthetic import make_tiny_bank
+    make_tiny_bank(tmp_path / 'bank', k=2, n=8)
+    assert main(QUICK + ['--data', str(_npz(tmp_path / 'd.npz')), '--model',
+                         str(tmp_path / 'bank'), '--out', str(tmp_path / 'b')]) == 2
+    assert 'is for a 8^3 grid, the data' in capsys.readouterr().err
+    assert not (tmp_path / 'b').exists()
+
+
 def test_bench_out_is_a_file_exit_2(tmp_path, capsys):
     from beo_ros.bench import main
     (tmp_path / 'a_file').write_text('x')
