@@ -70,6 +70,9 @@ def load_data(args, rng):
             X, y, names = select_classes(X, y, names, args.classes, source)
         return X, y, names, n, source
     X, y, names, n = load_voxel_npz(path, args.classes or None)
+    if not len(X):   # split() would fail with numpy's 'need at least one array to concatenate'
+        raise ValueError(f'--data {path}: no objects' + (f' of the classes {args.classes}'
+                                                         if args.classes else ''))
     return X, y, names, n, str(path)
 
 

@@ -316,6 +316,16 @@ def test_bench_model_grid_differs_exit_2(tmp_path, capsys):
     assert not (tmp_path / 'b').exists()
 
 
+def test_bench_data_without_objects_exit_2(tmp_path, capsys):
+    from beo_ros.bench import main
+    p = tmp_path / 'none.npz'
+    np.savez(p, voxels=np.zeros((0, N ** 3 // 8), np.uint8), labels=np.zeros(0, int),
+             classes=np.array(['box', 'cylinder']), shape=np.array([N, N, N]))
+    assert main(QUICK + ['--data', str(p), '--out', str(tmp_path / 'b')]) == 2
+    assert 'none.npz: no objects' in capsys.readouterr().err
+    assert not (tmp_path / 'b').exists()
+
+
 def test_bench_out_is_a_file_exit_2(tmp_path, capsys):
     from beo_ros.bench import main
     (tmp_path / 'a_file').write_text('x')
