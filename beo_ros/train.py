@@ -338,8 +338,10 @@ def _save(bank, out, replace):
 def _load_objects(args):
     """(X, y, names, spec) of the npz and mesh inputs: one class list in the order the classes
     first appear (or the --classes order), without objects that have no occupied voxel."""
-    parts = [(p, *load_voxel_npz(p)) for p in args.inputs if p.endswith('.npz')]
-    mesh_paths = [p for p in args.inputs if not p.endswith('.npz')]
+    # the extension in any case, as the meshes' ('.OFF' is a mesh, '.NPZ' an npz)
+    is_npz = [p.lower().endswith('.npz') for p in args.inputs]
+    parts = [(p, *load_voxel_npz(p)) for p, z in zip(args.inputs, is_npz) if z]
+    mesh_paths = [p for p, z in zip(args.inputs, is_npz) if not z]
     n = args.grid or (parts[0][4] if parts else 32)
     if mesh_paths:   # all at once: one class list for every mesh
         parts.append(('the meshes', *load_meshes(mesh_paths, n), n))

@@ -406,3 +406,11 @@ def test_congeal_with_views_0_needs_only_two_objects_per_class(tmp_path, capsys,
     assert train.main([str(p), '-o', str(tmp_path / 'm2'), '--congeal',
                        '--calibration-views', '1'] + FAST) == 2
     assert 'has 2 training objects' in capsys.readouterr().err
+
+
+def test_an_upper_case_npz_extension_is_an_npz(tmp_path):
+    # 'D.NPZ' went to the mesh loader: "unsupported mesh format '.npz'"
+    p = write_npz(tmp_path / 'd.npz')
+    upper = p.rename(tmp_path / 'D.NPZ')
+    assert train.main([str(upper), '-o', str(tmp_path / 'm')] + FAST) == 0
+    assert ModelBank.load(tmp_path / 'm').classes == ['box', 'cylinder']
