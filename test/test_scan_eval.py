@@ -167,6 +167,23 @@ def test_loso_saves_out_of_fold_features(scan_files, tmp_path, monkeypatch):
     assert D[box, 0].min() > D[~box, 0].max(), D
 
 
+def test_a_class_that_a_fold_leaves_without_objects_is_refused_before_any_fit(
+        scan_files, tmp_path, monkeypatch, capsys):
+    # cylinder only in learn33: its fold used to fail last, after every other fold's fit,
+    # with "class 'cylinder' has 0 training objects"
+    import beo_ros.scan_eval as scan_eval
+    fits, real_fit = [], scan_eval.fit_models
+    monkeypatch.setattr(scan_eval, 'fit_models', lambda *a, **k: fits.append(1) or
+                        real_fit(*a, **k))
+    rc = main(['--scans', *map(str, scan_files[:3]), '--scan-classes', 'box:0-1,cylinder:33',
+               '--out', str(tmp_path / 'ev'), '--no-congeal', '--k', '2', '--max-iter', '3',
+               '--grid', '16', '--voxel-size', '0.03125', '--yaw-step', '10', '--figures', '0'])
+    assert rc == 2 and fits == []
+    assert "holding out learn33 leaves class 'cylinder' 0 training object(s)" in \
+        capsys.readouterr().err
+    assert not (tmp_path / 'ev').exists()
+
+
 def test_loso_counts_an_object_without_occupied_voxels_as_unknown(scan_files, tmp_path,
                                                                     monkeypatch):
     # a grid with no occupied voxel gets 'unknown' and no features: counted wrong, not a crash
