@@ -57,7 +57,7 @@ def data_path(arg):
 def load_data(args, rng):
     """(X, y, names, n, source) with optional class selection / subsampling."""
     from beo_ros.core.synthetic import primitive_shapes
-    from beo_ros.core.datasets import load_voxel_npz, select_classes
+    from beo_ros.core.datasets import drop_empty_objects, load_voxel_npz, select_classes
     path = data_path(args.data)
     if path is not None and not path.is_file():
         # only --data none or a missing default file fall back to generated shapes
@@ -73,6 +73,12 @@ def load_data(args, rng):
     if not len(X):   # split() would fail with numpy's 'need at least one array to concatenate'
         raise ValueError(f'--data {path}: no objects' + (f' of the classes {args.classes}'
                                                          if args.classes else ''))
+    # as beo-train: an object with no occupied voxel is nothing to train on or to query (the
+    # peers refuse such a grid)
+    X, y, dropped = drop_empty_objects(X, y, names)
+    if dropped:
+        log(f'dropped {sum(dropped.values())} objects with no occupied voxel ('
+            + ', '.join(f'{c}: {m}' for c, m in dropped.items()) + ')')
     return X, y, names, n, str(path)
 
 

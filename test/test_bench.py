@@ -326,6 +326,22 @@ def test_bench_data_without_objects_exit_2(tmp_path, capsys):
     assert not (tmp_path / 'b').exists()
 
 
+def test_bench_drops_objects_without_occupied_voxels(tmp_path, capsys):
+    # their queries made the paper and icp peers fail the bench: "grid has no occupied voxel"
+    import argparse
+    from beo_ros.bench import load_data
+    X, y, _ = primitive_shapes(N, 3, np.random.default_rng(0))
+    X[[0, 3]] = 0
+    p = tmp_path / 'd.npz'
+    np.savez(p, voxels=np.packbits(X.astype(np.uint8), axis=1), labels=y,
+             classes=np.array(['box', 'cylinder']), shape=np.array([N, N, N]))
+    args = argparse.Namespace(data=str(p), classes=None, train_per_class=None)
+    X2, y2, names, n, _ = load_data(args, np.random.default_rng(0))
+    assert len(X2) == len(X) - 2 and (X2 > 0.5).any(axis=1).all()
+    np.testing.assert_array_equal(y2, np.delete(y, [0, 3]))
+    assert 'dropped 2 objects with no occupied voxel' in capsys.readouterr().err
+
+
 def test_bench_out_is_a_file_exit_2(tmp_path, capsys):
     from beo_ros.bench import main
     (tmp_path / 'a_file').write_text('x')
