@@ -315,6 +315,11 @@ def _check_out(args):
         oof = Path(args.oof_out)
         if oof.is_dir():
             raise ValueError(f'--oof-out {oof} is a directory (give a file name)')
+        if Path(args.out).resolve() in oof.resolve().parents:
+            # written before the model: it would make a new -o a directory that is not a
+            # model (refused by the save) or be deleted with the model it replaces
+            raise ValueError(f'--oof-out {oof} lies in the model directory {args.out}, which '
+                             'is written as a whole: give a file outside it')
         parent = existing_parent(oof)
         if not writable_dir(parent):
             raise ValueError(f'cannot write --oof-out {oof}: {parent} is not a writable '

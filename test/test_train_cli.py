@@ -224,15 +224,18 @@ def test_options_that_do_not_apply_or_are_out_of_range_refused(tmp_path, capsys,
     assert not (tmp_path / 'm').exists()
 
 
-@pytest.mark.parametrize('where', ['under_a_file', 'a_directory'])
+@pytest.mark.parametrize('where', ['under_a_file', 'a_directory', 'in_the_model'])
 def test_oof_out_checked_before_training(tmp_path, capsys, monkeypatch, where):
-    # it is written after all the training (minutes on the shared data)
+    # it is written after all the training (minutes on the shared data); in -o it made a new
+    # model directory one the save refused (all the training lost), or was deleted with the
+    # model it replaced
     from beo_ros.core import training
     p = write_npz(tmp_path / 'd.npz', count=2)
     (tmp_path / 'afile').write_text('x')
     (tmp_path / 'adir').mkdir()
     oof = {'under_a_file': tmp_path / 'afile' / 'oof.npz',
-           'a_directory': tmp_path / 'adir'}[where]
+           'a_directory': tmp_path / 'adir',
+           'in_the_model': tmp_path / 'm' / 'sub' / 'oof.npz'}[where]
 
     def no_training(*a, **k):
         raise AssertionError('trained before checking --oof-out')
