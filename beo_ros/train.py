@@ -156,9 +156,12 @@ def _check_args(ap, args):
         class_prior = parse_class_prior(args.class_prior) or 'train'
     except ValueError as e:
         ap.error(str(e))
+    verifier_given = args.verifier_views is not None
     if args.verifier_views is None:
         args.verifier_views = 0 if args.scans else 6
     _check_counts(ap, args)
+    if args.calibrate_only:
+        _check_calibrate_only(ap, args, verifier_given)
     _check_mode_options(ap, args)
     args.scan_classes = args.scan_classes or SCAN_CLASSES
     args.voxel_size = args.voxel_size or VOXEL_SIZE
@@ -169,6 +172,24 @@ def _check_args(ap, args):
         except ValueError as e:
             ap.error(f'--grid: {e}')
     return class_prior
+
+
+# options --calibrate-only does not use (nor --verifier-views, whose default depends on the
+# mode): the calibration is refitted with the model's own k, folds, seed, classifier, class
+# prior and pose components, and nothing else is fitted
+NOT_CALIBRATE_ONLY = ('k', 'views', 'folds', 'seed', 'pose_components', 'oof_out', 'congeal',
+                      'row_standardize', 'descriptors', 'classifier', 'jobs', 'class_prior')
+
+
+def _check_calibrate_only(ap, args, verifier_given):
+    """Refuse (ap.error) the options --calibrate-only would silently ignore
+    (``verifier_given``: whether --verifier-views was given, its default being filled in)."""
+    unused = [f"--{n.replace('_', '-')}" for n in NOT_CALIBRATE_ONLY
+              if getattr(args, n) != ap.get_default(n)]
+    unused += ['--verifier-views'] if verifier_given else []
+    if unused:
+        ap.error("not used with --calibrate-only (the model's own settings are kept): "
+                 + ', '.join(unused))
 
 
 def _check_counts(ap, args):
