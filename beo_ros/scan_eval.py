@@ -495,8 +495,10 @@ def print_table(s, file=None):
     print(f'confusion (rows true {s["classes"]}): {s["confusion"]}', file=file)
     for name, rep in s.get('classifier_cv', {}).items():
         if isinstance(rep, dict):
+            # of the objects with out-of-fold features (n_objects less those without any)
+            n = int(np.sum(rep['confusion'])) + rep['n_unknown']
             print(f'  {name:>16}: accuracy {rep["accuracy"]:.3f} ({rep["n_correct"]}/'
-                  f'{s["n_objects"]}, {rep["n_unknown"]} unknown), confusion {rep["confusion"]}',
+                  f'{n}, {rep["n_unknown"]} unknown), confusion {rep["confusion"]}',
                   file=file)
     if 'box_yaw' in s:
         b = s['box_yaw']

@@ -1,6 +1,7 @@
 """Leave-one-scene-out evaluation of the tabletop models (beo_ros.scan_eval): out-of-fold
 features and the scene-grouped second-level classifier comparison, on small generated scenes."""
 import json
+import re
 
 import numpy as np
 import pytest
@@ -214,6 +215,12 @@ def test_loso_counts_an_object_without_occupied_voxels_as_unknown(scan_files, tm
                    '--yaw-step', '10', '--figures', '0'])
     assert rc == 0
     assert 'accuracy' in stdout.getvalue()   # the table follows a redirected stdout
+    # the second-level rules are over the 7 objects with features: their counts say so (the
+    # table printed n_correct/8 beside an accuracy of n_correct/7)
+    rules = re.findall(r'accuracy (\S+) \((\d+)/(\d+),', stdout.getvalue())
+    assert len(rules) == 7   # max_likelihood, 4 lr_*, 2 points_*
+    for acc, correct, n in rules:
+        assert n == '7' and float(acc) == pytest.approx(int(correct) / 7, abs=5e-4)
     res = json.loads((out / 'scan_eval.json').read_text())
     s, recs = res['summary'], res['objects']
     assert len(recs) == 8 and s['n_unknown'] == 1
