@@ -57,7 +57,7 @@ def data_path(arg):
 def load_data(args, rng):
     """(X, y, names, n, source) with optional class selection / subsampling."""
     from beo_ros.core.synthetic import primitive_shapes
-    from beo_ros.core.datasets import load_voxel_npz, select_classes
+    from beo_ros.core.datasets import drop_empty_objects, load_voxel_npz, select_classes
     path = data_path(args.data)
     if path is not None and not path.is_file():
         # only --data none or a missing default file fall back to generated shapes
@@ -70,6 +70,15 @@ def load_data(args, rng):
             X, y, names = select_classes(X, y, names, args.classes, source)
         return X, y, names, n, source
     X, y, names, n = load_voxel_npz(path, args.classes or None)
+    if not len(X):   # split() would fail with numpy's 'need at least one array to concatenate'
+        raise ValueError(f'--data {path}: no objects' + (f' of the classes {args.classes}'
+                                                         if args.classes else ''))
+    # as beo-train: an object with no occupied voxel is nothing to train on or to query (the
+    # peers refuse such a grid)
+    X, y, dropped = drop_empty_objects(X, y, names)
+    if dropped:
+        log(f'dropped {sum(dropped.values())} objects with no occupied voxel ('
+            + ', '.join(f'{c}: {m}' for c, m in dropped.items()) + ')')
     return X, y, names, n, str(path)
 
 
@@ -539,11 +548,12 @@ def _add_node_options(ap):
 def _quick_sizes(args):
     """--quick: small sizes in ``args`` (in place); two classes of the data file unless
     --classes names them (chair and monitor when it has both)."""
+    from beo_ros.core.datasets import npz_class_names
     p = data_path(args.data)
     if p is not None and not args.classes:
         try:
             with np.load(p) as z:
-                have = [str(c) for c in z['classes']]
+                have = npz_class_names(z['classes'], p)
         except (OSError, KeyError, ValueError):
             have = []   # the loader says what is wrong with the file
         args.classes = (['chair', 'monitor'] if {'chair', 'monitor'} <= set(have)
@@ -595,6 +605,9 @@ def run(args):
         bank = load_models(args.model)
         if list(bank.classes) != list(names):
             raise ValueError(f'--model classes {bank.classes} differ from the data {names}')
+        if bank.spec.size != n:
+            raise ValueError(f'--model {args.model} is for a {bank.spec.size}^3 grid, the data '
+                             f'{source} is on {n}^3')
     # the inputs are valid: the work starts (a failure or Ctrl-C leaves no empty --out)
     with output_dir(out):
         return _bench(args, out, X, y, names, n, source, tr, te, bank, t_all)

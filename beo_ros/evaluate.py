@@ -29,7 +29,7 @@ from .core.bank import load_models, parse_class_prior
 from .core.calibration import calibration_sums, metrics_from_sums
 from .core.grid import GridSpec, symmetric_turns, yaw_error, yaw_error_up_to
 from .core.synthetic import random_partial_view
-from .core.datasets import load_voxel_npz, select_classes
+from .core.datasets import drop_empty_objects, load_voxel_npz, select_classes
 from .core.training import fit_bank, progress_bar, stratified_folds
 
 
@@ -399,18 +399,25 @@ def _cross_validate(args, X, y, names, n, class_prior, rng):
     """--cv: a bank trained per fold, the held-out fold evaluated -> (summary, records,
     examples, the last fold's bank)."""
     fold = stratified_folds(y, args.cv, rng)
+    # as beo-train: objects with no occupied voxel have no shape to learn (fit_bank cannot
+    # take them); they are still evaluated, answered 'unknown'
+    empty = ~(X > 0.5).any(axis=1)
+    if empty.any():
+        print(f'beo-eval: warning: {int(empty.sum())} objects with no occupied voxel left out '
+              'of the training folds', file=sys.stderr)
     recs, examples, info = [], [], []
     for f in range(args.folds or args.cv):
         tr, te = np.flatnonzero(fold != f), np.flatnonzero(fold == f)
         if args.max_objects:
             te = stratified_subset(te, y, args.max_objects, rng)
+        Xtr, ytr, _ = drop_empty_objects(X[tr], y[tr], names)
         t0 = time.time()
-        bank = fit_bank(X[tr], y[tr], names, GridSpec(size=n),
+        bank = fit_bank(Xtr, ytr, names, GridSpec(size=n),
                         k=20 if args.k is None else args.k,
                         classifier_views=args.train_views, seed=args.seed + f,
                         verbose=True, class_prior=class_prior or 'train',
                         verifier_views=args.verifier_views, processes=args.jobs)
-        info.append(dict(fold=f, train=int(len(tr)), test=int(len(te)),
+        info.append(dict(fold=f, train=int(len(Xtr)), test=int(len(te)),
                          train_seconds=round(time.time() - t0, 1)))
         s, r, ex = evaluate_bank(bank, X[te], y[te], names, rng, args.views, index=te)
         print(f'fold {f}:', file=sys.stderr)

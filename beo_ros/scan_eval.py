@@ -298,6 +298,7 @@ def _run(args, objs, out, t_start):
     """The folds of :func:`run` on the ScanObjects ``objs``: writes oof_features.npz,
     scan_eval.json (and the PNG) in ``out``, prints the table; the summary."""
     scenes, groups = _scene_groups(args, objs.scenes)
+    _check_groups(args, objs, groups)
     recs, figs, oof = [], [], []
     for si, group in enumerate(groups):
         n_held, t_fit = _evaluate_fold(args, objs, group, recs, figs, oof)
@@ -327,6 +328,21 @@ def _scene_groups(args, object_scenes):
     if args.scene_folds and args.scene_folds < len(scenes):
         groups = [scenes[f::args.scene_folds] for f in range(args.scene_folds)]
     return scenes, groups
+
+
+def _check_groups(args, objs, groups):
+    """ValueError, before any fold is fitted, when holding out one of ``groups`` leaves a class
+    fewer than the 2 training grids a class model needs (its objects, and with --mirror
+    their mirror images, in the other scenes)."""
+    for group in groups:
+        kept = np.bincount(objs.y[~np.isin(objs.scenes, group)], minlength=len(objs.names))
+        for name, m in zip(objs.names, kept):
+            if m * (2 if args.mirror else 1) < 2:
+                raise ValueError(
+                    f'holding out {"+".join(group)} leaves class {name!r} {m} training '
+                    f'object(s) in the other scenes; a class model needs 2 grids'
+                    f'{" (an object and its mirror image)" if args.mirror else ""}: give the '
+                    'class more scenes')
 
 
 def _evaluate_fold(args, objs, group, recs, figs, oof):
@@ -479,8 +495,10 @@ def print_table(s, file=None):
     print(f'confusion (rows true {s["classes"]}): {s["confusion"]}', file=file)
     for name, rep in s.get('classifier_cv', {}).items():
         if isinstance(rep, dict):
+            # of the objects with out-of-fold features (n_objects less those without any)
+            n = int(np.sum(rep['confusion'])) + rep['n_unknown']
             print(f'  {name:>16}: accuracy {rep["accuracy"]:.3f} ({rep["n_correct"]}/'
-                  f'{s["n_objects"]}, {rep["n_unknown"]} unknown), confusion {rep["confusion"]}',
+                  f'{n}, {rep["n_unknown"]} unknown), confusion {rep["confusion"]}',
                   file=file)
     if 'box_yaw' in s:
         b = s['box_yaw']

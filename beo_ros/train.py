@@ -156,9 +156,12 @@ def _check_args(ap, args):
         class_prior = parse_class_prior(args.class_prior) or 'train'
     except ValueError as e:
         ap.error(str(e))
+    verifier_given = args.verifier_views is not None
     if args.verifier_views is None:
         args.verifier_views = 0 if args.scans else 6
     _check_counts(ap, args)
+    if args.calibrate_only:
+        _check_calibrate_only(ap, args, verifier_given)
     _check_mode_options(ap, args)
     args.scan_classes = args.scan_classes or SCAN_CLASSES
     args.voxel_size = args.voxel_size or VOXEL_SIZE
@@ -169,6 +172,24 @@ def _check_args(ap, args):
         except ValueError as e:
             ap.error(f'--grid: {e}')
     return class_prior
+
+
+# options --calibrate-only does not use (nor --verifier-views, whose default depends on the
+# mode): the calibration is refitted with the model's own k, folds, seed, classifier, class
+# prior and pose components, and nothing else is fitted
+NOT_CALIBRATE_ONLY = ('k', 'views', 'folds', 'seed', 'pose_components', 'oof_out', 'congeal',
+                      'row_standardize', 'descriptors', 'classifier', 'jobs', 'class_prior')
+
+
+def _check_calibrate_only(ap, args, verifier_given):
+    """Refuse (ap.error) the options --calibrate-only would silently ignore
+    (``verifier_given``: whether --verifier-views was given, its default being filled in)."""
+    unused = [f"--{n.replace('_', '-')}" for n in NOT_CALIBRATE_ONLY
+              if getattr(args, n) != ap.get_default(n)]
+    unused += ['--verifier-views'] if verifier_given else []
+    if unused:
+        ap.error("not used with --calibrate-only (the model's own settings are kept): "
+                 + ', '.join(unused))
 
 
 def _check_counts(ap, args):
@@ -276,9 +297,10 @@ def _training_info(args, X, y, names, masks):
 def _congeal(args, X, y, names, masks, spec):
     """(X, masks) with the yaw of the objects aligned within each class (--congeal)."""
     from .core.congeal import congeal_classes
-    # fit_bank's check, before minutes of congealing
+    # fit_bank's check, before minutes of congealing: the folds count when a classifier or
+    # a calibration is fitted (--calibration-views unset: one only with a classifier)
     check_class_counts(y, names, args.folds if args.views > 0
-                       or args.calibration_views != 0 else 0)
+                       or args.calibration_views else 0)
     if masks is not None:
         X, masks = congeal_classes(X, y, spec.size, masks=masks, verbose=True)
     else:
@@ -314,6 +336,11 @@ def _check_out(args):
         oof = Path(args.oof_out)
         if oof.is_dir():
             raise ValueError(f'--oof-out {oof} is a directory (give a file name)')
+        if Path(args.out).resolve() in oof.resolve().parents:
+            # written before the model: it would make a new -o a directory that is not a
+            # model (refused by the save) or be deleted with the model it replaces
+            raise ValueError(f'--oof-out {oof} lies in the model directory {args.out}, which '
+                             'is written as a whole: give a file outside it')
         parent = existing_parent(oof)
         if not writable_dir(parent):
             raise ValueError(f'cannot write --oof-out {oof}: {parent} is not a writable '
@@ -337,8 +364,10 @@ def _save(bank, out, replace):
 def _load_objects(args):
     """(X, y, names, spec) of the npz and mesh inputs: one class list in the order the classes
     first appear (or the --classes order), without objects that have no occupied voxel."""
-    parts = [(p, *load_voxel_npz(p)) for p in args.inputs if p.endswith('.npz')]
-    mesh_paths = [p for p in args.inputs if not p.endswith('.npz')]
+    # the extension in any case, as the meshes' ('.OFF' is a mesh, '.NPZ' an npz)
+    is_npz = [p.lower().endswith('.npz') for p in args.inputs]
+    parts = [(p, *load_voxel_npz(p)) for p, z in zip(args.inputs, is_npz) if z]
+    mesh_paths = [p for p, z in zip(args.inputs, is_npz) if not z]
     n = args.grid or (parts[0][4] if parts else 32)
     if mesh_paths:   # all at once: one class list for every mesh
         parts.append(('the meshes', *load_meshes(mesh_paths, n), n))

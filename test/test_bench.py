@@ -304,6 +304,44 @@ def test_bench_model_classes_differ_exit_2(tmp_path, capsys):
     assert 'beo-bench: error: --model classes' in capsys.readouterr().err
 
 
+def test_bench_model_grid_differs_exit_2(tmp_path, capsys):
+    # the same classes on another grid used to fail at the first query, after --out was
+    # made, with a message about 'grid' naming neither the model nor the data
+    from beo_ros.bench import main
+    from beo_ros.core.synthetic import make_tiny_bank
+    make_tiny_bank(tmp_path / 'bank', k=2, n=8)
+    assert main(QUICK + ['--data', str(_npz(tmp_path / 'd.npz')), '--model',
+                         str(tmp_path / 'bank'), '--out', str(tmp_path / 'b')]) == 2
+    assert 'is for a 8^3 grid, the data' in capsys.readouterr().err
+    assert not (tmp_path / 'b').exists()
+
+
+def test_bench_data_without_objects_exit_2(tmp_path, capsys):
+    from beo_ros.bench import main
+    p = tmp_path / 'none.npz'
+    np.savez(p, voxels=np.zeros((0, N ** 3 // 8), np.uint8), labels=np.zeros(0, int),
+             classes=np.array(['box', 'cylinder']), shape=np.array([N, N, N]))
+    assert main(QUICK + ['--data', str(p), '--out', str(tmp_path / 'b')]) == 2
+    assert 'none.npz: no objects' in capsys.readouterr().err
+    assert not (tmp_path / 'b').exists()
+
+
+def test_bench_drops_objects_without_occupied_voxels(tmp_path, capsys):
+    # their queries made the paper and icp peers fail the bench: "grid has no occupied voxel"
+    import argparse
+    from beo_ros.bench import load_data
+    X, y, _ = primitive_shapes(N, 3, np.random.default_rng(0))
+    X[[0, 3]] = 0
+    p = tmp_path / 'd.npz'
+    np.savez(p, voxels=np.packbits(X.astype(np.uint8), axis=1), labels=y,
+             classes=np.array(['box', 'cylinder']), shape=np.array([N, N, N]))
+    args = argparse.Namespace(data=str(p), classes=None, train_per_class=None)
+    X2, y2, names, n, _ = load_data(args, np.random.default_rng(0))
+    assert len(X2) == len(X) - 2 and (X2 > 0.5).any(axis=1).all()
+    np.testing.assert_array_equal(y2, np.delete(y, [0, 3]))
+    assert 'dropped 2 objects with no occupied voxel' in capsys.readouterr().err
+
+
 def test_bench_out_is_a_file_exit_2(tmp_path, capsys):
     from beo_ros.bench import main
     (tmp_path / 'a_file').write_text('x')
@@ -314,6 +352,9 @@ def test_bench_out_is_a_file_exit_2(tmp_path, capsys):
 def test_quick_takes_the_files_own_classes_without_chair_and_monitor(tmp_path):
     from beo_ros.bench import parse_args
     args = parse_args(['--quick', '--data', str(_npz(tmp_path / 'd.npz', ('mug', 'bowl')))])
+    assert args.classes == ['mug', 'bowl']
+    # bytes names (an 'S' array) are the same classes, not "b'mug'"
+    args = parse_args(['--quick', '--data', str(_npz(tmp_path / 'b.npz', (b'mug', b'bowl')))])
     assert args.classes == ['mug', 'bowl']
 
 

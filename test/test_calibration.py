@@ -263,6 +263,11 @@ def test_train_calibrate_only_keeps_the_rest(calibrated, tmp_path, capsys):
     (['--calibrate-only', '--calibration-views', '0'], '--calibration-views must be >= 1'),
     (['--calibration-views', '-1'], '--calibration-views must be >= 0'),
     (['--scans', '--calibration-views', '1'], 'need whole objects, not --scans'),
+    # silently ignored before: the model's own settings are kept
+    (['--calibrate-only', '--k', '5'], 'not used with --calibrate-only'),
+    (['--calibrate-only', '--congeal', '--oof-out', 'o.npz'],
+     'not used with --calibrate-only (the model\'s own settings are kept): --oof-out, '
+     '--congeal, --verifier-views'),
 ])
 def test_train_calibration_arguments_refused(tmp_path, capsys, extra, message):
     with pytest.raises(SystemExit) as ei:

@@ -223,6 +223,19 @@ def test_npz_unpacked_forms_load_like_packed(tmp_path):
         assert names2 == ref[2] and n == N
 
 
+
+def test_npz_bytes_class_names_load_as_str(tmp_path):
+    # np.array([b'box', ...]) (an 'S' array, e.g. from h5py or Python 2 tools) used to give
+    # the class names "b'box'", which then named the model's files and its answers
+    X, y, names = primitive_shapes(N, 2, np.random.default_rng(0))
+    ref = load_voxel_npz(_save(tmp_path / 'str.npz', X, y, names))
+    got = load_voxel_npz(_save(tmp_path / 'bytes.npz', X, y, [c.encode() for c in names]))
+    assert got[2] == ref[2] == names
+    np.testing.assert_array_equal(got[1], ref[1])
+    p = _save(tmp_path / 'nested.npz', X, y, [[c] for c in names])
+    with pytest.raises(ValueError, match="nested.npz: 'classes' must be a 1-D array"):
+        load_voxel_npz(p)
+
 @pytest.mark.parametrize('bad, message', [
     (-1, 'labels must be in [0, 2)'),   # would silently become the last class
     (2, 'labels must be in [0, 2)'),    # == len(classes): an IndexError later

@@ -148,6 +148,24 @@ def test_eval_cv_needs_two_classes_up_front(tmp_path, capsys, monkeypatch):
     assert not out.exists()
 
 
+def test_eval_cv_trains_without_objects_that_have_no_occupied_voxel(tmp_path, capsys):
+    # fit_bank refuses them (beo-train drops them): --cv used to end with "grid has no
+    # occupied voxel"; they are left out of the training folds and still evaluated
+    X, y, names = primitive_shapes(N, 8, np.random.default_rng(0))
+    X[[0, 1]] = 0
+    data = save_npz(tmp_path / 'd.npz', X, y, names)
+    out = tmp_path / 'e'
+    assert call(evaluate.main, ['--cv', '2', '--k', '2', '--data', str(data),
+                                '--verifier-views', '0', '--out', str(out)]) == 0
+    assert '2 objects with no occupied voxel left out' in capsys.readouterr().err
+    recs = [json.loads(line) for line in (out / 'records.jsonl').read_text().splitlines()]
+    empty = [r for r in recs if r['mode'] == 'complete' and r['empty_object']]
+    assert sorted(r['i'] for r in empty) == [0, 1] and all(r['label'] == 'unknown'
+                                                         for r in empty)
+    folds = json.loads((out / 'eval.json').read_text())['folds']
+    assert sum(f['train'] for f in folds) == len(X) - 2   # each object trains one fold of 2
+
+
 def test_eval_ctrl_c_one_line_130_and_no_empty_out(model, tmp_path, capsys, monkeypatch):
     def interrupted(*a, **k):
         raise KeyboardInterrupt

@@ -97,6 +97,21 @@ def test_vertices_no_triangle_uses_do_not_count(tmp_path):
         load_mesh(path)
 
 
+
+def test_huge_coordinates(tmp_path):
+    # a box far out near the float64 limit: its centre (lo + hi) / 2 overflowed to inf and
+    # the voxelization failed with "cannot convert float NaN to integer"
+    box = trimesh.creation.box((1, 2, 4))
+    far = trimesh.Trimesh((box.vertices + 2) * 1e307 + 1e308, box.faces, process=False)
+    np.testing.assert_array_equal(voxelize_mesh(far), voxelize_mesh(box))
+    # an extent that overflows cannot be voxelized: refused naming the file (the error from
+    # the voxelization named nothing)
+    wide = trimesh.Trimesh(np.sign(box.vertices) * 1e308, box.faces, process=False)
+    path = tmp_path / 'wide.off'
+    wide.export(path)
+    with pytest.raises(MeshError, match='wide.off: mesh extent overflows'):
+        load_mesh(path)
+
 @pytest.mark.parametrize('kw', [dict(density=float('nan')), dict(density=-1.0), dict(density=0),
                                 dict(density='32'), dict(seed='a'), dict(seed=1.5)])
 def test_voxelize_mesh_names_bad_density_and_seed(kw):

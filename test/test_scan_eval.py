@@ -1,6 +1,7 @@
 """Leave-one-scene-out evaluation of the tabletop models (beo_ros.scan_eval): out-of-fold
 features and the scene-grouped second-level classifier comparison, on small generated scenes."""
 import json
+import re
 
 import numpy as np
 import pytest
@@ -167,6 +168,23 @@ def test_loso_saves_out_of_fold_features(scan_files, tmp_path, monkeypatch):
     assert D[box, 0].min() > D[~box, 0].max(), D
 
 
+def test_a_class_that_a_fold_leaves_without_objects_is_refused_before_any_fit(
+        scan_files, tmp_path, monkeypatch, capsys):
+    # cylinder only in learn33: its fold used to fail last, after every other fold's fit,
+    # with "class 'cylinder' has 0 training objects"
+    import beo_ros.scan_eval as scan_eval
+    fits, real_fit = [], scan_eval.fit_models
+    monkeypatch.setattr(scan_eval, 'fit_models', lambda *a, **k: fits.append(1) or
+                        real_fit(*a, **k))
+    rc = main(['--scans', *map(str, scan_files[:3]), '--scan-classes', 'box:0-1,cylinder:33',
+               '--out', str(tmp_path / 'ev'), '--no-congeal', '--k', '2', '--max-iter', '3',
+               '--grid', '16', '--voxel-size', '0.03125', '--yaw-step', '10', '--figures', '0'])
+    assert rc == 2 and fits == []
+    assert "holding out learn33 leaves class 'cylinder' 0 training object(s)" in \
+        capsys.readouterr().err
+    assert not (tmp_path / 'ev').exists()
+
+
 def test_loso_counts_an_object_without_occupied_voxels_as_unknown(scan_files, tmp_path,
                                                                     monkeypatch):
     # a grid with no occupied voxel gets 'unknown' and no features: counted wrong, not a crash
@@ -197,6 +215,12 @@ def test_loso_counts_an_object_without_occupied_voxels_as_unknown(scan_files, tm
                    '--yaw-step', '10', '--figures', '0'])
     assert rc == 0
     assert 'accuracy' in stdout.getvalue()   # the table follows a redirected stdout
+    # the second-level rules are over the 7 objects with features: their counts say so (the
+    # table printed n_correct/8 beside an accuracy of n_correct/7)
+    rules = re.findall(r'accuracy (\S+) \((\d+)/(\d+),', stdout.getvalue())
+    assert len(rules) == 7   # max_likelihood, 4 lr_*, 2 points_*
+    for acc, correct, n in rules:
+        assert n == '7' and float(acc) == pytest.approx(int(correct) / 7, abs=5e-4)
     res = json.loads((out / 'scan_eval.json').read_text())
     s, recs = res['summary'], res['objects']
     assert len(recs) == 8 and s['n_unknown'] == 1

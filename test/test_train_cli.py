@@ -224,15 +224,18 @@ def test_options_that_do_not_apply_or_are_out_of_range_refused(tmp_path, capsys,
     assert not (tmp_path / 'm').exists()
 
 
-@pytest.mark.parametrize('where', ['under_a_file', 'a_directory'])
+@pytest.mark.parametrize('where', ['under_a_file', 'a_directory', 'in_the_model'])
 def test_oof_out_checked_before_training(tmp_path, capsys, monkeypatch, where):
-    # it is written after all the training (minutes on the shared data)
+    # it is written after all the training (minutes on the shared data); in -o it made a new
+    # model directory one the save refused (all the training lost), or was deleted with the
+    # model it replaced
     from beo_ros.core import training
     p = write_npz(tmp_path / 'd.npz', count=2)
     (tmp_path / 'afile').write_text('x')
     (tmp_path / 'adir').mkdir()
     oof = {'under_a_file': tmp_path / 'afile' / 'oof.npz',
-           'a_directory': tmp_path / 'adir'}[where]
+           'a_directory': tmp_path / 'adir',
+           'in_the_model': tmp_path / 'm' / 'sub' / 'oof.npz'}[where]
 
     def no_training(*a, **k):
         raise AssertionError('trained before checking --oof-out')
@@ -392,3 +395,25 @@ def test_congeal_checks_the_class_counts_first(tmp_path, capsys, monkeypatch):
     assert train.main([str(p), '-o', str(tmp_path / 'm'), '--congeal'] + FAST) == 2
     assert 'has 1 training objects' in capsys.readouterr().err
     assert calls == [] and not (tmp_path / 'm').exists()
+
+
+def test_congeal_with_views_0_needs_only_two_objects_per_class(tmp_path, capsys, monkeypatch):
+    # no classifier and no calibration: 2 objects per class do, as without --congeal (the
+    # check before congealing used to ask for the out-of-fold folds' count)
+    from beo_ros.core import congeal
+    p = write_npz(tmp_path / 'd.npz', count=2)
+    monkeypatch.setattr(congeal, 'congeal_classes', lambda X, *a, **k: X)
+    assert train.main([str(p), '-o', str(tmp_path / 'm'), '--congeal'] + FAST) == 0
+    assert ModelBank.load(tmp_path / 'm').training['congeal'] is True
+    # with a calibration the folds count again
+    assert train.main([str(p), '-o', str(tmp_path / 'm2'), '--congeal',
+                       '--calibration-views', '1'] + FAST) == 2
+    assert 'has 2 training objects' in capsys.readouterr().err
+
+
+def test_an_upper_case_npz_extension_is_an_npz(tmp_path):
+    # 'D.NPZ' went to the mesh loader: "unsupported mesh format '.npz'"
+    p = write_npz(tmp_path / 'd.npz')
+    upper = p.rename(tmp_path / 'D.NPZ')
+    assert train.main([str(upper), '-o', str(tmp_path / 'm')] + FAST) == 0
+    assert ModelBank.load(tmp_path / 'm').classes == ['box', 'cylinder']

@@ -84,6 +84,22 @@ def _check_labels(path, labels, names, m):
     return labels.astype(int)
 
 
+def npz_class_names(classes, path):
+    """The class names of a voxel npz's 'classes' array (0-D or 1-D; str, or bytes decoded
+    as UTF-8, as numpy saves ``np.array([b'chair'])``, where ``str()`` would give "b'chair'");
+    ValueError naming ``path`` otherwise."""
+    classes = np.asarray(classes)
+    if classes.ndim > 1:
+        raise ValueError(f"{path}: 'classes' must be a 1-D array of names, got shape "
+                         f'{classes.shape}')
+    if classes.dtype.kind != 'S':
+        return [str(c) for c in np.atleast_1d(classes)]
+    try:
+        return [bytes(c).decode('utf-8') for c in np.atleast_1d(classes)]
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path}: 'classes' holds bytes that are not UTF-8 ({e})") from None
+
+
 def _head(path, n=8):
     """The first ``n`` bytes of a file, or None when it cannot be read."""
     try:
@@ -111,7 +127,7 @@ def load_voxel_npz(path, classes=None):
                 if key not in z.files:
                     raise ValueError(f'{path}: missing key {key!r} (has {z.files})')
             vox, labels = z['voxels'], z['labels']
-            names = [str(c) for c in np.atleast_1d(z['classes'])]
+            names = npz_class_names(z['classes'], path)
             shape = z['shape'] if 'shape' in z.files else None
     except UNREADABLE as e:
         if str(path) in str(e):

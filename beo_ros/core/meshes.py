@@ -44,7 +44,11 @@ def load_mesh(path) -> trimesh.Trimesh:
     v = np.asarray(mesh.vertices)
     if not np.isfinite(v).all():
         raise MeshError(f'{path}: mesh has non-finite vertices')
-    if np.ptp(v, axis=0).max() <= 0:
+    with np.errstate(over='ignore'):
+        extent = np.ptp(v, axis=0)
+    if not np.isfinite(extent).all():   # e.g. vertices at -1e308 and +1e308
+        raise MeshError(f'{path}: mesh extent overflows float64 (coordinates too large)')
+    if extent.max() <= 0:
         raise MeshError(f'{path}: mesh is degenerate (zero extent)')
     return mesh
 
@@ -68,7 +72,7 @@ def mesh_to_grid_transform(mesh, size: int = 32) -> np.ndarray:
     s = size / largest
     t = np.eye(4)
     t[:3, :3] *= s
-    t[:3, 3] = (size - 1) / 2.0 - s * 0.5 * (lo + hi)
+    t[:3, 3] = (size - 1) / 2.0 - s * (0.5 * lo + 0.5 * hi)   # lo + hi may overflow
     return t
 
 
