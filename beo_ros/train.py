@@ -7,6 +7,7 @@ labelled tabletop scans (``--scans``, PCD files; see beo_ros.core.scans).
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -163,6 +164,7 @@ def _check_args(ap, args):
     if args.calibrate_only:
         _check_calibrate_only(ap, args, verifier_given)
     _check_mode_options(ap, args)
+    _check_repeated_inputs(ap, args.inputs)
     args.scan_classes = args.scan_classes or SCAN_CLASSES
     args.voxel_size = args.voxel_size or VOXEL_SIZE
     args.max_iter = args.max_iter or MAX_ITER
@@ -190,6 +192,17 @@ def _check_calibrate_only(ap, args, verifier_given):
     if unused:
         ap.error("not used with --calibrate-only (the model's own settings are kept): "
                  + ', '.join(unused))
+
+
+def _check_repeated_inputs(ap, inputs):
+    """Refuse (ap.error) an input given twice (as written or through another path to the same
+    file): its objects would be trained on twice, and weigh twice in the class model."""
+    seen = {}
+    for p in inputs:
+        key = os.path.realpath(p)
+        if key in seen:
+            ap.error(f'input {p} given twice' + ('' if seen[key] == p else f' (as {seen[key]})'))
+        seen[key] = p
 
 
 def _check_counts(ap, args):
@@ -363,7 +376,8 @@ def _save(bank, out, replace):
 
 def _load_objects(args):
     """(X, y, names, spec) of the npz and mesh inputs: one class list in the order the classes
-    first appear (or the --classes order), without objects that have no occupied voxel."""
+    first appear, the npz files (in their order) before the meshes (or the --classes order),
+    without objects that have no occupied voxel."""
     # the extension in any case, as the meshes' ('.OFF' is a mesh, '.NPZ' an npz)
     is_npz = [p.lower().endswith('.npz') for p in args.inputs]
     parts = [(p, *load_voxel_npz(p)) for p, z in zip(args.inputs, is_npz) if z]

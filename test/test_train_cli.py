@@ -417,3 +417,16 @@ def test_an_upper_case_npz_extension_is_an_npz(tmp_path):
     upper = p.rename(tmp_path / 'D.NPZ')
     assert train.main([str(upper), '-o', str(tmp_path / 'm')] + FAST) == 0
     assert ModelBank.load(tmp_path / 'm').classes == ['box', 'cylinder']
+
+
+def test_an_input_given_twice_is_refused(tmp_path, capsys):
+    # its objects would be trained on twice (before: 8 objects per class instead of 4)
+    p = write_npz(tmp_path / 'd.npz', count=4)
+    (tmp_path / 'link.npz').symlink_to(p)
+    for second, message in ((p, f'input {p} given twice'),
+                            (tmp_path / 'link.npz', f'(as {p})')):
+        with pytest.raises(SystemExit) as ei:
+            train.main([str(p), str(second), '-o', str(tmp_path / 'm')] + FAST)
+        assert ei.value.code == 2
+        assert message in capsys.readouterr().err
+        assert not (tmp_path / 'm').exists()
