@@ -16,6 +16,7 @@ import os
 import signal
 import sys
 import threading
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -80,13 +81,17 @@ def _raise_terminated(signum, frame):
 def interruptible(prog: str):
     """Decorator for a command's ``main``: Ctrl-C ends it with one line on stderr and exit
     code 130 instead of a traceback, SIGTERM likewise with exit code 143 (the command cleans
-    up in its own ``finally`` blocks; while it runs, SIGTERM raises :class:`Terminated`)."""
+    up in its own ``finally`` blocks; while it runs, SIGTERM raises :class:`Terminated`).
+    While it runs, a warning (a scan's left-out objects, a fit that did not converge) is one
+    line ``PROG: warning: ...``, not Python's file, line number and source line."""
     def wrap(main):
         @functools.wraps(main)
         def run(*args, **kwargs):
             main_thread = threading.current_thread() is threading.main_thread()
             if main_thread:
                 old = signal.signal(signal.SIGTERM, _raise_terminated)
+            show = warnings.showwarning
+            warnings.showwarning = functools.partial(_warning_line, prog)
             try:
                 try:
                     return main(*args, **kwargs)
@@ -103,10 +108,16 @@ def interruptible(prog: str):
                 print(f'{prog}: interrupted', file=sys.stderr)
                 return INTERRUPTED
             finally:
+                warnings.showwarning = show
                 if main_thread:   # None: a handler not set from Python; the default then
                     signal.signal(signal.SIGTERM, signal.SIG_DFL if old is None else old)
         return run
     return wrap
+
+
+def _warning_line(prog, message, category, filename, lineno, file=None, line=None):  # noqa: ARG001
+    """``warnings.showwarning`` of a command: ``PROG: warning: MESSAGE`` on stderr."""
+    print(f'{prog}: warning: {message}', file=file or sys.stderr)
 
 
 def json_safe(obj):

@@ -99,3 +99,20 @@ def test_interruptible_unwraps_an_import_cut_short_by_ctrl_c(capsys):
         raise ImportError('no module named x')
     with pytest.raises(ImportError, match='no module'):
         other()
+
+
+def test_interruptible_shows_a_warning_as_one_line(capsys):
+    # before: Python's 'FILE:LINE: UserWarning: ...' and the source line of the warn call
+    import warnings
+
+    @interruptible('beo-x')
+    def main(argv=None):
+        warnings.warn('learn0.pcd: left out 1 object(s)', UserWarning, stacklevel=2)
+        return 0
+
+    show = warnings.showwarning
+    with warnings.catch_warnings():
+        warnings.simplefilter('always')
+        assert main() == 0
+    assert capsys.readouterr().err == 'beo-x: warning: learn0.pcd: left out 1 object(s)\n'
+    assert warnings.showwarning is show   # restored for whatever runs after the command
