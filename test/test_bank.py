@@ -1783,6 +1783,27 @@ def test_load_models_takes_a_shipped_models_name(tmp_path, monkeypatch):
             load_models(text)
 
 
+@pytest.mark.parametrize('site', ['lib/python3.11/site-packages', 'target'])
+def test_shipped_models_found_next_to_a_pip_installed_package(tmp_path, monkeypatch, site):
+    # `pip install .` (not editable) puts the package in <prefix>/lib/pythonX.Y/site-packages
+    # and setup.py's data_files in <prefix>/share/beo_ros (`--target DIR`: both in DIR); with
+    # no AMENT_PREFIX_PATH, load_models() looked for <site-packages>/models and failed
+    from beo_ros.core import bank
+    prefix = tmp_path / 'prefix'
+    top = prefix / site
+    (top / 'beo_ros' / 'core').mkdir(parents=True)
+    share = (top if site == 'target' else prefix) / 'share' / 'beo_ros' / 'models'
+    share.mkdir(parents=True)
+    for name in ('modelnet10_32', 'tabletop_32'):
+        (share / name).symlink_to(bank.default_model_dir(name), target_is_directory=True)
+    monkeypatch.setattr(bank, '__file__', str(top / 'beo_ros' / 'core' / 'bank.py'))
+    monkeypatch.delenv('AMENT_PREFIX_PATH', raising=False)
+    monkeypatch.chdir(tmp_path)
+    assert bank.default_model_dir() == share / 'modelnet10_32'
+    assert bank.shipped_models() == ['modelnet10_32', 'tabletop_32']
+    assert load_models('tabletop_32').classes == ['box', 'cylinder']
+
+
 # ---------------------------------------------------------------------- formulas, directly
 def test_features_equal_a_direct_computation_at_yaw_zero(tiny):
     # at yaw 0 the canonical frame is the observed one: every feature can be computed by hand

@@ -279,6 +279,38 @@ def test_setup_share_keeps_foreign_files(tmp_path):
     assert not (share / 'models').is_symlink()
 
 
+def _functions():
+    """The text of every function scripts/setup defines (step, die, ...)."""
+    import re
+    lines, out, i = SETUP.read_text().splitlines(), [], 0
+    while i < len(lines):
+        if re.match(r'[a-z_]+\(\) \{', lines[i]):
+            j = i if lines[i].rstrip().endswith('}') else lines.index('}', i)
+            out += lines[i:j + 1]
+            i = j
+        i += 1
+    return '\n'.join(out) + '\n'
+
+
+def test_setup_recreates_a_venv_without_pip(tmp_path):
+    # Ctrl-C during `python -m venv` (while ensurepip runs) leaves .venv/bin/python without
+    # pip: every re-run reused that venv and failed at `pip install -r requirements.txt`
+    import subprocess
+    venv = tmp_path / '.venv'
+    subprocess.run([sys.executable, '-m', 'venv', '--without-pip', str(venv)], check=True)
+    script = (f'VENV={venv}\nPY={sys.executable}\n' + _functions()
+              + _snippet('step "python venv at .venv/"', 'VPY="$VENV/bin/python"'))
+    r = _bash(script)
+    assert r.returncode == 0, r.stderr
+    assert 'recreating' in r.stdout
+    pip = subprocess.run([str(venv / 'bin' / 'python'), '-m', 'pip', '--version'],
+                         capture_output=True)
+    assert pip.returncode == 0, pip.stderr
+    r = _bash(script)   # a venv with pip is kept
+    assert r.returncode == 0, r.stderr
+    assert 'reusing' in r.stdout
+
+
 LDD_CHECK = ('# an unmatched glob must not pass', 'echo "    ok"')
 
 

@@ -869,7 +869,11 @@ def load_models(path=None, class_prior=None):
 
 
 def default_model_dir(name='modelnet10_32'):
-    """The shipped model directory: the installed share dir, else the source tree's models/."""
+    """The shipped model directory: the installed share dir, else the source tree's models/.
+
+    The share dir is looked up in the ament index (AMENT_PREFIX_PATH), else next to the package
+    as a plain ``pip install .`` (or ``--user``, ``--target DIR``) puts it:
+    ``<prefix>/share/beo_ros`` for ``<prefix>/lib/pythonX.Y/site-packages/beo_ros``."""
     try:
         from ament_index_python.packages import get_package_share_directory
         p = Path(get_package_share_directory('beo_ros')) / 'models' / name
@@ -877,7 +881,13 @@ def default_model_dir(name='modelnet10_32'):
             return p
     except Exception:  # not installed through ament, or ament_index missing
         pass
-    return Path(__file__).resolve().parents[2] / 'models' / name
+    top = Path(__file__).resolve().parents[2]   # the source tree, or site-packages
+    source = top / 'models' / name
+    for p in (source, top.parent.parent.parent / 'share' / 'beo_ros' / 'models' / name,
+              top / 'share' / 'beo_ros' / 'models' / name):
+        if p.is_dir():
+            return p
+    return source
 
 
 def resolve_model_dir(text) -> Path:
