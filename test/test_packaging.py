@@ -398,3 +398,20 @@ def test_setup_apt_packages_cover_open3d_libraries():
                 assert owner is not None, f'{parts[0]} ({path}) belongs to no package'
                 assert owner in pkgs | base, (
                     f'{lib.name} needs {parts[0]} from {owner}: add it to APT_PKGS')
+
+
+def test_setup_failure_is_reported_once_and_names_the_pip_command(tmp_path):
+    # before: a failing $(...) printed 'FAILED ... during step' twice (set -E gives the
+    # subshell the trap too), and a failing pip was reported as 'line N: pipfilter'
+    script = _functions() + 'trap on_err ERR\nstep "a step"\nX="$(false; echo hi)"\n'
+    r = _bash(script)
+    assert r.returncode == 1
+    assert r.stderr.count('FAILED (exit 1) during step: a step') == 1, r.stderr
+    fake = tmp_path / 'python'
+    fake.write_text('#!/bin/sh\necho "ERROR: No matching distribution" >&2\nexit 1\n')
+    fake.chmod(0o755)
+    r = _bash(_functions() + f'trap on_err ERR\nVPY={fake}\nstep "pip"\n'
+              'pip_install -r requirements.txt\necho not reached\n')
+    assert r.returncode == 1 and 'not reached' not in r.stdout
+    assert 'No matching distribution' in r.stdout + r.stderr
+    assert 'ERROR: pip install -r requirements.txt failed' in r.stderr, r.stderr
