@@ -512,9 +512,10 @@ def _add_peer_options(ap):
 
 def _add_scaling_options(ap):
     """The points of the scaling curves."""
+    from beo_ros.core.bank import YAW_STEP_RANGE_DEG
     ap.add_argument('--scaling-train', type=count(1), nargs='+', default=[100, 200])
     ap.add_argument('--scaling-grids', type=count(4, 256), nargs='+', default=[24, 32, 48, 64])
-    ap.add_argument('--scaling-yaw-steps', type=number(0, 360, lo_open=True), nargs='+',
+    ap.add_argument('--scaling-yaw-steps', type=number(*YAW_STEP_RANGE_DEG), nargs='+',
                     default=[10.0, 5.0, 1.0])
     ap.add_argument('--scaling-classes', type=count(1), nargs='+', default=[2, 5, 10])
     ap.add_argument('--scaling-per-class', type=count(1), default=8)

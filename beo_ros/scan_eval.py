@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from .cli import count, interruptible, number
+from .core.bank import YAW_STEP_RANGE_DEG
 
 
 def add_arguments(ap):
@@ -52,8 +53,8 @@ def add_arguments(ap):
     ap.add_argument('--voxel-size', type=number(0, None, lo_open=True), default=0.5 / 32,
                     help='metres per voxel')
     ap.add_argument('--grid', type=count(4, 256), default=32, help='voxels per grid side')
-    ap.add_argument('--yaw-step', type=number(0, 360, lo_open=True), default=2.0,
-                    help='yaw search step (degrees)')
+    ap.add_argument('--yaw-step', type=number(*YAW_STEP_RANGE_DEG), default=2.0,
+                    help='yaw search step (degrees, %g .. %g)' % YAW_STEP_RANGE_DEG)
     ap.add_argument('--scenes', type=count(0), default=0,
                     help='hold out only this many scenes (spread over the list; 0: all)')
     ap.add_argument('--scene-folds', type=int, default=0,

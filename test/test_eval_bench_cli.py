@@ -192,7 +192,9 @@ def test_eval_held_out_json_sections_in_order(model, tmp_path, capsys):
 # ---------------------------------------------------------------------- beo-eval --scans
 @pytest.mark.parametrize('extra', [['--grid', '0'], ['--yaw-step', '0'], ['--max-iter', '0'],
                                    ['--yaw-step', 'nan'], ['--voxel-size', '-1'],
-                                   ['--figures', '-1'], ['--k', '0']])
+                                   ['--figures', '-1'], ['--k', '0'],
+                                   # steps estimate refuses (it did so after the first fit)
+                                   ['--yaw-step', '100'], ['--yaw-step', '0.01']])
 def test_scans_bad_numbers_leave_no_out(tmp_path, capsys, extra):
     out = tmp_path / 'se'
     assert call(evaluate.main, ['--scans', str(tmp_path / 'learn1.pcd'), '--out', str(out),
@@ -251,6 +253,8 @@ def test_bench_failure_keeps_an_existing_out(tmp_path):
     ['--node-workers', '65'], ['--node-worker-processes', '-2'], ['--node-objects', '0'],
     ['--node-rounds', '0'], ['--repeats', '0'], ['--seed', '-1'], ['--k', '0'],
     ['--scaling-yaw-steps', '0'], ['--scaling-grids', '0'], ['--node-blas-threads', '-1'],
+    # yaw steps estimate refuses (the scaling phase did, after the peers had run)
+    ['--scaling-yaw-steps', '100'], ['--scaling-yaw-steps', '1', '0.01'],
     # empty lists (ran with the defaults)
     ['--classes'], ['--scaling-train'], ['--scaling-grids'], ['--scaling-yaw-steps'],
     ['--scaling-classes'],
