@@ -463,6 +463,12 @@ def parse_args(argv):
     for add in (_add_data_options, _add_peer_options, _add_scaling_options, _add_node_options):
         add(ap)
     args = ap.parse_args(argv)
+    from beo_ros.core.training import check_grid_size
+    for n in args.scaling_grids:   # the scaling phase fits class models at each size
+        try:
+            check_grid_size(n)
+        except ValueError as e:
+            ap.error(f'--scaling-grids: {e}')
     if args.quick:
         _quick_sizes(args)
     return args

@@ -203,6 +203,16 @@ def test_scans_bad_numbers_leave_no_out(tmp_path, capsys, extra):
     assert not out.exists()
 
 
+def test_scans_odd_grid_refused_before_any_work(tmp_path, capsys):
+    # the 2x2x2 pooling of the pose search failed with numpy's 'cannot reshape array' after
+    # the scans had loaded
+    out = tmp_path / 'se'
+    assert call(evaluate.main, ['--scans', str(tmp_path / 'learn1.pcd'), '--out', str(out),
+                                '--grid', '17']) == 2
+    assert '--grid: the grid size must be an even integer' in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_scans_unreadable_scan_leaves_no_out(tmp_path, capsys):
     (tmp_path / 'learn1.pcd').write_text('not a point cloud\n')
     out = tmp_path / 'se'
@@ -265,6 +275,15 @@ def test_bench_numbers_checked_by_the_parser(tmp_path, capsys, extra):
     assert ei.value.code == 2
     assert f'argument {extra[0]}' in capsys.readouterr().err
     assert not (tmp_path / 'b').exists()
+
+
+def test_bench_odd_scaling_grid_refused_by_the_parser(tmp_path, capsys):
+    # the scaling phase failed at that size with numpy's 'cannot reshape array', after the
+    # peers had run
+    with pytest.raises(SystemExit) as ei:
+        bench.parse_args(['--out', str(tmp_path / 'b'), '--scaling-grids', '16', '17'])
+    assert ei.value.code == 2
+    assert '--scaling-grids: the grid size must be an even integer' in capsys.readouterr().err
 
 
 def test_bench_failing_node_phase_exit_1_with_results(tmp_path, capsys, monkeypatch):
