@@ -456,6 +456,18 @@ def _fmt(v, spec='.1f'):
 
 
 # ---------------------------------------------------------------------- main
+# the options that a phase switched off (or --model, which replaces beo's fit) leaves unused
+UNUSED_WITH = {
+    'model': ('beo_classifier_views', 'beo_verifier_views'),
+    'no_paper': ('paper_yaws',),
+    'no_icp': ('icp_db_per_class',),   # --icp-init-yaws: the scaling phase's database too
+    'no_scaling': ('scaling_train', 'scaling_grids', 'scaling_yaw_steps', 'scaling_classes',
+                   'scaling_per_class', 'scaling_queries'),
+    'no_node': ('node_objects', 'node_rounds', 'node_rates', 'node_duration', 'node_max_drop',
+                'node_workers', 'node_worker_processes', 'node_blas_threads'),
+}
+
+
 def parse_args(argv):
     """beo-bench's options (``argv``; None: sys.argv) -> argparse Namespace, --quick
     applied."""
@@ -463,6 +475,12 @@ def parse_args(argv):
     for add in (_add_data_options, _add_peer_options, _add_scaling_options, _add_node_options):
         add(ap)
     args = ap.parse_args(argv)
+    unused = [f"--{n.replace('_', '-')}" for switch, names in UNUSED_WITH.items()
+              if getattr(args, switch) for n in names if getattr(args, n) != ap.get_default(n)]
+    if unused:   # an option the run does not use is refused rather than silently ignored
+        ap.error('not used in this run (' + ', '.join(
+            f"--{s.replace('_', '-')}" for s in UNUSED_WITH if getattr(args, s)) + '): '
+            + ', '.join(unused))
     from beo_ros.core.training import check_grid_size
     for n in args.scaling_grids:   # the scaling phase fits class models at each size
         try:

@@ -277,6 +277,22 @@ def test_bench_numbers_checked_by_the_parser(tmp_path, capsys, extra):
     assert not (tmp_path / 'b').exists()
 
 
+@pytest.mark.parametrize('extra, named', [
+    (['--no-node', '--node-rates', '5'], '--node-rates'),
+    (['--no-scaling', '--scaling-grids', '16'], '--scaling-grids'),
+    (['--no-paper', '--paper-yaws', '12'], '--paper-yaws'),
+    (['--no-icp', '--icp-db-per-class', '3'], '--icp-db-per-class'),
+    (['--model', 'm', '--beo-verifier-views', '2'], '--beo-verifier-views'),
+])
+def test_bench_options_of_a_phase_not_run_refused(tmp_path, capsys, extra, named):
+    # they were silently ignored (README: options the mode does not use are refused)
+    with pytest.raises(SystemExit) as ei:
+        bench.parse_args(['--out', str(tmp_path / 'b'), *extra])
+    assert ei.value.code == 2
+    err = capsys.readouterr().err
+    assert f'not used in this run ({extra[0]}): {named}' in err
+
+
 def test_bench_odd_scaling_grid_refused_by_the_parser(tmp_path, capsys):
     # the scaling phase failed at that size with numpy's 'cannot reshape array', after the
     # peers had run
