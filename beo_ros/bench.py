@@ -456,6 +456,18 @@ def _fmt(v, spec='.1f'):
 
 
 # ---------------------------------------------------------------------- main
+# the options that a phase switched off (or --model, which replaces beo's fit) leaves unused
+UNUSED_WITH = {
+    'model': ('beo_classifier_views', 'beo_verifier_views'),
+    'no_paper': ('paper_yaws',),
+    'no_icp': ('icp_db_per_class',),   # --icp-init-yaws: the scaling phase's database too
+    'no_scaling': ('scaling_train', 'scaling_grids', 'scaling_yaw_steps', 'scaling_classes',
+                   'scaling_per_class', 'scaling_queries'),
+    'no_node': ('node_objects', 'node_rounds', 'node_rates', 'node_duration', 'node_max_drop',
+                'node_workers', 'node_worker_processes', 'node_blas_threads'),
+}
+
+
 def parse_args(argv):
     """beo-bench's options (``argv``; None: sys.argv) -> argparse Namespace, --quick
     applied."""
@@ -463,6 +475,18 @@ def parse_args(argv):
     for add in (_add_data_options, _add_peer_options, _add_scaling_options, _add_node_options):
         add(ap)
     args = ap.parse_args(argv)
+    unused = [f"--{n.replace('_', '-')}" for switch, names in UNUSED_WITH.items()
+              if getattr(args, switch) for n in names if getattr(args, n) != ap.get_default(n)]
+    if unused:   # an option the run does not use is refused rather than silently ignored
+        ap.error('not used in this run (' + ', '.join(
+            f"--{s.replace('_', '-')}" for s in UNUSED_WITH if getattr(args, s)) + '): '
+            + ', '.join(unused))
+    from beo_ros.core.training import check_grid_size
+    for n in args.scaling_grids:   # the scaling phase fits class models at each size
+        try:
+            check_grid_size(n)
+        except ValueError as e:
+            ap.error(f'--scaling-grids: {e}')
     if args.quick:
         _quick_sizes(args)
     return args
@@ -512,9 +536,10 @@ def _add_peer_options(ap):
 
 def _add_scaling_options(ap):
     """The points of the scaling curves."""
+    from beo_ros.core.bank import YAW_STEP_RANGE_DEG
     ap.add_argument('--scaling-train', type=count(1), nargs='+', default=[100, 200])
     ap.add_argument('--scaling-grids', type=count(4, 256), nargs='+', default=[24, 32, 48, 64])
-    ap.add_argument('--scaling-yaw-steps', type=number(0, 360, lo_open=True), nargs='+',
+    ap.add_argument('--scaling-yaw-steps', type=number(*YAW_STEP_RANGE_DEG), nargs='+',
                     default=[10.0, 5.0, 1.0])
     ap.add_argument('--scaling-classes', type=count(1), nargs='+', default=[2, 5, 10])
     ap.add_argument('--scaling-per-class', type=count(1), default=8)

@@ -36,6 +36,8 @@ from pathlib import Path
 import numpy as np
 
 from .cli import count, interruptible, number
+from .core.bank import YAW_STEP_RANGE_DEG
+from .core.training import check_grid_size
 
 
 def add_arguments(ap):
@@ -51,9 +53,9 @@ def add_arguments(ap):
                     help='do not add the mirror image (y flip) of every training grid')
     ap.add_argument('--voxel-size', type=number(0, None, lo_open=True), default=0.5 / 32,
                     help='metres per voxel')
-    ap.add_argument('--grid', type=count(4, 256), default=32, help='voxels per grid side')
-    ap.add_argument('--yaw-step', type=number(0, 360, lo_open=True), default=2.0,
-                    help='yaw search step (degrees)')
+    ap.add_argument('--grid', type=count(4, 256), default=32, help='voxels per grid side (even)')
+    ap.add_argument('--yaw-step', type=number(*YAW_STEP_RANGE_DEG), default=2.0,
+                    help='yaw search step (degrees, %g .. %g)' % YAW_STEP_RANGE_DEG)
     ap.add_argument('--scenes', type=count(0), default=0,
                     help='hold out only this many scenes (spread over the list; 0: all)')
     ap.add_argument('--scene-folds', type=int, default=0,
@@ -515,6 +517,10 @@ def main(argv=None):
     args = ap.parse_args(argv)
     if args.scene_folds == 1 or args.scene_folds < 0:
         ap.error(f'--scene-folds must be 0 (leave one scene out) or >= 2, got {args.scene_folds}')
+    try:
+        check_grid_size(args.grid)
+    except ValueError as e:
+        ap.error(f'--grid: {e}')
     from .cli import out_dir_problem
     problem = out_dir_problem(Path(args.out))
     if problem:

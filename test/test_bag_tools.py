@@ -442,6 +442,14 @@ def test_cli_replay_refuses_topics_with_all_topics(tmp_path, capsys):
     assert '--topics and --all-topics exclude each other' in capsys.readouterr().err
 
 
+def test_cli_replay_refuses_wait_timeout_without_wait_subscribers(tmp_path, capsys):
+    write_test_bag(tmp_path / 'b', 'sqlite3', n=1)
+    with pytest.raises(SystemExit) as ei:   # it used to be ignored: nothing was waited for
+        bag.replay_main([str(tmp_path / 'b'), '--wait-timeout', '30'])
+    assert ei.value.code == 2
+    assert '--wait-timeout is for --wait-subscribers N' in capsys.readouterr().err
+
+
 # ------------------------------------------------------------------------------------------
 # 7. SIGTERM ends beo-replay with 143
 # ------------------------------------------------------------------------------------------

@@ -192,12 +192,24 @@ def test_eval_held_out_json_sections_in_order(model, tmp_path, capsys):
 # ---------------------------------------------------------------------- beo-eval --scans
 @pytest.mark.parametrize('extra', [['--grid', '0'], ['--yaw-step', '0'], ['--max-iter', '0'],
                                    ['--yaw-step', 'nan'], ['--voxel-size', '-1'],
-                                   ['--figures', '-1'], ['--k', '0']])
+                                   ['--figures', '-1'], ['--k', '0'],
+                                   # steps estimate refuses (it did so after the first fit)
+                                   ['--yaw-step', '100'], ['--yaw-step', '0.01']])
 def test_scans_bad_numbers_leave_no_out(tmp_path, capsys, extra):
     out = tmp_path / 'se'
     assert call(evaluate.main, ['--scans', str(tmp_path / 'learn1.pcd'), '--out', str(out),
                                 *extra]) == 2
     assert f'argument {extra[0]}' in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_scans_odd_grid_refused_before_any_work(tmp_path, capsys):
+    # the 2x2x2 pooling of the pose search failed with numpy's 'cannot reshape array' after
+    # the scans had loaded
+    out = tmp_path / 'se'
+    assert call(evaluate.main, ['--scans', str(tmp_path / 'learn1.pcd'), '--out', str(out),
+                                '--grid', '17']) == 2
+    assert '--grid: the grid size must be an even integer' in capsys.readouterr().err
     assert not out.exists()
 
 
@@ -251,6 +263,8 @@ def test_bench_failure_keeps_an_existing_out(tmp_path):
     ['--node-workers', '65'], ['--node-worker-processes', '-2'], ['--node-objects', '0'],
     ['--node-rounds', '0'], ['--repeats', '0'], ['--seed', '-1'], ['--k', '0'],
     ['--scaling-yaw-steps', '0'], ['--scaling-grids', '0'], ['--node-blas-threads', '-1'],
+    # yaw steps estimate refuses (the scaling phase did, after the peers had run)
+    ['--scaling-yaw-steps', '100'], ['--scaling-yaw-steps', '1', '0.01'],
     # empty lists (ran with the defaults)
     ['--classes'], ['--scaling-train'], ['--scaling-grids'], ['--scaling-yaw-steps'],
     ['--scaling-classes'],
@@ -261,6 +275,31 @@ def test_bench_numbers_checked_by_the_parser(tmp_path, capsys, extra):
     assert ei.value.code == 2
     assert f'argument {extra[0]}' in capsys.readouterr().err
     assert not (tmp_path / 'b').exists()
+
+
+@pytest.mark.parametrize('extra, named', [
+    (['--no-node', '--node-rates', '5'], '--node-rates'),
+    (['--no-scaling', '--scaling-grids', '16'], '--scaling-grids'),
+    (['--no-paper', '--paper-yaws', '12'], '--paper-yaws'),
+    (['--no-icp', '--icp-db-per-class', '3'], '--icp-db-per-class'),
+    (['--model', 'm', '--beo-verifier-views', '2'], '--beo-verifier-views'),
+])
+def test_bench_options_of_a_phase_not_run_refused(tmp_path, capsys, extra, named):
+    # they were silently ignored (README: options the mode does not use are refused)
+    with pytest.raises(SystemExit) as ei:
+        bench.parse_args(['--out', str(tmp_path / 'b'), *extra])
+    assert ei.value.code == 2
+    err = capsys.readouterr().err
+    assert f'not used in this run ({extra[0]}): {named}' in err
+
+
+def test_bench_odd_scaling_grid_refused_by_the_parser(tmp_path, capsys):
+    # the scaling phase failed at that size with numpy's 'cannot reshape array', after the
+    # peers had run
+    with pytest.raises(SystemExit) as ei:
+        bench.parse_args(['--out', str(tmp_path / 'b'), '--scaling-grids', '16', '17'])
+    assert ei.value.code == 2
+    assert '--scaling-grids: the grid size must be an even integer' in capsys.readouterr().err
 
 
 def test_bench_failing_node_phase_exit_1_with_results(tmp_path, capsys, monkeypatch):

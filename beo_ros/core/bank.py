@@ -40,7 +40,7 @@ from .verifier import TURNS, OrientationVerifier, check_arrays, quarter_turned_f
 __all__ = [
     'ModelBank', 'load_models', 'default_model_dir', 'resolve_model_dir', 'shipped_models',
     'object_centre', 'heading_offset', 'check_yaw', 'check_step', 'check_count',
-    'SEARCH_STEP_DEG', 'PROBE_DEG', 'STAGE2_MIN_STEP_DEG',
+    'SEARCH_STEP_DEG', 'PROBE_DEG', 'STAGE2_MIN_STEP_DEG', 'YAW_STEP_RANGE_DEG',
     # class_model
     'ClassModel', 'ModelError', 'coarse_noise',
     # classifier
@@ -63,6 +63,8 @@ PROBE_DEG = (10.0, 20.0)
 # resolve finer yaws, and its rotation maps of every multiple of a finer step cost seconds and
 # gigabytes (0.1 deg: 5 s, 1.4 GB); finer returned yaws come from a second, exact climb
 STAGE2_MIN_STEP_DEG = 1.0
+# the yaw steps (degrees) that estimate takes (check_step); commands check theirs against it
+YAW_STEP_RANGE_DEG = (0.05, 90.0)
 
 
 class ModelBank:
@@ -805,11 +807,13 @@ def check_yaw(yaw):
 
 
 def check_step(name, value):
-    """Raise ValueError unless ``value`` is a real number of degrees in [0.05, 90]."""
+    """Raise ValueError unless ``value`` is a real number of degrees in YAW_STEP_RANGE_DEG
+    ([0.05, 90])."""
+    lo, hi = YAW_STEP_RANGE_DEG
     if isinstance(value, (bool, np.bool_)) \
             or not isinstance(value, (int, float, np.integer, np.floating)) \
-            or not 0.05 <= value <= 90:   # also refuses NaN
-        raise ValueError(f'{name} must be a number of degrees in [0.05, 90], got {value!r}')
+            or not lo <= value <= hi:   # also refuses NaN
+        raise ValueError(f'{name} must be a number of degrees in [{lo:g}, {hi:g}], got {value!r}')
 
 
 def check_count(name, value):

@@ -1,11 +1,12 @@
 """The beo_ros ROS 2 node: classify, orient and complete segmented object clouds.
 
-Subscribes to every topic in ``input_topics`` (sensor_msgs/PointCloud2, sensor-data QoS) and
-publishes, in the input cloud's frame:
+Subscribes to every topic in ``input_topics`` (sensor_msgs/PointCloud2; sensor-data QoS, or
+reliable with ``input_reliability``) and publishes, in the input cloud's frame:
 
 - ``~/estimates`` beo_interfaces/ObjectEstimate (label, class probabilities, pose, dimensions),
 - ``~/completed`` sensor_msgs/PointCloud2 (x y z probability) of the completed object,
-- ``~/pose`` geometry_msgs/PoseStamped (object centre, yaw about the up axis),
+- ``~/pose`` geometry_msgs/PoseStamped (object centre; orientation = the object frame, z up,
+  x along the heading: a turn about up only in a frame whose z is up),
 - ``~/markers`` visualization_msgs/MarkerArray (label text + box) for RViz,
 - ``/diagnostics`` diagnostic_msgs/DiagnosticArray (rates, stage latencies, counters).
 

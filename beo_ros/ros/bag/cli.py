@@ -162,6 +162,8 @@ def replay_main(argv=None) -> int:
     args = p.parse_args(argv)
     if args.topics and args.all_topics:
         p.error('--topics and --all-topics exclude each other')
+    if args.wait_timeout != p.get_default('wait_timeout') and not args.wait_subscribers:
+        p.error('--wait-timeout is for --wait-subscribers N (without it nothing is waited for)')
     remap = _valid(p, parse_remaps, args.remap)
     _valid(p, check_node_name, args.node_name)
     if not Path(args.bag).exists():
