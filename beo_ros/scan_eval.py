@@ -60,7 +60,8 @@ def add_arguments(ap):
                     help='hold out only this many scenes (spread over the list; 0: all)')
     ap.add_argument('--scene-folds', type=int, default=0,
                     help='hold out groups of scenes: this many folds, every scene held out once '
-                         '(0: one fold per scene, leave-one-scene-out)')
+                         '(0, or as many as the scenes or more: one fold per scene, '
+                         'leave-one-scene-out)')
     ap.add_argument('--figures', type=count(0), default=4, help='objects drawn in the PNG')
     ap.add_argument('--from-points', action='store_true',
                     help='estimate every held-out object from its raw camera-frame points with '
