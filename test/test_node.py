@@ -1599,11 +1599,9 @@ def test_a_service_call_during_destroy_node_is_counted(harness1, capfd):
     assert 'the call came during the shutdown' in capfd.readouterr().err
 
 
-def test_the_warm_up_estimate_is_not_rejected_by_a_small_cluster_tolerance(
-        ros_context, ros_tiny_model_dir, monkeypatch):
-    """cluster_tolerance 0.005 (for a dense sensor) is below the warm-up face's point spacing:
-    before, the warm-up estimate was rejected (a debug line) and the first real cloud paid the
-    warm-up (0.49 s instead of 0.08 s with the shipped models)."""
+def _record_estimates(monkeypatch) -> list:
+    """Patch BeoNode._estimate to record each outcome ('ok' or the exception) in the list
+    returned."""
     from beo_ros.ros.node import BeoNode
     outcomes = []
     estimate = BeoNode._estimate
@@ -1618,6 +1616,16 @@ def test_the_warm_up_estimate_is_not_rejected_by_a_small_cluster_tolerance(
         return out
 
     monkeypatch.setattr(BeoNode, '_estimate', recording)
+    return outcomes
+
+
+def test_the_warm_up_estimate_is_not_rejected_by_a_small_cluster_tolerance(
+        ros_context, ros_tiny_model_dir, monkeypatch):
+    """cluster_tolerance 0.005 (for a dense sensor) is below the warm-up face's point spacing:
+    before, the warm-up estimate was rejected (a debug line) and the first real cloud paid the
+    warm-up (0.49 s instead of 0.08 s with the shipped models)."""
+    from beo_ros.ros.node import BeoNode
+    outcomes = _record_estimates(monkeypatch)
     node = BeoNode(context=ros_context, parameter_overrides=[
         Parameter('model_dir', value=ros_tiny_model_dir),
         Parameter('cluster_tolerance', value=0.005)])
@@ -1641,19 +1649,7 @@ def test_the_warm_up_estimate_fits_a_small_metric_grid(ros_context, ros_tiny_mod
     bank = load_models(ros_tiny_model_dir)
     bank.spec = dataclasses.replace(bank.spec, units='metric', voxel_size=0.005)
     bank.save(tmp_path / 'small')
-    outcomes = []
-    estimate = BeoNode._estimate
-
-    def recording(self, *args, **kwargs):
-        try:
-            out = estimate(self, *args, **kwargs)
-        except Exception as e:
-            outcomes.append(e)
-            raise
-        outcomes.append('ok')
-        return out
-
-    monkeypatch.setattr(BeoNode, '_estimate', recording)
+    outcomes = _record_estimates(monkeypatch)
     node = BeoNode(context=ros_context, parameter_overrides=[
         Parameter('model_dir', value=str(tmp_path / 'small'))])
     try:
