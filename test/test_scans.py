@@ -323,3 +323,15 @@ def test_table_plane_refuses_a_strip_of_table():
         else:
             with pytest.raises(ValueError, match=r'strip [0-9.]+ cm wide .*not determined'):
                 fit_table_plane(strip)
+
+
+@pytest.mark.parametrize('kw', [dict(distance_threshold=0.0), dict(distance_threshold=-0.01),
+                                dict(distance_threshold=float('nan')),
+                                dict(distance_threshold=True), dict(distance_threshold='0.01'),
+                                dict(iterations=0), dict(iterations=-5), dict(iterations=2.5)])
+def test_table_plane_names_bad_options(kw):
+    # before: 'no plane among the ... support points (collinear or all at one place?)', or
+    # open3d's 'vector::reserve' for negative iterations
+    scene, _, _ = synthetic_scene()
+    with pytest.raises(ValueError, match=f'^{next(iter(kw))} must be a positive'):
+        fit_table_plane(scene, **kw)

@@ -201,6 +201,15 @@ def fit_table_plane(scene_or_points, labels=None, distance_threshold: float = 0.
     origin = np.asarray(sensor_origin, dtype=np.float64)
     if origin.shape != (3,) or not np.isfinite(origin).all():
         raise ValueError(f'sensor_origin must be a finite 3-vector, got {sensor_origin!r}')
+    # (open3d took 0, negative or NaN for no plane, and negative iterations for vector::reserve)
+    if isinstance(distance_threshold, (bool, np.bool_)) or not isinstance(
+            distance_threshold, (int, float, np.integer, np.floating)) \
+            or not 0 < distance_threshold < np.inf:
+        raise ValueError(f'distance_threshold must be a positive number of metres, got '
+                         f'{distance_threshold!r}')
+    if isinstance(iterations, (bool, np.bool_)) or not isinstance(iterations, (int, np.integer)) \
+            or iterations < 1:
+        raise ValueError(f'iterations must be a positive integer, got {iterations!r}')
     ok = _finite(pts)
     if labels is not None:
         labels = np.asarray(labels).reshape(-1)
