@@ -606,6 +606,23 @@ def test_cluster_tolerance_keeps_the_largest_cluster_and_counts_the_rest(harness
     assert node.set_parameters([Parameter('cluster_tolerance', value=0.0)])[0].successful
 
 
+def test_points_outside_a_metric_grid_are_counted(harness):
+    # box_view is 0.8 m tall: in the 0.5 m tabletop grid its top was dropped without a count
+    from beo_ros.core.bank import default_model_dir
+    node = harness.node
+    req = harness.good_request()
+    assert _dims(harness.call(harness.classify, req)) is not None
+    assert node.counters()['outside_grid_points'] == 0    # the tiny model's grid is normalized
+    r = node.set_parameters([Parameter('model_dir',
+                                       value=str(default_model_dir('tabletop_32')))])[0]
+    assert r.successful, r.reason
+    assert harness.call(harness.classify, req).success
+    n = node.counters()['outside_grid_points']
+    assert n > 100
+    harness.pub.publish(req.cloud)   # the stream path counts them too
+    harness.wait_counter(lambda c: c['outside_grid_points'] == 2 * n)
+
+
 def test_class_prior_parameter_is_checked_and_applied_to_the_estimates(harness):
     node = harness.node
 

@@ -134,6 +134,22 @@ def test_estimate_points_on_a_metric_grid_keeps_a_stray_point_out_of_the_placeme
                              outlier_mads=None)
 
 
+def test_estimate_points_counts_the_points_outside_a_metric_grid():
+    # a box 0.8 m tall in the 0.5 m tabletop grid: its top part was dropped without a count
+    # (load_scan_objects warns of the same in training)
+    import beo_ros
+    from pathlib import Path
+    bank = beo_ros.load_models(Path(__file__).resolve().parents[1] / 'models' / 'tabletop_32')
+    rng = np.random.default_rng(0)
+    front = np.c_[np.full(3000, -0.08), rng.uniform(-0.05, 0.05, 3000), rng.uniform(0, 0.8, 3000)]
+    tall = bank.estimate_points(front, sensor_origin=(-0.8, 0.0, 0.5), outlier_mads=None)
+    # the grid floor at the box's bottom, its top 0.5 m above
+    top = front[:, 2].min() + bank.spec.size * bank.spec.voxel_size
+    assert tall.n_outside_grid == int((front[:, 2] > top + 1e-6).sum()) > 1000
+    low = bank.estimate_points(front[front[:, 2] < 0.3], sensor_origin=(-0.8, 0.0, 0.5))
+    assert low.n_outside_grid == 0
+
+
 # ---------------------------------------------------------------- largest cluster
 
 def test_the_largest_cluster_is_kept_and_a_dense_cluster_of_strays_goes():

@@ -20,9 +20,17 @@ BIG = 7          # points in a cloud that asks for the big result
 WAIT = 60.0      # seconds: far beyond what any step here needs
 
 
+class TwoArgError(Exception):
+    """An exception that pickles but does not unpickle (its args are not its constructor's)."""
+
+    def __init__(self, what, where):
+        super().__init__(f'{what} at {where}')
+
+
 class FakeBank:
     """Picklable stand-in for ModelBank: ``estimate_points`` -> bytes (``size`` of them for a
-    cloud of BIG points; it touches ``flag`` first), or raises ValueError for NaN points."""
+    cloud of BIG points; it touches ``flag`` first), or raises ValueError for NaN points,
+    RuntimeError for 4 points and TwoArgError for 5."""
 
     classes = ('a', 'b')
     class_prior = None
@@ -33,6 +41,10 @@ class FakeBank:
     def estimate_points(self, points, **kwargs):
         if not np.isfinite(points).all():
             raise ValueError('points must be finite')
+        if len(points) == 4:
+            raise RuntimeError('no estimate for 4 points')
+        if len(points) == 5:
+            raise TwoArgError('no estimate', '5 points')
         if len(points) != BIG:
             return b'small'
         result = b'x' * self.size
@@ -107,6 +119,18 @@ def test_estimates_and_rejects(make_pool):
     with pytest.raises(ValueError, match='finite'):
         pool.estimate(np.full((3, 3), np.nan), np.zeros(3), np.zeros(3), 10.0, 0.5)
     assert not pool.broken
+
+
+def test_an_error_in_the_estimate_is_named_and_keeps_the_processes(make_pool):
+    # one that would not unpickle in the parent broke the pool (the processes were killed, the
+    # node logged 'a worker process died' and retried the cloud into a second break)
+    pool = make_pool(n=1)
+    with pytest.raises(RuntimeError, match='^no estimate for 4 points$'):
+        _estimate(pool, n=4)
+    with pytest.raises(RuntimeError, match=r'^TwoArgError: no estimate at 5 points$'):
+        _estimate(pool, n=5)
+    assert not pool.broken
+    assert _estimate(pool) == (b'small', ['a', 'b'])
 
 
 def test_shutdown_ends_processes_and_thread(make_pool):

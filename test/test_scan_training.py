@@ -194,3 +194,25 @@ def test_load_scan_objects_says_when_a_scene_has_no_objects(tmp_path, capsys):
     with pytest.raises(ValueError, match=r'no object labels \(>= 20\)'):
         load_scan_objects([tmp_path / 'learn0.pcd'])
     assert 'learn0.pcd: no objects (labels >= 20), skipped' in capsys.readouterr().err
+
+
+def test_load_scan_objects_refuses_a_scene_given_twice(tmp_path):
+    # a scene is its file stem: a scan given twice counted its objects twice (and trained on
+    # them twice in the other folds), two scans of one name were held out as one scene
+    from beo_ros.core.pcd import write_pcd
+    rng = np.random.default_rng(0)
+    table = np.c_[rng.uniform(-0.5, 0.5, (2000, 2)), np.ones(2000)]
+    cube = rng.uniform([-0.05, -0.05, 0.9], [0.05, 0.05, 0.95], (300, 3))
+    pts = np.r_[table, cube].astype(np.float32)
+    for d in ('a', 'b'):
+        (tmp_path / d).mkdir()
+        write_pcd(tmp_path / d / 'learn0.pcd', {
+            'x': pts[:, 0], 'y': pts[:, 1], 'z': pts[:, 2],
+            'label': np.r_[np.ones(2000), np.full(300, 20)].astype(np.uint32)})
+    a, b = tmp_path / 'a' / 'learn0.pcd', tmp_path / 'b' / 'learn0.pcd'
+    with pytest.raises(ValueError, match="'box' has 1 objects; need >= 2"):
+        load_scan_objects([a], scan_classes='box:0')
+    for paths in ([a, a], [a, b]):
+        with pytest.raises(ValueError, match=r"learn0\.pcd: scene 'learn0' given twice "
+                                             r'\(also .*learn0\.pcd\)'):
+            load_scan_objects(paths, scan_classes='box:0')

@@ -300,3 +300,38 @@ def test_table_plane_is_reproducible(osd_scenes):
     scene = osd_scenes['learn0']
     fits = [fit_table_plane(scene) for _ in range(6)]
     assert len({(tuple(up), d) for up, d in fits}) == 1
+
+
+def test_table_plane_refuses_a_strip_of_table():
+    # a table seen only in a few image rows is a strip barely wider than the RANSAC band: a
+    # plane tilted about it fits as well (OSD learn33 cut to its last 3-10 table rows gave an
+    # up 38-116 deg off, without an error)
+    scene, up, d = synthetic_scene()
+    rng = np.random.default_rng(3)
+    fwd = np.cross([1.0, 0, 0], up)
+    fwd /= np.linalg.norm(fwd)
+    side = np.cross(up, fwd)
+    c = 0.9 * fwd - d * up
+    for width, ok in ((0.01, False), (0.02, False), (0.1, True)):
+        m = 2000
+        strip = (c + np.outer(rng.uniform(-0.5, 0.5, m), side)
+                 + np.outer(rng.uniform(-width / 2, width / 2, m), fwd)
+                 + np.outer(rng.normal(0, 0.003, m), up))
+        if ok:
+            n, dd = fit_table_plane(strip)
+            assert n @ up > np.cos(np.radians(2.0)) and dd == pytest.approx(d, abs=0.01)
+        else:
+            with pytest.raises(ValueError, match=r'strip [0-9.]+ cm wide .*not determined'):
+                fit_table_plane(strip)
+
+
+@pytest.mark.parametrize('kw', [dict(distance_threshold=0.0), dict(distance_threshold=-0.01),
+                                dict(distance_threshold=float('nan')),
+                                dict(distance_threshold=True), dict(distance_threshold='0.01'),
+                                dict(iterations=0), dict(iterations=-5), dict(iterations=2.5)])
+def test_table_plane_names_bad_options(kw):
+    # before: 'no plane among the ... support points (collinear or all at one place?)', or
+    # open3d's 'vector::reserve' for negative iterations
+    scene, _, _ = synthetic_scene()
+    with pytest.raises(ValueError, match=f'^{next(iter(kw))} must be a positive'):
+        fit_table_plane(scene, **kw)

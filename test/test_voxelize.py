@@ -405,3 +405,14 @@ def test_a_self_return_does_not_blind_the_splats():
         assert (g[13:, 6:10, 6:10] == UNKNOWN).all()
     v, _ = facing_squares(np.array([[0.0, 0, 0], [2.0, 0, 0]]), np.zeros(3), 0.5)
     assert np.isfinite(v).all() and (v[:4] == 0).all()
+
+
+def test_points_outside_a_grid_placed_at_center_blame_the_center():
+    # a 5 cm object 10 m from the given center: the message blamed the object's size or unit
+    spec = GridSpec(16, units='metric', voxel_size=0.05)
+    pts = box_front(100) * 0.1 + [2.0, 0, 0]
+    assert voxelize_view(pts, np.zeros(3), [0, 0, 1], spec, center=pts.mean(axis=0)).n_points
+    with pytest.raises(ValueError) as e:
+        voxelize_view(pts, np.zeros(3), [0, 0, 1], spec, center=[12.0, 0.0, 0.0])
+    assert 'placed at center [12.0, 0.0, 0.0]' in str(e.value)
+    assert 'not in metres' not in str(e.value)

@@ -697,7 +697,8 @@ class ModelBank:
         unit as the points; None: off) only the largest cluster of the remaining points is
         kept (:func:`beo_ros.core.outliers.outside_largest_cluster`; counted in
         ``Estimate.n_off_cluster``): for segments that caught part of another surface or
-        object. With a 'points' classifier the
+        object. Points that fall outside a metric grid are not voxelized (counted in
+        ``Estimate.n_outside_grid``). With a 'points' classifier the
         side-normal descriptors of the remaining points are computed too
         (``timings['point_descriptors']``) and passed to :meth:`estimate`. The outlier removal
         grows faster than the points (5 s for a million): downsample big clouds first, as the
@@ -744,6 +745,7 @@ class ModelBank:
         est.completed_probability = np.asarray(prob, dtype=np.float32)
         est.n_outliers = n_outliers
         est.n_off_cluster = n_off_cluster
+        est.n_outside_grid = len(pts_in) - view.n_points
         est.timings['outliers'] = t_out - t0
         est.timings['voxelize'] = t1 - t_out
         if point_features is not None:

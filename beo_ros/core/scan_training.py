@@ -133,19 +133,27 @@ def load_scan_objects(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32, voxel_s
     """Every segmented object of the scans whose scene number has a class, as partial grids.
 
     Scenes whose number is in no class are skipped (with a note when verbose). Raises ValueError
-    when a class ends up with fewer than 2 objects or no scan has a class, or (naming the scan
-    and object) when a table plane or an object's grid cannot be made.
+    when a class ends up with fewer than 2 objects or no scan has a class, when two scans of
+    the classes have one file name (a scene is its file stem: its objects would count twice,
+    or two scenes be held out as one), or (naming the scan and object) when a table plane or an
+    object's grid cannot be made.
     """
     names, table = parse_scan_classes(scan_classes)
     spec = grid_spec(grid, voxel_size)
     X, M, y, scenes, oids, pts_all, ups, ds, T, outside = [], [], [], [], [], [], [], [], [], []
     notes = {}
+    seen = {}
     for p in sorted(paths, key=lambda q: (scene_number(q) is None, scene_number(q) or 0, str(q))):
         num = scene_number(p)
         if num not in table:
             if verbose:
                 print(f'{p}: scene {num} is in no class, skipped', file=sys.stderr)
             continue
+        stem = Path(p).stem
+        if stem in seen:
+            raise ValueError(f'{p}: scene {stem!r} given twice (also {seen[stem]}): scenes are '
+                             'told apart by their file names')
+        seen[stem] = p
         scene = load_scene(p)
         objs = segment_objects(scene)   # warns of small objects and labels 10-19
         notes[Path(p).stem] = label_summary(scene)

@@ -21,6 +21,9 @@ from .voxelize import MIN_POINTS, ViewGrid, voxelize_view
 
 TABLE_LABELS = (1, 9)  # inclusive range
 MIN_VIEW_ANGLE_DEG = 5.0  # a support plane seen at a shallower angle is refused
+# support points narrower than this many distance thresholds across (a strip of a few image
+# rows or columns) leave the plane's tilt about the strip free: refused
+MIN_WIDTH_THRESHOLDS = 3.0
 FIRST_OBJECT_LABEL = 20
 TABLETOP_SPEC = GridSpec(size=32, units='metric', voxel_size=0.5 / 32, anchor='bottom')
 IDENTITY_VIEWPOINT = np.array([0, 0, 0, 1, 0, 0, 0], dtype=np.float64)
@@ -182,8 +185,11 @@ def fit_table_plane(scene_or_points, labels=None, distance_threshold: float = 0.
 
     Returns (up float64 (3,), d float): unit plane normal oriented toward the sensor side and
     offset with ``up . p + d = 0`` on the plane; ``up . sensor_origin + d > 0`` is the sensor's
-    height above the table. Raises ValueError when the points hold no plane or the sensor sees
-    the plane at less than ``MIN_VIEW_ANGLE_DEG`` (edge-on) from its centre.
+    height above the table. Raises ValueError when the points hold no plane, when the plane's
+    inliers form a strip narrower than ``MIN_WIDTH_THRESHOLDS`` x ``distance_threshold`` (the
+    width of a uniform strip with their spread across; a few image rows or columns of a table:
+    the plane could tilt about the strip) or when the sensor sees the plane at less than
+    ``MIN_VIEW_ANGLE_DEG`` (edge-on) from its centre.
     """
     if isinstance(scene_or_points, Scene):
         pts, labels = scene_or_points.points, scene_or_points.labels
@@ -195,6 +201,15 @@ def fit_table_plane(scene_or_points, labels=None, distance_threshold: float = 0.
     origin = np.asarray(sensor_origin, dtype=np.float64)
     if origin.shape != (3,) or not np.isfinite(origin).all():
         raise ValueError(f'sensor_origin must be a finite 3-vector, got {sensor_origin!r}')
+    # (open3d took 0, negative or NaN for no plane, and negative iterations for vector::reserve)
+    if isinstance(distance_threshold, (bool, np.bool_)) or not isinstance(
+            distance_threshold, (int, float, np.integer, np.floating)) \
+            or not 0 < distance_threshold < np.inf:
+        raise ValueError(f'distance_threshold must be a positive number of metres, got '
+                         f'{distance_threshold!r}')
+    if isinstance(iterations, (bool, np.bool_)) or not isinstance(iterations, (int, np.integer)) \
+            or iterations < 1:
+        raise ValueError(f'iterations must be a positive integer, got {iterations!r}')
     ok = _finite(pts)
     if labels is not None:
         labels = np.asarray(labels).reshape(-1)
@@ -234,6 +249,15 @@ def fit_table_plane(scene_or_points, labels=None, distance_threshold: float = 0.
         if again.sum() < 3 or (again == keep).all():
             break
         keep = again
+    # width of a uniform strip with the inliers' spread along the plane's narrower axis: RANSAC
+    # and the refit can tilt a plane about a strip little wider than the inlier band at will
+    # (OSD tables cut to their last 3-10 image rows: 38-116 deg off, no error)
+    width = np.sqrt(12.0) * sv[1] / np.sqrt(len(inl))
+    if width < MIN_WIDTH_THRESHOLDS * distance_threshold:
+        raise ValueError(f'the support points form a strip {100 * width:.1f} cm wide (less than '
+                         f'{MIN_WIDTH_THRESHOLDS:g} x distance_threshold {distance_threshold:g} '
+                         'm): the tilt of a plane through it is not determined (too little of '
+                         'the table visible?)')
     d = -float(normal @ centroid)
     height = normal @ origin + d
     seen_deg = np.degrees(np.arcsin(min(1.0, abs(height) / max(

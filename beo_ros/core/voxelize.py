@@ -362,7 +362,7 @@ def voxelize_view(points, sensor_origin, up, spec: GridSpec, center=None, floor=
     box_lo, box_hi, largest = _estimated_box(pts @ rot, spec, floor)
     g2i, voxel = _place_grid(rot, box_lo, box_hi, largest, spec, center)
     g = _to_grid(pts, g2i, rot, voxel)
-    inside, occ = _occupied_voxels(g, spec, voxel, largest)
+    inside, occ = _occupied_voxels(g, spec, voxel, largest, center)
     origin_grid = _to_grid(origin, g2i, rot, voxel)
     # the object's own points outside the grid (e.g. the top of an object taller than a metric
     # grid) still hide what lies behind them: without them, the inside of the object reads free
@@ -437,12 +437,17 @@ def _to_grid(p: np.ndarray, g2i: np.ndarray, rot: np.ndarray, voxel: float) -> n
     return (p - g2i[:3, 3]) @ rot / voxel
 
 
-def _occupied_voxels(g: np.ndarray, spec: GridSpec, voxel: float, largest: float) -> tuple:
+def _occupied_voxels(g: np.ndarray, spec: GridSpec, voxel: float, largest: float,
+                     center=None) -> tuple:
     """(inside bool (m,), occupied bool (N, N, N)) for points at grid index coords ``g`` (m, 3);
-    ValueError when none falls inside the grid."""
+    ValueError when none falls inside the grid (placed at ``center`` when given)."""
     n = spec.size
     tol = 1e-6
     inside = np.all((g >= -0.5 - tol) & (g <= n - 0.5 + tol), axis=1)
+    if not inside.any() and center is not None:   # the caller's placement, not the points
+        raise ValueError(f'none of the {len(g)} points fall inside the {n}^3 grid of '
+                         f'{n * voxel:g} m placed at center {center.tolist()}; they span '
+                         f'{largest:g} (input units)')
     if not inside.any():   # e.g. a metric grid and points in millimetres
         raise ValueError(f'none of the {len(g)} points fall inside the {n}^3 grid of '
                          f'{n * voxel:g} m; they span {largest:g} (input units): '

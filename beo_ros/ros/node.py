@@ -279,7 +279,7 @@ class BeoNode(Node):
             'received', 'processed', 'dropped_stale', 'order_waits', 'rejected',
             'rejected_format',
             'rejected_too_few_points', 'errors', 'downsampled', 'nonfinite_points',
-            'outlier_points', 'off_cluster_points',
+            'outlier_points', 'off_cluster_points', 'outside_grid_points',
             'service_calls', 'service_failures', 'worker_restarts', 'worker_timeouts',
             'reload_failures', 'dropped_shutdown', 'service_dropped_shutdown',
             'incompatible_publishers',
@@ -457,11 +457,12 @@ class BeoNode(Node):
             self._counters[key] += n
 
     def _count_removed(self, est):
-        """Count the points the estimator removed from an input cloud before the voxelization
-        (not from the warm-up's synthetic one)."""
+        """Count the points the estimator removed from an input cloud before the voxelization,
+        and those outside a metric grid (not from the warm-up's synthetic one)."""
         with self._stats_lock:
             self._counters['outlier_points'] += est.n_outliers
             self._counters['off_cluster_points'] += est.n_off_cluster
+            self._counters['outside_grid_points'] += est.n_outside_grid
 
     def _on_incompatible_qos(self, event, topic):
         """A publisher on ``topic`` whose QoS cannot match the subscription's (e.g. a

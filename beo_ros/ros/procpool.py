@@ -11,6 +11,7 @@ import contextlib
 import dataclasses
 import multiprocessing
 import os
+import pickle
 import signal
 import threading
 import time
@@ -116,11 +117,21 @@ def _estimate(points, origin, up, yaw_step_deg, threshold, cleaning, class_prior
     """Estimate in this worker process -> (Estimate without its grids, class names).
     ``cleaning``: keyword arguments of ``estimate_points`` (outlier_mads, outlier_neighbors,
     cluster_tolerance). ``class_prior``: the node's current prior (None: the bank's own), so
-    that changing it needs no new processes."""
+    that changing it needs no new processes. An exception that would not unpickle in the
+    parent (a class whose constructor wants other arguments than its ``args``) comes back as a
+    RuntimeError naming it: unpickling it there broke the pool, killed the processes and was
+    reported as a process that died, without the error."""
     if class_prior is not None:
         _bank.class_prior = class_prior
-    est = _bank.estimate_points(points, sensor_origin=origin, up=up, yaw_step_deg=yaw_step_deg,
-                                threshold=threshold, **cleaning)
+    try:
+        est = _bank.estimate_points(points, sensor_origin=origin, up=up,
+                                    yaw_step_deg=yaw_step_deg, threshold=threshold, **cleaning)
+    except Exception as e:
+        try:   # the parent rebuilds it as cls(*args): one that this fails for broke the pool
+            pickle.loads(pickle.dumps(e))
+        except Exception:   # noqa: BLE001 - any failure: send what it said instead
+            raise RuntimeError(f'{type(e).__name__}: {e}') from None
+        raise
     if dataclasses.is_dataclass(est):
         # the node needs neither the (N,N,N) grids nor the features: ~0.3 MB less per result
         est = dataclasses.replace(est, completion=None, variance=None, grid=None, features=None)
