@@ -82,6 +82,8 @@ def evaluate_bank(bank, X, y, names, rng, views=1, examples=6, progress=True, in
     """Evaluate ``bank`` on objects X (m, N^3) with labels y indexing ``names``.
 
     ``index`` (m,): the objects' indices in their file, for the records (default 0..m-1).
+    A view with no occupied voxel (an empty object, or one of a few voxels that the rotation
+    lost) is answered 'unknown' without a pose: its yaw errors are NaN, counted as misses.
     Returns (summary dict, per-view records list, example list for the figure).
     """
     n = bank.spec.size
@@ -107,7 +109,11 @@ def evaluate_bank(bank, X, y, names, rng, views=1, examples=6, progress=True, in
             pred = e.completion >= 0.5
             inter = (pred & rotated).sum()
             union = (pred | rotated).sum()
-            err = float(yaw_error(e.yaw, yaw))
+            # a view with no occupied voxel has no pose (the estimate's yaw is a placeholder):
+            # no yaw error (NaN), a miss, rather than the placeholder scored against the truth
+            empty_view = bool(not (grid == 1).any())
+            err = float('nan') if empty_view else float(yaw_error(e.yaw, yaw))
+            err_sym = float('nan') if empty_view else float(yaw_error_up_to(e.yaw, yaw, turns))
             unknown = grid < 0
             recs.append(dict(i=int(index[i]), mode='partial', truth=truth, label=e.label,
                              latency=dt, yaw_deg=float(np.rad2deg(yaw)),
@@ -115,10 +121,9 @@ def evaluate_bank(bank, X, y, names, rng, views=1, examples=6, progress=True, in
                              symmetric_yaws_deg=[float(np.rad2deg(v)) for v in e.symmetric_yaws],
                              yaw_err_deg=float(np.rad2deg(err)),
                              self_turns_deg=[round(float(np.rad2deg(t))) for t in turns],
-                             yaw_err_sym_deg=float(np.rad2deg(yaw_error_up_to(e.yaw, yaw,
-                                                                              turns))),
+                             yaw_err_sym_deg=float(np.rad2deg(err_sym)),
                              # the rotation lost an object of a few voxels: nothing to see
-                             empty_view=bool(not (grid == 1).any()), empty_object=empty,
+                             empty_view=empty_view, empty_object=empty,
                              iou=float(inter / union) if union else 1.0,
                              # how well the unknown voxels' probabilities are calibrated
                              voxels=calibration_sums(e.completion[unknown], rotated[unknown]),
@@ -150,7 +155,8 @@ def summarize(recs, classes):
                      yaw_within_10_up_to_symmetry=float(np.mean(es <= 10)),
                      self_symmetric=float(np.mean([bool(x['self_turns_deg']) for x in r])),
                      empty_views=int(sum(x['empty_view'] for x in r)),
-                     yaw_median_deg=float(np.median(e)),
+                     # a view without a yaw (NaN: no object seen) as the largest error
+                     yaw_median_deg=float(np.median(np.where(np.isnan(e), 180.0, e))),
                      yaw_within_10_correct_class=float(np.mean(e[ok_cls] <= 10)) if ok_cls.any()
                      else float('nan'),
                      iou=float(np.mean([x['iou'] for x in r])),
@@ -443,7 +449,7 @@ def _report(summary, recs, examples, bank, out, argv):
     lost = sum(r['empty_view'] and not r['empty_object'] for r in recs if r['mode'] == 'partial')
     if lost:
         print(f"{lost} view(s) had no occupied voxel (objects of a few voxels lost to the "
-              "rotation), answered 'unknown', a wrong class")
+              "rotation), answered 'unknown' without a yaw, a wrong class and yaw")
     # strict JSON: non-finite numbers (a mean over no rows) as null
     (out / 'eval.json').write_text(json.dumps(json_safe(summary), indent=2,
                                               allow_nan=False) + '\n')

@@ -194,6 +194,17 @@ def test_summary_yaw_of_the_correct_class_is_nan_when_no_class_is_right():
     assert math.isnan(none['yaw_median_deg_correct_class']) and none['accuracy'] == 0.0
 
 
+def test_query_that_lost_its_object_has_no_yaw_to_score():
+    # the view of a one-voxel object lost to the rotation at yaw 355: the predictor's
+    # placeholder yaw 0 (no object, no pose) used to count as within 10 deg
+    from beo_ros.bench import run_peer
+    grid = np.zeros((16,) * 3, np.int8)
+    q = dict(grid=grid, yaw=float(np.deg2rad(355.0)), label=0)
+    r = run_peer('p', lambda g: (0, 0.0), [q], 1, mem_queries=0)
+    assert r['yaw_within_10deg'] == r['yaw_within_10deg_flip'] == 0.0
+    assert r['yaw_median_deg'] == r['yaw_median_deg_correct_class'] == 180.0
+
+
 def test_quick_bench_smoke(tmp_path, capsys):
     pytest.importorskip('open3d')
     from beo_ros.bench import main

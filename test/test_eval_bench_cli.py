@@ -137,6 +137,32 @@ def test_eval_objects_without_voxels_are_named_so(model, tmp_path, capsys):
     assert all(r['empty_object'] for r in recs)
 
 
+def test_eval_view_that_lost_its_object_has_no_yaw_to_score(model):
+    # a one-voxel object in a corner column, lost to the rotation at yaws 355 and 175 deg:
+    # the 'unknown' answer's placeholder yaw 0 used to count as within 10 deg and as a flip
+    class Scripted:   # the protocol's draws: yaw, azimuth, elevation (degrees)
+        def __init__(self, values):
+            self.values = list(values)
+
+        def uniform(self, lo, hi):
+            return self.values.pop(0)
+
+    bank = evaluate.load_models(str(model))
+    occ = np.zeros((N,) * 3, np.float32)
+    occ[0, 0, N // 2] = 1
+    rng = Scripted([np.deg2rad(355.0), 0.3, 30.0, np.deg2rad(175.0), 0.3, 30.0])
+    s, recs, _ = evaluate.evaluate_bank(bank, np.stack([occ.ravel()] * 2), np.array([0, 0]),
+                                        bank.classes, rng, progress=False)
+    part = [r for r in recs if r['mode'] == 'partial']
+    assert [r['empty_view'] for r in part] == [True, True]
+    assert all(np.isnan(r['yaw_err_deg']) and np.isnan(r['yaw_err_sym_deg']) for r in part)
+    p = s['partial']
+    assert p['empty_views'] == 2
+    assert p['yaw_within_10'] == p['yaw_within_10_or_flip'] == 0
+    assert p['yaw_within_10_up_to_symmetry'] == p['per_class']['box']['yaw_within_10'] == 0
+    assert p['yaw_median_deg'] == 180.0
+
+
 def test_eval_cv_needs_two_classes_up_front(tmp_path, capsys, monkeypatch):
     X, y, names = primitive_shapes(N, 4, np.random.default_rng(0))
     data = save_npz(tmp_path / 'one.npz', X[y == 0], y[y == 0], names[:1])
