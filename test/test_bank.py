@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from beo_ros.core.bank import ModelBank, ModelError, load_models
-from beo_ros.core.grid import rotate_grid, yaw_error, yaw_source_index
+from beo_ros.core.bank import ClassModel, ModelBank, ModelError, load_models
+from beo_ros.core.grid import GridSpec, rotate_grid, yaw_error, yaw_source_index
 from beo_ros.core.inference import InferenceEngine
 from beo_ros.core.shape import DESCRIPTOR_NAMES
 from beo_ros.core.synthetic import (make_tiny_bank, partial_view, primitive_shapes,
@@ -509,6 +509,29 @@ def test_exact_posterior_with_few_known_voxels_and_small_noise():
     dense = -0.5 * (len(K) * np.log(2 * np.pi) + ld + r @ np.linalg.solve(Cov, r))
     np.testing.assert_allclose(ex['loglik'], dense, rtol=1e-6)
 
+
+
+def test_models_of_no_components_are_searched_and_solved():
+    # the model files accept a class of k = 0 (its mean alone, e.g. one object); a bank of
+    # such classes only crashed in the pose search (numpy cannot reshape the empty batch of
+    # (0, 0) grams by -1) and then in LAPACK, which refuses the empty exact solve
+    n = N
+    d = n ** 3
+    X, _, _ = primitive_shapes(n, 1, np.random.default_rng(0))
+    models = [ClassModel(name, np.zeros((d, 0), np.float32), X[i], 0.05, 0.02,
+                         np.zeros((0, 0), np.float32), np.zeros(d, np.float32),
+                         np.zeros(0, np.float32)) for i, name in enumerate(('box', 'cylinder'))]
+    bank = ModelBank(models, GridSpec(size=n))
+    grid = partial_view(X[0].reshape((n,) * 3) > 0.5, 0.3, 0.4)
+    e = bank.estimate(grid)
+    assert e.label == 'box' and np.isfinite(e.features).all() and e.hypotheses
+    assert bank.estimate(grid, yaw=0.5).yaw == 0.5
+    # the exact log-likelihood is that of independent voxels N(mu, v)
+    ex = bank.engine.exact(grid, 0, 0.0)
+    K = np.flatnonzero(grid.ravel() >= 0)
+    r = (grid.ravel()[K] == 1) - X[0][K].astype(np.float64)
+    assert ex['loglik'] == pytest.approx(-0.5 * (len(K) * np.log(2 * np.pi * 0.05)
+                                                 + r @ r / 0.05), rel=1e-9)
 
 def test_pooled_scores_equal_dense_gaussian_of_pooled_grid():
     # the coarse score of yaw 0 is the Gaussian marginal of the pooled occupancy fractions when

@@ -69,6 +69,8 @@ def cholesky_terms(G, b):
     (called directly: the wrappers of numpy and scipy cost more than the solve at k ~ 20).
 
     Raises numpy.linalg.LinAlgError when G is not positive definite."""
+    if not len(b):   # a model of no components (LAPACK refuses empty arrays)
+        return 0.0, 0.0, np.zeros(0)
     L, info = lapack.dpotrf(G, lower=1)
     if info != 0:
         raise np.linalg.LinAlgError(f'matrix is not positive definite (LAPACK potrf info {info})')
@@ -382,7 +384,7 @@ class InferenceEngine:
         gram = gram + np.triu(gram, 1).swapaxes(2, 3)
         G = np.eye(kp) + gram
         b = AT[:, :, :kp] - AD[:, :, npair:npair + kp]
-        quad, logdet, _ = batched_cholesky_terms(G.reshape(-1, kp, kp), b.reshape(-1, kp))
+        quad, logdet, _ = batched_cholesky_terms(G.reshape(Y * C, kp, kp), b.reshape(Y * C, kp))
         rr = tt - 2 * AT[:, :, kp] + AD[:, :, npair + kp]
         return -0.5 * (lognoise + rr - quad.reshape(Y, C) + logdet.reshape(Y, C))
 
