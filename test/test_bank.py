@@ -533,6 +533,30 @@ def test_models_of_no_components_are_searched_and_solved():
     assert ex['loglik'] == pytest.approx(-0.5 * (len(K) * np.log(2 * np.pi * 0.05)
                                                  + r @ r / 0.05), rel=1e-9)
 
+
+def test_exact_gram_of_components_only_unknown_voxels_carry_is_not_rounded_away():
+    # with more known than unknown rows the known gram is the total gram minus the unknown
+    # rows' one; summed in float32 over thousands of rows, that difference divided by a small
+    # v made G many times too sure of a component that only unknown voxels carry (G 74 for
+    # 1 at v = 1e-6, LinAlgError at 1e-8)
+    n, k, v = 32, 3, 1e-6
+    d = n ** 3
+    rng = np.random.default_rng(0)
+    W = (rng.standard_normal((1, d, k)) * 0.1).astype(np.float32)
+    mu = rng.uniform(0, 1, (1, d)).astype(np.float32)
+    grid = rng.choice(np.array([0, 1], np.int8), (n,) * 3)
+    grid[:, :12] = -1
+    W[0, :, 0] = 0
+    W[0].reshape(n, n, n, k)[:, :10, :, 0] = rng.standard_normal((n, 10, n)) * 0.3
+    eng = InferenceEngine(W, mu, [v], [v], n, pose_components=2)
+    for yaw in (0.0, 0.1):
+        ex = eng.exact(grid, 0, yaw)
+        src = yaw_source_index(n, [yaw])[0]
+        K = np.flatnonzero(grid.ravel() >= 0)
+        WK = np.vstack([W[0], np.zeros((1, k))])[src[K]].astype(np.float64)
+        np.testing.assert_allclose(ex['G'], np.eye(k) + WK.T @ WK / v, rtol=1e-9, atol=1e-6)
+        assert ex['G'][0, 0] == pytest.approx(1.0, abs=1e-6)
+
 def test_pooled_scores_equal_dense_gaussian_of_pooled_grid():
     # the coarse score of yaw 0 is the Gaussian marginal of the pooled occupancy fractions when
     # every voxel is known (D = 1): a dense check of the batched formula

@@ -457,9 +457,10 @@ class InferenceEngine:
         n_known_rows = n_shown - int(np.count_nonzero(wU == col_M[U // n]))
         # the augmented gram of the known voxels, sum_p cK[p] a_p a_p^T: the cM-weighted one
         # (column sums, float64) minus the unknown rows, or directly over the known rows,
-        # whichever touches fewer rows. Long sums run in float32 (BLAS) and are added to
-        # float64; with few known voxels and a small v a float32 *difference* made G
-        # indefinite, but then the direct sum over the few known rows is taken, in float64
+        # whichever touches fewer rows. A long direct sum runs in float32 (BLAS) and is added
+        # to float64; a difference is taken in float64 throughout: in float32 its rounding,
+        # divided by a small v, made G indefinite (few known voxels) or many times too sure
+        # of components that only the unknown voxels carry (e.g. an object's hidden back)
         from_total = len(U) <= n_known_rows
         if from_total:
             rows, w = U, wU
@@ -468,7 +469,7 @@ class InferenceEngine:
             rows = np.flatnonzero(cK * supp)
             w = cK[rows]
         AR = np.take(A, rows, axis=0)
-        if len(rows) < 4096:   # cheap anyway: float64 where a few rows carry all the evidence
+        if from_total or len(rows) < 4096:   # short sums are cheap in float64 anyway
             AR = AR.astype(np.float64)
         AR *= np.sqrt(w, dtype=AR.dtype)[:, None]
         aug = (AR.T @ AR).astype(np.float64)
