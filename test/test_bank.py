@@ -145,8 +145,9 @@ def test_symmetric_yaws_of_complete_shapes(tiny):
                         (post, [])):
         for yaw in (None, 0.4):
             e = tiny.estimate(grid, yaw=yaw)
-            np.testing.assert_allclose(wrap(np.array(e.symmetric_yaws) - e.yaw),
-                                       wrap(np.array(turns)), atol=1e-9)
+            # compared on the circle: a turn of pi may come out as -pi
+            assert len(e.symmetric_yaws) == len(turns)
+            assert (yaw_error(np.array(e.symmetric_yaws) - e.yaw, turns) < 1e-9).all()
             assert all(-np.pi <= y <= np.pi for y in e.symmetric_yaws)
 
 
@@ -1066,11 +1067,25 @@ def test_top_yaw_modes_separates_by_angle():
     scores = np.array([9, 10, 8, 7, 6, 5, 4, 3], dtype=float)
     assert top_yaw_modes(yaws, scores, 3) == [1, 3]        # 359 and 1 are 12-13 deg from 11
     assert top_yaw_modes(yaws, scores, 3, min_sep_deg=5) == [1, 3, 6]
-    # on a regular circular grid it picks what the index-based top_modes picks
+    # on a regular circular grid the index-based top_modes picks what it picks among the
+    # grid's local maxima
     from beo_ros.core.inference import top_modes
     rng = np.random.default_rng(0)
     ll = rng.normal(size=360)
-    assert top_yaw_modes(np.deg2rad(np.arange(360)), ll, 3) == top_modes(ll, 3, 20)
+    peaks = [i for i in range(360) if ll[i] >= ll[i - 1] and ll[i] >= ll[(i + 1) % 360]]
+    assert [peaks[i] for i in top_yaw_modes(np.deg2rad(peaks), ll[peaks], 3)] == \
+        top_modes(ll, 3, 20)
+
+
+def test_top_modes_are_local_maxima():
+    # a second mode 20 steps down the slope of the best one is no mode: the hypotheses listed
+    # such yaws (a neighbour scoring higher) for 17 of 60 secondary modes on ModelNet views
+    from beo_ros.core.inference import top_modes
+    deg = np.arange(360)
+    ll = np.maximum(-((deg - 100) / 30.0) ** 2, -3 - ((deg - 250) / 10.0) ** 2)
+    assert top_modes(ll, 3, 20) == [100, 250]
+    assert top_modes(np.roll(ll, 300), 2, 20) == [40, 190]   # across 0 too
+    assert len(top_modes(np.zeros(36), 2, 10)) == 2   # a plateau's yaws are all maxima
 
 
 @pytest.mark.parametrize('size', [32.0, np.int64(16)])

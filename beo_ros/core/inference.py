@@ -585,5 +585,10 @@ def top_yaw_modes(yaws, scores, n_modes, min_sep_deg=20.0):
 def top_modes(scores, n_modes, min_sep):
     """Indices of the ``n_modes`` best circular local maxima of ``scores`` (Y,) over a regular
     grid of Y yaws, at least ``min_sep`` grid steps apart, best first (``top_yaw_modes``)."""
+    scores = np.asarray(scores)
     Y = len(scores)
-    return top_yaw_modes(np.arange(Y) * (2 * np.pi / Y), scores, n_modes, min_sep * 360.0 / Y)
+    # local maxima only: else the best yaw min_sep steps down the slope of the best mode
+    # passed for a second mode
+    peaks = np.flatnonzero((scores >= np.roll(scores, 1)) & (scores >= np.roll(scores, -1)))
+    picked = top_yaw_modes(peaks * (2 * np.pi / Y), scores[peaks], n_modes, min_sep * 360.0 / Y)
+    return [int(peaks[i]) for i in picked]
