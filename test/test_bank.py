@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from beo_ros.core.bank import ModelBank, ModelError, load_models
-from beo_ros.core.grid import rotate_grid, yaw_error, yaw_source_index
+from beo_ros.core.bank import ClassModel, ModelBank, ModelError, load_models
+from beo_ros.core.grid import GridSpec, rotate_grid, yaw_error, yaw_source_index
 from beo_ros.core.inference import InferenceEngine
 from beo_ros.core.shape import DESCRIPTOR_NAMES
 from beo_ros.core.synthetic import (make_tiny_bank, partial_view, primitive_shapes,
@@ -145,8 +145,9 @@ def test_symmetric_yaws_of_complete_shapes(tiny):
                         (post, [])):
         for yaw in (None, 0.4):
             e = tiny.estimate(grid, yaw=yaw)
-            np.testing.assert_allclose(wrap(np.array(e.symmetric_yaws) - e.yaw),
-                                       wrap(np.array(turns)), atol=1e-9)
+            # compared on the circle: a turn of pi may come out as -pi
+            assert len(e.symmetric_yaws) == len(turns)
+            assert (yaw_error(np.array(e.symmetric_yaws) - e.yaw, turns) < 1e-9).all()
             assert all(-np.pi <= y <= np.pi for y in e.symmetric_yaws)
 
 
@@ -509,6 +510,53 @@ def test_exact_posterior_with_few_known_voxels_and_small_noise():
     dense = -0.5 * (len(K) * np.log(2 * np.pi) + ld + r @ np.linalg.solve(Cov, r))
     np.testing.assert_allclose(ex['loglik'], dense, rtol=1e-6)
 
+
+
+def test_models_of_no_components_are_searched_and_solved():
+    # the model files accept a class of k = 0 (its mean alone, e.g. one object); a bank of
+    # such classes only crashed in the pose search (numpy cannot reshape the empty batch of
+    # (0, 0) grams by -1) and then in LAPACK, which refuses the empty exact solve
+    n = N
+    d = n ** 3
+    X, _, _ = primitive_shapes(n, 1, np.random.default_rng(0))
+    models = [ClassModel(name, np.zeros((d, 0), np.float32), X[i], 0.05, 0.02,
+                         np.zeros((0, 0), np.float32), np.zeros(d, np.float32),
+                         np.zeros(0, np.float32)) for i, name in enumerate(('box', 'cylinder'))]
+    bank = ModelBank(models, GridSpec(size=n))
+    grid = partial_view(X[0].reshape((n,) * 3) > 0.5, 0.3, 0.4)
+    e = bank.estimate(grid)
+    assert e.label == 'box' and np.isfinite(e.features).all() and e.hypotheses
+    assert bank.estimate(grid, yaw=0.5).yaw == 0.5
+    # the exact log-likelihood is that of independent voxels N(mu, v)
+    ex = bank.engine.exact(grid, 0, 0.0)
+    K = np.flatnonzero(grid.ravel() >= 0)
+    r = (grid.ravel()[K] == 1) - X[0][K].astype(np.float64)
+    assert ex['loglik'] == pytest.approx(-0.5 * (len(K) * np.log(2 * np.pi * 0.05)
+                                                 + r @ r / 0.05), rel=1e-9)
+
+
+def test_exact_gram_of_components_only_unknown_voxels_carry_is_not_rounded_away():
+    # with more known than unknown rows the known gram is the total gram minus the unknown
+    # rows' one; summed in float32 over thousands of rows, that difference divided by a small
+    # v made G many times too sure of a component that only unknown voxels carry (G 74 for
+    # 1 at v = 1e-6, LinAlgError at 1e-8)
+    n, k, v = 32, 3, 1e-6
+    d = n ** 3
+    rng = np.random.default_rng(0)
+    W = (rng.standard_normal((1, d, k)) * 0.1).astype(np.float32)
+    mu = rng.uniform(0, 1, (1, d)).astype(np.float32)
+    grid = rng.choice(np.array([0, 1], np.int8), (n,) * 3)
+    grid[:, :12] = -1
+    W[0, :, 0] = 0
+    W[0].reshape(n, n, n, k)[:, :10, :, 0] = rng.standard_normal((n, 10, n)) * 0.3
+    eng = InferenceEngine(W, mu, [v], [v], n, pose_components=2)
+    for yaw in (0.0, 0.1):
+        ex = eng.exact(grid, 0, yaw)
+        src = yaw_source_index(n, [yaw])[0]
+        K = np.flatnonzero(grid.ravel() >= 0)
+        WK = np.vstack([W[0], np.zeros((1, k))])[src[K]].astype(np.float64)
+        np.testing.assert_allclose(ex['G'], np.eye(k) + WK.T @ WK / v, rtol=1e-9, atol=1e-6)
+        assert ex['G'][0, 0] == pytest.approx(1.0, abs=1e-6)
 
 def test_pooled_scores_equal_dense_gaussian_of_pooled_grid():
     # the coarse score of yaw 0 is the Gaussian marginal of the pooled occupancy fractions when
@@ -1019,11 +1067,25 @@ def test_top_yaw_modes_separates_by_angle():
     scores = np.array([9, 10, 8, 7, 6, 5, 4, 3], dtype=float)
     assert top_yaw_modes(yaws, scores, 3) == [1, 3]        # 359 and 1 are 12-13 deg from 11
     assert top_yaw_modes(yaws, scores, 3, min_sep_deg=5) == [1, 3, 6]
-    # on a regular circular grid it picks what the index-based top_modes picks
+    # on a regular circular grid the index-based top_modes picks what it picks among the
+    # grid's local maxima
     from beo_ros.core.inference import top_modes
     rng = np.random.default_rng(0)
     ll = rng.normal(size=360)
-    assert top_yaw_modes(np.deg2rad(np.arange(360)), ll, 3) == top_modes(ll, 3, 20)
+    peaks = [i for i in range(360) if ll[i] >= ll[i - 1] and ll[i] >= ll[(i + 1) % 360]]
+    assert [peaks[i] for i in top_yaw_modes(np.deg2rad(peaks), ll[peaks], 3)] == \
+        top_modes(ll, 3, 20)
+
+
+def test_top_modes_are_local_maxima():
+    # a second mode 20 steps down the slope of the best one is no mode: the hypotheses listed
+    # such yaws (a neighbour scoring higher) for 17 of 60 secondary modes on ModelNet views
+    from beo_ros.core.inference import top_modes
+    deg = np.arange(360)
+    ll = np.maximum(-((deg - 100) / 30.0) ** 2, -3 - ((deg - 250) / 10.0) ** 2)
+    assert top_modes(ll, 3, 20) == [100, 250]
+    assert top_modes(np.roll(ll, 300), 2, 20) == [40, 190]   # across 0 too
+    assert len(top_modes(np.zeros(36), 2, 10)) == 2   # a plateau's yaws are all maxima
 
 
 @pytest.mark.parametrize('size', [32.0, np.int64(16)])

@@ -69,6 +69,8 @@ def cholesky_terms(G, b):
     (called directly: the wrappers of numpy and scipy cost more than the solve at k ~ 20).
 
     Raises numpy.linalg.LinAlgError when G is not positive definite."""
+    if not len(b):   # a model of no components (LAPACK refuses empty arrays)
+        return 0.0, 0.0, np.zeros(0)
     L, info = lapack.dpotrf(G, lower=1)
     if info != 0:
         raise np.linalg.LinAlgError(f'matrix is not positive definite (LAPACK potrf info {info})')
@@ -382,7 +384,7 @@ class InferenceEngine:
         gram = gram + np.triu(gram, 1).swapaxes(2, 3)
         G = np.eye(kp) + gram
         b = AT[:, :, :kp] - AD[:, :, npair:npair + kp]
-        quad, logdet, _ = batched_cholesky_terms(G.reshape(-1, kp, kp), b.reshape(-1, kp))
+        quad, logdet, _ = batched_cholesky_terms(G.reshape(Y * C, kp, kp), b.reshape(Y * C, kp))
         rr = tt - 2 * AT[:, :, kp] + AD[:, :, npair + kp]
         return -0.5 * (lognoise + rr - quad.reshape(Y, C) + logdet.reshape(Y, C))
 
@@ -455,9 +457,10 @@ class InferenceEngine:
         n_known_rows = n_shown - int(np.count_nonzero(wU == col_M[U // n]))
         # the augmented gram of the known voxels, sum_p cK[p] a_p a_p^T: the cM-weighted one
         # (column sums, float64) minus the unknown rows, or directly over the known rows,
-        # whichever touches fewer rows. Long sums run in float32 (BLAS) and are added to
-        # float64; with few known voxels and a small v a float32 *difference* made G
-        # indefinite, but then the direct sum over the few known rows is taken, in float64
+        # whichever touches fewer rows. A long direct sum runs in float32 (BLAS) and is added
+        # to float64; a difference is taken in float64 throughout: in float32 its rounding,
+        # divided by a small v, made G indefinite (few known voxels) or many times too sure
+        # of components that only the unknown voxels carry (e.g. an object's hidden back)
         from_total = len(U) <= n_known_rows
         if from_total:
             rows, w = U, wU
@@ -466,7 +469,7 @@ class InferenceEngine:
             rows = np.flatnonzero(cK * supp)
             w = cK[rows]
         AR = np.take(A, rows, axis=0)
-        if len(rows) < 4096:   # cheap anyway: float64 where a few rows carry all the evidence
+        if from_total or len(rows) < 4096:   # short sums are cheap in float64 anyway
             AR = AR.astype(np.float64)
         AR *= np.sqrt(w, dtype=AR.dtype)[:, None]
         aug = (AR.T @ AR).astype(np.float64)
@@ -582,5 +585,10 @@ def top_yaw_modes(yaws, scores, n_modes, min_sep_deg=20.0):
 def top_modes(scores, n_modes, min_sep):
     """Indices of the ``n_modes`` best circular local maxima of ``scores`` (Y,) over a regular
     grid of Y yaws, at least ``min_sep`` grid steps apart, best first (``top_yaw_modes``)."""
+    scores = np.asarray(scores)
     Y = len(scores)
-    return top_yaw_modes(np.arange(Y) * (2 * np.pi / Y), scores, n_modes, min_sep * 360.0 / Y)
+    # local maxima only: else the best yaw min_sep steps down the slope of the best mode
+    # passed for a second mode
+    peaks = np.flatnonzero((scores >= np.roll(scores, 1)) & (scores >= np.roll(scores, -1)))
+    picked = top_yaw_modes(peaks * (2 * np.pi / Y), scores[peaks], n_modes, min_sep * 360.0 / Y)
+    return [int(peaks[i]) for i in picked]
