@@ -430,3 +430,19 @@ def test_an_input_given_twice_is_refused(tmp_path, capsys):
         assert ei.value.code == 2
         assert message in capsys.readouterr().err
         assert not (tmp_path / 'm').exists()
+
+
+def test_shipped_model_records_its_training_data(monkeypatch):
+    """The shipped modelnet10_32 names the hash of the shared train split it was trained on
+    (so that ``--calibrate-only`` on other data is refused), and the hash is that of the file."""
+    import os
+    from pathlib import Path
+    from beo_ros.core.datasets import training_data_hash
+    data = Path(os.environ.get('BEO_DATA_DIR') or Path(train.__file__).resolve().parents[2]
+                / 'shared' / 'data') / 'modelnet10' / 'modelnet10_vox32_train.npz'
+    if not data.is_file():
+        pytest.skip(f'{data} not found')
+    info = json.loads((bank_module.default_model_dir() / 'manifest.json').read_text())
+    args = SimpleNamespace(inputs=[str(data)], grid=None, classes=None)
+    X, y, names, _ = train._load_objects(args)
+    assert info['training']['data_sha256'] == training_data_hash(X, y, names)
