@@ -236,6 +236,19 @@ def test_npz_bytes_class_names_load_as_str(tmp_path):
     with pytest.raises(ValueError, match="nested.npz: 'classes' must be a 1-D array"):
         load_voxel_npz(p)
 
+def test_npz_repeated_class_name_refused(tmp_path, capsys):
+    # a second 'box' at index 2: selecting 'box' kept only the objects of index 0, and the
+    # objects labelled 2 were dropped without a word
+    X, y, names = primitive_shapes(N, 2, np.random.default_rng(0))
+    y[0] = 2
+    p = _save(tmp_path / 'twice.npz', X, y, names + ['box'])
+    for classes in (None, ['box', 'cylinder']):
+        with pytest.raises(ValueError, match=r"twice.npz: 'classes' names \['box'\] more than"):
+            load_voxel_npz(p, classes)
+    assert train.main([str(p), '-o', str(tmp_path / 'm'), '--classes', 'box', 'cylinder']) == 2
+    assert "names ['box'] more than once" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize('bad, message', [
     (-1, 'labels must be in [0, 2)'),   # would silently become the last class
     (2, 'labels must be in [0, 2)'),    # == len(classes): an IndexError later
