@@ -45,7 +45,7 @@ def _decode_voxels(path, vox, shape):
                 hint = (" (bit-packed voxels need the 'shape' key (N, N, N); this file has "
                         "no 'shape' key)")
             raise ValueError(f'{path}: voxel rows of {vox.shape[1]} values are not a cube{hint}')
-    X = vox.reshape(len(vox), -1)
+    X = vox.reshape(len(vox), n ** 3)   # not -1: a file of no objects is (0, N^3) too
     bad = (X != 0) & (X != 1)
     if bad.any():
         v = X[bad][0].item()
