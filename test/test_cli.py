@@ -224,6 +224,18 @@ def test_npz_unpacked_forms_load_like_packed(tmp_path):
 
 
 
+@pytest.mark.parametrize('shape', [(0, N ** 3), (0, N, N, N)])
+def test_npz_of_no_objects_loads_empty(tmp_path, capsys, shape):
+    # unpacked voxels of no objects failed with numpy's 'cannot reshape array of size 0 into
+    # shape (0,newaxis)' (no file named), not beo-eval's 'no objects to evaluate'
+    p = _save(tmp_path / 'none.npz', np.zeros(shape, np.uint8), np.zeros(0, int), ['a', 'b'],
+              shape=None, packed=False)
+    X, y, names, n = load_voxel_npz(p)
+    assert X.shape == (0, N ** 3) and y.shape == (0,) and names == ['a', 'b'] and n == N
+    assert evaluate.main(['--cv', '2', '--data', str(p), '--out', str(tmp_path / 'o')]) == 2
+    assert 'none.npz: no objects to evaluate' in capsys.readouterr().err
+
+
 def test_npz_bytes_class_names_load_as_str(tmp_path):
     # np.array([b'box', ...]) (an 'S' array, e.g. from h5py or Python 2 tools) used to give
     # the class names "b'box'", which then named the model's files and its answers
@@ -235,6 +247,19 @@ def test_npz_bytes_class_names_load_as_str(tmp_path):
     p = _save(tmp_path / 'nested.npz', X, y, [[c] for c in names])
     with pytest.raises(ValueError, match="nested.npz: 'classes' must be a 1-D array"):
         load_voxel_npz(p)
+
+def test_npz_repeated_class_name_refused(tmp_path, capsys):
+    # a second 'box' at index 2: selecting 'box' kept only the objects of index 0, and the
+    # objects labelled 2 were dropped without a word
+    X, y, names = primitive_shapes(N, 2, np.random.default_rng(0))
+    y[0] = 2
+    p = _save(tmp_path / 'twice.npz', X, y, names + ['box'])
+    for classes in (None, ['box', 'cylinder']):
+        with pytest.raises(ValueError, match=r"twice.npz: 'classes' names \['box'\] more than"):
+            load_voxel_npz(p, classes)
+    assert train.main([str(p), '-o', str(tmp_path / 'm'), '--classes', 'box', 'cylinder']) == 2
+    assert "names ['box'] more than once" in capsys.readouterr().err
+
 
 @pytest.mark.parametrize('bad, message', [
     (-1, 'labels must be in [0, 2)'),   # would silently become the last class

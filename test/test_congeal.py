@@ -57,3 +57,14 @@ def test_congeal_classes_refuses_no_objects():
         congeal_classes(empty, np.zeros(0, int), n, masks=np.zeros((0, n ** 3), bool))
     with pytest.raises(ValueError, match='one label per object'):
         congeal_classes(np.zeros((2, n ** 3), np.float32), np.zeros(3, int), n)
+
+
+@pytest.mark.parametrize('n, masks_n', [(32, 16), (8, 16), (16, 8)])
+def test_congeal_classes_names_grids_of_another_size(n, masks_n):
+    # X of 16^3 with n = 32 was an IndexError in the rotation maps, with n = 8 numpy's
+    # 'cannot reshape' after the congealing, masks of another size a broadcast error
+    X = np.stack([rotate_grid(l_shape(16), r).ravel() for r in np.deg2rad([0, 90, 200])])
+    masks = np.ones((3, masks_n ** 3), bool)
+    which = 'X' if n != 16 else 'masks'
+    with pytest.raises(ValueError, match=f'{which} must hold 3 grids of n\\^3'):
+        congeal_classes(X, np.zeros(3, int), n, masks=masks)

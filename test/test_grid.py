@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from beo_ros.core.grid import (GridSpec, rotate_grid, symmetric_turns, yaw_error, yaw_error_up_to,
-                                yaw_matrix, wrap_yaw, yaw_source_index)
+                                yaw_grid, yaw_matrix, wrap_yaw, yaw_source_index)
 
 
 def test_rotate_90_moves_x_to_y_odd_grid():
@@ -139,6 +139,17 @@ def test_wrap_yaw_of_a_huge_yaw_is_its_angle():
     for y in (1e16, -1e16, 1e20, 2.0 ** 80, 7.0):
         assert yaw_error(wrap_yaw(y), yaw_key(y)) < 1e-8, y
         assert yaw_error(wrap_yaw(y), np.mod(y, 2 * np.pi)) < 1e-12, y
+
+
+@pytest.mark.parametrize('step', [80, 50, 7, 0.7, 90, 10, 1, 0.3, 0.1, 0.05])
+def test_yaw_grid_holds_every_multiple_of_the_step_below_360(step):
+    # the count was round(360 / step): 80 deg gave 0, 80, 160, 240 (a 120 deg hole before
+    # 360) and 7 deg stopped at 350; a divisor's 360 deg itself stays out
+    yaws = np.rad2deg(yaw_grid(step))
+    want = np.arange(int(360.0 / step) + 2) * step
+    want = want[want < 360.0 - 1e-6]
+    assert len(yaws) == len(want) and np.allclose(yaws, want), step
+    assert 360.0 - yaws[-1] <= step + 1e-6
 
 
 @pytest.mark.parametrize('spec', [

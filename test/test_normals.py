@@ -103,6 +103,13 @@ def test_copies_of_points_and_lines_do_not_make_side_normals():
     assert np.isnan(normals).all() and np.isnan(sv).all()
 
 
+def test_no_points_have_no_normals():
+    # cKDTree.query of an empty cloud failed with numpy's 'zero-size array to reduction
+    # operation maximum which has no identity'
+    idx, normals, sv = point_normals(np.zeros((0, 3)), SENSOR)
+    assert idx.shape == (0,) and normals.shape == (0, 3) and sv.shape == (0,)
+
+
 @pytest.mark.parametrize('points, up, origin, msg', [
     (np.zeros((20, 2)), UP, SENSOR, r'\(n, 3\)'),
     (np.r_[box_front()[:20], [[np.nan, 0, 0]]], UP, SENSOR, 'NaN'),

@@ -60,6 +60,24 @@ def test_labels_are_consistent_with_the_truth(seed):
         assert np.isin(lab[occ], [1, -1]).all()
 
 
+def test_partial_view_of_a_large_grid_holds_the_rays_in_chunks():
+    # every ray sample was held at once: 0.8 GB at 64^3, about 7 GB at 128^3 (GridSpec takes
+    # up to 256^3); the rays go RAY_SAMPLES samples at a time, with the same labels
+    import tracemalloc
+    n = 64
+    occ = np.zeros((n,) * 3, dtype=bool)
+    occ[16:48, 16:48, :32] = True
+    tracemalloc.start()
+    try:
+        lab = partial_view(occ, 0.3, 0.5)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 250e6, peak
+    assert occ[lab == 1].all() and not occ[lab == 0].any() and np.isin(lab[occ], [1, -1]).all()
+    assert (lab[:, :, 40:] == 0).all()   # above the box, seen from above: free
+
+
 def test_random_partial_view_returns_rotated_truth():
     X, _, _ = primitive_shapes(N, 2, np.random.default_rng(3))
     occ = X[0].reshape((N,) * 3) > 0.5         # a box: not yaw-symmetric

@@ -119,6 +119,11 @@ def congeal_classes(X, y, n, masks=None, yaw_step_deg=10.0, iters=6, prior=0.5, 
         raise ValueError('X must hold at least one object, got 0')
     if len(y) != len(X):
         raise ValueError(f'y must hold one label per object ({len(X)}), got {len(y)}')
+    # else an IndexError in the rotation maps, or numpy's reshape error after the congealing
+    for name, a in (('X', X), ('masks', masks)):
+        if a is not None and np.shape(a) not in ((len(X), n ** 3), (len(X), n, n, n)):
+            raise ValueError(f'{name} must hold {len(X)} grids of n^3 = {n ** 3} voxels (n = {n}),'
+                             f' got shape {np.shape(a)}')
     yaws = np.zeros(len(X))
     for c in np.unique(y):
         sel = np.flatnonzero(y == c)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections import Counter
 
 import numpy as np
 
@@ -44,7 +45,7 @@ def _decode_voxels(path, vox, shape):
                 hint = (" (bit-packed voxels need the 'shape' key (N, N, N); this file has "
                         "no 'shape' key)")
             raise ValueError(f'{path}: voxel rows of {vox.shape[1]} values are not a cube{hint}')
-    X = vox.reshape(len(vox), -1)
+    X = vox.reshape(len(vox), n ** 3)   # not -1: a file of no objects is (0, N^3) too
     bad = (X != 0) & (X != 1)
     if bad.any():
         v = X[bad][0].item()
@@ -114,8 +115,8 @@ def load_voxel_npz(path, classes=None):
 
     Keys: 'voxels', bit-packed (m, N^3 / 8) uint8 rows with a 'shape' key (N, N, N), or
     unpacked (m, N^3) or (m, N, N, N) values in {0, 1} ('shape', if given, must match);
-    'labels', m integers in [0, len(classes)); 'classes', the class names. ValueError naming
-    the file for anything else.
+    'labels', m integers in [0, len(classes)); 'classes', the class names (distinct).
+    ValueError naming the file for anything else.
     """
     try:
         z = np.load(path, allow_pickle=False)
@@ -142,6 +143,10 @@ def load_voxel_npz(path, classes=None):
                 and (shape == np.round(shape)).all()):
             raise ValueError(f"{path}: 'shape' key must be integers (N, N, N), got {shape!r}")
         shape = tuple(int(s) for s in shape.ravel())
+    twice = sorted(c for c, k in Counter(names).items() if k > 1)
+    if twice:   # selecting such a class kept only the objects of its first index
+        raise ValueError(f"{path}: 'classes' names {twice} more than once; class names must "
+                         'be distinct')
     X, n = _decode_voxels(path, vox, shape)
     labels = _check_labels(path, labels, names, len(X))
     X = X.astype(np.float32)

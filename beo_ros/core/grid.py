@@ -106,7 +106,9 @@ def yaw_grid(step_deg) -> np.ndarray:
     """(Y,) float64 yaws 0, step, 2 step, ... below 2 pi (radians) for a step in degrees. Every
     search builds its candidates here: the rotation maps are cached by the array's bytes."""
     step = np.deg2rad(step_deg)
-    return np.arange(int(round(2 * np.pi / step))) * step
+    # every multiple below 360 deg (a step that does not divide 360 deg too: 80 -> 0 .. 320);
+    # the tolerance keeps a divisor's 360 deg itself out (360 / 0.3 = 1200.0000000000002)
+    return np.arange(int(np.ceil(360.0 / step_deg - 1e-6))) * step
 
 
 def wrap_yaw(yaw) -> float:

@@ -78,6 +78,8 @@ def point_normals(points, sensor_origin=(0.0, 0.0, 0.0), radius=RADIUS, max_nn=M
     from scipy.spatial import cKDTree
     pts, _, origin = _check(points, (0.0, 0.0, 1.0), sensor_origin)
     n = len(pts)
+    if n == 0:   # cKDTree.query of no points fails in numpy's max()
+        return np.zeros(0, dtype=np.intp), np.zeros((0, 3)), np.zeros(0)
     step = 1 if not max_query or n <= max_query else int(np.ceil(n / max_query))
     idx = np.arange(0, n, step)
     k = min(int(max_nn), n)
