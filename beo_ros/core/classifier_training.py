@@ -174,10 +174,14 @@ def fit_logistic(Z, y, n_classes, C=1.0):
 
 
 def _standardized(Z):
-    """(Z standardised per column, mean, scale) of input rows Z (m, n_in)."""
+    """(Z standardised per column, mean, scale) of input rows Z (m, n_in). A column constant
+    in the rows (to rounding) gets scale 1, as in the cross-validation's StandardScaler: std +
+    1e-9 would magnify a query's departure from the constant 1e9 times (a network's hidden
+    weights on such a column decay towards 0 but are not 0)."""
     Z = np.asarray(Z, dtype=np.float64)
     mean = Z.mean(axis=0)
-    scale = Z.std(axis=0) + 1e-9
+    std = Z.std(axis=0)
+    scale = np.where(std > 1e-9 * np.maximum(np.abs(mean), 1.0), std + 1e-9, 1.0)
     return (Z - mean) / scale, mean, scale
 
 
