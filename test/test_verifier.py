@@ -184,6 +184,13 @@ def test_verifier_survives_save_load_and_pickling(bank, tmp_path):
     (lambda a: a.__setitem__('feature', np.full_like(a['feature'], 2000)), 'feature indices'),
     (lambda a: a.__setitem__('value', a['value'] * np.nan), 'finite'),
     (lambda a: a.__setitem__('value', a['value'][:-1]), 'differ in length'),
+    # a bare TypeError (not naming verifier.npz) or, for float class indices, truncated
+    (lambda a: a.__setitem__('weight', np.array([1.0, 2.0])), 'weight must be a scalar'),
+    (lambda a: a.__setitem__('weight', np.asarray('1000')), 'weight has dtype'),
+    (lambda a: a.__setitem__('grid_size', np.array([N, N])), 'grid_size must be a scalar'),
+    (lambda a: a.__setitem__('classes', a['classes'] + 0.5), 'classes has dtype'),
+    (lambda a: a.__setitem__('classes', a['classes'][None]), '1-D'),
+    (lambda a: a.__setitem__('left', a['left'] + 0.5), 'left has dtype'),
 ])
 def test_bad_verifier_files_are_refused(bank, tmp_path, change, msg):
     import hashlib
