@@ -58,15 +58,19 @@ def cross_validated_report(F, y, records, C=1.0, folds=5, seed=0, row_standardiz
         clf = make_pipeline(StandardScaler(), _network(hidden, alpha, seed))
     else:
         clf = make_pipeline(StandardScaler(), LogisticRegression(C=C, max_iter=2000))
+    # folds: at most the objects of the smallest class, at least 2: a class of one object
+    # (its other views skipped) is classified by folds that never saw it (one fold refused)
     if groups is not None and len(np.unique(groups)) < len(y):
         per_class = min(len(np.unique(groups[y == c])) for c in np.unique(y))
-        cv = StratifiedGroupKFold(n_splits=min(folds, per_class), shuffle=True, random_state=seed)
+        cv = StratifiedGroupKFold(n_splits=max(2, min(folds, per_class)), shuffle=True,
+                                  random_state=seed)
     else:
         groups = None
         # counts of the classes present: a class index without rows (all its views skipped)
         # is not a class of this cross-validation
-        cv = StratifiedKFold(n_splits=min(folds, int(np.unique(y, return_counts=True)[1].min())),
-                             shuffle=True, random_state=seed)
+        per_class = int(np.unique(y, return_counts=True)[1].min())
+        cv = StratifiedKFold(n_splits=max(2, min(folds, per_class)), shuffle=True,
+                             random_state=seed)
     nf = len(FEATURE_NAMES)
     P = cross_val_predict(clf, classifier_input(F, F.shape[1] // nf, row_standardize,
                                                 descriptors), y, cv=cv, groups=groups,
