@@ -1630,6 +1630,9 @@ def _rewrite_npz(path, fn, **change):
     (dict(complete__unknown_threshold=None), "no 'unknown_threshold'"),
     (dict(complete__coef=np.zeros((3, 2))), "'coef' has shape"),
     (dict(other__coef=np.zeros((3, 2))), "unknown classifier 'other'"),
+    # bool() of these: a bare ValueError ('truth value ... ambiguous'), or 'no' read as true
+    (dict(complete__row_standardize=np.array([True, False])), "'row_standardize' must be true"),
+    (dict(complete__descriptors=np.asarray('no')), "'descriptors' must be true or false"),
 ])
 def test_bad_grid_classifier_arrays_are_refused_on_load(tmp_path, change, msg):
     bank, _ = _prior_bank()
