@@ -1734,6 +1734,23 @@ def test_cross_validated_report_with_a_class_of_one_row_or_object(grouped):
     assert clf['class_counts'][2] == len(y) - 40
 
 
+def test_unknown_bound_counts_objects_not_views():
+    # loglik_bounds: -inf for a class with fewer than 5 objects; with 4 views per object
+    # (beo-train --views 4) a class of 3 objects had 12 rows and a bound from them
+    from beo_ros.core.inference import FEATURE_NAMES
+    from beo_ros.core.training import loglik_bounds, select_classifier
+    nf = len(FEATURE_NAMES)
+    rng = np.random.default_rng(0)
+    objects = np.repeat(np.arange(23), 4)
+    y = np.repeat([0] * 10 + [1] * 10 + [2] * 3, 4)
+    F = rng.normal(size=(len(y), 3 * nf)) + 2.0 * np.eye(3)[y].repeat(nf, axis=1)
+    clf, _ = select_classifier(F, y, [], objects, None, 3, C=1.0, descriptors=False,
+                               row_standardize=False, kind='logistic')
+    want = loglik_bounds(F[:, 0::nf], y, 3)
+    assert np.isfinite(want).all()                     # rows counted: every class bounded
+    np.testing.assert_array_equal(clf['unknown_threshold'], [want[0], want[1], -np.inf])
+
+
 def test_stratified_folds_deal_every_class_evenly_and_repeat_with_the_seed():
     from beo_ros.core.training import stratified_folds
     y = np.repeat([0, 1, 2], [10, 7, 3])
