@@ -1981,3 +1981,14 @@ def test_parse_class_prior_refuses_an_unknown_name_in_the_text_form():
     assert parse_class_prior('a=1, b=2') == {'a': 1.0, 'b': 2.0}
     with pytest.raises(ValueError, match=r"'train', 'uniform' or 'name=weight,\.\.\.'.*'Uniform'"):
         parse_class_prior('Uniform')
+
+
+def test_parse_class_prior_reads_a_class_name_with_an_equals_sign():
+    # a legal class name; the text form split at the first '=' ("weight of 'w' is not a
+    # number: '1=0.25'"), so the node's own prior text of such a bank could not be read back
+    from beo_ros.core.bank import parse_class_prior, resolve_class_prior
+    assert parse_class_prior('w=1=0.25, cup=0.75') == {'w=1': 0.25, 'cup': 0.75}
+    np.testing.assert_allclose(resolve_class_prior(parse_class_prior('w=1=1,cup=3'),
+                                                   ['w=1', 'cup']), [0.25, 0.75])
+    with pytest.raises(ValueError, match="weight of 'cup' is not a number"):
+        parse_class_prior('w=1=1,cup=x')
