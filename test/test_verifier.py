@@ -95,6 +95,16 @@ def test_it_tells_the_turn_of_new_views(trained):
     assert np.mean(right) >= 0.75, np.mean(right)  # chance: 0.25
 
 
+def test_training_set_without_views_or_objects_says_so():
+    # numpy's 'need at least one array to concatenate' (a float count: a TypeError) before
+    X, y = asymmetric_shapes(1, np.random.default_rng(0))
+    for views in (0, -1, 1.5):
+        with pytest.raises(ValueError, match='verifier views must be an integer >= 1'):
+            verifier_training_set(X, N, views=views)
+    with pytest.raises(ValueError, match='needs objects'):
+        verifier_training_set(X[:0], N, views=2)
+
+
 def test_fit_checks_its_input():
     v = OrientationVerifier()
     with pytest.raises(ValueError, match='same m'):

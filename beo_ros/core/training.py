@@ -134,8 +134,13 @@ def verifier_training_set(X, n, views=6, seed=0, processes=1, verbose=False):
 
     Returns (features (m * views * 4, 1536) float32, turn (r,), object index (r,)). The same
     for any ``processes`` (chunks of ``VERIFIER_CHUNK`` objects, each with its own stream).
+    ValueError for no views or no objects (numpy's 'need at least one array to concatenate').
     """
+    if not (isinstance(views, (int, np.integer)) and views >= 1):
+        raise ValueError(f'verifier views must be an integer >= 1, got {views!r}')
     X = np.asarray(X)
+    if X.ndim != 2 or not len(X):
+        raise ValueError(f'the verifier needs objects X (m >= 1, n^3), got shape {X.shape}')
     chunks = [(X[i:i + VERIFIER_CHUNK], n, views, seed, i // VERIFIER_CHUNK)
               for i in range(0, len(X), VERIFIER_CHUNK)]
     if processes > 1:
