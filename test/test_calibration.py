@@ -87,6 +87,9 @@ def test_predict_needs_two_distinct_probabilities():
         OccupancyCalibration().predict([0.5])
     with pytest.raises(ValueError, match='not fitted'):
         OccupancyCalibration().fit([0.3, 0.3], [0, 1]).predict([0.5])
+    # two distinct probabilities in one bin: the message said two distinct ones were needed
+    with pytest.raises(ValueError, match=r'in at least two of its 800 bins, each 0\.05 wide'):
+        OccupancyCalibration().fit([0.3, 0.3001], [0, 1]).predict([0.5])
 
 
 def test_metrics_by_hand():

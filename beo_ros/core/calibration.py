@@ -88,8 +88,9 @@ class OccupancyCalibration:
     def predict(self, p):
         """Calibrated probabilities, float32, the shape of ``p``."""
         if not hasattr(self, 'probability_'):
-            raise ValueError('OccupancyCalibration is not fitted (it needs voxels of at least '
-                             'two distinct probabilities)')
+            raise ValueError('OccupancyCalibration is not fitted (it needs voxels in at least '
+                             f'two of its {self.bins} bins, each {2 * LOGIT_RANGE / self.bins:g} '
+                             'wide in logit)')
         p = np.asarray(p)
         return np.interp(p.astype(np.float64).ravel(), self.probability_,
                          self.frequency_).astype(np.float32).reshape(p.shape)

@@ -262,8 +262,8 @@ def fit_occupancy_calibration(X, y, names, spec, k=20, folds=5, seed=0, views=1,
             raw.append(calibration_sums(p, t))
             n_views += len(ps)
     if not hasattr(cal, 'probability_'):
-        raise ValueError('occupancy calibration: the views gave no unknown voxels of two '
-                         'distinct probabilities')
+        raise ValueError('occupancy calibration: the views gave no unknown voxels in two '
+                         'bins of distinct probabilities')
     c = cal.counts_[cal.counts_[:, 2] > 0]
     q = cal.predict(c[:, 0] / c[:, 2]).astype(np.float64)
     qc = np.clip(q, 1e-6, 1 - 1e-6)
