@@ -1751,6 +1751,17 @@ def test_unknown_bound_counts_objects_not_views():
     np.testing.assert_array_equal(clf['unknown_threshold'], [want[0], want[1], -np.inf])
 
 
+def test_fit_bank_refuses_labels_that_are_not_class_indices():
+    # a label past the names: its objects were left out of every model without a word;
+    # a negative one: numpy's "'list' argument must have no negative elements"
+    from beo_ros.core.training import fit_bank
+    X, y, names = primitive_shapes(8, 4, np.random.default_rng(0))
+    for bad, shown in ((np.r_[y[:-3], [2, 2, 2]], r'\[2\]'), (np.r_[y[:-1], [-1]], r'\[-1\]'),
+                       (np.r_[y[:-1], [0.5]], r'\[0\.5\]')):
+        with pytest.raises(ValueError, match=r'labels must be class indices 0\.\.1 .*' + shown):
+            fit_bank(X, bad, names, GridSpec(size=8), k=2, classifier_views=0)
+
+
 def test_stratified_folds_deal_every_class_evenly_and_repeat_with_the_seed():
     from beo_ros.core.training import stratified_folds
     y = np.repeat([0, 1, 2], [10, 7, 3])

@@ -74,8 +74,15 @@ def fit_class_models(X, y, names, spec, k=20, masks=None, max_iter=200, tol=1e-5
 def check_class_counts(y, names, folds=0):
     """ValueError naming the first class of ``names`` with too few objects in labels y: a class
     model needs 2; with ``folds`` >= 2 (out-of-fold classifier features) every fold's training
-    part needs 2 as well, i.e. the objects a class keeps when its biggest fold is held out."""
-    counts = np.bincount(np.asarray(y, dtype=int), minlength=len(names))
+    part needs 2 as well, i.e. the objects a class keeps when its biggest fold is held out.
+    Labels that are not class indices into ``names`` are refused (a label past the names was
+    left out of every model without a word, a negative one failed in numpy's bincount)."""
+    y = np.asarray(y)
+    if y.ndim != 1 or not np.isin(y, np.arange(len(names))).all():
+        bad = sorted(set(np.unique(y).tolist()) - set(range(len(names))))[:5]
+        raise ValueError(f'labels must be class indices 0..{len(names) - 1} into the '
+                         f'{len(names)} class names, got {bad}')
+    counts = np.bincount(y.astype(int), minlength=len(names))
     need = 2
     if folds >= 2:   # stratified_folds holds out up to ceil(m / folds) objects of m
         while need - -(-need // folds) < 2:
