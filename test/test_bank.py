@@ -1762,6 +1762,17 @@ def test_fit_bank_refuses_labels_that_are_not_class_indices():
             fit_bank(X, bad, names, GridSpec(size=8), k=2, classifier_views=0)
 
 
+def test_fit_bank_refuses_objects_and_labels_that_do_not_fit_together():
+    # one label short: an IndexError of the first class's rows; grids of another size: a
+    # ModelError about the first class's W once every class model was fitted
+    from beo_ros.core.training import fit_bank
+    X, y, names = primitive_shapes(8, 4, np.random.default_rng(0))
+    for Xb, yb, shown in ((X, y[:-1], r'X \(8, 512\) and y \(7,\)'),
+                          (np.zeros((8, 16 ** 3), np.float32), y, r'X \(8, 4096\)')):
+        with pytest.raises(ValueError, match=r'X must be \(objects, 512\).*' + shown):
+            fit_bank(Xb, yb, names, GridSpec(size=8), k=2, classifier_views=0)
+
+
 def test_stratified_folds_deal_every_class_evenly_and_repeat_with_the_seed():
     from beo_ros.core.training import stratified_folds
     y = np.repeat([0, 1, 2], [10, 7, 3])

@@ -339,6 +339,11 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
     cv_prior = class_prior if isinstance(class_prior, str) else weights
     X = np.asarray(X, dtype=np.float32)
     y = np.asarray(y)
+    # before the fits: an IndexError of the first class's rows, or a ModelError about W after
+    # all of them
+    if X.ndim != 2 or X.shape[1] != spec.size ** 3 or y.shape != (len(X),):
+        raise ValueError(f'X must be (objects, {spec.size ** 3}) (flattened {spec.size}^3 grids) '
+                         f'and y one label per object, got X {X.shape} and y {y.shape}')
     check_class_counts(y, names, folds if classifier_views > 0 or calibration_views else 0)
     t0 = time.time()
     if verbose:   # minutes with missing data (scans), and no bar of its own
