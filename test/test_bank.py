@@ -1494,6 +1494,14 @@ def test_malformed_points_classifier_is_refused_by_the_constructor(tiny):
         ModelBank(tiny.models, tiny.spec, {'points': clf})
 
 
+def test_classifier_of_an_unknown_mode_is_refused_by_the_constructor(tiny):
+    # 'partail' was taken and never used (the max-likelihood rule decided), and save wrote a
+    # classifier.npz that load refuses
+    clf = _points_classifier(len(tiny.classes), 0)
+    with pytest.raises(ModelError, match=r"unknown classifier mode\(s\) \['partail'\]"):
+        ModelBank(tiny.models, tiny.spec, {'partail': clf})
+
+
 # ---------------------------------------------------------------------- class prior
 def test_resolve_class_prior_accepts_names_dicts_and_weights_and_names_what_is_wrong():
     from beo_ros.core.bank import resolve_class_prior
