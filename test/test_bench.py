@@ -45,6 +45,18 @@ def test_paper_baseline_classifies_boxes_and_cylinders(shapes):
     assert hits >= 0.75 * len(queries)
 
 
+def test_paper_baseline_without_ridge_answers_a_view_of_few_known_voxels(shapes):
+    """ridge 0 is accepted; a view with fewer known voxels than components made A singular
+    (LinAlgError 'Singular matrix')."""
+    from beo_ros.core.baselines import PaperPCA
+    X, y, names, _ = shapes
+    paper = PaperPCA(k=5, n_yaws=4, ridge=0).fit(X, y, names, N)
+    grid = np.full((N,) * 3, -1, np.int8)
+    grid[8, 8, 8], grid[8, 8, 9] = 1, 0
+    c, yaw, completion = paper.predict(grid)
+    assert 0 <= c < 2 and np.isfinite(completion).all()
+
+
 def test_paper_baseline_recovers_yaw_of_a_complete_asymmetric_object():
     """A complete L-shaped object rotated by a candidate yaw: the paper's search finds it."""
     from beo_ros.core.baselines import PaperPCA

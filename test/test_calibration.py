@@ -54,6 +54,12 @@ def test_partial_fit_view_by_view_equals_one_fit():
     # fit starts the counts again
     again = parts.fit(p[:100], t[:100])
     assert again is parts and parts.counts_[:, 2].sum() == 100
+    # other bins: partial_fit does not drop the counts so far (it did, without a word)
+    parts.bins = 100
+    with pytest.raises(ValueError, match='bins is 100, the voxels counted so far are in 800'):
+        parts.partial_fit(p[:10], t[:10])
+    assert parts.counts_[:, 2].sum() == 100
+    assert parts.fit(p[:10], t[:10]).counts_.shape == (100, 3)
 
 
 @pytest.mark.parametrize('p, t, message', [
@@ -81,6 +87,9 @@ def test_predict_needs_two_distinct_probabilities():
         OccupancyCalibration().predict([0.5])
     with pytest.raises(ValueError, match='not fitted'):
         OccupancyCalibration().fit([0.3, 0.3], [0, 1]).predict([0.5])
+    # two distinct probabilities in one bin: the message said two distinct ones were needed
+    with pytest.raises(ValueError, match=r'in at least two of its 800 bins, each 0\.05 wide'):
+        OccupancyCalibration().fit([0.3, 0.3001], [0, 1]).predict([0.5])
 
 
 def test_metrics_by_hand():

@@ -118,3 +118,18 @@ def test_logistic_train_classifier_is_unchanged_by_the_new_arguments():
     assert 'hidden_coef' not in a and set(a) == set(b)
     for k in a:
         np.testing.assert_array_equal(a[k], b[k])
+
+
+def test_a_column_constant_in_training_does_not_decide_the_class():
+    """A network input that was constant in every training row (mean_height and column_fill
+    of the primitive shapes) has scale 1, not 1e-9: a query 0.01 off the constant kept its
+    probabilities (std + 1e-9 made them 1 / 0 through the small hidden weights on it)."""
+    F, y = _rows(3)
+    F = np.hstack([F, np.full((len(F), 1), 0.5)])
+    clf = dict(fit_mlp(F, y, 3, hidden=16), unknown_threshold=np.full(3, -np.inf))
+    q = F[:10].copy()
+    p, _ = classifier_probabilities(clf, q, q[:, 0:3 * NF:NF])
+    q[:, -1] += 0.01
+    p_off, _ = classifier_probabilities(clf, q, q[:, 0:3 * NF:NF])
+    np.testing.assert_allclose(p_off, p, atol=1e-3)
+    assert clf['scale'][-1] == 1.0

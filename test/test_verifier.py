@@ -95,6 +95,16 @@ def test_it_tells_the_turn_of_new_views(trained):
     assert np.mean(right) >= 0.75, np.mean(right)  # chance: 0.25
 
 
+def test_training_set_without_views_or_objects_says_so():
+    # numpy's 'need at least one array to concatenate' (a float count: a TypeError) before
+    X, y = asymmetric_shapes(1, np.random.default_rng(0))
+    for views in (0, -1, 1.5):
+        with pytest.raises(ValueError, match='verifier views must be an integer >= 1'):
+            verifier_training_set(X, N, views=views)
+    with pytest.raises(ValueError, match='needs objects'):
+        verifier_training_set(X[:0], N, views=2)
+
+
 def test_fit_checks_its_input():
     v = OrientationVerifier()
     with pytest.raises(ValueError, match='same m'):
@@ -184,6 +194,13 @@ def test_verifier_survives_save_load_and_pickling(bank, tmp_path):
     (lambda a: a.__setitem__('feature', np.full_like(a['feature'], 2000)), 'feature indices'),
     (lambda a: a.__setitem__('value', a['value'] * np.nan), 'finite'),
     (lambda a: a.__setitem__('value', a['value'][:-1]), 'differ in length'),
+    # a bare TypeError (not naming verifier.npz) or, for float class indices, truncated
+    (lambda a: a.__setitem__('weight', np.array([1.0, 2.0])), 'weight must be a scalar'),
+    (lambda a: a.__setitem__('weight', np.asarray('1000')), 'weight has dtype'),
+    (lambda a: a.__setitem__('grid_size', np.array([N, N])), 'grid_size must be a scalar'),
+    (lambda a: a.__setitem__('classes', a['classes'] + 0.5), 'classes has dtype'),
+    (lambda a: a.__setitem__('classes', a['classes'][None]), '1-D'),
+    (lambda a: a.__setitem__('left', a['left'] + 0.5), 'left has dtype'),
 ])
 def test_bad_verifier_files_are_refused(bank, tmp_path, change, msg):
     import hashlib

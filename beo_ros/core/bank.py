@@ -107,6 +107,12 @@ class ModelBank:
             if m.W.ndim != 2 or m.W.shape[0] != d or m.mean.shape != (d,):
                 raise ModelError(f'class {m.name!r}: W {m.W.shape} / mean {m.mean.shape} do not '
                                  f'match the {spec.size}^3 grid')
+        # a mode of another name was never used (the max-likelihood rule decided) and save
+        # wrote a classifier.npz that load refuses
+        unknown = sorted(set(classifier or {}) - set(MODES) - {POINTS_MODE})
+        if unknown:
+            raise ModelError(f'unknown classifier mode(s) {unknown} (known: '
+                             f'{", ".join(MODES + (POINTS_MODE,))})')
         if classifier and POINTS_MODE in classifier:
             check_point_classifier(classifier[POINTS_MODE], len(models))
         self.models = list(models)

@@ -77,7 +77,8 @@ class PaperPCA(BaseEstimator):
     Args:
         k: PCA components per class.
         n_yaws: yaw candidates, evenly spaced over 360 degrees.
-        ridge: tiny Tikhonov term so ``A`` stays invertible.
+        ridge: tiny Tikhonov term so ``A`` stays invertible (0: a singular ``A``, fewer known
+            voxels than components, is solved by least squares).
 
     Learned attributes: ``n_`` (grid size), ``classes_`` (class names), ``W_`` and ``mu_``
     (per class: the (d, k) components and the (d,) mean, d = n^3).
@@ -135,7 +136,11 @@ class PaperPCA(BaseEstimator):
                 muK = self.mu_[c][K]
                 A = WK.T @ WK + ridge * np.eye(WK.shape[1], dtype=np.float32)
                 b = WK.T @ (yK - muK)
-                o = np.linalg.solve(A, b)
+                try:
+                    o = np.linalg.solve(A, b)
+                except np.linalg.LinAlgError:
+                    # ridge 0 and fewer known voxels than components: the least-norm solution
+                    o = np.linalg.lstsq(A, b, rcond=None)[0]
                 r = WK @ o + muK - yK
                 resid = float(r @ r) / len(yK)
                 if resid < best[0]:

@@ -65,8 +65,11 @@ class OccupancyCalibration:
             raise ValueError(f'bins must be an integer >= 2, got {self.bins!r}')
         p, occupied = _check_inputs(p, occupied)
         counts = getattr(self, 'counts_', None)
-        if counts is None or counts.shape != (self.bins, 3):
+        if counts is None:
             counts = np.zeros((self.bins, 3))
+        elif counts.shape != (self.bins, 3):   # bins changed: refused, not counted anew
+            raise ValueError(f'bins is {self.bins}, the voxels counted so far are in '
+                             f'{len(counts)} bins: fit() starts again with the new bins')
         b = self._bin(p)
         counts[:, 0] += np.bincount(b, weights=p, minlength=self.bins)
         counts[:, 1] += np.bincount(b, weights=occupied, minlength=self.bins)
@@ -85,8 +88,9 @@ class OccupancyCalibration:
     def predict(self, p):
         """Calibrated probabilities, float32, the shape of ``p``."""
         if not hasattr(self, 'probability_'):
-            raise ValueError('OccupancyCalibration is not fitted (it needs voxels of at least '
-                             'two distinct probabilities)')
+            raise ValueError('OccupancyCalibration is not fitted (it needs voxels in at least '
+                             f'two of its {self.bins} bins, each {2 * LOGIT_RANGE / self.bins:g} '
+                             'wide in logit)')
         p = np.asarray(p)
         return np.interp(p.astype(np.float64).ravel(), self.probability_,
                          self.frequency_).astype(np.float32).reshape(p.shape)

@@ -118,7 +118,7 @@ def parse_class_prior(text):
         return text
     prior = {}
     for item in text.split(','):
-        name, sep, value = item.partition('=')
+        name, sep, value = item.rpartition('=')   # the last '=': a class name may hold one
         name = name.strip()
         if not sep or not name or name in prior:
             raise ValueError(f"class_prior must be 'train', 'uniform' or 'name=weight,...' with "

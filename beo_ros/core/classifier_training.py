@@ -58,15 +58,19 @@ def cross_validated_report(F, y, records, C=1.0, folds=5, seed=0, row_standardiz
         clf = make_pipeline(StandardScaler(), _network(hidden, alpha, seed))
     else:
         clf = make_pipeline(StandardScaler(), LogisticRegression(C=C, max_iter=2000))
+    # folds: at most the objects of the smallest class, at least 2: a class of one object
+    # (its other views skipped) is classified by folds that never saw it (one fold refused)
     if groups is not None and len(np.unique(groups)) < len(y):
         per_class = min(len(np.unique(groups[y == c])) for c in np.unique(y))
-        cv = StratifiedGroupKFold(n_splits=min(folds, per_class), shuffle=True, random_state=seed)
+        cv = StratifiedGroupKFold(n_splits=max(2, min(folds, per_class)), shuffle=True,
+                                  random_state=seed)
     else:
         groups = None
         # counts of the classes present: a class index without rows (all its views skipped)
         # is not a class of this cross-validation
-        cv = StratifiedKFold(n_splits=min(folds, int(np.unique(y, return_counts=True)[1].min())),
-                             shuffle=True, random_state=seed)
+        per_class = int(np.unique(y, return_counts=True)[1].min())
+        cv = StratifiedKFold(n_splits=max(2, min(folds, per_class)), shuffle=True,
+                             random_state=seed)
     nf = len(FEATURE_NAMES)
     P = cross_val_predict(clf, classifier_input(F, F.shape[1] // nf, row_standardize,
                                                 descriptors), y, cv=cv, groups=groups,
@@ -135,10 +139,11 @@ def expected_calibration_error(confidence, correct, bins=10):
     return float(ece)
 
 
-def loglik_bounds(ll, y, n_classes, mads=UNKNOWN_MADS):
+def loglik_bounds(ll, y, n_classes, mads=UNKNOWN_MADS, objects=None):
     """Per-class lower bounds (C,) of the 'unknown' test from out-of-fold log-likelihoods.
 
-    ll: (m, C) per-voxel log-likelihood of every training object under every class; y: (m,).
+    ll: (m, C) per-voxel log-likelihood of every training object under every class; y: (m,);
+    ``objects`` (m,): the object of every row when objects have several rows (views).
     The winning class must explain an object about as well as its own out-of-fold objects: a
     robust bound (median - ``mads`` scaled MADs of their log-likelihood), so a single outlier
     among them cannot drag it down; -inf for a class with fewer than 5 objects.
@@ -151,7 +156,8 @@ def loglik_bounds(ll, y, n_classes, mads=UNKNOWN_MADS):
     thr = np.full(n_classes, -np.inf)
     for c in range(n_classes):
         own = ll[y == c, c]
-        if len(own) >= 5:
+        n_own = len(own) if objects is None else len(np.unique(np.asarray(objects)[y == c]))
+        if n_own >= 5:
             med = np.median(own)
             mad = 1.4826 * np.median(np.abs(own - med))
             thr[c] = med - mads * max(mad, 1e-3)
@@ -174,10 +180,14 @@ def fit_logistic(Z, y, n_classes, C=1.0):
 
 
 def _standardized(Z):
-    """(Z standardised per column, mean, scale) of input rows Z (m, n_in)."""
+    """(Z standardised per column, mean, scale) of input rows Z (m, n_in). A column constant
+    in the rows (to rounding) gets scale 1, as in the cross-validation's StandardScaler: std +
+    1e-9 would magnify a query's departure from the constant 1e9 times (a network's hidden
+    weights on such a column decay towards 0 but are not 0)."""
     Z = np.asarray(Z, dtype=np.float64)
     mean = Z.mean(axis=0)
-    scale = Z.std(axis=0) + 1e-9
+    std = Z.std(axis=0)
+    scale = np.where(std > 1e-9 * np.maximum(np.abs(mean), 1.0), std + 1e-9, 1.0)
     return (Z - mean) / scale, mean, scale
 
 
@@ -212,15 +222,17 @@ def fit_mlp(Z, y, n_classes, hidden=MLP_HIDDEN, alpha=MLP_ALPHA, seed=0):
 
 
 def train_classifier(F, y, n_classes, C=1.0, row_standardize=False, descriptors=None, hidden=0,
-                     alpha=MLP_ALPHA, seed=0):
+                     alpha=MLP_ALPHA, seed=0, objects=None):
     """Standardised multinomial logistic regression (or, with ``hidden`` > 0, the network of
     :func:`fit_mlp`) on features F (r, C*F) [+ shape descriptors (r, D)] -> arrays dict
     (``row_standardize``, ``descriptors``: see ``classifier_input``; ``descriptor_count``: D,
-    the first D of ``shape.DESCRIPTOR_NAMES``)."""
+    the first D of ``shape.DESCRIPTOR_NAMES``; ``objects`` (r,): the object of every row, for
+    the 'unknown' bounds' count of objects, see :func:`loglik_bounds`)."""
     Z = classifier_input(F, n_classes, row_standardize, descriptors)
     clf = fit_mlp(Z, y, n_classes, hidden, alpha, seed) if hidden else \
         fit_logistic(Z, y, n_classes, C)
-    out = dict(clf, unknown_threshold=loglik_bounds(F[:, 0::len(FEATURE_NAMES)], y, n_classes),
+    out = dict(clf, unknown_threshold=loglik_bounds(F[:, 0::len(FEATURE_NAMES)], y, n_classes,
+                                                    objects=objects),
                row_standardize=np.asarray(bool(row_standardize)),
                descriptors=np.asarray(descriptors is not None))
     if descriptors is not None:
@@ -277,5 +289,5 @@ def select_classifier(F, y, records, objects, D, n_classes, C=C_OPTIONS, seed=0,
         report['accuracy_other_input'] = max(a for j, a in enumerate(accs) if j != best)
         report['accuracy_by_input'] = {label(*o): a for o, a in zip(options, accs)}
     return train_classifier(F, y, n_classes, row_standardize=rs,
-                            descriptors=D if use_d else None, seed=seed,
+                            descriptors=D if use_d else None, seed=seed, objects=objects,
                             **model_args(m_best)), report

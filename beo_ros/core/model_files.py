@@ -308,6 +308,13 @@ def _check_grid_classifier(clf, mode, n_classes, fp):
     if mode not in MODES:
         raise ModelError(f'{fp}: unknown classifier {mode!r} (known: '
                          f'{", ".join(MODES + (POINTS_MODE,))})')
+    # the flags are read with bool(): a (2,) array raised a bare ValueError, 'no' was True
+    for flag in ('row_standardize', 'descriptors'):
+        a = np.asarray(clf.get(flag, False))
+        if a.shape != () or not (a.dtype == bool or (np.issubdtype(a.dtype, np.integer)
+                                                     and int(a) in (0, 1))):
+            raise ModelError(f'{fp}: classifier {mode!r}: {flag!r} must be true or false, got '
+                             f'{a!r}')
     try:
         n_d = descriptor_count(clf)
     except ModelError as e:

@@ -74,8 +74,15 @@ def fit_class_models(X, y, names, spec, k=20, masks=None, max_iter=200, tol=1e-5
 def check_class_counts(y, names, folds=0):
     """ValueError naming the first class of ``names`` with too few objects in labels y: a class
     model needs 2; with ``folds`` >= 2 (out-of-fold classifier features) every fold's training
-    part needs 2 as well, i.e. the objects a class keeps when its biggest fold is held out."""
-    counts = np.bincount(np.asarray(y, dtype=int), minlength=len(names))
+    part needs 2 as well, i.e. the objects a class keeps when its biggest fold is held out.
+    Labels that are not class indices into ``names`` are refused (a label past the names was
+    left out of every model without a word, a negative one failed in numpy's bincount)."""
+    y = np.asarray(y)
+    if y.ndim != 1 or not np.isin(y, np.arange(len(names))).all():
+        bad = sorted(set(np.unique(y).tolist()) - set(range(len(names))))[:5]
+        raise ValueError(f'labels must be class indices 0..{len(names) - 1} into the '
+                         f'{len(names)} class names, got {bad}')
+    counts = np.bincount(y.astype(int), minlength=len(names))
     need = 2
     if folds >= 2:   # stratified_folds holds out up to ceil(m / folds) objects of m
         while need - -(-need // folds) < 2:
@@ -134,8 +141,13 @@ def verifier_training_set(X, n, views=6, seed=0, processes=1, verbose=False):
 
     Returns (features (m * views * 4, 1536) float32, turn (r,), object index (r,)). The same
     for any ``processes`` (chunks of ``VERIFIER_CHUNK`` objects, each with its own stream).
+    ValueError for no views or no objects (numpy's 'need at least one array to concatenate').
     """
+    if not (isinstance(views, (int, np.integer)) and views >= 1):
+        raise ValueError(f'verifier views must be an integer >= 1, got {views!r}')
     X = np.asarray(X)
+    if X.ndim != 2 or not len(X):
+        raise ValueError(f'the verifier needs objects X (m >= 1, n^3), got shape {X.shape}')
     chunks = [(X[i:i + VERIFIER_CHUNK], n, views, seed, i // VERIFIER_CHUNK)
               for i in range(0, len(X), VERIFIER_CHUNK)]
     if processes > 1:
@@ -257,8 +269,8 @@ def fit_occupancy_calibration(X, y, names, spec, k=20, folds=5, seed=0, views=1,
             raw.append(calibration_sums(p, t))
             n_views += len(ps)
     if not hasattr(cal, 'probability_'):
-        raise ValueError('occupancy calibration: the views gave no unknown voxels of two '
-                         'distinct probabilities')
+        raise ValueError('occupancy calibration: the views gave no unknown voxels in two '
+                         'bins of distinct probabilities')
     c = cal.counts_[cal.counts_[:, 2] > 0]
     q = cal.predict(c[:, 0] / c[:, 2]).astype(np.float64)
     qc = np.clip(q, 1e-6, 1 - 1e-6)
@@ -327,6 +339,11 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
     cv_prior = class_prior if isinstance(class_prior, str) else weights
     X = np.asarray(X, dtype=np.float32)
     y = np.asarray(y)
+    # before the fits: an IndexError of the first class's rows, or a ModelError about W after
+    # all of them
+    if X.ndim != 2 or X.shape[1] != spec.size ** 3 or y.shape != (len(X),):
+        raise ValueError(f'X must be (objects, {spec.size ** 3}) (flattened {spec.size}^3 grids) '
+                         f'and y one label per object, got X {X.shape} and y {y.shape}')
     check_class_counts(y, names, folds if classifier_views > 0 or calibration_views else 0)
     t0 = time.time()
     if verbose:   # minutes with missing data (scans), and no bar of its own

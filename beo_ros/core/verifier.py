@@ -225,6 +225,21 @@ def check_arrays(arrays, n_classes, grid_size, where='verifier'):
     if missing:
         return f'{where}: missing arrays {missing}'
     a = {k: np.asarray(arrays[k]) for k in ARRAY_KEYS}
+    # index arrays integers, the rest real numbers, weight and grid_size scalars: a float class
+    # index was truncated, a string weight or a (2,) grid_size raised a bare TypeError
+    real = (np.integer, np.floating)
+    kinds = dict(is_leaf=(np.bool_, np.integer), threshold=real, value=real, baseline=real,
+                 weight=real)
+    for k in ARRAY_KEYS:
+        ok = kinds.get(k, (np.integer,))
+        if not any(np.issubdtype(a[k].dtype, t) for t in ok):
+            return f'{where}: {k} has dtype {a[k].dtype}, expected ' + \
+                ('integers' if ok == (np.integer,) else 'real numbers')
+    for k in ('weight', 'grid_size'):
+        if a[k].shape != ():
+            return f'{where}: {k} must be a scalar, got shape {a[k].shape}'
+    if a['feature'].ndim != 1 or a['classes'].ndim != 1:
+        return f'{where}: feature and classes must be 1-D'
     n = len(a['feature'])
     if any(a[k].shape != (n,) for k in ('threshold', 'left', 'right', 'is_leaf', 'value')):
         return f'{where}: node arrays differ in length'
