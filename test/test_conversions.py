@@ -240,6 +240,14 @@ def test_pose_round_trip():
                                    atol=1e-12)
     with pytest.raises(ValueError):
         matrix_to_pose(np.full((4, 4), np.nan))
+    with pytest.raises(ValueError, match=r'shape \(3, 4\)'):
+        matrix_to_pose(np.eye(4)[:3])
+    # a NaN entry was reported as 'got shape (4, 4)': the shape it asks for
+    t = np.eye(4)
+    t[0, 3] = np.nan
+    with pytest.raises(ValueError, match='1 non-finite entries') as err:
+        matrix_to_pose(t)
+    assert 'shape' not in str(err.value)
 
 
 @pytest.mark.parametrize('up', [(0, 0, 1), (0, -1, 0), (1, 2, 3)])

@@ -208,8 +208,12 @@ def quaternion_to_rotation(q) -> np.ndarray:
 def matrix_to_pose(t) -> Pose:
     """(4, 4) homogeneous transform (object frame in the parent frame) -> geometry_msgs/Pose."""
     t = np.asarray(t, dtype=np.float64)
-    if t.shape != (4, 4) or not np.isfinite(t).all():
+    if t.shape != (4, 4):
         raise ValueError(f'pose must be a finite (4, 4) matrix, got shape {t.shape}')
+    bad = int(t.size - np.count_nonzero(np.isfinite(t)))
+    if bad:
+        raise ValueError(f'pose must be a finite (4, 4) matrix, got {bad} non-finite entries: '
+                         f'{t.tolist()}')
     q = rotation_to_quaternion(t[:3, :3])
     return Pose(position=Point(x=float(t[0, 3]), y=float(t[1, 3]), z=float(t[2, 3])),
                 orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]),
