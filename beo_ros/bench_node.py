@@ -26,17 +26,19 @@ def log(*a):
     print(*a, file=sys.stderr, flush=True)
 
 
-def _node_clouds(X, n, idx, limit, rng):
+def _node_clouds(X, n, idx, limit, rng, size=1.0):
     """Rendered partial views (points (m, 3) float32, sensor at the origin) of ``limit`` objects.
 
-    Each cloud is rendered from its own viewpoint; it is translated so its sensor is at the
-    origin, which is the node's (fixed) ``sensor_origin``."""
+    Each cloud is rendered from its own viewpoint, the grid ``size`` metres across (the
+    model's scale, as beo-demo renders); it is translated so its sensor is at the origin,
+    which is the node's (fixed) ``sensor_origin``."""
     from beo_ros.core.synthetic import random_partial_view, render_view_points
     clouds = []
     for i in idx[:limit]:
         occ = X[i].reshape((n,) * 3) > 0.5
         _, yaw, az, el, _ = random_partial_view(occ, rng)
-        pts, origin = render_view_points(occ, yaw, az, el, rng=rng)
+        pts, origin = render_view_points(occ, yaw, az, el, distance=max(2.0, 2.0 * size),
+                                         size=size, rng=rng)
         if len(pts) >= 100:  # the node rejects clouds below min_points; keep real objects
             clouds.append(np.asarray(pts - origin, dtype=np.float32))
     return clouds
@@ -351,7 +353,9 @@ def node_bench(bank, X, n, idx, args, rng):
     except Exception as e:  # noqa: BLE001 - ROS, rosbags or interfaces missing
         return {'skipped': f'{type(e).__name__}: {e}'}
 
-    clouds = _node_clouds(X, n, idx, args.node_objects, rng)
+    spec = bank.spec   # a metric grid spans size * voxel_size metres: render at that scale
+    size = spec.size * spec.voxel_size if spec.units == 'metric' else 1.0
+    clouds = _node_clouds(X, n, idx, args.node_objects, rng, size=size)
     if not clouds:
         return {'skipped': 'no objects'}
     rates = sorted(float(r) for r in args.node_rates)

@@ -136,6 +136,12 @@ def json_safe(obj):
 
 def out_dir_problem(out):
     """Why ``out`` cannot be the output directory, or None; creates nothing."""
+    # a symbolic link to nothing exists for mkdir ('File exists' once the inputs had loaded)
+    broken = next((d for d in (out, *out.absolute().parents)
+                   if d.is_symlink() and not d.exists()), None)
+    if broken is not None:
+        return (f'cannot make the output directory ({broken} is a broken symbolic link, to '
+                f'{os.readlink(broken)})')
     if out.exists():
         if not out.is_dir():
             return 'exists and is not a directory'

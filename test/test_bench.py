@@ -473,3 +473,34 @@ def test_bench_node_settles_through_the_public_api(monkeypatch):
     b.node = _FakeNode()
     b.settle(timeout=5.0)
     assert b.node.calls == 4   # idle at the third call, confirmed by a fourth
+
+
+def test_bench_node_renders_its_clouds_at_a_metric_models_scale(monkeypatch):
+    """The node phase's clouds were rendered 1 m across whatever the model: a metric model's
+    objects (its grid 16 * 0.02 m here) came twice their size or more, partly outside its
+    grid."""
+    import types
+
+    import beo_ros.bench_node as bench
+    from beo_ros.core.grid import GridSpec
+    pytest.importorskip('rclpy')
+    monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')   # node_bench sets it
+    seen = []
+    render = bench._node_clouds
+
+    def clouds(*a, **kw):   # the bag's clouds, then stop before the bag and the node
+        seen.extend(render(*a, **kw))
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(bench, '_node_clouds', clouds)
+    X, _, _ = primitive_shapes(N, 2, np.random.default_rng(0))
+    bank = types.SimpleNamespace(spec=GridSpec(size=N, units='metric', voxel_size=0.02))
+    args = types.SimpleNamespace(node_objects=4, node_rates=[2.0], node_duration=1.0)
+    try:
+        bench.node_bench(bank, X, N, np.arange(len(X)), args, np.random.default_rng(0))
+    except KeyboardInterrupt:
+        pass
+    if not seen:
+        pytest.skip('the node phase needs ROS, rosbags and beo_interfaces')
+    extent = max((c.max(axis=0) - c.min(axis=0)).max() for c in seen)
+    assert 0.1 < extent <= N * 0.02 + 0.01

@@ -567,11 +567,16 @@ def test_eval_scans_forwards_k_and_refuses_what_it_does_not_use(monkeypatch, cap
     (['--timeout', '-5'], 'argument --timeout: must be in (0, inf)'),
     (['--timeout', 'nan'], 'argument --timeout: must be a finite number'),
     (['--out', 'A_FILE'], 'exists and is not a directory'),
+    # a link to nothing passed the check and failed with 'File exists' after the model loaded
+    (['--out', 'A_LINK'], 'a_link is a broken symbolic link, to '),
+    (['--out', 'A_LINK/sub'], 'a_link is a broken symbolic link, to '),
 ])
 def test_demo_bad_arguments_refused_up_front(tmp_path, capsys, extra, message):
     from beo_ros.ros import demo
     (tmp_path / 'a_file').write_text('x')
-    extra = [str(tmp_path / 'a_file') if a == 'A_FILE' else a for a in extra]
+    (tmp_path / 'a_link').symlink_to(tmp_path / 'nothing')
+    extra = [str(tmp_path / 'a_file') if a == 'A_FILE' else
+             a.replace('A_LINK', str(tmp_path / 'a_link')) for a in extra]
     argv = extra if '--out' in extra else ['--out', str(tmp_path / 'o'), *extra]
     with pytest.raises(SystemExit) as ei:
         demo.main(argv)

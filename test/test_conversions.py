@@ -240,6 +240,14 @@ def test_pose_round_trip():
                                    atol=1e-12)
     with pytest.raises(ValueError):
         matrix_to_pose(np.full((4, 4), np.nan))
+    with pytest.raises(ValueError, match=r'shape \(3, 4\)'):
+        matrix_to_pose(np.eye(4)[:3])
+    # a NaN entry was reported as 'got shape (4, 4)': the shape it asks for
+    t = np.eye(4)
+    t[0, 3] = np.nan
+    with pytest.raises(ValueError, match='1 non-finite entries') as err:
+        matrix_to_pose(t)
+    assert 'shape' not in str(err.value)
 
 
 @pytest.mark.parametrize('up', [(0, 0, 1), (0, -1, 0), (1, 2, 3)])
@@ -307,3 +315,27 @@ def test_stamps_round_trip_nanoseconds():
         t = stamp_from_ns(ns)
         assert 0 <= t.nanosec < 1_000_000_000 and ns_from_stamp(t) == ns
     assert (stamp_from_ns(T0_NS + 5).sec, stamp_from_ns(T0_NS + 5).nanosec) == (1_700_000_000, 5)
+
+
+def test_dimensions_keep_their_precision_far_from_the_origin(ros_tiny_model_dir):
+    # the float32 completed points of a map frame are centimetres off at 1e6 m: the published
+    # dimensions (and the marker box) came from them, up to 5 cm off on a 0.4 m object, while
+    # the pose centre stayed exact
+    conv = pytest.importorskip('beo_ros.ros.conversions')
+    try:
+        conv.interfaces()
+    except ImportError as e:
+        pytest.skip(f'beo_interfaces not built: {e}')
+    from beo_ros.core.bank import load_models
+    from beo_ros.core.synthetic import render_view_points
+    bank = load_models(ros_tiny_model_dir)
+    n = bank.spec.size
+    occ = bank.models[0].mean.reshape((n,) * 3) > 0.5
+    pts, origin = render_view_points(occ, 0.5, 0.3, np.deg2rad(30), distance=2.0, size=0.4)
+    dims = []
+    for shift in (np.zeros(3), np.array([9.9e5, -7e5, 10.0])):
+        est = bank.estimate_points(pts + shift, sensor_origin=origin + shift, outlier_mads=None)
+        d = conv.estimate_to_msg(est, Header(frame_id='map')).dimensions
+        dims.append([d.x, d.y, d.z])
+    assert min(dims[0]) > 0.1
+    np.testing.assert_allclose(dims[1], dims[0], atol=1e-6)

@@ -39,7 +39,7 @@ from .verifier import TURNS, OrientationVerifier, check_arrays, quarter_turned_f
 # the bank's names, and those of the modules split from it (importable from here as before)
 __all__ = [
     'ModelBank', 'load_models', 'default_model_dir', 'resolve_model_dir', 'shipped_models',
-    'object_centre', 'heading_offset', 'check_yaw', 'check_step', 'check_count',
+    'object_centre', 'object_extent', 'heading_offset', 'check_yaw', 'check_step', 'check_count',
     'SEARCH_STEP_DEG', 'PROBE_DEG', 'STAGE2_MIN_STEP_DEG', 'YAW_STEP_RANGE_DEG',
     # class_model
     'ClassModel', 'ModelError', 'coarse_noise',
@@ -745,6 +745,7 @@ class ModelBank:
             pts if len(pts) else grid_to_points(view.grid, T, 1, dtype=np.float64)[0],
             pose[:3, :3], T @ np.array([c, c, c, 1.0]))
         est.pose = pose
+        est.dimensions = object_extent(pts, pose, np.linalg.norm(T[:3, 0]))
         est.heading_offset = heading_offset(R_grid, up)
         est.grid_to_input = T
         est.completed_points = np.asarray(pts, dtype=np.float32)
@@ -778,6 +779,19 @@ def object_centre(points, rotation, fallback) -> np.ndarray:
         return np.asarray(fallback, dtype=np.float64)[:3]
     local = pts @ rotation
     return rotation @ ((local.min(axis=0) + local.max(axis=0)) / 2.0)
+
+
+def object_extent(points, pose, voxel) -> np.ndarray:
+    """float64 (3,) extent in metres of the voxels of edge ``voxel`` centred at ``points``
+    (m, 3, input frame) along the axes of ``pose`` (4, 4), outer face to outer face; zeros when
+    there are none. (From float64 points: the float32 completed points of a map frame are
+    centimetres off at 1e6 m.)"""
+    pts = np.asarray(points, dtype=np.float64)
+    if len(pts) == 0:
+        return np.zeros(3)
+    pose = np.asarray(pose, dtype=np.float64)
+    local = (pts - pose[:3, 3]) @ pose[:3, :3]
+    return local.max(axis=0) - local.min(axis=0) + float(voxel)
 
 
 def heading_offset(grid_rotation, up) -> float:

@@ -81,6 +81,9 @@ class Estimate:
             object larger than the grid, or points not in metres).
         completed_points: float32 (m,3) centres of voxels with probability >= threshold, input frame
             (only from ``estimate_points``), and ``completed_probability`` float32 (m,).
+        dimensions: float64 (3,) extent in metres of those voxels (outer faces) along the axes
+            of ``pose`` (only from ``estimate_points``; zeros when none is completed): taken
+            from float64 centres, as ``completed_points`` are centimetres off at 1e6 m.
     """
 
     label: str
@@ -104,6 +107,7 @@ class Estimate:
     n_outliers: int = 0
     n_off_cluster: int = 0
     n_outside_grid: int = 0
+    dimensions: np.ndarray | None = None
 
     @property
     def occupancy_variance(self) -> np.ndarray | None:

@@ -17,6 +17,7 @@ from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point, Pose, Quaternion, Vector3
 from sensor_msgs.msg import PointField, PointCloud2
 
+from beo_ros.core.bank import object_extent
 from beo_ros.core.grid import quaternion_matrix, wrap_yaw
 
 __all__ = [
@@ -207,8 +208,12 @@ def quaternion_to_rotation(q) -> np.ndarray:
 def matrix_to_pose(t) -> Pose:
     """(4, 4) homogeneous transform (object frame in the parent frame) -> geometry_msgs/Pose."""
     t = np.asarray(t, dtype=np.float64)
-    if t.shape != (4, 4) or not np.isfinite(t).all():
+    if t.shape != (4, 4):
         raise ValueError(f'pose must be a finite (4, 4) matrix, got shape {t.shape}')
+    bad = int(t.size - np.count_nonzero(np.isfinite(t)))
+    if bad:
+        raise ValueError(f'pose must be a finite (4, 4) matrix, got {bad} non-finite entries: '
+                         f'{t.tolist()}')
     q = rotation_to_quaternion(t[:3, :3])
     return Pose(position=Point(x=float(t[0, 3]), y=float(t[1, 3]), z=float(t[2, 3])),
                 orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]),
@@ -239,15 +244,15 @@ def yaw_quaternion(yaw: float, up=(0.0, 0.0, 1.0)) -> Quaternion:
 
 
 def object_dimensions(est) -> np.ndarray:
-    """Extent (3,) in metres of ``est.completed_points`` along the object frame axes (0 if none)."""
+    """Extent (3,) in metres of the completed object along the object frame axes (0 if none):
+    ``est.dimensions`` when ``estimate_points`` set it (from float64 points), else that of
+    ``est.completed_points`` (float32: centimetres off far from the origin)."""
+    if getattr(est, 'dimensions', None) is not None:
+        return np.asarray(est.dimensions, dtype=np.float64)
     pts = est.completed_points
     if pts is None or len(pts) == 0 or est.pose is None:
         return np.zeros(3)
-    pose = np.asarray(est.pose, dtype=np.float64)
-    local = (np.asarray(pts, dtype=np.float64) - pose[:3, 3]) @ pose[:3, :3]
-    ext = local.max(axis=0) - local.min(axis=0)
-    voxel = _voxel_size(est)
-    return ext + voxel  # voxel centres -> outer faces
+    return object_extent(pts, est.pose, _voxel_size(est))   # voxel centres -> outer faces
 
 
 def _voxel_size(est) -> float:
