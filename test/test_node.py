@@ -1696,3 +1696,32 @@ def test_a_cloud_that_comes_during_destroy_node_is_counted(harness1):
     c = node.counters()
     assert (c['received'], c['processed'], c['dropped_shutdown']) == (2, 1, 1), c
     assert not node._slots
+
+
+class ExitingBank:
+    """Wraps a bank: its first estimate raises ``exc`` (as a library's sys.exit would)."""
+
+    def __init__(self, real, exc):
+        self.real, self.classes, self.exc = real, real.classes, exc
+
+    def estimate_points(self, *a, **k):
+        exc, self.exc = self.exc, None
+        if exc is not None:
+            raise exc
+        return self.real.estimate_points(*a, **k)
+
+
+@pytest.mark.parametrize('exc', [SystemExit(3), KeyboardInterrupt()])
+def test_a_system_exit_in_an_estimate_does_not_end_the_worker(harness1, exc):
+    """A SystemExit or KeyboardInterrupt raised in a cloud's estimate (no signal: those reach
+    only the main thread) is counted and logged as an error; before, it ended the only worker
+    thread unseen and every later cloud waited uncounted."""
+    harness = harness1
+    node = harness.node
+    assert node.wait_ready(TIMEOUT)
+    node._bank = ExitingBank(node._bank, exc)
+    node._on_cloud(cloud(box_view()), '/beo/input')
+    harness.wait_counter(lambda c: c['errors'] == 1)
+    node._on_cloud(cloud(box_view()), '/beo/input')
+    c = harness.wait_counter(lambda c: c['processed'] == 1)
+    assert c['errors'] == 1 and all(w.is_alive() for w in node._workers)

@@ -530,7 +530,10 @@ class BeoNode(Node):
                 self._in_flight += 1
             try:
                 self._process(topic, msg, t_recv, ticket)
-            except Exception as e:  # never let one cloud kill the worker
+            except BaseException as e:  # noqa: BLE001 - never let one cloud end the worker:
+                # a SystemExit or KeyboardInterrupt raised in an estimate (a library's
+                # sys.exit, or one sent back by a worker process) is no signal here (signals
+                # reach only the main thread); it ended the thread and the clouds waited unseen
                 if self._shutting_down():   # e.g. published after a signal shut rclpy down
                     self._count('dropped_shutdown')
                     continue
