@@ -1725,3 +1725,20 @@ def test_a_system_exit_in_an_estimate_does_not_end_the_worker(harness1, exc):
     node._on_cloud(cloud(box_view()), '/beo/input')
     c = harness.wait_counter(lambda c: c['processed'] == 1)
     assert c['errors'] == 1 and all(w.is_alive() for w in node._workers)
+
+
+@pytest.mark.parametrize('exc', [SystemExit(3), KeyboardInterrupt()])
+def test_a_system_exit_in_a_service_estimate_fails_the_call_only(harness1, exc):
+    """A SystemExit or KeyboardInterrupt raised in a service call's estimate fails that call
+    (counted, logged); before, it came out of the executor's spin (beo-node exited with it)
+    and the call was counted in service_calls only."""
+    harness = harness1
+    node = harness.node
+    node._bank = ExitingBank(node._bank, exc)
+    resp = harness.classify.call(harness.good_request(), timeout_sec=10.0)
+    assert resp is not None and not resp.success
+    assert type(exc).__name__ in resp.message, resp.message
+    assert harness.thread.is_alive()
+    assert harness.call(harness.classify, harness.good_request()).success
+    c = node.counters()
+    assert (c['service_calls'], c['service_failures'], c['errors']) == (2, 1, 1), c

@@ -928,7 +928,12 @@ class BeoNode(Node):
             self._count('service_failures')
             response.success = False
             response.message = str(e)
-        except Exception as e:  # report, never crash the executor
+        except BaseException as e:  # noqa: BLE001 - report, never crash the executor: a
+            # SystemExit raised in an estimate (a library's sys.exit, or one sent back by a
+            # worker process) ended its spin, and the node with it
+            if not isinstance(e, Exception) and (
+                    threading.current_thread() is threading.main_thread()):
+                raise   # a Ctrl-C (called without an executor, on the main thread)
             response.success = False
             if self._shutting_down():   # e.g. a signal ended the worker processes meanwhile
                 # as the stream's clouds: not an error of the call
