@@ -1742,3 +1742,41 @@ def test_a_system_exit_in_a_service_estimate_fails_the_call_only(harness1, exc):
     assert harness.call(harness.classify, harness.good_request()).success
     c = node.counters()
     assert (c['service_calls'], c['service_failures'], c['errors']) == (2, 1, 1), c
+
+
+def test_a_class_prior_set_as_a_reload_takes_over_is_applied(ros_context, ros_tiny_model_dir,
+                                                              tmp_path):
+    """worker_processes: the new processes of a model_dir reload take over while a
+    class_prior change is being set. Before, the reload applied the class_prior parameter,
+    which rclpy stores only once the change's callback has returned: the old prior answered,
+    the parameter named the new one, and nothing said so."""
+    import shutil
+    from beo_ros.ros.node import BeoNode
+    node = BeoNode(context=ros_context, parameter_overrides=[
+        Parameter('model_dir', value=ros_tiny_model_dir),
+        Parameter('worker_processes', value=1), Parameter('workers', value=1)])
+    try:
+        gate = threading.Event()
+        _gated_reloads(node, gate)
+        logger = node.get_logger()
+
+        class TakeOverNow:   # the reload takes over right after the change's callback logs
+            def __getattr__(self, name):
+                return getattr(logger, name)
+
+            def info(self, msg, **kwargs):
+                logger.info(msg, **kwargs)
+                if msg.startswith('class prior: uniform'):
+                    pool = node._pool
+                    gate.set()
+                    assert _wait(lambda: node._pool is not pool)
+
+        node.get_logger = TakeOverNow
+        shutil.copytree(ros_tiny_model_dir, tmp_path / 'm')
+        assert node.set_parameters([Parameter('model_dir', value=str(tmp_path / 'm'))])[0] \
+            .successful
+        assert node.set_parameters([Parameter('class_prior', value='uniform')])[0].successful
+        assert _wait(lambda: node._serving_dir == str(tmp_path / 'm') and not _reloading())
+        assert node._bank.class_prior == 'uniform'
+    finally:
+        node.destroy_node()

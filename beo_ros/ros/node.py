@@ -253,6 +253,9 @@ class BeoNode(Node):
             raise StartupError(f'invalid parameter: {e}') from None
         self.get_logger().info(f'class prior: {prior_text(bank)}')
         self._bank = bank
+        # the class_prior value in force (under _pool_lock): a reload that takes over applies
+        # it (the parameter itself is stored only once _on_set_parameters has returned)
+        self._prior = self.get_parameter('class_prior').value
         if self._n_procs:
             self._start_pool(bank)
 
@@ -421,6 +424,8 @@ class BeoNode(Node):
                 return SetParametersResult(successful=False, reason=str(e))
             with self._bank_lock:
                 self._base_bank = base
+                with self._pool_lock:
+                    self._prior = merged['class_prior']
                 if reload and self._n_procs:
                     # new processes take seconds to start: not on the executor thread (clouds
                     # and service calls would wait, and the middleware drop clouds uncounted);
@@ -433,8 +438,8 @@ class BeoNode(Node):
                         self._reload_threads.add(thread)
                     thread.start()
                 else:   # worker processes get the prior with each estimate: no new ones
-                    serving = self._serving_base if self._n_procs else base
-                    with self._pool_lock:
+                    with self._pool_lock:   # a reload may switch the models meanwhile
+                        serving = self._serving_base if self._n_procs else base
                         try:
                             self._bank = with_class_prior(serving, merged['class_prior'])
                             self._serving_base = serving
@@ -774,7 +779,7 @@ class BeoNode(Node):
                 old = new    # shut down, or superseded by a newer reload
             else:
                 try:
-                    bank = with_class_prior(base, self.get_parameter('class_prior').value)
+                    bank = with_class_prior(base, self._prior)
                 except ValueError:   # checked against these models when it was set
                     bank = base
                 old, self._pool, self._bank, self._serving_base = self._pool, new, bank, base
