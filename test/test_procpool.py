@@ -44,7 +44,7 @@ class TwoArgError(Exception):
 class FakeBank:
     """Picklable stand-in for ModelBank: ``estimate_points`` -> bytes (``size`` of them for a
     cloud of BIG points; it touches ``flag`` first), or raises ValueError for NaN points,
-    RuntimeError for 4 points and TwoArgError for 5."""
+    RuntimeError for 4 points, TwoArgError for 5 and SystemExit for 6."""
 
     classes = ('a', 'b')
     class_prior = None
@@ -59,6 +59,8 @@ class FakeBank:
             raise RuntimeError('no estimate for 4 points')
         if len(points) == 5:
             raise TwoArgError('no estimate', '5 points')
+        if len(points) == 6:
+            raise SystemExit(3)   # as a library's sys.exit(3)
         if len(points) != BIG:
             return b'small'
         result = b'x' * self.size
@@ -143,6 +145,9 @@ def test_an_error_in_the_estimate_is_named_and_keeps_the_processes(make_pool):
         _estimate(pool, n=4)
     with pytest.raises(RuntimeError, match=r'^TwoArgError: no estimate at 5 points$'):
         _estimate(pool, n=5)
+    # before: the SystemExit was raised in the caller as is, and ended its thread
+    with pytest.raises(RuntimeError, match=r'^SystemExit: 3$'):
+        _estimate(pool, n=6)
     assert not pool.broken
     assert _estimate(pool) == (b'small', ['a', 'b'])
 

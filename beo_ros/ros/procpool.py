@@ -120,7 +120,8 @@ def _estimate(points, origin, up, yaw_step_deg, threshold, cleaning, class_prior
     that changing it needs no new processes. An exception that would not unpickle in the
     parent (a class whose constructor wants other arguments than its ``args``) comes back as a
     RuntimeError naming it: unpickling it there broke the pool, killed the processes and was
-    reported as a process that died, without the error."""
+    reported as a process that died, without the error. So does a SystemExit or
+    KeyboardInterrupt."""
     if class_prior is not None:
         _bank.class_prior = class_prior
     try:
@@ -132,6 +133,10 @@ def _estimate(points, origin, up, yaw_step_deg, threshold, cleaning, class_prior
         except Exception:   # noqa: BLE001 - any failure: send what it said instead
             raise RuntimeError(f'{type(e).__name__}: {e}') from None
         raise
+    except BaseException as e:   # noqa: BLE001 - no Ctrl-C here (SIGINT is ignored): a
+        # SystemExit or KeyboardInterrupt that a library raised came back to the caller as is
+        # and ended its thread (or the embedding script)
+        raise RuntimeError(f'{type(e).__name__}: {e}') from None
     if dataclasses.is_dataclass(est):
         # the node needs neither the (N,N,N) grids nor the features: ~0.3 MB less per result
         est = dataclasses.replace(est, completion=None, variance=None, grid=None, features=None)
