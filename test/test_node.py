@@ -1780,3 +1780,29 @@ def test_a_class_prior_set_as_a_reload_takes_over_is_applied(ros_context, ros_ti
         assert node._bank.class_prior == 'uniform'
     finally:
         node.destroy_node()
+
+
+def test_blas_threads_of_two_nodes_in_one_process(ros_context, ros_tiny_model_dir):
+    """Two nodes in one process: the cap holds while either lives, and the original limits
+    come back once both are destroyed. Before, each node restored what it had found:
+    destroying the first gave the second the library's default (2 threads here), destroying
+    them in turn left the process capped at 1."""
+    threadpoolctl = pytest.importorskip('threadpoolctl')
+    from beo_ros.ros.node import BeoNode
+
+    def blas_threads():
+        return [p['num_threads'] for p in threadpoolctl.threadpool_info()
+                if p['user_api'] == 'blas']
+
+    with threadpoolctl.threadpool_limits(limits=3, user_api='blas'):
+        before = blas_threads()
+        assert before and all(n == 3 for n in before), before
+        nodes = [BeoNode(f'beo{i}', context=ros_context, parameter_overrides=[
+            Parameter('model_dir', value=ros_tiny_model_dir)]) for i in range(2)]
+        try:
+            nodes[0].destroy_node()
+            assert all(n == 1 for n in blas_threads()), blas_threads()
+        finally:
+            for node in nodes:
+                node.destroy_node()
+        assert blas_threads() == before

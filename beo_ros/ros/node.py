@@ -69,6 +69,42 @@ BASE_FRAME_WITHOUT_TF = ('base_frame is set but tf2_ros is not installed; using 
                          'sensor_origin and up_vector parameters')
 
 
+class _BlasCaps:
+    """The BLAS thread caps (``blas_threads``) of this process's live nodes: the newest one
+    applies, and the original limits come back once the last of them is destroyed. (Each node
+    restored the limits it had found: destroying the first of two gave the second the library
+    default, and destroying both in turn left the first one's cap in place.)"""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._caps = []          # (token, threads) of the live nodes, oldest first
+        self._original = None    # the first cap's limiter: it restores the original limits
+
+    def add(self, n):
+        """Cap the BLAS threads at ``n``; returns the token to ``remove`` it with."""
+        from threadpoolctl import threadpool_limits
+        token = object()
+        with self._lock:
+            limiter = threadpool_limits(limits=n, user_api='blas')
+            if self._original is None:
+                self._original = limiter
+            self._caps.append((token, n))
+        return token
+
+    def remove(self, token):
+        from threadpoolctl import threadpool_limits
+        with self._lock:
+            self._caps = [c for c in self._caps if c[0] is not token]
+            if self._caps:
+                threadpool_limits(limits=self._caps[-1][1], user_api='blas')
+            elif self._original is not None:
+                self._original.restore_original_limits()
+                self._original = None
+
+
+_BLAS_CAPS = _BlasCaps()
+
+
 class StartupError(RuntimeError):
     """The node cannot start (bad model directory, bad parameters, interfaces not built)."""
 
@@ -370,21 +406,21 @@ class BeoNode(Node):
 
         The workers already run estimates in parallel; a multi-threaded BLAS under each of them
         oversubscribes the cores, and OpenBLAS's spinning threads then slow every estimate down
-        many times over when the machine is busy. Restored by destroy_node.
+        many times over when the machine is busy. Restored by destroy_node (the cap of another
+        node of the process, if one lives on).
         """
         if n <= 0:
             return None
         try:
-            from threadpoolctl import threadpool_limits
+            return _BLAS_CAPS.add(n)
         except ImportError:
             self.get_logger().warning('threadpoolctl is not installed: blas_threads is ignored')
             return None
-        return threadpool_limits(limits=n, user_api='blas')
 
     def _restore_blas(self):
-        limits, self._blas_limits = self._blas_limits, None
-        if limits is not None:
-            limits.restore_original_limits()
+        token, self._blas_limits = self._blas_limits, None
+        if token is not None:
+            _BLAS_CAPS.remove(token)
 
     def _declare_parameters(self):
         # what _params reads: every parameter but input_topics (read once, at start-up)
