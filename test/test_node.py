@@ -1696,3 +1696,113 @@ def test_a_cloud_that_comes_during_destroy_node_is_counted(harness1):
     c = node.counters()
     assert (c['received'], c['processed'], c['dropped_shutdown']) == (2, 1, 1), c
     assert not node._slots
+
+
+class ExitingBank:
+    """Wraps a bank: its first estimate raises ``exc`` (as a library's sys.exit would)."""
+
+    def __init__(self, real, exc):
+        self.real, self.classes, self.exc = real, real.classes, exc
+
+    def estimate_points(self, *a, **k):
+        exc, self.exc = self.exc, None
+        if exc is not None:
+            raise exc
+        return self.real.estimate_points(*a, **k)
+
+
+@pytest.mark.parametrize('exc', [SystemExit(3), KeyboardInterrupt()])
+def test_a_system_exit_in_an_estimate_does_not_end_the_worker(harness1, exc):
+    """A SystemExit or KeyboardInterrupt raised in a cloud's estimate (no signal: those reach
+    only the main thread) is counted and logged as an error; before, it ended the only worker
+    thread unseen and every later cloud waited uncounted."""
+    harness = harness1
+    node = harness.node
+    assert node.wait_ready(TIMEOUT)
+    node._bank = ExitingBank(node._bank, exc)
+    node._on_cloud(cloud(box_view()), '/beo/input')
+    harness.wait_counter(lambda c: c['errors'] == 1)
+    node._on_cloud(cloud(box_view()), '/beo/input')
+    c = harness.wait_counter(lambda c: c['processed'] == 1)
+    assert c['errors'] == 1 and all(w.is_alive() for w in node._workers)
+
+
+@pytest.mark.parametrize('exc', [SystemExit(3), KeyboardInterrupt()])
+def test_a_system_exit_in_a_service_estimate_fails_the_call_only(harness1, exc):
+    """A SystemExit or KeyboardInterrupt raised in a service call's estimate fails that call
+    (counted, logged); before, it came out of the executor's spin (beo-node exited with it)
+    and the call was counted in service_calls only."""
+    harness = harness1
+    node = harness.node
+    node._bank = ExitingBank(node._bank, exc)
+    resp = harness.classify.call(harness.good_request(), timeout_sec=10.0)
+    assert resp is not None and not resp.success
+    assert type(exc).__name__ in resp.message, resp.message
+    assert harness.thread.is_alive()
+    assert harness.call(harness.classify, harness.good_request()).success
+    c = node.counters()
+    assert (c['service_calls'], c['service_failures'], c['errors']) == (2, 1, 1), c
+
+
+def test_a_class_prior_set_as_a_reload_takes_over_is_applied(ros_context, ros_tiny_model_dir,
+                                                              tmp_path):
+    """worker_processes: the new processes of a model_dir reload take over while a
+    class_prior change is being set. Before, the reload applied the class_prior parameter,
+    which rclpy stores only once the change's callback has returned: the old prior answered,
+    the parameter named the new one, and nothing said so."""
+    import shutil
+    from beo_ros.ros.node import BeoNode
+    node = BeoNode(context=ros_context, parameter_overrides=[
+        Parameter('model_dir', value=ros_tiny_model_dir),
+        Parameter('worker_processes', value=1), Parameter('workers', value=1)])
+    try:
+        gate = threading.Event()
+        _gated_reloads(node, gate)
+        logger = node.get_logger()
+
+        class TakeOverNow:   # the reload takes over right after the change's callback logs
+            def __getattr__(self, name):
+                return getattr(logger, name)
+
+            def info(self, msg, **kwargs):
+                logger.info(msg, **kwargs)
+                if msg.startswith('class prior: uniform'):
+                    pool = node._pool
+                    gate.set()
+                    assert _wait(lambda: node._pool is not pool)
+
+        node.get_logger = TakeOverNow
+        shutil.copytree(ros_tiny_model_dir, tmp_path / 'm')
+        assert node.set_parameters([Parameter('model_dir', value=str(tmp_path / 'm'))])[0] \
+            .successful
+        assert node.set_parameters([Parameter('class_prior', value='uniform')])[0].successful
+        assert _wait(lambda: node._serving_dir == str(tmp_path / 'm') and not _reloading())
+        assert node._bank.class_prior == 'uniform'
+    finally:
+        node.destroy_node()
+
+
+def test_blas_threads_of_two_nodes_in_one_process(ros_context, ros_tiny_model_dir):
+    """Two nodes in one process: the cap holds while either lives, and the original limits
+    come back once both are destroyed. Before, each node restored what it had found:
+    destroying the first gave the second the library's default (2 threads here), destroying
+    them in turn left the process capped at 1."""
+    threadpoolctl = pytest.importorskip('threadpoolctl')
+    from beo_ros.ros.node import BeoNode
+
+    def blas_threads():
+        return [p['num_threads'] for p in threadpoolctl.threadpool_info()
+                if p['user_api'] == 'blas']
+
+    with threadpoolctl.threadpool_limits(limits=3, user_api='blas'):
+        before = blas_threads()
+        assert before and all(n == 3 for n in before), before
+        nodes = [BeoNode(f'beo{i}', context=ros_context, parameter_overrides=[
+            Parameter('model_dir', value=ros_tiny_model_dir)]) for i in range(2)]
+        try:
+            nodes[0].destroy_node()
+            assert all(n == 1 for n in blas_threads()), blas_threads()
+        finally:
+            for node in nodes:
+                node.destroy_node()
+        assert blas_threads() == before

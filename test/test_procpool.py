@@ -20,6 +20,20 @@ BIG = 7          # points in a cloud that asks for the big result
 WAIT = 60.0      # seconds: far beyond what any step here needs
 
 
+class SlowBank:
+    """Picklable stand-in for ModelBank whose estimates take ``delay`` seconds."""
+
+    classes = ('a', 'b')
+    class_prior = None
+
+    def __init__(self, delay):
+        self.delay = delay
+
+    def estimate_points(self, points, **kwargs):
+        time.sleep(self.delay)
+        return b'slow'
+
+
 class TwoArgError(Exception):
     """An exception that pickles but does not unpickle (its args are not its constructor's)."""
 
@@ -30,7 +44,7 @@ class TwoArgError(Exception):
 class FakeBank:
     """Picklable stand-in for ModelBank: ``estimate_points`` -> bytes (``size`` of them for a
     cloud of BIG points; it touches ``flag`` first), or raises ValueError for NaN points,
-    RuntimeError for 4 points and TwoArgError for 5."""
+    RuntimeError for 4 points, TwoArgError for 5 and SystemExit for 6."""
 
     classes = ('a', 'b')
     class_prior = None
@@ -45,6 +59,8 @@ class FakeBank:
             raise RuntimeError('no estimate for 4 points')
         if len(points) == 5:
             raise TwoArgError('no estimate', '5 points')
+        if len(points) == 6:
+            raise SystemExit(3)   # as a library's sys.exit(3)
         if len(points) != BIG:
             return b'small'
         result = b'x' * self.size
@@ -129,6 +145,9 @@ def test_an_error_in_the_estimate_is_named_and_keeps_the_processes(make_pool):
         _estimate(pool, n=4)
     with pytest.raises(RuntimeError, match=r'^TwoArgError: no estimate at 5 points$'):
         _estimate(pool, n=5)
+    # before: the SystemExit was raised in the caller as is, and ended its thread
+    with pytest.raises(RuntimeError, match=r'^SystemExit: 3$'):
+        _estimate(pool, n=6)
     assert not pool.broken
     assert _estimate(pool) == (b'small', ['a', 'b'])
 
@@ -268,13 +287,34 @@ def test_estimates_queued_in_a_pool_that_is_shut_down_fail_as_broken(make_pool):
     try:
         for t in threads:
             t.start()
-        end = time.monotonic() + WAIT
-        while len(pool._pool._pending_work_items) < 4 and time.monotonic() < end:
+        end = time.monotonic() + WAIT   # one sent, three waiting for the process
+        while (len(pool._pool._pending_work_items), pool.waiting) != (1, 3) and \
+                time.monotonic() < end:
             time.sleep(0.01)
-        assert len(pool._pool._pending_work_items) == 4
+        assert (len(pool._pool._pending_work_items), pool.waiting) == (1, 3)
         pool.shutdown(timeout=0.2)   # cancels what is still queued, kills the stopped process
         for t in threads:
             t.join(WAIT)
     finally:
         _resume(pool.pids[:1])
     assert len(errors) == 4 and set(errors) == {BrokenProcessPool}, errors
+
+
+def test_the_timeout_does_not_count_the_wait_for_a_free_process():
+    """Four estimates of 0.4 s at once in one process, with a 1 s timeout: each is answered.
+    Before, the timeout ran from when the estimate was queued: the third and fourth ran out
+    of time waiting behind the others, and the healthy process was killed as hung (the node
+    with more workers than worker_processes counted worker_timeouts and restarts)."""
+    pool = EstimatorPool(1, SlowBank(0.4), blas_threads=0, timeout=WAIT)
+    try:
+        answers = []
+        threads, errors = _callers(4, lambda: answers.append(pool.estimate(
+            np.zeros((3, 3)), np.zeros(3), np.array([0, 0, 1.0]), 10.0, 0.5, timeout=1.0)))
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(WAIT)
+        assert not errors and answers == [(b'slow', ['a', 'b'])] * 4, errors
+        assert not pool.timed_out and not pool.broken and pool.waiting == 0
+    finally:
+        pool.shutdown(timeout=5.0)

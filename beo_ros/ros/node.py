@@ -69,6 +69,42 @@ BASE_FRAME_WITHOUT_TF = ('base_frame is set but tf2_ros is not installed; using 
                          'sensor_origin and up_vector parameters')
 
 
+class _BlasCaps:
+    """The BLAS thread caps (``blas_threads``) of this process's live nodes: the newest one
+    applies, and the original limits come back once the last of them is destroyed. (Each node
+    restored the limits it had found: destroying the first of two gave the second the library
+    default, and destroying both in turn left the first one's cap in place.)"""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._caps = []          # (token, threads) of the live nodes, oldest first
+        self._original = None    # the first cap's limiter: it restores the original limits
+
+    def add(self, n):
+        """Cap the BLAS threads at ``n``; returns the token to ``remove`` it with."""
+        from threadpoolctl import threadpool_limits
+        token = object()
+        with self._lock:
+            limiter = threadpool_limits(limits=n, user_api='blas')
+            if self._original is None:
+                self._original = limiter
+            self._caps.append((token, n))
+        return token
+
+    def remove(self, token):
+        from threadpoolctl import threadpool_limits
+        with self._lock:
+            self._caps = [c for c in self._caps if c[0] is not token]
+            if self._caps:
+                threadpool_limits(limits=self._caps[-1][1], user_api='blas')
+            elif self._original is not None:
+                self._original.restore_original_limits()
+                self._original = None
+
+
+_BLAS_CAPS = _BlasCaps()
+
+
 class StartupError(RuntimeError):
     """The node cannot start (bad model directory, bad parameters, interfaces not built)."""
 
@@ -253,6 +289,9 @@ class BeoNode(Node):
             raise StartupError(f'invalid parameter: {e}') from None
         self.get_logger().info(f'class prior: {prior_text(bank)}')
         self._bank = bank
+        # the class_prior value in force (under _pool_lock): a reload that takes over applies
+        # it (the parameter itself is stored only once _on_set_parameters has returned)
+        self._prior = self.get_parameter('class_prior').value
         if self._n_procs:
             self._start_pool(bank)
 
@@ -367,21 +406,21 @@ class BeoNode(Node):
 
         The workers already run estimates in parallel; a multi-threaded BLAS under each of them
         oversubscribes the cores, and OpenBLAS's spinning threads then slow every estimate down
-        many times over when the machine is busy. Restored by destroy_node.
+        many times over when the machine is busy. Restored by destroy_node (the cap of another
+        node of the process, if one lives on).
         """
         if n <= 0:
             return None
         try:
-            from threadpoolctl import threadpool_limits
+            return _BLAS_CAPS.add(n)
         except ImportError:
             self.get_logger().warning('threadpoolctl is not installed: blas_threads is ignored')
             return None
-        return threadpool_limits(limits=n, user_api='blas')
 
     def _restore_blas(self):
-        limits, self._blas_limits = self._blas_limits, None
-        if limits is not None:
-            limits.restore_original_limits()
+        token, self._blas_limits = self._blas_limits, None
+        if token is not None:
+            _BLAS_CAPS.remove(token)
 
     def _declare_parameters(self):
         # what _params reads: every parameter but input_topics (read once, at start-up)
@@ -421,6 +460,8 @@ class BeoNode(Node):
                 return SetParametersResult(successful=False, reason=str(e))
             with self._bank_lock:
                 self._base_bank = base
+                with self._pool_lock:
+                    self._prior = merged['class_prior']
                 if reload and self._n_procs:
                     # new processes take seconds to start: not on the executor thread (clouds
                     # and service calls would wait, and the middleware drop clouds uncounted);
@@ -433,8 +474,8 @@ class BeoNode(Node):
                         self._reload_threads.add(thread)
                     thread.start()
                 else:   # worker processes get the prior with each estimate: no new ones
-                    serving = self._serving_base if self._n_procs else base
-                    with self._pool_lock:
+                    with self._pool_lock:   # a reload may switch the models meanwhile
+                        serving = self._serving_base if self._n_procs else base
                         try:
                             self._bank = with_class_prior(serving, merged['class_prior'])
                             self._serving_base = serving
@@ -530,7 +571,10 @@ class BeoNode(Node):
                 self._in_flight += 1
             try:
                 self._process(topic, msg, t_recv, ticket)
-            except Exception as e:  # never let one cloud kill the worker
+            except BaseException as e:  # noqa: BLE001 - never let one cloud end the worker:
+                # a SystemExit or KeyboardInterrupt raised in an estimate (a library's
+                # sys.exit, or one sent back by a worker process) is no signal here (signals
+                # reach only the main thread); it ended the thread and the clouds waited unseen
                 if self._shutting_down():   # e.g. published after a signal shut rclpy down
                     self._count('dropped_shutdown')
                     continue
@@ -771,7 +815,7 @@ class BeoNode(Node):
                 old = new    # shut down, or superseded by a newer reload
             else:
                 try:
-                    bank = with_class_prior(base, self.get_parameter('class_prior').value)
+                    bank = with_class_prior(base, self._prior)
                 except ValueError:   # checked against these models when it was set
                     bank = base
                 old, self._pool, self._bank, self._serving_base = self._pool, new, bank, base
@@ -925,7 +969,12 @@ class BeoNode(Node):
             self._count('service_failures')
             response.success = False
             response.message = str(e)
-        except Exception as e:  # report, never crash the executor
+        except BaseException as e:  # noqa: BLE001 - report, never crash the executor: a
+            # SystemExit raised in an estimate (a library's sys.exit, or one sent back by a
+            # worker process) ended its spin, and the node with it
+            if not isinstance(e, Exception) and (
+                    threading.current_thread() is threading.main_thread()):
+                raise   # a Ctrl-C (called without an executor, on the main thread)
             response.success = False
             if self._shutting_down():   # e.g. a signal ended the worker processes meanwhile
                 # as the stream's clouds: not an error of the call

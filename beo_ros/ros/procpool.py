@@ -120,7 +120,8 @@ def _estimate(points, origin, up, yaw_step_deg, threshold, cleaning, class_prior
     that changing it needs no new processes. An exception that would not unpickle in the
     parent (a class whose constructor wants other arguments than its ``args``) comes back as a
     RuntimeError naming it: unpickling it there broke the pool, killed the processes and was
-    reported as a process that died, without the error."""
+    reported as a process that died, without the error. So does a SystemExit or
+    KeyboardInterrupt."""
     if class_prior is not None:
         _bank.class_prior = class_prior
     try:
@@ -132,6 +133,10 @@ def _estimate(points, origin, up, yaw_step_deg, threshold, cleaning, class_prior
         except Exception:   # noqa: BLE001 - any failure: send what it said instead
             raise RuntimeError(f'{type(e).__name__}: {e}') from None
         raise
+    except BaseException as e:   # noqa: BLE001 - no Ctrl-C here (SIGINT is ignored): a
+        # SystemExit or KeyboardInterrupt that a library raised came back to the caller as is
+        # and ended its thread (or the embedding script)
+        raise RuntimeError(f'{type(e).__name__}: {e}') from None
     if dataclasses.is_dataclass(est):
         # the node needs neither the (N,N,N) grids nor the features: ~0.3 MB less per result
         est = dataclasses.replace(est, completion=None, variance=None, grid=None, features=None)
@@ -163,6 +168,11 @@ class EstimatorPool:
         self._killed = False   # kill() ran: the pool is broken, or about to be
         self.timed_out = False   # ... because an estimate timed out (not a death)
         self._kill_lock = threading.Lock()
+        # estimates handed to the processes: at most one per process, so that the timeout of
+        # each runs from when a process is free to take it (queued behind others, a cloud
+        # ran out of time without any process hanging, and the healthy ones were killed)
+        self._sent = threading.BoundedSemaphore(self.n)
+        self.waiting = 0   # estimates waiting for a free process
         self._pool = ProcessPoolExecutor(
             self.n, mp_context=multiprocessing.get_context('spawn'), initializer=_init,
             initargs=(bank, int(blas_threads), os.getpid()))
@@ -227,10 +237,32 @@ class EstimatorPool:
         when it could not be sent, EstimateTimeout when no answer came within ``timeout``
         seconds (None: no limit): a process that hangs (e.g. stopped, or deadlocked in a
         library) would otherwise hold the calling thread forever, so all processes are killed.
+        The estimate waits (without a limit) until a process is free before it is sent; the
+        timeout runs from then (a pool shut down or killed meanwhile: BrokenProcessPool).
         Only the first estimate to time out in a pool raises EstimateTimeout; others whose
         time runs out once the processes were killed raise BrokenProcessPool (one hang, one
         timeout; the other clouds were only waiting).
         """
+        if not self._sent.acquire(blocking=False):   # every process is busy
+            with self._kill_lock:
+                self.waiting += 1
+            try:
+                self._sent.acquire()
+            finally:
+                with self._kill_lock:
+                    self.waiting -= 1
+            if self._closed or self._killed:   # as for an estimate queued in the executor
+                self._sent.release()
+                raise BrokenProcessPool('the worker processes were shut down or killed while '
+                                        'the estimate waited for one')
+        try:
+            return self._estimate(points, origin, up, yaw_step_deg, threshold, cleaning,
+                                  class_prior, timeout)
+        finally:
+            self._sent.release()
+
+    def _estimate(self, points, origin, up, yaw_step_deg, threshold, cleaning, class_prior,
+                  timeout):
         try:
             future = self._pool.submit(_estimate, np.ascontiguousarray(points, np.float64),
                                        np.asarray(origin, np.float64), np.asarray(up, np.float64),
