@@ -768,6 +768,36 @@ def test_a_subnormal_noise_variance_is_refused(tmp_path, tiny_dir):
         ModelBank.load(p)
 
 
+@pytest.mark.parametrize('key,value,msg', [
+    ('W', 1e20, "'W' has values up to 1e\\+20"),   # passed: NaN scores, IndexError in estimate
+    ('mean', 1e30, "'mean' has values up to 1e\\+30"),
+    ('loading_covariance', 1e300, "'loading_covariance' has values beyond the float32"),
+    ('mean_variance', 1e300, "'mean_variance' has values beyond the float32"),   # Inf variance
+    ('coarse_noise_map', 1e-37, 'coarse_noise_map must be 512 values in'),
+    ('coarse_noise_map', 1e300, 'coarse_noise_map must be 512 values in'),
+])
+def test_values_that_overflow_the_float32_inference_are_refused(tmp_path, tiny_dir, key,
+                                                                 value, msg):
+    p = _copy(tiny_dir, tmp_path)
+    fn = sorted(p.glob('class_00_*.npz'))[0]
+    with np.load(fn) as z:
+        a = z[key].astype(np.float64)
+    if key in ('W', 'mean'):
+        a = a / np.abs(a).max() * value
+    else:
+        a = np.eye(len(a)) * value if key == 'loading_covariance' else np.full(a.shape, value)
+    _rewrite_signed(p, fn, **{key: a})
+    m = _manifest(p)
+    _write_manifest(p, dict(m, stage2_noise_map=True))
+    with pytest.raises(ModelError, match=fn.name + '.*' + msg):
+        ModelBank.load(p)
+    # values short of the limits still load and estimate
+    ok = {'W': 1e6, 'mean': 1e6, 'coarse_noise_map': 1e-30}.get(key, 1e30)
+    _rewrite_signed(p, fn, **{key: a / value * ok})
+    bank = ModelBank.load(p)
+    assert bank.estimate(views()[1]).label in bank.classes
+
+
 @pytest.mark.parametrize('noise_map,ok', [(None, True), ('short', False), ('zero', False)])
 def test_optional_noise_map_is_checked(tmp_path, tiny_dir, noise_map, ok):
     # model directories without the per-voxel pose noise (older ones) still load; a bad map is

@@ -103,7 +103,9 @@ def check_class_arrays(arr, d, where, size):
     """Raise ModelError unless the arrays of one class file fit a grid of d voxels: W (d, k),
     mean and mean_variance (d,), loading_covariance (k, k) symmetric positive semi-definite,
     component_variance (k,), scalar noise variances; all numeric and finite, variances >= 0
-    and the noise variances > 0. (``coarse_noise_map`` is checked by the caller.)"""
+    and the noise variances > 0, the float32 arrays within float32's range and W and mean
+    small enough for the float32 sums of the inference. (``coarse_noise_map`` is checked by
+    the caller.)"""
     for key, a in arr.items():
         if not np.issubdtype(a.dtype, np.number) or a.dtype == bool or np.iscomplexobj(a):
             raise ModelError(f'{where}: {key!r} must hold real numbers, got dtype {a.dtype}')
@@ -127,6 +129,17 @@ def check_class_arrays(arr, d, where, size):
                          f"{float(arr['coarse_noise_variance']):.3g}")
     if (arr['mean_variance'] < 0).any() or (arr['component_variance'] < 0).any():
         raise ModelError(f'{where}: mean_variance and component_variance must be >= 0')
+    for key in ('loading_covariance', 'mean_variance', 'component_variance'):
+        if np.abs(arr[key]).max(initial=0.0) > np.finfo(np.float32).max:
+            raise ModelError(f'{where}: {key!r} has values beyond the float32 range')
+    # the pose search sums products of W and mean over the grid in float32: beyond this
+    # they overflow to Inf, and the scores to NaN (an IndexError or a silently wrong class)
+    limit = float(np.sqrt(np.finfo(np.float32).max / (4 * d)))
+    for key in ('W', 'mean'):
+        top = float(np.abs(arr[key]).max(initial=0.0))
+        if top > limit:
+            raise ModelError(f'{where}: {key!r} has values up to {top:.3g}, beyond {limit:.3g} '
+                             'the float32 inference overflows')
     C = arr['loading_covariance'].astype(np.float64)
     scale = max(float(np.abs(C).max(initial=0.0)), np.finfo(np.float32).tiny)
     if k and (np.abs(C - C.T).max() > 1e-5 * scale
@@ -261,9 +274,19 @@ def _load_class_models(path, files, classes, spec):
         check_class_arrays(arr, d, fp, spec.size)
         W = arr['W']
         noise_map = arr.get('coarse_noise_map')
-        if noise_map is not None and (noise_map.shape != (d // 8,) or noise_map.min() <= 0):
-            raise ModelError(f'{fp}: coarse_noise_map must be {d // 8} positive values, got '
-                             f'shape {noise_map.shape}')
+        if noise_map is not None:
+            # stage 2 divides the float32 sums of W and mean by it: a map value below this
+            # overflows them, as a W beyond the limit of check_class_arrays does
+            top = max(float(np.abs(W).max(initial=0.0)), float(np.abs(arr['mean']).max()))
+            f32 = np.finfo(np.float32)
+            low, high = max(4 * (d // 8) * top ** 2 / float(f32.max), float(f32.tiny)), f32.max
+            if noise_map.shape != (d // 8,) or not (noise_map.min() >= low
+                                                    and noise_map.max() <= high):
+                raise ModelError(f'{fp}: coarse_noise_map must be {d // 8} values in '
+                                 f'[{low:.3g}, {high:.3g}], got shape {noise_map.shape}'
+                                 + (f', values {float(noise_map.min()):.3g} to '
+                                    f'{float(noise_map.max()):.3g}'
+                                    if noise_map.shape == (d // 8,) else ''))
         models.append(ClassModel(
             name=name, W=W.astype(np.float32), mean=arr['mean'].astype(np.float32),
             noise_variance=float(arr['noise_variance']),
