@@ -622,6 +622,11 @@ def test_load_missing_dir_and_manifest(tmp_path, tiny_dir):
     (dict(grid=None), 'manifest.json'),
     (dict(grid=[['size', 16]]), 'grid must be an object'),
     (dict(grid='16'), 'grid must be an object'),
+    # were 'class_00_b.npz for class 'b' is not listed', 'a model bank needs at least one class'
+    # (no file named) and a dict's keys taken as the classes
+    (dict(classes='box'), "classes must be a non-empty list of class names, got 'box'"),
+    (dict(classes=[]), 'classes must be a non-empty list'),
+    (dict(classes={'box': 0, 'cylinder': 1}), 'classes must be a non-empty list'),
 ])
 def test_load_bad_manifest(tmp_path, tiny_dir, change, msg):
     p = _copy(tiny_dir, tmp_path)

@@ -227,6 +227,10 @@ def _manifest_layout(path, mf, manifest):
         files = dict(manifest['files'])
     except (KeyError, TypeError, ValueError) as e:
         raise ModelError(f'{mf}: bad or missing entry: {e}') from None
+    if not isinstance(manifest['classes'], list) or not classes:
+        # list() of a string gives its letters, of an object its keys
+        raise ModelError(f'{mf}: classes must be a non-empty list of class names, got '
+                         f'{manifest["classes"]!r}')
     for fn in files:
         if not isinstance(fn, str) or fn in ('', '.', '..') or Path(fn).name != fn:
             raise ModelError(f'{mf}: files must name files in the model directory, got '
