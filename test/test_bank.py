@@ -1700,6 +1700,9 @@ def test_bad_grid_classifier_arrays_are_refused_on_load(tmp_path, change, msg):
     ('noise_variance', lambda a: np.array([0.1, 0.2]), 'has shape'),
     ('noise_variance', lambda a: np.array('abc'), 'real numbers'),
     ('W', lambda a: a.astype(bool), 'real numbers'),
+    # numpy counts timedelta64 as a number: this raised UFuncNoLoopError, a W loaded
+    ('noise_variance', lambda a: np.array(5, dtype='m8[s]'), 'real numbers'),
+    ('W', lambda a: (a * 1000).astype(np.int64).astype('m8[s]'), 'real numbers'),
 ])
 def test_bad_class_arrays_are_refused_on_load(tmp_path, tiny_dir, key, value, msg):
     p = _copy(tiny_dir, tmp_path)

@@ -107,7 +107,7 @@ def check_class_arrays(arr, d, where, size):
     small enough for the float32 sums of the inference. (``coarse_noise_map`` is checked by
     the caller.)"""
     for key, a in arr.items():
-        if not np.issubdtype(a.dtype, np.number) or a.dtype == bool or np.iscomplexobj(a):
+        if a.dtype.kind not in 'iuf':   # numpy counts timedelta64 as a number too
             raise ModelError(f'{where}: {key!r} must hold real numbers, got dtype {a.dtype}')
     W = arr['W']
     if W.ndim != 2 or W.shape[0] != d or arr['mean'].shape != (d,):
