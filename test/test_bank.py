@@ -753,6 +753,21 @@ def test_a_grid_size_that_is_no_finite_number_is_named(tmp_path, tiny_dir, size)
         ModelBank.load(p)
 
 
+def test_an_odd_grid_size_is_refused_naming_the_manifest(tmp_path, tiny_dir):
+    # class files that fit a 5^3 grid: the inference engine raised a ValueError naming no file
+    p = _copy(tiny_dir, tmp_path)
+    for fn in sorted(p.glob('class_*.npz')):
+        with np.load(fn) as z:
+            cut = {k: z[k][:125] for k in ('W', 'mean', 'mean_variance')}
+            cut['coarse_noise_map'] = z['coarse_noise_map'][:125 // 8]
+        _rewrite_signed(p, fn, **cut)
+    m = _manifest(p)
+    m['grid']['size'] = 5
+    _write_manifest(p, m)
+    with pytest.raises(ModelError, match='manifest.json: grid size must be even.*got 5'):
+        ModelBank.load(p)
+
+
 def _rewrite_signed(p, fn, **changes):
     """Rewrite class file ``fn`` of model dir ``p`` with ``changes`` and a matching checksum."""
     from beo_ros.core.bank import _sha256

@@ -243,6 +243,9 @@ def _manifest_layout(path, mf, manifest):
     check_class_names(classes, str(mf))   # the rule save applies: train and load agree
     if manifest['grid'].get('up', '+z') != '+z' or manifest['grid'].get('axes', 'xyz') != 'xyz':
         raise ModelError(f'{mf}: only axes xyz with up +z are supported')
+    if spec.size % 2:   # the inference engine's ValueError named no file
+        raise ModelError(f'{mf}: grid size must be even (the pose search pools 2x2x2 voxels), '
+                         f'got {spec.size}')
     return spec, classes, files
 
 
