@@ -1644,6 +1644,24 @@ def test_class_prior_is_saved_overridden_on_load_and_checked(tmp_path):
     assert ModelBank.load(path).class_prior == 'train'
 
 
+def test_a_class_name_too_long_for_a_file_name_is_refused(tmp_path, tiny_dir):
+    # load raised OSError 'File name too long' (and save, after training)
+    p = _copy(tiny_dir, tmp_path)
+    m = _manifest(p)
+    long = 'x' * 250
+    m['classes'][0] = long
+    m['files'][f'class_00_{long}.npz'] = m['files'].pop(sorted(m['files'])[0])
+    _write_manifest(p, m)
+    with pytest.raises(ModelError, match='manifest.json: class names can be at most 200 bytes'):
+        ModelBank.load(p)
+    bank = ModelBank.load(tiny_dir)
+    bank.models[0].name = '\u00e9' * 101   # 202 bytes in UTF-8
+    with pytest.raises(ModelError, match='at most 200 bytes'):
+        bank.save(tmp_path / 'new')
+    bank.models[0].name = '\u00e9' * 100
+    assert ModelBank.load(bank.save(tmp_path / 'new')).classes[0] == '\u00e9' * 100
+
+
 def test_class_names_must_be_distinct(tmp_path, tiny_dir):
     tiny = make_tiny_bank(n=8, k=2)
     with pytest.raises(ModelError, match='unique'):

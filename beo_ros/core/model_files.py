@@ -41,12 +41,14 @@ CLASS_KEYS = ('W', 'mean', 'noise_variance', 'coarse_noise_variance', 'loading_c
               'mean_variance', 'component_variance')
 OPTIONAL_CLASS_KEYS = ('coarse_noise_map',)
 OPTIONAL_FILES = ('classifier.npz', 'verifier.npz', 'calibration.npz')
+MAX_NAME_BYTES = 200   # 'class_XXX_' + name + '.npz' within a file name's 255 bytes
 
 
 def class_name_problem(name):
     """Why ``name`` cannot be a class name ('' when it can): a class is saved as the file
     ``class_XX_<name>.npz``, so a name must be a non-empty string without '/', '\\' or NUL,
-    not '.' or '..', and without leading or trailing whitespace."""
+    not '.' or '..', without leading or trailing whitespace and at most ``MAX_NAME_BYTES``
+    long in UTF-8 (the file name within the 255 bytes file systems allow)."""
     if not isinstance(name, str) or not name:
         return 'class names must be non-empty strings'
     if any(c in name for c in '/\\\0'):
@@ -55,6 +57,9 @@ def class_name_problem(name):
         return "class names cannot be '.' or '..'"
     if name != name.strip():
         return 'class names cannot start or end with whitespace'
+    if len(name.encode('utf-8', 'surrogatepass')) > MAX_NAME_BYTES:
+        # save failed with 'File name too long' after training, load with an OSError
+        return f'class names can be at most {MAX_NAME_BYTES} bytes long in UTF-8 (they name files)'
     return ''
 
 
