@@ -1709,6 +1709,9 @@ def _rewrite_npz(path, fn, **change):
     # bool() of these: a bare ValueError ('truth value ... ambiguous'), or 'no' read as true
     (dict(complete__row_standardize=np.array([True, False])), "'row_standardize' must be true"),
     (dict(complete__descriptors=np.asarray('no')), "'descriptors' must be true or false"),
+    # timedelta64, a number to numpy: loaded, then estimate raised UFuncTypeError
+    (dict(complete__intercept=np.zeros(3, 'm8[s]')), "'intercept' has shape .*expected numbers"),
+    (dict(complete__class_counts=np.ones(3, 'm8[s]')), 'class_counts must be 3 finite counts'),
 ])
 def test_bad_grid_classifier_arrays_are_refused_on_load(tmp_path, change, msg):
     bank, _ = _prior_bank()
