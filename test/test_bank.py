@@ -795,6 +795,7 @@ def test_a_subnormal_noise_variance_is_refused(tmp_path, tiny_dir):
     ('mean_variance', 1e300, "'mean_variance' has values beyond the float32"),   # Inf variance
     ('coarse_noise_map', 1e-37, 'coarse_noise_map must be 512 values in'),
     ('coarse_noise_map', 1e300, 'coarse_noise_map must be 512 values in'),
+    ('noise_variance', 1e39, 'noise variances must be positive .* at most 3.4e\\+38'),
 ])
 def test_values_that_overflow_the_float32_inference_are_refused(tmp_path, tiny_dir, key,
                                                                  value, msg):
@@ -815,7 +816,8 @@ def test_values_that_overflow_the_float32_inference_are_refused(tmp_path, tiny_d
     ok = {'W': 1e6, 'mean': 1e6, 'coarse_noise_map': 1e-30}.get(key, 1e30)
     _rewrite_signed(p, fn, **{key: a / value * ok})
     bank = ModelBank.load(p)
-    assert bank.estimate(views()[1]).label in bank.classes
+    est = bank.estimate(views()[1])
+    assert est.label in bank.classes and np.isfinite(est.variance).all()
 
 
 @pytest.mark.parametrize('noise_map,ok', [(None, True), ('short', False), ('zero', False)])

@@ -127,9 +127,12 @@ def check_class_arrays(arr, d, where, size):
                              f'(W has {k} components)')
     if not all(np.isfinite(a).all() for a in arr.values()):
         raise ModelError(f'{where}: contains NaN or Inf')
-    tiny = np.finfo(np.float32).tiny   # the model is used in float32: a subnormal becomes 0
-    if not (arr['noise_variance'] >= tiny and arr['coarse_noise_variance'] >= tiny):
-        raise ModelError(f'{where}: noise variances must be positive (at least {tiny:.3g}), got '
+    # the model is used in float32: a subnormal becomes 0, beyond float32's range the
+    # completion's variance became Inf
+    tiny, huge = np.finfo(np.float32).tiny, np.finfo(np.float32).max
+    if not all(tiny <= arr[key] <= huge for key in ('noise_variance', 'coarse_noise_variance')):
+        raise ModelError(f'{where}: noise variances must be positive (at least {tiny:.3g}) and '
+                         f'at most {huge:.3g}, got '
                          f"{float(arr['noise_variance']):.3g} and "
                          f"{float(arr['coarse_noise_variance']):.3g}")
     if (arr['mean_variance'] < 0).any() or (arr['component_variance'] < 0).any():
