@@ -704,6 +704,26 @@ def test_truncated_npz_with_a_matching_checksum_is_named(tmp_path, tiny_dir, cut
             ModelBank.load(q)
 
 
+@pytest.mark.parametrize('name', ['class_00_box.npz', 'classifier.npz'])
+def test_an_array_header_claiming_a_huge_shape_is_named(tmp_path, tiny_dir, name):
+    # a corrupt header (checksum signed after it): load raised MemoryError naming no file
+    import io
+    import zipfile
+    from beo_ros.core.bank import _sha256
+    p = _copy(tiny_dir, tmp_path)
+    head = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        head, {'descr': '<f4', 'fortran_order': False, 'shape': (10 ** 14, 4)})
+    with zipfile.ZipFile(p / name, 'w') as zf:
+        zf.writestr('W.npy' if name.startswith('class') else 'complete__coef.npy',
+                    head.getvalue() + bytes(64))
+    m = _manifest(p)
+    m['files'][name] = _sha256(p / name)
+    _write_manifest(p, m)
+    with pytest.raises(ModelError, match=f'{name}: unreadable: .*MemoryError'):
+        ModelBank.load(p)
+
+
 def test_a_single_array_under_an_npz_name_is_named(tmp_path, tiny_dir):
     # np.load returns a bare array for an np.save file (it has no context manager): TypeError
     from beo_ros.core.bank import _sha256

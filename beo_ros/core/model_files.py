@@ -158,6 +158,9 @@ def check_class_arrays(arr, d, where, size):
 # what np.load raises for a file it cannot read: a truncated or overwritten npz (whose
 # checksum may still match a manifest written after it) fails inside zipfile or zlib
 UNREADABLE = (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error)
+# a model file's array header claiming a huge shape (a corrupt file) fails the allocation:
+# MemoryError, which training data that does not fit (UNREADABLE's other use) must not hide
+_UNREADABLE_MODEL = UNREADABLE + (MemoryError,)
 
 
 def _load_npz(fp):
@@ -179,7 +182,7 @@ def _optional_arrays(path, files, name, check):
     try:
         with _load_npz(fp) as z:
             arrays = {k: z[k] for k in z.files}
-    except UNREADABLE as e:
+    except _UNREADABLE_MODEL as e:
         raise ModelError(f'{fp}: unreadable: {type(e).__name__}: {e}') from None
     reason = check(arrays, str(fp))
     if reason:
@@ -284,7 +287,7 @@ def _load_class_models(path, files, classes, spec):
                 arr.update({k: z[k] for k in OPTIONAL_CLASS_KEYS if k in z.files})
         except KeyError as e:
             raise ModelError(f'{fp}: missing array {e}') from None
-        except UNREADABLE as e:
+        except _UNREADABLE_MODEL as e:
             raise ModelError(f'{fp}: unreadable: {type(e).__name__}: {e}') from None
         check_class_arrays(arr, d, fp, spec.size)
         W = arr['W']
@@ -323,7 +326,7 @@ def _load_classifier(path, files, n_classes):
     try:
         with _load_npz(fp) as z:
             arrays = {k: z[k] for k in z.files}
-    except UNREADABLE as e:
+    except _UNREADABLE_MODEL as e:
         raise ModelError(f'{fp}: unreadable: {type(e).__name__}: {e}') from None
     classifier = {}
     for key, a in arrays.items():
