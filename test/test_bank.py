@@ -622,6 +622,11 @@ def test_load_missing_dir_and_manifest(tmp_path, tiny_dir):
     (dict(grid=None), 'manifest.json'),
     (dict(grid=[['size', 16]]), 'grid must be an object'),
     (dict(grid='16'), 'grid must be an object'),
+    # were 'class_00_b.npz for class 'b' is not listed', 'a model bank needs at least one class'
+    # (no file named) and a dict's keys taken as the classes
+    (dict(classes='box'), "classes must be a non-empty list of class names, got 'box'"),
+    (dict(classes=[]), 'classes must be a non-empty list'),
+    (dict(classes={'box': 0, 'cylinder': 1}), 'classes must be a non-empty list'),
 ])
 def test_load_bad_manifest(tmp_path, tiny_dir, change, msg):
     p = _copy(tiny_dir, tmp_path)
@@ -699,6 +704,26 @@ def test_truncated_npz_with_a_matching_checksum_is_named(tmp_path, tiny_dir, cut
             ModelBank.load(q)
 
 
+@pytest.mark.parametrize('name', ['class_00_box.npz', 'classifier.npz'])
+def test_an_array_header_claiming_a_huge_shape_is_named(tmp_path, tiny_dir, name):
+    # a corrupt header (checksum signed after it): load raised MemoryError naming no file
+    import io
+    import zipfile
+    from beo_ros.core.bank import _sha256
+    p = _copy(tiny_dir, tmp_path)
+    head = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        head, {'descr': '<f4', 'fortran_order': False, 'shape': (10 ** 14, 4)})
+    with zipfile.ZipFile(p / name, 'w') as zf:
+        zf.writestr('W.npy' if name.startswith('class') else 'complete__coef.npy',
+                    head.getvalue() + bytes(64))
+    m = _manifest(p)
+    m['files'][name] = _sha256(p / name)
+    _write_manifest(p, m)
+    with pytest.raises(ModelError, match=f'{name}: unreadable: .*MemoryError'):
+        ModelBank.load(p)
+
+
 def test_a_single_array_under_an_npz_name_is_named(tmp_path, tiny_dir):
     # np.load returns a bare array for an np.save file (it has no context manager): TypeError
     from beo_ros.core.bank import _sha256
@@ -748,6 +773,21 @@ def test_a_grid_size_that_is_no_finite_number_is_named(tmp_path, tiny_dir, size)
         ModelBank.load(p)
 
 
+def test_an_odd_grid_size_is_refused_naming_the_manifest(tmp_path, tiny_dir):
+    # class files that fit a 5^3 grid: the inference engine raised a ValueError naming no file
+    p = _copy(tiny_dir, tmp_path)
+    for fn in sorted(p.glob('class_*.npz')):
+        with np.load(fn) as z:
+            cut = {k: z[k][:125] for k in ('W', 'mean', 'mean_variance')}
+            cut['coarse_noise_map'] = z['coarse_noise_map'][:125 // 8]
+        _rewrite_signed(p, fn, **cut)
+    m = _manifest(p)
+    m['grid']['size'] = 5
+    _write_manifest(p, m)
+    with pytest.raises(ModelError, match='manifest.json: grid size must be even.*got 5'):
+        ModelBank.load(p)
+
+
 def _rewrite_signed(p, fn, **changes):
     """Rewrite class file ``fn`` of model dir ``p`` with ``changes`` and a matching checksum."""
     from beo_ros.core.bank import _sha256
@@ -766,6 +806,38 @@ def test_a_subnormal_noise_variance_is_refused(tmp_path, tiny_dir):
     _rewrite_signed(p, fn, noise_variance=np.array(1e-320))
     with pytest.raises(ModelError, match=fn.name + '.*noise variances must be positive'):
         ModelBank.load(p)
+
+
+@pytest.mark.parametrize('key,value,msg', [
+    ('W', 1e20, "'W' has values up to 1e\\+20"),   # passed: NaN scores, IndexError in estimate
+    ('mean', 1e30, "'mean' has values up to 1e\\+30"),
+    ('loading_covariance', 1e300, "'loading_covariance' has values beyond the float32"),
+    ('mean_variance', 1e300, "'mean_variance' has values beyond the float32"),   # Inf variance
+    ('coarse_noise_map', 1e-37, 'coarse_noise_map must be 512 values in'),
+    ('coarse_noise_map', 1e300, 'coarse_noise_map must be 512 values in'),
+    ('noise_variance', 1e39, 'noise variances must be positive .* at most 3.4e\\+38'),
+])
+def test_values_that_overflow_the_float32_inference_are_refused(tmp_path, tiny_dir, key,
+                                                                 value, msg):
+    p = _copy(tiny_dir, tmp_path)
+    fn = sorted(p.glob('class_00_*.npz'))[0]
+    with np.load(fn) as z:
+        a = z[key].astype(np.float64)
+    if key in ('W', 'mean'):
+        a = a / np.abs(a).max() * value
+    else:
+        a = np.eye(len(a)) * value if key == 'loading_covariance' else np.full(a.shape, value)
+    _rewrite_signed(p, fn, **{key: a})
+    m = _manifest(p)
+    _write_manifest(p, dict(m, stage2_noise_map=True))
+    with pytest.raises(ModelError, match=fn.name + '.*' + msg):
+        ModelBank.load(p)
+    # values short of the limits still load and estimate
+    ok = {'W': 1e6, 'mean': 1e6, 'coarse_noise_map': 1e-30}.get(key, 1e30)
+    _rewrite_signed(p, fn, **{key: a / value * ok})
+    bank = ModelBank.load(p)
+    est = bank.estimate(views()[1])
+    assert est.label in bank.classes and np.isfinite(est.variance).all()
 
 
 @pytest.mark.parametrize('noise_map,ok', [(None, True), ('short', False), ('zero', False)])
@@ -1594,6 +1666,24 @@ def test_class_prior_is_saved_overridden_on_load_and_checked(tmp_path):
     assert ModelBank.load(path).class_prior == 'train'
 
 
+def test_a_class_name_too_long_for_a_file_name_is_refused(tmp_path, tiny_dir):
+    # load raised OSError 'File name too long' (and save, after training)
+    p = _copy(tiny_dir, tmp_path)
+    m = _manifest(p)
+    long = 'x' * 250
+    m['classes'][0] = long
+    m['files'][f'class_00_{long}.npz'] = m['files'].pop(sorted(m['files'])[0])
+    _write_manifest(p, m)
+    with pytest.raises(ModelError, match='manifest.json: class names can be at most 200 bytes'):
+        ModelBank.load(p)
+    bank = ModelBank.load(tiny_dir)
+    bank.models[0].name = '\u00e9' * 101   # 202 bytes in UTF-8
+    with pytest.raises(ModelError, match='at most 200 bytes'):
+        bank.save(tmp_path / 'new')
+    bank.models[0].name = '\u00e9' * 100
+    assert ModelBank.load(bank.save(tmp_path / 'new')).classes[0] == '\u00e9' * 100
+
+
 def test_class_names_must_be_distinct(tmp_path, tiny_dir):
     tiny = make_tiny_bank(n=8, k=2)
     with pytest.raises(ModelError, match='unique'):
@@ -1641,6 +1731,9 @@ def _rewrite_npz(path, fn, **change):
     # bool() of these: a bare ValueError ('truth value ... ambiguous'), or 'no' read as true
     (dict(complete__row_standardize=np.array([True, False])), "'row_standardize' must be true"),
     (dict(complete__descriptors=np.asarray('no')), "'descriptors' must be true or false"),
+    # timedelta64, a number to numpy: loaded, then estimate raised UFuncTypeError
+    (dict(complete__intercept=np.zeros(3, 'm8[s]')), "'intercept' has shape .*expected numbers"),
+    (dict(complete__class_counts=np.ones(3, 'm8[s]')), 'class_counts must be 3 finite counts'),
 ])
 def test_bad_grid_classifier_arrays_are_refused_on_load(tmp_path, change, msg):
     bank, _ = _prior_bank()
@@ -1665,6 +1758,9 @@ def test_bad_grid_classifier_arrays_are_refused_on_load(tmp_path, change, msg):
     ('noise_variance', lambda a: np.array([0.1, 0.2]), 'has shape'),
     ('noise_variance', lambda a: np.array('abc'), 'real numbers'),
     ('W', lambda a: a.astype(bool), 'real numbers'),
+    # numpy counts timedelta64 as a number: this raised UFuncNoLoopError, a W loaded
+    ('noise_variance', lambda a: np.array(5, dtype='m8[s]'), 'real numbers'),
+    ('W', lambda a: (a * 1000).astype(np.int64).astype('m8[s]'), 'real numbers'),
 ])
 def test_bad_class_arrays_are_refused_on_load(tmp_path, tiny_dir, key, value, msg):
     p = _copy(tiny_dir, tmp_path)

@@ -60,6 +60,7 @@ def leftovers(tmp_path):
     ('', 'non-empty'),                  # used to write a model its own loader refused
     ('..', "cannot be '.' or '..'"),
     (' table', 'whitespace'),
+    ('t' * 250, 'at most 200 bytes'),   # trained, then save failed: 'File name too long'
 ])
 def test_bad_class_names_refused_before_training(model, tmp_path, capsys, name, message):
     path, before = model

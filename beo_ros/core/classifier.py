@@ -217,7 +217,7 @@ def check_classifier_arrays(clf, n_classes, n_in, where, inputs):
         if key not in clf:
             raise ModelError(f'{where} has no {key!r} array')
         a = np.asarray(clf[key])
-        if a.shape != shape or not np.issubdtype(a.dtype, np.number) or a.dtype == bool:
+        if a.shape != shape or a.dtype.kind not in 'iuf':   # not bool nor timedelta64
             raise ModelError(f'{where} {key!r} has shape {a.shape} ({a.dtype}), expected numbers '
                              f'of shape {shape} ({n_classes} classes; inputs: {inputs})')
         ok = (~np.isnan(a) & (a < np.inf)).all() if key == 'unknown_threshold' else \
@@ -234,7 +234,7 @@ def _check_classifier_counts(clf, n_classes, where):
     if 'class_counts' not in clf:
         return
     a = np.asarray(clf['class_counts'])
-    if a.shape != (n_classes,) or not np.issubdtype(a.dtype, np.number) \
+    if a.shape != (n_classes,) or a.dtype.kind not in 'iuf' \
             or not np.isfinite(a).all() or (a < 0).any() or a.sum() <= 0:
         raise ModelError(f'{where}: class_counts must be {n_classes} finite counts >= 0, got '
                          f'shape {a.shape}')

@@ -41,12 +41,14 @@ CLASS_KEYS = ('W', 'mean', 'noise_variance', 'coarse_noise_variance', 'loading_c
               'mean_variance', 'component_variance')
 OPTIONAL_CLASS_KEYS = ('coarse_noise_map',)
 OPTIONAL_FILES = ('classifier.npz', 'verifier.npz', 'calibration.npz')
+MAX_NAME_BYTES = 200   # 'class_XXX_' + name + '.npz' within a file name's 255 bytes
 
 
 def class_name_problem(name):
     """Why ``name`` cannot be a class name ('' when it can): a class is saved as the file
     ``class_XX_<name>.npz``, so a name must be a non-empty string without '/', '\\' or NUL,
-    not '.' or '..', and without leading or trailing whitespace."""
+    not '.' or '..', without leading or trailing whitespace and at most ``MAX_NAME_BYTES``
+    long in UTF-8 (the file name within the 255 bytes file systems allow)."""
     if not isinstance(name, str) or not name:
         return 'class names must be non-empty strings'
     if any(c in name for c in '/\\\0'):
@@ -55,6 +57,9 @@ def class_name_problem(name):
         return "class names cannot be '.' or '..'"
     if name != name.strip():
         return 'class names cannot start or end with whitespace'
+    if len(name.encode('utf-8', 'surrogatepass')) > MAX_NAME_BYTES:
+        # save failed with 'File name too long' after training, load with an OSError
+        return f'class names can be at most {MAX_NAME_BYTES} bytes long in UTF-8 (they name files)'
     return ''
 
 
@@ -103,9 +108,11 @@ def check_class_arrays(arr, d, where, size):
     """Raise ModelError unless the arrays of one class file fit a grid of d voxels: W (d, k),
     mean and mean_variance (d,), loading_covariance (k, k) symmetric positive semi-definite,
     component_variance (k,), scalar noise variances; all numeric and finite, variances >= 0
-    and the noise variances > 0. (``coarse_noise_map`` is checked by the caller.)"""
+    and the noise variances > 0, the float32 arrays within float32's range and W and mean
+    small enough for the float32 sums of the inference. (``coarse_noise_map`` is checked by
+    the caller.)"""
     for key, a in arr.items():
-        if not np.issubdtype(a.dtype, np.number) or a.dtype == bool or np.iscomplexobj(a):
+        if a.dtype.kind not in 'iuf':   # numpy counts timedelta64 as a number too
             raise ModelError(f'{where}: {key!r} must hold real numbers, got dtype {a.dtype}')
     W = arr['W']
     if W.ndim != 2 or W.shape[0] != d or arr['mean'].shape != (d,):
@@ -120,13 +127,27 @@ def check_class_arrays(arr, d, where, size):
                              f'(W has {k} components)')
     if not all(np.isfinite(a).all() for a in arr.values()):
         raise ModelError(f'{where}: contains NaN or Inf')
-    tiny = np.finfo(np.float32).tiny   # the model is used in float32: a subnormal becomes 0
-    if not (arr['noise_variance'] >= tiny and arr['coarse_noise_variance'] >= tiny):
-        raise ModelError(f'{where}: noise variances must be positive (at least {tiny:.3g}), got '
+    # the model is used in float32: a subnormal becomes 0, beyond float32's range the
+    # completion's variance became Inf
+    tiny, huge = np.finfo(np.float32).tiny, np.finfo(np.float32).max
+    if not all(tiny <= arr[key] <= huge for key in ('noise_variance', 'coarse_noise_variance')):
+        raise ModelError(f'{where}: noise variances must be positive (at least {tiny:.3g}) and '
+                         f'at most {huge:.3g}, got '
                          f"{float(arr['noise_variance']):.3g} and "
                          f"{float(arr['coarse_noise_variance']):.3g}")
     if (arr['mean_variance'] < 0).any() or (arr['component_variance'] < 0).any():
         raise ModelError(f'{where}: mean_variance and component_variance must be >= 0')
+    for key in ('loading_covariance', 'mean_variance', 'component_variance'):
+        if np.abs(arr[key]).max(initial=0.0) > np.finfo(np.float32).max:
+            raise ModelError(f'{where}: {key!r} has values beyond the float32 range')
+    # the pose search sums products of W and mean over the grid in float32: beyond this
+    # they overflow to Inf, and the scores to NaN (an IndexError or a silently wrong class)
+    limit = float(np.sqrt(np.finfo(np.float32).max / (4 * d)))
+    for key in ('W', 'mean'):
+        top = float(np.abs(arr[key]).max(initial=0.0))
+        if top > limit:
+            raise ModelError(f'{where}: {key!r} has values up to {top:.3g}, beyond {limit:.3g} '
+                             'the float32 inference overflows')
     C = arr['loading_covariance'].astype(np.float64)
     scale = max(float(np.abs(C).max(initial=0.0)), np.finfo(np.float32).tiny)
     if k and (np.abs(C - C.T).max() > 1e-5 * scale
@@ -137,6 +158,9 @@ def check_class_arrays(arr, d, where, size):
 # what np.load raises for a file it cannot read: a truncated or overwritten npz (whose
 # checksum may still match a manifest written after it) fails inside zipfile or zlib
 UNREADABLE = (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error)
+# a model file's array header claiming a huge shape (a corrupt file) fails the allocation:
+# MemoryError, which training data that does not fit (UNREADABLE's other use) must not hide
+_UNREADABLE_MODEL = UNREADABLE + (MemoryError,)
 
 
 def _load_npz(fp):
@@ -158,7 +182,7 @@ def _optional_arrays(path, files, name, check):
     try:
         with _load_npz(fp) as z:
             arrays = {k: z[k] for k in z.files}
-    except UNREADABLE as e:
+    except _UNREADABLE_MODEL as e:
         raise ModelError(f'{fp}: unreadable: {type(e).__name__}: {e}') from None
     reason = check(arrays, str(fp))
     if reason:
@@ -214,6 +238,10 @@ def _manifest_layout(path, mf, manifest):
         files = dict(manifest['files'])
     except (KeyError, TypeError, ValueError) as e:
         raise ModelError(f'{mf}: bad or missing entry: {e}') from None
+    if not isinstance(manifest['classes'], list) or not classes:
+        # list() of a string gives its letters, of an object its keys
+        raise ModelError(f'{mf}: classes must be a non-empty list of class names, got '
+                         f'{manifest["classes"]!r}')
     for fn in files:
         if not isinstance(fn, str) or fn in ('', '.', '..') or Path(fn).name != fn:
             raise ModelError(f'{mf}: files must name files in the model directory, got '
@@ -226,6 +254,9 @@ def _manifest_layout(path, mf, manifest):
     check_class_names(classes, str(mf))   # the rule save applies: train and load agree
     if manifest['grid'].get('up', '+z') != '+z' or manifest['grid'].get('axes', 'xyz') != 'xyz':
         raise ModelError(f'{mf}: only axes xyz with up +z are supported')
+    if spec.size % 2:   # the inference engine's ValueError named no file
+        raise ModelError(f'{mf}: grid size must be even (the pose search pools 2x2x2 voxels), '
+                         f'got {spec.size}')
     return spec, classes, files
 
 
@@ -256,14 +287,24 @@ def _load_class_models(path, files, classes, spec):
                 arr.update({k: z[k] for k in OPTIONAL_CLASS_KEYS if k in z.files})
         except KeyError as e:
             raise ModelError(f'{fp}: missing array {e}') from None
-        except UNREADABLE as e:
+        except _UNREADABLE_MODEL as e:
             raise ModelError(f'{fp}: unreadable: {type(e).__name__}: {e}') from None
         check_class_arrays(arr, d, fp, spec.size)
         W = arr['W']
         noise_map = arr.get('coarse_noise_map')
-        if noise_map is not None and (noise_map.shape != (d // 8,) or noise_map.min() <= 0):
-            raise ModelError(f'{fp}: coarse_noise_map must be {d // 8} positive values, got '
-                             f'shape {noise_map.shape}')
+        if noise_map is not None:
+            # stage 2 divides the float32 sums of W and mean by it: a map value below this
+            # overflows them, as a W beyond the limit of check_class_arrays does
+            top = max(float(np.abs(W).max(initial=0.0)), float(np.abs(arr['mean']).max()))
+            f32 = np.finfo(np.float32)
+            low, high = max(4 * (d // 8) * top ** 2 / float(f32.max), float(f32.tiny)), f32.max
+            if noise_map.shape != (d // 8,) or not (noise_map.min() >= low
+                                                    and noise_map.max() <= high):
+                raise ModelError(f'{fp}: coarse_noise_map must be {d // 8} values in '
+                                 f'[{low:.3g}, {high:.3g}], got shape {noise_map.shape}'
+                                 + (f', values {float(noise_map.min()):.3g} to '
+                                    f'{float(noise_map.max()):.3g}'
+                                    if noise_map.shape == (d // 8,) else ''))
         models.append(ClassModel(
             name=name, W=W.astype(np.float32), mean=arr['mean'].astype(np.float32),
             noise_variance=float(arr['noise_variance']),
@@ -285,7 +326,7 @@ def _load_classifier(path, files, n_classes):
     try:
         with _load_npz(fp) as z:
             arrays = {k: z[k] for k in z.files}
-    except UNREADABLE as e:
+    except _UNREADABLE_MODEL as e:
         raise ModelError(f'{fp}: unreadable: {type(e).__name__}: {e}') from None
     classifier = {}
     for key, a in arrays.items():
