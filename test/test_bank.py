@@ -1325,6 +1325,26 @@ def test_unknown_when_the_classes_that_explain_the_object_hold_little_probabilit
     assert b3.classify_features(feats, 'complete')[1]
 
 
+def test_non_finite_logits_are_an_error_not_the_first_class():
+    """A subnormal scale (or weights) that overflow the logits gave NaN probabilities, and
+    argmax named the first class without a word; it is an error naming the logits."""
+    from beo_ros.core.inference import FEATURE_NAMES
+    nf = len(FEATURE_NAMES)
+    bank = make_tiny_bank(n=8, k=2)
+    coef = np.zeros((2, 2 * nf))
+    coef[:, 1] = [1.0, -1.0]
+    scale = np.ones(2 * nf)
+    clf = dict(mean=np.zeros(2 * nf), scale=scale, coef=coef, intercept=np.zeros(2),
+               unknown_threshold=np.full(2, -np.inf))
+    b2 = ModelBank(bank.models, bank.spec, {'complete': clf})
+    feats = np.zeros((2, nf))
+    feats[:, 1] = [0.3, 0.3]
+    assert np.isfinite(b2.classify_features(feats, 'complete')[0]).all()
+    scale[1] = 1e-320   # the second feature of class 0: its logit +inf, class 1's -inf
+    with pytest.raises(ValueError, match='non-finite logits'):
+        b2.classify_features(feats, 'complete')
+
+
 def test_cross_validated_report_keeps_the_views_of_an_object_in_one_fold():
     # 3 identical rows (views) per object, random labels: a classifier that saw one view of
     # an object answers its other views from memory; grouped by object it is at chance

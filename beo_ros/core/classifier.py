@@ -162,6 +162,7 @@ def classifier_probabilities(clf, Z, loglik, offset=None):
     classes that do explain it hold less than half the probability (the classifier compares
     classes with each other, so random clutter that only one class tolerates can still win).
     How far below is set where the bounds are fitted (``classifier_training.loglik_bounds``).
+    ValueError when a row's logits are not finite.
     """
     L = np.atleast_2d(np.asarray(loglik, dtype=np.float64))
     z = (np.atleast_2d(np.asarray(Z, dtype=np.float64)) - clf['mean']) / clf['scale']
@@ -169,7 +170,12 @@ def classifier_probabilities(clf, Z, loglik, offset=None):
         z = np.maximum(z @ np.asarray(clf['hidden_coef'], dtype=np.float64).T
                        + clf['hidden_intercept'], 0.0)
     logits = z @ np.asarray(clf['coef'], dtype=np.float64).T + clf['intercept']
-    if offset is not None:
+    bad = ~np.isfinite(logits).all(axis=1)
+    if bad.any():   # else NaN probabilities, and argmax named the first class
+        raise ValueError(f'the classifier gave non-finite logits for {int(bad.sum())} of '
+                         f'{len(bad)} inputs (non-finite features, or its mean, scale or '
+                         'weights make them overflow)')
+    if offset is not None:   # -inf for a class of prior 0
         logits = logits + offset
     logits -= logits.max(axis=1, keepdims=True)
     p = np.exp(logits)
