@@ -294,3 +294,12 @@ def test_ascii_64_bit_integers_round_trip_exactly(tmp_path):
 def test_a_directory_is_called_so(tmp_path):
     with pytest.raises(PCDError, match='a directory, not a PCD file'):
         read_pcd(tmp_path)
+
+
+def test_non_ascii_field_name_is_refused_and_leaves_the_file_alone(tmp_path):
+    path = tmp_path / 'a.pcd'
+    write_pcd(path, {'x': np.arange(3, dtype=np.float32)})
+    before = path.read_bytes()
+    with pytest.raises(PCDError, match="'tempé' must be a non-blank ASCII name"):
+        write_pcd(path, {'tempé': np.zeros(3, np.float32)})
+    assert path.read_bytes() == before   # was emptied by a UnicodeEncodeError mid-write

@@ -383,8 +383,10 @@ def write_pcd(path, fields: dict, width: int | None = None, height: int = 1,
             a = a.astype(np.uint8)
         if a.ndim == 1:
             a = a[:, None]
-        if a.ndim != 2 or not str(name) or any(ch.isspace() for ch in str(name)):
-            raise PCDError(f'field {name!r} must be a non-blank name with a (n,) or (n, c) array')
+        if a.ndim != 2 or not str(name) or not str(name).isascii() \
+                or any(ch.isspace() for ch in str(name)):
+            raise PCDError(f'field {name!r} must be a non-blank ASCII name (the header is ASCII) '
+                           'with a (n,) or (n, c) array')
         arrays.append((str(name), a))
     n = arrays[0][1].shape[0]
     if any(a.shape[0] != n for _, a in arrays):
@@ -402,8 +404,9 @@ def write_pcd(path, fields: dict, width: int | None = None, height: int = 1,
               f'COUNT {" ".join(str(a.shape[1]) for _, a in arrays)}\n'
               f'WIDTH {width}\nHEIGHT {height}\nVIEWPOINT {vp}\nPOINTS {n}\nDATA {data}\n')
     dts = [np.dtype(_TYPES[t]) for t in types]
+    header = header.encode('ascii')   # before the file is opened (and emptied)
     with open(path, 'wb') as f:
-        f.write(header.encode('ascii'))
+        f.write(header)
         if data == 'ascii':
             cols = []
             for (name, a), (t, s), dt in zip(arrays, types, dts):
