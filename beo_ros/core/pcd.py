@@ -376,6 +376,16 @@ def write_pcd(path, fields: dict, width: int | None = None, height: int = 1,
         raise PCDError('write_pcd needs at least one field')
     if data not in DATA_KINDS:
         raise PCDError(f'data must be one of {DATA_KINDS}, got {data!r}')
+    for v in (width, height):   # read_pcd refuses a negative or non-integer WIDTH/HEIGHT
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer))
+                              or v < 0):
+            raise PCDError(f'width and height must be integers >= 0, got {width!r}, {height!r}')
+    try:
+        vp = np.asarray(viewpoint, dtype=np.float64)
+    except (TypeError, ValueError):
+        vp = None
+    if vp is None or vp.shape != (7,):
+        raise PCDError(f'viewpoint must be 7 numbers tx ty tz qw qx qy qz, got {viewpoint!r}')
     arrays = []
     for name, a in fields.items():
         a = np.asarray(a)
@@ -387,7 +397,15 @@ def write_pcd(path, fields: dict, width: int | None = None, height: int = 1,
                 or any(ch.isspace() for ch in str(name)):
             raise PCDError(f'field {name!r} must be a non-blank ASCII name (the header is ASCII) '
                            'with a (n,) or (n, c) array')
+        if not 1 <= a.shape[1] <= MAX_COUNT:
+            raise PCDError(f'field {name!r} has {a.shape[1]} values per point, not in '
+                           f'[1, {MAX_COUNT}]')
         arrays.append((str(name), a))
+    names = [nm for nm, _ in arrays]
+    if PADDING in names:
+        raise PCDError(f'field name {PADDING!r} is padding (read_pcd skips it)')
+    if len(set(names)) != len(names):
+        raise PCDError(f'duplicate field names {names}')
     n = arrays[0][1].shape[0]
     if any(a.shape[0] != n for _, a in arrays):
         raise PCDError('all fields must have the same number of points')
@@ -396,7 +414,7 @@ def write_pcd(path, fields: dict, width: int | None = None, height: int = 1,
     if width * height != n:
         raise PCDError(f'width*height = {width}*{height} != {n} points')
     types = [_pcd_type(a.dtype) for _, a in arrays]
-    vp = ' '.join(repr(float(v)) for v in viewpoint)   # exact, not 6 digits
+    vp = ' '.join(repr(float(v)) for v in vp)   # exact, not 6 digits
     header = ('# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\n'
               f'FIELDS {" ".join(nm for nm, _ in arrays)}\n'
               f'SIZE {" ".join(str(s) for _, s in types)}\n'
