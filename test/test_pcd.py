@@ -322,3 +322,15 @@ def test_write_refuses_what_read_would_refuse_or_drop(tmp_path, kw, match):
     write_pcd(tmp_path / 'b.pcd', {'x': np.zeros(4, np.float32)}, width=np.int64(2), height=2,
               viewpoint=np.array([1, 2, 3, 1, 0, 0, 0]))
     assert read_pcd(tmp_path / 'b.pcd').height == 2
+
+
+def test_xyz_of_integer_fields_is_float(tmp_path):
+    # I/U typed coordinates (a depth camera's millimetres) came back as uint16: p0 - p1 wrapped
+    write_pcd(tmp_path / 'mm.pcd', {'x': np.array([10, 20], np.uint16),
+                                    'y': np.array([5, 5], np.int16),
+                                    'z': np.array([1000, 1200], np.uint16)})
+    xyz = read_pcd(tmp_path / 'mm.pcd').xyz()
+    assert xyz.dtype == np.float64
+    np.testing.assert_array_equal(xyz[0] - xyz[1], [-10, 0, -200])
+    write_pcd(tmp_path / 'f.pcd', {k: np.zeros(2, np.float32) for k in 'xyz'})
+    assert read_pcd(tmp_path / 'f.pcd').xyz().dtype == np.float32   # float fields as they are

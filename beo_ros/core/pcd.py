@@ -64,13 +64,15 @@ class PCDData:
         return self.width * self.height
 
     def xyz(self) -> np.ndarray:
-        """(n, 3) float array of the x, y, z fields; PCDError unless each has COUNT 1."""
+        """(n, 3) float array of the x, y, z fields (float64 unless they are all F: integer
+        coordinates would wrap in differences); PCDError unless each has COUNT 1."""
         for k in 'xyz':
             if k not in self.fields:
                 raise PCDError(f'no {k!r} field')
             if self.fields[k].ndim != 1:
                 raise PCDError(f'field {k!r} has COUNT {self.fields[k].shape[1]}, not 1')
-        return np.stack([self.fields[k] for k in 'xyz'], axis=1)
+        xyz = np.stack([self.fields[k] for k in 'xyz'], axis=1)
+        return xyz if xyz.dtype.kind == 'f' else xyz.astype(np.float64)
 
 
 # ----------------------------------------------------------------------------------- LZF codec
