@@ -217,6 +217,10 @@ def test_xyz_to_cloud_rejects_bad_shapes():
         xyz_to_cloud(np.zeros((4, 3)), Header(), {'p': np.zeros(3)})
     with pytest.raises(ValueError):
         xyz_to_cloud(np.zeros((4, 3)), Header(), {'x': np.zeros(4)})
+    # 3 points without coordinates were an empty cloud (size 0), not an error
+    with pytest.raises(ValueError, match=r'must be \(n, 3\), got shape \(3, 0\)'):
+        xyz_to_cloud(np.zeros((3, 0)), Header())
+    assert xyz_to_cloud(np.zeros(0), Header()).width == 0   # no points at all is fine
 
 
 def _random_rotation(rng):

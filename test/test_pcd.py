@@ -294,3 +294,43 @@ def test_ascii_64_bit_integers_round_trip_exactly(tmp_path):
 def test_a_directory_is_called_so(tmp_path):
     with pytest.raises(PCDError, match='a directory, not a PCD file'):
         read_pcd(tmp_path)
+
+
+def test_non_ascii_field_name_is_refused_and_leaves_the_file_alone(tmp_path):
+    path = tmp_path / 'a.pcd'
+    write_pcd(path, {'x': np.arange(3, dtype=np.float32)})
+    before = path.read_bytes()
+    with pytest.raises(PCDError, match="'tempé' must be a non-blank ASCII name"):
+        write_pcd(path, {'tempé': np.zeros(3, np.float32)})
+    assert path.read_bytes() == before   # was emptied by a UnicodeEncodeError mid-write
+
+
+@pytest.mark.parametrize('kw, match', [
+    (dict(height=-1), 'width and height must be integers >= 0'),
+    (dict(width=-2, height=-2), 'width and height must be integers >= 0'),
+    (dict(width=2.0, height=2), 'width and height must be integers >= 0'),
+    (dict(extra={'e': np.zeros((4, 0))}), "'e' has 0 values per point"),
+    (dict(viewpoint=(0, 0, 0)), 'viewpoint must be 7 numbers'),
+    (dict(extra={1: np.zeros(4), '1': np.zeros(4)}), 'duplicate field names'),
+    (dict(extra={'_': np.ones(4)}), "'_' is padding"),
+])
+def test_write_refuses_what_read_would_refuse_or_drop(tmp_path, kw, match):
+    # each was written: read_pcd then refused the file (or left the '_' field out)
+    extra = kw.pop('extra', {})
+    with pytest.raises(PCDError, match=match):
+        write_pcd(tmp_path / 'a.pcd', {'x': np.zeros(4, np.float32), **extra}, **kw)
+    write_pcd(tmp_path / 'b.pcd', {'x': np.zeros(4, np.float32)}, width=np.int64(2), height=2,
+              viewpoint=np.array([1, 2, 3, 1, 0, 0, 0]))
+    assert read_pcd(tmp_path / 'b.pcd').height == 2
+
+
+def test_xyz_of_integer_fields_is_float(tmp_path):
+    # I/U typed coordinates (a depth camera's millimetres) came back as uint16: p0 - p1 wrapped
+    write_pcd(tmp_path / 'mm.pcd', {'x': np.array([10, 20], np.uint16),
+                                    'y': np.array([5, 5], np.int16),
+                                    'z': np.array([1000, 1200], np.uint16)})
+    xyz = read_pcd(tmp_path / 'mm.pcd').xyz()
+    assert xyz.dtype == np.float64
+    np.testing.assert_array_equal(xyz[0] - xyz[1], [-10, 0, -200])
+    write_pcd(tmp_path / 'f.pcd', {k: np.zeros(2, np.float32) for k in 'xyz'})
+    assert read_pcd(tmp_path / 'f.pcd').xyz().dtype == np.float32   # float fields as they are

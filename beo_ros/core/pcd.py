@@ -64,13 +64,15 @@ class PCDData:
         return self.width * self.height
 
     def xyz(self) -> np.ndarray:
-        """(n, 3) float array of the x, y, z fields; PCDError unless each has COUNT 1."""
+        """(n, 3) float array of the x, y, z fields (float64 unless they are all F: integer
+        coordinates would wrap in differences); PCDError unless each has COUNT 1."""
         for k in 'xyz':
             if k not in self.fields:
                 raise PCDError(f'no {k!r} field')
             if self.fields[k].ndim != 1:
                 raise PCDError(f'field {k!r} has COUNT {self.fields[k].shape[1]}, not 1')
-        return np.stack([self.fields[k] for k in 'xyz'], axis=1)
+        xyz = np.stack([self.fields[k] for k in 'xyz'], axis=1)
+        return xyz if xyz.dtype.kind == 'f' else xyz.astype(np.float64)
 
 
 # ----------------------------------------------------------------------------------- LZF codec
@@ -376,6 +378,16 @@ def write_pcd(path, fields: dict, width: int | None = None, height: int = 1,
         raise PCDError('write_pcd needs at least one field')
     if data not in DATA_KINDS:
         raise PCDError(f'data must be one of {DATA_KINDS}, got {data!r}')
+    for v in (width, height):   # read_pcd refuses a negative or non-integer WIDTH/HEIGHT
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer))
+                              or v < 0):
+            raise PCDError(f'width and height must be integers >= 0, got {width!r}, {height!r}')
+    try:
+        vp = np.asarray(viewpoint, dtype=np.float64)
+    except (TypeError, ValueError):
+        vp = None
+    if vp is None or vp.shape != (7,):
+        raise PCDError(f'viewpoint must be 7 numbers tx ty tz qw qx qy qz, got {viewpoint!r}')
     arrays = []
     for name, a in fields.items():
         a = np.asarray(a)
@@ -383,9 +395,19 @@ def write_pcd(path, fields: dict, width: int | None = None, height: int = 1,
             a = a.astype(np.uint8)
         if a.ndim == 1:
             a = a[:, None]
-        if a.ndim != 2 or not str(name) or any(ch.isspace() for ch in str(name)):
-            raise PCDError(f'field {name!r} must be a non-blank name with a (n,) or (n, c) array')
+        if a.ndim != 2 or not str(name) or not str(name).isascii() \
+                or any(ch.isspace() for ch in str(name)):
+            raise PCDError(f'field {name!r} must be a non-blank ASCII name (the header is ASCII) '
+                           'with a (n,) or (n, c) array')
+        if not 1 <= a.shape[1] <= MAX_COUNT:
+            raise PCDError(f'field {name!r} has {a.shape[1]} values per point, not in '
+                           f'[1, {MAX_COUNT}]')
         arrays.append((str(name), a))
+    names = [nm for nm, _ in arrays]
+    if PADDING in names:
+        raise PCDError(f'field name {PADDING!r} is padding (read_pcd skips it)')
+    if len(set(names)) != len(names):
+        raise PCDError(f'duplicate field names {names}')
     n = arrays[0][1].shape[0]
     if any(a.shape[0] != n for _, a in arrays):
         raise PCDError('all fields must have the same number of points')
@@ -394,7 +416,7 @@ def write_pcd(path, fields: dict, width: int | None = None, height: int = 1,
     if width * height != n:
         raise PCDError(f'width*height = {width}*{height} != {n} points')
     types = [_pcd_type(a.dtype) for _, a in arrays]
-    vp = ' '.join(repr(float(v)) for v in viewpoint)   # exact, not 6 digits
+    vp = ' '.join(repr(float(v)) for v in vp)   # exact, not 6 digits
     header = ('# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\n'
               f'FIELDS {" ".join(nm for nm, _ in arrays)}\n'
               f'SIZE {" ".join(str(s) for _, s in types)}\n'
@@ -402,8 +424,9 @@ def write_pcd(path, fields: dict, width: int | None = None, height: int = 1,
               f'COUNT {" ".join(str(a.shape[1]) for _, a in arrays)}\n'
               f'WIDTH {width}\nHEIGHT {height}\nVIEWPOINT {vp}\nPOINTS {n}\nDATA {data}\n')
     dts = [np.dtype(_TYPES[t]) for t in types]
+    header = header.encode('ascii')   # before the file is opened (and emptied)
     with open(path, 'wb') as f:
-        f.write(header.encode('ascii'))
+        f.write(header)
         if data == 'ascii':
             cols = []
             for (name, a), (t, s), dt in zip(arrays, types, dts):

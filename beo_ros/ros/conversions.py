@@ -142,7 +142,7 @@ def xyz_to_cloud(points, header, extra_fields: dict | None = None) -> PointCloud
     """
     pts = np.asarray(points, dtype=np.float32)
     if pts.ndim != 2 or pts.shape[1] != 3:
-        if pts.size == 0:
+        if pts.shape[:1] == (0,):   # no points (not n points without coordinates)
             pts = pts.reshape(0, 3)
         else:
             raise ValueError(f'points must be (n, 3), got shape {pts.shape}')
