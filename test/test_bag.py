@@ -920,6 +920,31 @@ def test_replay_plays_latched_topics_transient_local(ros_env_context, tmp_path):
     assert plain == []
 
 
+@pytest.mark.parametrize('storage', bag.STORAGES)
+def test_a_bag_whose_metadata_qos_differs_from_its_files_is_read_whole(ros_env_context, tmp_path,
+                                                                       storage):
+    """rosbags pairs metadata.yaml's topics with the storage file's by their offered QoS too.
+    Before: a metadata.yaml with an empty (or hand-edited) offered_qos_profiles gave 0 messages
+    from read_bag and beo-replay, no error, while bag_info counted them all; now the file's
+    QoS is used (so the latched topic is still played latched)."""
+    import re
+    p = tmp_path / 'b'
+    with bag.BagWriter(p, storage) as w:
+        w.add_topic('/latched', 'std_msgs/msg/String', transient_local=True)
+        for i in range(3):
+            w.write('/latched', String(data=str(i)), 10 + i)
+    meta = p / 'metadata.yaml'
+    text, n = re.subn(r'offered_qos_profiles:\n( {6}[ -].*\n)+', "offered_qos_profiles: ''\n",
+                      meta.read_text())
+    assert n == 1
+    meta.write_text(text)
+    assert bag.bag_info(p)['message_count'] == 3
+    assert [t for _, _, t, _ in bag.read_bag(p)] == [10, 11, 12]
+    node = rclpy.create_node('replayer', context=ros_env_context)
+    stats = bag.replay(p, node, all_topics=True, rate=0, qos='best_effort')
+    assert stats.messages == 3 and stats.latched == ['/latched']
+
+
 def test_replay_publishes_the_bag_time_on_clock(ros_env_context, tmp_path):
     """clock_hz: /clock carries the bag time, before every message and in between, never
     going back; a node with use_sim_time follows it."""

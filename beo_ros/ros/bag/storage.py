@@ -258,12 +258,38 @@ def _check_readable(bag_path):
                          f'{how}make a closed bag of it with beo-bag-recover {bag_path} -o NEW')
 
 
+def _align_metadata_qos(reader) -> None:
+    """Give each connection that an open bag directory's metadata.yaml lists the offered QoS
+    its storage file stores for that topic and type, where the two differ. rosbags pairs them
+    by topic, type *and* QoS, and reads no message of a connection whose metadata.yaml QoS
+    (an empty or hand-edited ``offered_qos_profiles``) does not pair with the file's."""
+    storages = getattr(reader.storage, 'storages', None)
+    if not storages:   # a .db3 / .mcap file read directly: its connections are its own
+        return
+    conns = reader.storage.connections
+    for i, c in enumerate(conns):
+        same = [x for s in storages for x in s.connections
+                if x.topic == c.topic and x.msgtype == c.msgtype
+                and (not x.digest or not c.digest or x.digest == c.digest)]
+        if same and not any(x.ext == c.ext for x in same):
+            conns[i] = c._replace(ext=same[0].ext)
+
+
+@contextlib.contextmanager
+def _open_reader(bag_path):
+    """A rosbags Reader of ``bag_path``, open, its metadata's QoS aligned with its storage's
+    (:func:`_align_metadata_qos`)."""
+    from rosbags.rosbag2 import Reader
+    with Reader(Path(bag_path)) as reader:
+        _align_metadata_qos(reader)
+        yield reader
+
+
 def read_bag(bag_path, topics=None):
     """Yield ``(topic, msgtype, timestamp_ns, raw_cdr_bytes)`` in timestamp order. ValueError
     for a .db3 left in the middle of a write (see :func:`hot_journal`)."""
-    from rosbags.rosbag2 import Reader
     _check_readable(bag_path)
-    with Reader(Path(bag_path)) as reader:
+    with _open_reader(bag_path) as reader:
         conns = [c for c in reader.connections if topics is None or c.topic in topics]
         if not conns:
             return
