@@ -447,6 +447,9 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
     if not (math.isfinite(clock_hz) and clock_hz >= 0):
         raise ValueError(f'clock_hz must be a finite number >= 0, got {clock_hz}')
     remap = parse_remaps(remap) if isinstance(remap, (list, tuple)) else dict(remap or {})
+    # as the publishers will: 'x' is /x (of the node's namespace), for the checks of one type
+    # per topic
+    remap = {old: node.resolve_topic_name(new) for old, new in remap.items()}
     bag_path = Path(bag_path)
     n_passes = loops if loops is not None else (None if loop else 1)
     stats = ReplayStats(bag=str(bag_path), storage=detect_storage(bag_path), rate=float(rate))
