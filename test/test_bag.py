@@ -714,10 +714,13 @@ def test_cli_pcd2bag_bad_arguments_refused(tmp_path, capsys, extra, message):
     assert not out.exists()
 
 
-def test_pcd_to_bag_refuses_stamps_past_int64_and_leaves_no_bag(tmp_path):
+def test_pcd_to_bag_refuses_stamps_past_what_a_header_holds_and_leaves_no_bag(tmp_path):
+    """Before: stamps between 2038 and int64 nanoseconds (2262) were written, their header
+    stamps' int32 seconds wrapped to negative (bag stamp 2.2e18 ns, header sec -2094967296)."""
     scene = write_scene_pcd(tmp_path / 's.pcd')
-    for kw in ({'period': 1e12}, {'object_period': 1e12}, {'period': float('nan')}):
-        with pytest.raises(ValueError, match='int64|finite'):
+    for kw in ({'period': 5e8}, {'t0_ns': bag.T0_NS * 2}, {'period': 1e12},
+               {'object_period': 1e12}, {'period': float('nan')}):
+        with pytest.raises(ValueError, match='2038|finite'):
             bag.pcd_to_bag([scene, scene], tmp_path / 'b', **kw)
         assert not (tmp_path / 'b').exists()
 
