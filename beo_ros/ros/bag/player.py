@@ -11,8 +11,8 @@ from pathlib import Path
 
 from beo_ros.ros.bag.msgtypes import (CLOUD_TYPE, check_topic_name, import_msg_class,
                                       normalize_msgtype)
-from beo_ros.ros.bag.storage import (_check_readable, _open_reader, detect_storage,
-                                     recorded_latched, storage_errors)
+from beo_ros.ros.bag.storage import (_check_readable, _open_reader, cdr_payload,
+                                     detect_storage, recorded_latched, storage_errors)
 
 
 @dataclass
@@ -388,7 +388,7 @@ class _Player:
 
     def _send(self, conn, t: int, raw) -> None:
         """Publish one message of the bag and count it."""
-        data = bytes(raw)
+        data = cdr_payload(raw)
         pub = self.pubs[conn.topic]
         pub.publish(data)
         self.acks.published(pub)

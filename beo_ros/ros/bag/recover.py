@@ -9,7 +9,7 @@ from pathlib import Path
 
 from beo_ros.ros.bag.msgtypes import get_typestore, normalize_msgtype
 from beo_ros.ros.bag.recorder import BagWriteError
-from beo_ros.ros.bag.storage import (BagWriter, hot_journal, recorded_latched,
+from beo_ros.ros.bag.storage import (BagWriter, cdr_payload, hot_journal, recorded_latched,
                                      recorded_reliable, storage_errors)
 
 
@@ -259,13 +259,13 @@ def _copy_messages(readable: Path, dst: Path, storage: str, unindexed: bool) -> 
                     break
                 except Exception as e:  # noqa: BLE001 - as above
                     raise _Damaged(_one_line(e)) from e
-                raw = bytes(raw)
-                if checks.get(conn.id) is not None:
-                    try:
+                try:   # the new bag's messages are not compressed
+                    raw = cdr_payload(raw)
+                    if checks.get(conn.id) is not None:
                         checks[conn.id](raw)
-                    except Exception as e:  # noqa: BLE001 - SerdeError, MemoryError, ...
-                        raise _Damaged(f'{conn.topic}: a message stamped {t} does not '
-                                       f'deserialize ({_one_line(e)})') from e
+                except Exception as e:  # noqa: BLE001 - SerdeError, MemoryError, ...
+                    raise _Damaged(f'{conn.topic}: a message stamped {t} does not '
+                                   f'deserialize ({_one_line(e)})') from e
                 writer.write(conn.topic, raw, t, conn.msgtype)
                 topics[conn.topic] += 1
             copied = sum(topics.values())

@@ -258,6 +258,24 @@ def _check_readable(bag_path):
                          f'{how}make a closed bag of it with beo-bag-recover {bag_path} -o NEW')
 
 
+ZSTD_MAGIC = b'\x28\xb5\x2f\xfd'   # a zstd frame's first bytes; CDR's first byte is 0
+
+
+def cdr_payload(raw) -> bytes:
+    """The CDR bytes of a stored message: as they are, or decompressed if they are a zstd
+    frame -- a bag recorded with per-message compression (``ros2 bag record
+    --compression-mode message``) read from its .db3 / .mcap file, without the metadata.yaml
+    that says so. ValueError for a frame that does not decompress."""
+    data = bytes(raw)
+    if data[:4] == ZSTD_MAGIC:
+        from rosbags.rosbag2.storage_mcap import DECOMPRESSORS
+        try:
+            data = DECOMPRESSORS['zstd'](data, 0)
+        except Exception as e:  # noqa: BLE001 - zstd's own error type
+            raise ValueError(f'a zstd-compressed message does not decompress: {e}') from None
+    return data
+
+
 def _align_metadata_qos(reader) -> None:
     """Give each connection that an open bag directory's metadata.yaml lists the offered QoS
     its storage file stores for that topic and type, where the two differ. rosbags pairs them
@@ -294,7 +312,7 @@ def read_bag(bag_path, topics=None):
         if not conns:
             return
         for conn, t, raw in reader.messages(connections=conns):
-            yield conn.topic, conn.msgtype, t, bytes(raw)
+            yield conn.topic, conn.msgtype, t, cdr_payload(raw)
 
 
 def read_messages(bag_path, topics=None):
