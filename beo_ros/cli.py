@@ -69,8 +69,10 @@ def count(lo: int = 0, hi: int | None = None):
 
 
 def _range(lo, hi, lo_open, hi_open):
-    left = '-inf' if lo is None else f'{lo:g}'
-    right = 'inf' if hi is None else f'{hi:g}'
+    def fmt(v):   # an integer bound exactly (:g would print 2**31 - 1 as 2.14748e+09)
+        return str(v) if isinstance(v, int) else f'{v:g}'
+    left = '-inf' if lo is None else fmt(lo)
+    right = 'inf' if hi is None else fmt(hi)
     return f"{'(' if lo_open or lo is None else '['}{left}, {right}{')' if hi_open or hi is None else ']'}"
 
 

@@ -449,8 +449,10 @@ def test_cli_replay_of_a_metadata_yaml_that_does_not_parse_is_one_line(tmp_path,
     (['--rate', 'nan'], "argument --rate: must be a finite number, got 'nan'"),
     (['--rate', 'inf'], "argument --rate: must be a finite number, got 'inf'"),
     (['--rate', '-1'], 'argument --rate: must be in [0, inf), got -1'),
-    (['--depth', '0'], 'argument --depth: must be in [1, inf), got 0'),
-    (['--depth', '-1'], 'argument --depth: must be in [1, inf), got -1'),
+    (['--depth', '0'], 'argument --depth: must be in [1, 2147483647], got 0'),
+    (['--depth', '-1'], 'argument --depth: must be in [1, 2147483647], got -1'),
+    # before: a TypeError traceback from rclpy's QoSProfile, exit 1
+    (['--depth', '2147483648'], 'argument --depth: must be in [1, 2147483647], got 2147483648'),
     (['--wait-subscribers', '-1'], 'argument --wait-subscribers: must be in [0, inf), got -1'),
     (['--wait-timeout', 'nan'], "argument --wait-timeout: must be a finite number, got 'nan'"),
     (['--wait-timeout', '-1'], 'argument --wait-timeout: must be in [0, inf), got -1'),
@@ -714,10 +716,13 @@ def test_cli_pcd2bag_bad_arguments_refused(tmp_path, capsys, extra, message):
     assert not out.exists()
 
 
-def test_pcd_to_bag_refuses_stamps_past_int64_and_leaves_no_bag(tmp_path):
+def test_pcd_to_bag_refuses_stamps_past_what_a_header_holds_and_leaves_no_bag(tmp_path):
+    """Before: stamps between 2038 and int64 nanoseconds (2262) were written, their header
+    stamps' int32 seconds wrapped to negative (bag stamp 2.2e18 ns, header sec -2094967296)."""
     scene = write_scene_pcd(tmp_path / 's.pcd')
-    for kw in ({'period': 1e12}, {'object_period': 1e12}, {'period': float('nan')}):
-        with pytest.raises(ValueError, match='int64|finite'):
+    for kw in ({'period': 5e8}, {'t0_ns': bag.T0_NS * 2}, {'period': 1e12},
+               {'object_period': 1e12}, {'period': float('nan')}):
+        with pytest.raises(ValueError, match='2038|finite'):
             bag.pcd_to_bag([scene, scene], tmp_path / 'b', **kw)
         assert not (tmp_path / 'b').exists()
 
@@ -918,6 +923,31 @@ def test_replay_plays_latched_topics_transient_local(ros_env_context, tmp_path):
     finally:
         spin.close()
     assert plain == []
+
+
+@pytest.mark.parametrize('storage', bag.STORAGES)
+def test_a_bag_whose_metadata_qos_differs_from_its_files_is_read_whole(ros_env_context, tmp_path,
+                                                                       storage):
+    """rosbags pairs metadata.yaml's topics with the storage file's by their offered QoS too.
+    Before: a metadata.yaml with an empty (or hand-edited) offered_qos_profiles gave 0 messages
+    from read_bag and beo-replay, no error, while bag_info counted them all; now the file's
+    QoS is used (so the latched topic is still played latched)."""
+    import re
+    p = tmp_path / 'b'
+    with bag.BagWriter(p, storage) as w:
+        w.add_topic('/latched', 'std_msgs/msg/String', transient_local=True)
+        for i in range(3):
+            w.write('/latched', String(data=str(i)), 10 + i)
+    meta = p / 'metadata.yaml'
+    text, n = re.subn(r'offered_qos_profiles:\n( {6}[ -].*\n)+', "offered_qos_profiles: ''\n",
+                      meta.read_text())
+    assert n == 1
+    meta.write_text(text)
+    assert bag.bag_info(p)['message_count'] == 3
+    assert [t for _, _, t, _ in bag.read_bag(p)] == [10, 11, 12]
+    node = rclpy.create_node('replayer', context=ros_env_context)
+    stats = bag.replay(p, node, all_topics=True, rate=0, qos='best_effort')
+    assert stats.messages == 3 and stats.latched == ['/latched']
 
 
 def test_replay_publishes_the_bag_time_on_clock(ros_env_context, tmp_path):

@@ -64,16 +64,17 @@ from beo_ros.ros.bag.recorder import (COMMIT_PERIOD_S, BagWriteError, RecordStat
 from beo_ros.ros.bag.recover import MCAP_MAGIC, _bag_file, recover_bag
 from beo_ros.ros.bag.scenes import (DEFAULT_FRAME, DEFAULT_INPUT_TOPIC, MAX_NS, PLANE_TOPIC,
                                     T0_NS, UP_TOPIC, NoObjects, pcd_to_bag, scene_messages)
-from beo_ros.ros.bag.storage import (STORAGES, BagWriter, bag_info, detect_storage,
-                                     hot_journal, read_bag, read_messages, recorded_latched,
-                                     recorded_reliable, storage_errors)
+from beo_ros.ros.bag.storage import (STORAGES, BagWriter, bag_info, cdr_payload,
+                                     detect_storage, hot_journal, read_bag, read_messages,
+                                     recorded_latched, recorded_reliable, storage_errors)
 
 __all__ = [
     # msgtypes
     'CLOUD_TYPE', 'check_node_name', 'check_topic_name', 'get_typestore', 'import_msg_class',
     'msgtype_of', 'normalize_msgtype',
     # storage
-    'STORAGES', 'BagWriter', 'bag_info', 'detect_storage', 'hot_journal', 'read_bag',
+    'STORAGES', 'BagWriter', 'bag_info', 'cdr_payload', 'detect_storage', 'hot_journal',
+    'read_bag',
     'read_messages', 'recorded_latched', 'recorded_reliable', 'storage_errors',
     # recover
     'MCAP_MAGIC', 'recover_bag',

@@ -141,7 +141,8 @@ def replay_main(argv=None) -> int:
                    help='publisher reliability (default reliable; keep-last, volatile); '
                         'topics recorded from transient-local publishers (e.g. /tf_static) '
                         'are played reliable and transient-local, as recorded')
-    p.add_argument('--depth', type=count(1), default=10,
+    # a DDS history depth is an int32 (rclpy's QoSProfile: a TypeError traceback beyond)
+    p.add_argument('--depth', type=count(1, 2**31 - 1), default=10,
                    help='publisher history depth (default 10); a reliable publisher waits for '
                         'its subscribers to acknowledge every DEPTH messages')
     p.add_argument('--ack-timeout', type=number(0), default=ACK_TIMEOUT_S, metavar='S',

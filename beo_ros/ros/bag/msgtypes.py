@@ -50,33 +50,43 @@ def check_node_name(name: str) -> str:
 # message types
 # ---------------------------------------------------------------------------------------------
 
+# interface kinds whose types are published on topics: messages, and the service event
+# (pkg/srv/Type_Event, ros2 bag record --all-services) and action feedback
+# (pkg/action/Type_FeedbackMessage) topics of services and actions
+_KINDS = ('msg', 'srv', 'action')
+
+
 def normalize_msgtype(name: str) -> str:
-    """'pkg/Type', 'pkg/msg/Type' or 'pkg.msg.Type' -> 'pkg/msg/Type'."""
+    """'pkg/Type', 'pkg/msg/Type' or 'pkg.msg.Type' -> 'pkg/msg/Type' ('pkg/srv/Type' and
+    'pkg/action/Type', the types of service event and action feedback topics, likewise)."""
     parts = [p for p in re.split(r'[/.]', name.strip()) if p]
     if len(parts) == 2:
         parts = [parts[0], 'msg', parts[1]]
-    if len(parts) != 3 or parts[1] != 'msg':
+    if len(parts) != 3 or parts[1] not in _KINDS:
         raise ValueError(f'not a message type name: {name!r} (expected pkg/msg/Type)')
     return '/'.join(parts)
 
 
 def import_msg_class(msgtype: str):
     """The rclpy message class of 'pkg/msg/Type'; ``KeyError`` naming it if not installed."""
-    pkg, _, name = normalize_msgtype(msgtype).split('/')
+    pkg, kind, name = normalize_msgtype(msgtype).split('/')
     if pkg == 'beo_interfaces':
         from beo_ros.ros.env import ensure_ament_prefix
         ensure_ament_prefix()
     try:
-        return getattr(importlib.import_module(f'{pkg}.msg'), name)
+        return getattr(importlib.import_module(f'{pkg}.{kind}'), name)
     except (ImportError, AttributeError):
-        raise KeyError(f'message type {pkg}/msg/{name} is not installed (no Python module '
-                       f'{pkg}.msg with {name})') from None
+        raise KeyError(f'message type {pkg}/{kind}/{name} is not installed (no Python module '
+                       f'{pkg}.{kind} with {name})') from None
 
 
 def msgtype_of(msg) -> str:
-    """'pkg/msg/Type' of an rclpy message instance or class."""
+    """'pkg/msg/Type' of an rclpy message instance or class ('pkg/srv/Type' for a service's
+    event message, ...)."""
     cls = msg if isinstance(msg, type) else type(msg)
-    return f'{cls.__module__.split(".")[0]}/msg/{cls.__name__}'
+    parts = cls.__module__.split('.')
+    kind = parts[1] if len(parts) > 1 and parts[1] in _KINDS else 'msg'
+    return f'{parts[0]}/{kind}/{cls.__name__}'
 
 
 def _msg_search_dirs(pkg: str) -> list:

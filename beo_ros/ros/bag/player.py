@@ -11,8 +11,8 @@ from pathlib import Path
 
 from beo_ros.ros.bag.msgtypes import (CLOUD_TYPE, check_topic_name, import_msg_class,
                                       normalize_msgtype)
-from beo_ros.ros.bag.storage import (_check_readable, detect_storage, recorded_latched,
-                                     storage_errors)
+from beo_ros.ros.bag.storage import (_check_readable, _open_reader, cdr_payload,
+                                     detect_storage, recorded_latched, storage_errors)
 
 
 @dataclass
@@ -388,7 +388,7 @@ class _Player:
 
     def _send(self, conn, t: int, raw) -> None:
         """Publish one message of the bag and count it."""
-        data = bytes(raw)
+        data = cdr_payload(raw)
         pub = self.pubs[conn.topic]
         pub.publish(data)
         self.acks.published(pub)
@@ -442,18 +442,20 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
             effort, depth 1, as ``ros2 bag play --clock``) before every message and at this
             rate in between, for nodes with ``use_sim_time``; ``stats.clock_messages``.
     """
-    from rosbags.rosbag2 import Reader
     if not (math.isfinite(rate) and rate >= 0):
         raise ValueError(f'rate must be a finite number >= 0, got {rate}')
     if not (math.isfinite(clock_hz) and clock_hz >= 0):
         raise ValueError(f'clock_hz must be a finite number >= 0, got {clock_hz}')
     remap = parse_remaps(remap) if isinstance(remap, (list, tuple)) else dict(remap or {})
+    # as the publishers will: 'x' is /x (of the node's namespace), for the checks of one type
+    # per topic
+    remap = {old: node.resolve_topic_name(new) for old, new in remap.items()}
     bag_path = Path(bag_path)
     n_passes = loops if loops is not None else (None if loop else 1)
     stats = ReplayStats(bag=str(bag_path), storage=detect_storage(bag_path), rate=float(rate))
     _check_readable(bag_path)
     try:
-        with Reader(bag_path) as reader:
+        with _open_reader(bag_path) as reader:
             conns = _replay_connections(reader, bag_path, topics, all_topics, remap)
             _check_output_types(node, conns, remap)
             conns, pubs, pub_by_out = _replay_publishers(node, conns, remap, stats, qos, depth,

@@ -2,13 +2,14 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import shutil
 from pathlib import Path
 
-from beo_ros.ros.bag.msgtypes import normalize_msgtype
+from beo_ros.ros.bag.msgtypes import get_typestore, normalize_msgtype
 from beo_ros.ros.bag.recorder import BagWriteError
-from beo_ros.ros.bag.storage import (BagWriter, hot_journal, recorded_latched,
+from beo_ros.ros.bag.storage import (BagWriter, cdr_payload, hot_journal, recorded_latched,
                                      recorded_reliable, storage_errors)
 
 
@@ -63,9 +64,30 @@ def _chunk_decompresses(body: bytes, decompress) -> bool:
             != len(body):
         return False
     try:
-        decompress(body[40 + n:], body[32:32 + n].decode(errors='replace'), usize, crc)
+        records = decompress(body[40 + n:], body[32:32 + n].decode(errors='replace'), usize, crc)
     except Exception:  # noqa: BLE001 - ReaderError, zstd's and lz4's own errors, MemoryError
         return False
+    return _messages_in_time_range(records, int.from_bytes(body[0:8], 'little'),
+                                   int.from_bytes(body[8:16], 'little'))
+
+
+def _messages_in_time_range(records: bytes, start: int, end: int) -> bool:
+    """Whether a chunk's records are whole and its messages' log times within the chunk's
+    ``[start, end]`` (without a crc, a damaged stamp shows only there)."""
+    pos = 0
+    while pos < len(records):
+        if pos + 9 > len(records):
+            return False
+        op, length = records[pos], int.from_bytes(records[pos + 1:pos + 9], 'little')
+        if pos + 9 + length > len(records):
+            return False
+        if op == 0x05:   # message: channel id (2), sequence (4), log time (8), ...
+            if length < 22:
+                return False
+            log_time = int.from_bytes(records[pos + 15:pos + 23], 'little')
+            if not start <= log_time <= end:
+                return False
+        pos += 9 + length
     return True
 
 
@@ -97,7 +119,8 @@ def recover_bag(src, dst, *, storage: str | None = None) -> dict:
     ``src``: bag directory or its .db3 / .mcap file; ``storage``: dst's (default src's).
     -> ``{'messages', 'topics': {topic: count}, 'storage', 'lost_bytes'}``; ``lost_bytes``:
     the tail of an mcap file after its last intact record (0 for sqlite3): a record cut off or
-    damaged, or a chunk that does not decompress to its size, and all after it. A closed mcap
+    damaged, a chunk that does not decompress to its size, or one with a message that does not
+    deserialize or is stamped outside the chunk's time range, and all after it. A closed mcap
     file whose index does not read is read as if it had none. ValueError for a source that is
     not a bag, an mcap file cut off inside its header, or a database that does not read;
     :class:`BagWriteError` when the new bag cannot be written (a full disk: nothing is left).
@@ -201,7 +224,7 @@ def _copy_messages(readable: Path, dst: Path, storage: str, unindexed: bool) -> 
     ``{topic: count}``. _Damaged (and no ``dst``) when rosbags cannot read it to its end;
     the errors of writing ``dst`` (an unknown type, a full disk) as they are."""
     from rosbags.rosbag2 import Reader
-    topics = {}
+    topics, checks = {}, {}   # checks: {connection id: _cdr_check of its type}
     reader = Reader(readable)
     try:
         reader.open()
@@ -227,6 +250,8 @@ def _copy_messages(readable: Path, dst: Path, storage: str, unindexed: bool) -> 
                 writer.add_topic(c.topic, c.msgtype, reliable=recorded_reliable(c),
                                  transient_local=recorded_latched(c), **definition)
                 topics.setdefault(c.topic, 0)
+                if readable.suffix == '.mcap':   # no crc to tell a damaged message
+                    checks[c.id] = _cdr_check(c, definition)
             while True:
                 try:
                     conn, t, raw = next(messages)
@@ -234,12 +259,40 @@ def _copy_messages(readable: Path, dst: Path, storage: str, unindexed: bool) -> 
                     break
                 except Exception as e:  # noqa: BLE001 - as above
                     raise _Damaged(_one_line(e)) from e
-                writer.write(conn.topic, bytes(raw), t, conn.msgtype)
+                try:   # the new bag's messages are not compressed
+                    raw = cdr_payload(raw)
+                    if checks.get(conn.id) is not None:
+                        checks[conn.id](raw)
+                except Exception as e:  # noqa: BLE001 - SerdeError, MemoryError, ...
+                    raise _Damaged(f'{conn.topic}: a message stamped {t} does not '
+                                   f'deserialize ({_one_line(e)})') from e
+                writer.write(conn.topic, raw, t, conn.msgtype)
                 topics[conn.topic] += 1
+            copied = sum(topics.values())
+            if not unindexed and readable.suffix == '.mcap' and copied != reader.message_count:
+                # the index leaves out a message stamped outside its chunk's time range
+                raise _Damaged(f'{copied} message(s) read of the {reader.message_count} its '
+                               'summary counts')
     finally:
         with contextlib.suppress(Exception):
             reader.close()
     return topics
+
+
+def _cdr_check(conn, definition: dict):
+    """A callable that raises for CDR bytes that do not deserialize as ``conn``'s type (the
+    bag's own ``definition``, or the installed one), or None when the type does not parse."""
+    from rosbags.typesys import Stores, get_types_from_msg
+    from rosbags.typesys import get_typestore as rosbags_typestore
+    try:
+        if definition:
+            store = rosbags_typestore(Stores.EMPTY)
+            store.register(get_types_from_msg(definition['msgdef'], conn.msgtype))
+        else:
+            store = get_typestore([conn.msgtype])
+    except Exception:  # noqa: BLE001 - rosbags' parse errors have no common base
+        return None
+    return functools.partial(store.deserialize_cdr, typename=conn.msgtype)
 
 
 def _one_line(exc) -> str:

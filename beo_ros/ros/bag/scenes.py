@@ -13,7 +13,9 @@ PLANE_TOPIC = '/beo/table_plane'
 DEFAULT_INPUT_TOPIC = '/beo/input'
 DEFAULT_FRAME = 'camera'
 T0_NS = 1_700_000_000_000_000_000  # first stamp written by pcd2bag (and the demo)
-MAX_NS = 2**63 - 1                 # bag timestamps are int64 nanoseconds
+# the last stamp a header holds (builtin_interfaces/Time: int32 seconds, 2038-01-19); the bag's
+# own int64 nanoseconds go further, but each message's header stamp equals its bag stamp
+MAX_NS = (2**31 - 1) * 1_000_000_000 + 999_999_999
 
 
 class NoObjects(ValueError):
@@ -67,7 +69,8 @@ def pcd_to_bag(scenes, bag_path, *, storage: str = 'sqlite3', topic: str = DEFAU
     object if that is later); its up vector and plane carry that stamp, its objects follow
     ``object_period`` apart (first one at the scene stamp), so every cloud has a unique stamp.
     Scenes without object labels are skipped (listed in ``'skipped'``); ``ValueError`` if none is
-    left, for a bad scene or topic name, or stamps past int64 nanoseconds. No bag is left behind
+    left, for a bad scene or topic name, or stamps past what a header stamp holds
+    (:data:`MAX_NS`, 2038-01-19: its seconds are int32). No bag is left behind
     on any failure (Ctrl-C included).
 
     Returns ``{'bag', 'storage', 'scenes': [{'scene', 'stamp_ns', 'objects': [{'id', 'points',
@@ -103,7 +106,8 @@ def pcd_to_bag(scenes, bag_path, *, storage: str = 'sqlite3', topic: str = DEFAU
                            t0_ns)
     if max(max([ns, *objs]) for ns, objs in stamps) > MAX_NS:
         raise ValueError(f'--period {period:g} s / --object-period {object_period:g} s put the '
-                         f'stamps of {len(read)} scene(s) past int64 nanoseconds (year 2262)')
+                         f'stamps of {len(read)} scene(s) past 2038-01-19, the last a header '
+                         'stamp holds (int32 seconds)')
     existed = Path(bag_path).exists()
     try:
         with BagWriter(bag_path, storage) as w:

@@ -258,17 +258,61 @@ def _check_readable(bag_path):
                          f'{how}make a closed bag of it with beo-bag-recover {bag_path} -o NEW')
 
 
+ZSTD_MAGIC = b'\x28\xb5\x2f\xfd'   # a zstd frame's first bytes; CDR's first byte is 0
+
+
+def cdr_payload(raw) -> bytes:
+    """The CDR bytes of a stored message: as they are, or decompressed if they are a zstd
+    frame -- a bag recorded with per-message compression (``ros2 bag record
+    --compression-mode message``) read from its .db3 / .mcap file, without the metadata.yaml
+    that says so. ValueError for a frame that does not decompress."""
+    data = bytes(raw)
+    if data[:4] == ZSTD_MAGIC:
+        from rosbags.rosbag2.storage_mcap import DECOMPRESSORS
+        try:
+            data = DECOMPRESSORS['zstd'](data, 0)
+        except Exception as e:  # noqa: BLE001 - zstd's own error type
+            raise ValueError(f'a zstd-compressed message does not decompress: {e}') from None
+    return data
+
+
+def _align_metadata_qos(reader) -> None:
+    """Give each connection that an open bag directory's metadata.yaml lists the offered QoS
+    its storage file stores for that topic and type, where the two differ. rosbags pairs them
+    by topic, type *and* QoS, and reads no message of a connection whose metadata.yaml QoS
+    (an empty or hand-edited ``offered_qos_profiles``) does not pair with the file's."""
+    storages = getattr(reader.storage, 'storages', None)
+    if not storages:   # a .db3 / .mcap file read directly: its connections are its own
+        return
+    conns = reader.storage.connections
+    for i, c in enumerate(conns):
+        same = [x for s in storages for x in s.connections
+                if x.topic == c.topic and x.msgtype == c.msgtype
+                and (not x.digest or not c.digest or x.digest == c.digest)]
+        if same and not any(x.ext == c.ext for x in same):
+            conns[i] = c._replace(ext=same[0].ext)
+
+
+@contextlib.contextmanager
+def _open_reader(bag_path):
+    """A rosbags Reader of ``bag_path``, open, its metadata's QoS aligned with its storage's
+    (:func:`_align_metadata_qos`)."""
+    from rosbags.rosbag2 import Reader
+    with Reader(Path(bag_path)) as reader:
+        _align_metadata_qos(reader)
+        yield reader
+
+
 def read_bag(bag_path, topics=None):
     """Yield ``(topic, msgtype, timestamp_ns, raw_cdr_bytes)`` in timestamp order. ValueError
     for a .db3 left in the middle of a write (see :func:`hot_journal`)."""
-    from rosbags.rosbag2 import Reader
     _check_readable(bag_path)
-    with Reader(Path(bag_path)) as reader:
+    with _open_reader(bag_path) as reader:
         conns = [c for c in reader.connections if topics is None or c.topic in topics]
         if not conns:
             return
         for conn, t, raw in reader.messages(connections=conns):
-            yield conn.topic, conn.msgtype, t, bytes(raw)
+            yield conn.topic, conn.msgtype, t, cdr_payload(raw)
 
 
 def read_messages(bag_path, topics=None):
