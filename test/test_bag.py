@@ -986,6 +986,25 @@ def test_replay_publishes_the_bag_time_on_clock(ros_env_context, tmp_path):
         bag.replay(p, pub_node, clock_hz=float('nan'))
 
 
+def test_replay_refuses_the_clock_of_a_bag_past_2038(ros_env_context, tmp_path):
+    """A bag's int64 stamps go past 2038, /clock's int32 seconds do not: the clock is
+    refused before anything is sent (it went out wrapped negative); without it the bag plays."""
+    from beo_ros.ros.conversions import stamp_from_ns
+    p = tmp_path / 'b'
+    t0 = 2**31 * 1_000_000_000   # 2038-01-19T03:14:08
+    with bag.BagWriter(p, storage='sqlite3') as w:
+        w.add_topic('/chatter', 'std_msgs/msg/String')
+        for i in range(2):
+            w.write('/chatter', String(data=str(i)), t0 + i)
+    node = rclpy.create_node('replayer', context=ros_env_context)
+    with pytest.raises(ValueError, match='past 2038'):
+        bag.replay(p, node, all_topics=True, rate=0, clock_hz=10.0)
+    assert bag.replay(p, node, all_topics=True, rate=0).messages == 2
+    with pytest.raises(ValueError, match='builtin_interfaces/Time'):
+        stamp_from_ns(t0)
+    assert stamp_from_ns(t0 - 1).sec == 2**31 - 1
+
+
 def test_replay_keeps_every_latched_message_for_late_subscribers(ros_env_context, tmp_path):
     """Three latched messages (three static broadcasters' /tf_static) all reach a late
     transient-local subscriber, even with --depth 1."""

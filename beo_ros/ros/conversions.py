@@ -263,8 +263,15 @@ def _voxel_size(est) -> float:
     return float(np.linalg.norm(np.asarray(g)[:3, 0]))
 
 
+MAX_STAMP_NS = (2 ** 31 - 1) * 1_000_000_000 + 999_999_999   # int32 seconds
+
+
 def stamp_from_ns(ns: int) -> Time:
-    """``builtin_interfaces/Time`` of ``ns`` nanoseconds (>= 0)."""
+    """``builtin_interfaces/Time`` of ``ns`` nanoseconds (>= 0); ValueError beyond what its
+    int32 seconds hold (``MAX_STAMP_NS``, 2038): the middleware wrapped them negative."""
+    if not 0 <= int(ns) <= MAX_STAMP_NS:
+        raise ValueError(f'a stamp of {int(ns)} ns is outside what a builtin_interfaces/Time '
+                         f'holds (0 to {MAX_STAMP_NS} ns, 2038-01-19)')
     sec, nanosec = divmod(int(ns), 1_000_000_000)
     return Time(sec=sec, nanosec=nanosec)
 

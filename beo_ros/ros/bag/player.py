@@ -11,6 +11,7 @@ from pathlib import Path
 
 from beo_ros.ros.bag.msgtypes import (CLOUD_TYPE, check_topic_name, import_msg_class,
                                       normalize_msgtype)
+from beo_ros.ros.bag.scenes import MAX_NS
 from beo_ros.ros.bag.storage import (_check_readable, _open_reader, cdr_payload,
                                      detect_storage, recorded_latched, storage_errors)
 
@@ -462,6 +463,9 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
                                                          strict=bool(topics))
             if not conns:
                 return stats
+            if clock_hz > 0 and reader.end_time > MAX_NS:
+                raise ValueError(f'its stamps go past 2038 ({reader.end_time} ns), beyond '
+                                 'what /clock (int32 seconds) holds: play it without the clock')
             # made before the wait, so that discovery matches /clock with the data topics
             # best effort, depth 1, volatile: rclcpp's ClockQoS
             clock = (_publisher(node, 'rosgraph_msgs/msg/Clock', '/clock', 'best_effort', 1)
