@@ -402,6 +402,24 @@ def test_scoring_a_subset_of_rows_equals_the_same_rows_of_all(tiny):
                                        rtol=1e-4, atol=1e-6)
 
 
+def test_scoring_a_row_twice_gives_its_score_twice(tiny):
+    # the rotation's extra cells (observed cells that show the same canonical cell) went to the
+    # last copy of a repeated row only: the first copy was scored without them
+    eng = tiny.engine
+    yaws = np.deg2rad(np.arange(360.0))
+    first, extra = eng._rotation_maps(yaws)
+    dc = first.shape[1]
+    row = int(np.bincount(np.concatenate([pos // dc for pos, _ in extra]),
+                          minlength=len(yaws)).argmax())   # a yaw with extra cells
+    rows = np.array([row, 5, row, row - len(yaws)])
+    for g in views():
+        P = eng.pooled(g)
+        for full in (False, True):
+            want = eng.scores(P, yaws, 1, full=full)[rows % len(yaws)]
+            np.testing.assert_allclose(eng.scores(P, yaws, 1, full=full, rows=rows), want,
+                                       rtol=1e-4, atol=1e-6)
+
+
 def test_stage2_windows_find_the_exhaustive_full_component_optimum(pose_case):
     # estimate() re-scores the chosen class with all components only within +-15 deg of its 6
     # best stage-1 modes; the exhaustive stage-2 search (stage2_modes=None) is the reference

@@ -323,6 +323,10 @@ class InferenceEngine:
         dc = len(D) - 1
         if rows is not None:
             rows = np.asarray(rows)
+            # a row named twice is scored once: the extra cells below go to one copy only
+            uniq, back = np.unique(rows % len(yaws), return_inverse=True)
+            if len(uniq) < len(rows):
+                return self.scores(pooled, yaws, c, full, uniq)[back.ravel()]
             keep = np.full(len(yaws), -1, dtype=np.intp)
             keep[rows] = np.arange(len(rows))
             sub = []
