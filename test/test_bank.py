@@ -450,6 +450,21 @@ def test_rotation_map_cache_keeps_within_its_budget(monkeypatch):
                                rtol=1e-6)
 
 
+def test_full_resolution_map_cache_keeps_within_its_budget(monkeypatch):
+    # it kept 720 maps whatever the grid: 94 MB at 32^3, 720 MB at 64^3, 5.6 GB at 128^3
+    from beo_ros.core import inference
+    eng = make_tiny_bank().engine
+    one = eng.d * 4   # an int32 map
+    monkeypatch.setattr(inference, 'FULL_MAP_CACHE_BYTES', 10 * one, raising=False)
+    g = views()[1]
+    yaws = np.deg2rad(np.arange(0.5, 40.0))
+    got = [eng.exact(g, 1, float(y))['loglik'] for y in yaws]
+    assert 0 < len(eng._full_maps) <= 10
+    fresh = make_tiny_bank().engine
+    np.testing.assert_allclose(got, [fresh.exact(g, 1, float(y))['loglik'] for y in yaws],
+                               rtol=1e-12)
+
+
 def test_rotation_map_cache_does_not_confuse_yaw_sets():
     fresh = make_tiny_bank().engine
     eng = make_tiny_bank().engine
