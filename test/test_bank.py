@@ -402,6 +402,24 @@ def test_scoring_a_subset_of_rows_equals_the_same_rows_of_all(tiny):
                                        rtol=1e-4, atol=1e-6)
 
 
+def test_scoring_a_row_twice_gives_its_score_twice(tiny):
+    # the rotation's extra cells (observed cells that show the same canonical cell) went to the
+    # last copy of a repeated row only: the first copy was scored without them
+    eng = tiny.engine
+    yaws = np.deg2rad(np.arange(360.0))
+    first, extra = eng._rotation_maps(yaws)
+    dc = first.shape[1]
+    row = int(np.bincount(np.concatenate([pos // dc for pos, _ in extra]),
+                          minlength=len(yaws)).argmax())   # a yaw with extra cells
+    rows = np.array([row, 5, row, row - len(yaws)])
+    for g in views():
+        P = eng.pooled(g)
+        for full in (False, True):
+            want = eng.scores(P, yaws, 1, full=full)[rows % len(yaws)]
+            np.testing.assert_allclose(eng.scores(P, yaws, 1, full=full, rows=rows), want,
+                                       rtol=1e-4, atol=1e-6)
+
+
 def test_stage2_windows_find_the_exhaustive_full_component_optimum(pose_case):
     # estimate() re-scores the chosen class with all components only within +-15 deg of its 6
     # best stage-1 modes; the exhaustive stage-2 search (stage2_modes=None) is the reference
@@ -430,6 +448,21 @@ def test_rotation_map_cache_keeps_within_its_budget(monkeypatch):
     ref = make_tiny_bank().engine.scores(P, np.deg2rad(np.arange(2, 362, 5.0)))
     np.testing.assert_allclose(eng.scores(P, np.deg2rad(np.arange(2, 362, 5.0))), ref,
                                rtol=1e-6)
+
+
+def test_full_resolution_map_cache_keeps_within_its_budget(monkeypatch):
+    # it kept 720 maps whatever the grid: 94 MB at 32^3, 720 MB at 64^3, 5.6 GB at 128^3
+    from beo_ros.core import inference
+    eng = make_tiny_bank().engine
+    one = eng.d * 4   # an int32 map
+    monkeypatch.setattr(inference, 'FULL_MAP_CACHE_BYTES', 10 * one, raising=False)
+    g = views()[1]
+    yaws = np.deg2rad(np.arange(0.5, 40.0))
+    got = [eng.exact(g, 1, float(y))['loglik'] for y in yaws]
+    assert 0 < len(eng._full_maps) <= 10
+    fresh = make_tiny_bank().engine
+    np.testing.assert_allclose(got, [fresh.exact(g, 1, float(y))['loglik'] for y in yaws],
+                               rtol=1e-12)
 
 
 def test_rotation_map_cache_does_not_confuse_yaw_sets():

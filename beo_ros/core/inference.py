@@ -31,6 +31,9 @@ LOG2PI = float(np.log(2 * np.pi))
 FEATURE_NAMES = ('loglik', 'coarse_loglik', 'rmse', 'recall', 'false_occupied', 'dt_error')
 # pooled-grid rotation maps kept per engine (those of the default search take ~20 MB)
 MAP_CACHE_BYTES = 256 * 2**20
+# full-resolution rotation maps kept per engine: 720 at 32^3 (94 MB), fewer on larger grids
+# (one map of 64^3 takes 1 MB, of 128^3 8 MB)
+FULL_MAP_CACHE_BYTES = 128 * 2**20
 
 
 def batched_cholesky_terms(G, b):
@@ -276,8 +279,8 @@ class InferenceEngine:
         key = yaw_key(yaw)
         idx = self._full_maps.get(key)
         if idx is None:
-            idx = yaw_source_index(self.n, [-key])[0]   # int32: 720 cached maps take 94 MB
-            if len(self._full_maps) < 720:
+            idx = yaw_source_index(self.n, [-key])[0]   # int32
+            if len(self._full_maps) < min(720, FULL_MAP_CACHE_BYTES // idx.nbytes):
                 self._full_maps[key] = idx
         return idx
 
@@ -323,6 +326,10 @@ class InferenceEngine:
         dc = len(D) - 1
         if rows is not None:
             rows = np.asarray(rows)
+            # a row named twice is scored once: the extra cells below go to one copy only
+            uniq, back = np.unique(rows % len(yaws), return_inverse=True)
+            if len(uniq) < len(rows):
+                return self.scores(pooled, yaws, c, full, uniq)[back.ravel()]
             keep = np.full(len(yaws), -1, dtype=np.intp)
             keep[rows] = np.arange(len(rows))
             sub = []
