@@ -151,13 +151,6 @@ class VBPCA(TransformerMixin, BaseEstimator):
             cnt = np.maximum(mask.sum(axis=0), 1)
             mu = np.where(mask, X, 0).sum(axis=0) / cnt
             Xc = np.where(mask, X - mu, 0)
-        # the floors of the noise and ARD variances are relative to the data's variance about
-        # the column means (1 when it is 0 or overflows): fixed ones took data of small
-        # magnitude (um in metres) for noise and fitted nothing
-        with np.errstate(over='ignore'):
-            var = float(np.einsum('ij,ij->', Xc, Xc, dtype=np.float64)) / (
-                X.size if mask is None else int(mask.sum()))
-        self._scale = var if 0 < var < np.inf else 1.0
         if self.init == 'pca':
             # eigen-decomposition in the smaller dimension: the dual (n, n) Gram for n << d
             if n < d:
@@ -170,11 +163,11 @@ class VBPCA(TransformerMixin, BaseEstimator):
                 e, V = e[::-1], V[:, ::-1]
                 W = V[:, :k] * np.sqrt(np.maximum(e[:k], 0) / n)
             W = W.astype(self.dtype)
-            resid = max(np.maximum(e[k:], 0).sum() / (n * d), 1e-4 * self._scale)
+            resid = max(np.maximum(e[k:], 0).sum() / (n * d), 1e-4)
         else:
             rng = np.random.default_rng(self.random_state)
             W = (rng.standard_normal((d, k)) * Xc.std() / np.sqrt(k)).astype(self.dtype)
-            resid = float(Xc.var()) + 1e-4 * self._scale
+            resid = float(Xc.var()) + 1e-4
         return mu.astype(self.dtype), W, float(resid)
 
     def _fit_full(self, X, k):
@@ -185,7 +178,7 @@ class VBPCA(TransformerMixin, BaseEstimator):
         mu = mu.astype(np.float64)
         col_sum = X.sum(axis=0, dtype=np.float64)                # (d,)
         sq_total = float(np.einsum('ij,ij->', X, X, dtype=np.float64))
-        alpha = np.maximum((W.astype(np.float64) ** 2).sum(axis=0) / d, _EPS * self._scale)
+        alpha = np.maximum((W.astype(np.float64) ** 2).sum(axis=0) / d, _EPS)
         v_mu = float(self.mean_prior_variance)
         Sw = np.zeros((k, k))
         mu_var = 0.0
@@ -213,10 +206,10 @@ class VBPCA(TransformerMixin, BaseEstimator):
             sq = (sq_total - 2 * mu @ col_sum + n * mu @ mu - 2 * cross + np.trace(XX @ WtW))
             sq += n * np.trace(WtW @ Sx) + d * np.trace(Sw @ XX)
             sq += n * d * np.trace(Sw @ Sx) + n * d * mu_var
-            v = max(sq / (n * d), 1e-8 * self._scale)
+            v = max(sq / (n * d), 1e-8)
             if not np.isfinite(v):          # overflow: stop early, _finish raises
                 break
-            alpha = np.maximum((np.diag(WtW) + d * np.diag(Sw)) / d, _EPS * self._scale)
+            alpha = np.maximum((np.diag(WtW) + d * np.diag(Sw)) / d, _EPS)
             W = W64.astype(self.dtype)
             bound = self._bound_full(n, d, k, v, sq, Sx, Xm, Sw, W64, alpha, mu, mu_var, v_mu)
             if self.verbose:
@@ -248,7 +241,7 @@ class VBPCA(TransformerMixin, BaseEstimator):
         mu = mu.astype(np.float64)
         M = mask.astype(np.float64)
         Xo = np.where(mask, X, 0).astype(np.float64)
-        alpha = np.maximum((W ** 2).sum(axis=0) / d, _EPS * self._scale)
+        alpha = np.maximum((W ** 2).sum(axis=0) / d, _EPS)
         v_mu = float(self.mean_prior_variance)
         Sw = np.zeros((d, k, k))
         mu_var = np.zeros(d)
@@ -286,14 +279,14 @@ class VBPCA(TransformerMixin, BaseEstimator):
             xs = Xm[:, :, None] * Xm[:, None, :]
             sq += ((M.T @ xs[:, iu[0], iu[1]]) * Sw[:, iu[0], iu[1]] * sym).sum()
             sq += (M * mu_var).sum()
-            v = max(sq / n_obs, 1e-8 * self._scale)
+            v = max(sq / n_obs, 1e-8)
             if not np.isfinite(v):          # overflow: stop early, _finish raises
                 break
             # without this step the bound creeps for hundreds of iterations along directions
             # (scale and rotation of the scores) that barely change the fit (Ilin and Raiko 2010)
             W, Sw, Xm, Sx = _rotate_to_pca(W, Sw, Xm, Sx)
             alpha = np.maximum(((W ** 2).sum(axis=0) + Sw[:, range(k), range(k)].sum(axis=0)) / d,
-                               _EPS * self._scale)
+                               _EPS)
             bound = self._bound_missing(n_obs, k, v, sq, Sx, Xm, Sw, W, alpha, mu, mu_var, v_mu)
             if self.verbose:
                 print(f'VBPCA(missing) iter {it}: bound {bound:.8g} v {v:.5g}')
