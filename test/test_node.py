@@ -1141,6 +1141,24 @@ def test_duplicate_input_topics_are_subscribed_once(ros_context, ros_tiny_model_
         node.destroy_node()
 
 
+def test_remapped_input_topics_are_subscribed_where_they_resolve(ros_context,
+                                                                 ros_tiny_model_dir):
+    """rcl remaps the name a subscription is created with: the node subscribed with the
+    resolved name, so a remap of that applied too (-r /beo/a:=/beo/b -r /beo/b:=/beo/c: both
+    subscriptions on /beo/c, every cloud there taken twice, none of /beo/b, diagnostics naming
+    /beo/b)."""
+    from beo_ros.ros.node import BeoNode
+    node = BeoNode(context=ros_context, cli_args=[
+        '--ros-args', '-r', '/beo/a:=/beo/b', '-r', '/beo/b:=/beo/c'], parameter_overrides=[
+        Parameter('model_dir', value=ros_tiny_model_dir),
+        Parameter('input_topics', value=['/beo/a', '/beo/b'])])
+    try:
+        assert node._topics == ['/beo/b', '/beo/c']
+        assert [s.topic_name for s in node.subscriptions] == ['/beo/b', '/beo/c']
+    finally:
+        node.destroy_node()
+
+
 @pytest.fixture
 def harness_procs(ros_context, ros_tiny_model_dir):
     h = Harness(ros_context, ros_tiny_model_dir, worker_processes=2)

@@ -247,10 +247,11 @@ class BeoNode(Node):
             raise StartupError(f'invalid parameter: {reason}')
         return params, self._resolve_topics(input_topics)
 
-    def _resolve_topics(self, input_topics) -> list:
-        """The ``input_topics`` resolved, without repeats (before the models load: a bad name
-        fails fast)."""
-        topics = []
+    def _resolve_topics(self, input_topics) -> dict:
+        """The ``input_topics`` without repeats: resolved name -> the entry to subscribe with
+        (before the models load: a bad name fails fast). rcl remaps the name it subscribes
+        with: given the resolved one, a remap of that (``-r /a:=/b -r /b:=/c``) applied too."""
+        topics = {}
         for topic in input_topics:
             try:
                 resolved = self.resolve_topic_name(topic)
@@ -260,7 +261,7 @@ class BeoNode(Node):
                 self.get_logger().warning(f"input_topics lists '{resolved}' twice: one "
                                           'subscription')
                 continue
-            topics.append(resolved)
+            topics[resolved] = topic
         return topics
 
     def _setup_models(self, bank):
@@ -359,18 +360,19 @@ class BeoNode(Node):
         self._in_flight = 0
 
     def _subscribe(self, topics, reliability, group):
-        """One subscription per resolved topic (``reliability``: input_reliability)."""
+        """One subscription per resolved topic (``topics``: resolved -> the entry;
+        ``reliability``: input_reliability)."""
         self._topics = []
         qos = qos_profile_sensor_data
         if reliability == 'reliable':
             qos = QoSProfile(depth=qos_profile_sensor_data.depth, history=HistoryPolicy.KEEP_LAST,
                              reliability=ReliabilityPolicy.RELIABLE)
-        for topic in topics:
+        for topic, entry in topics.items():
             events = SubscriptionEventCallbacks(
                 incompatible_qos=lambda e, t=topic: self._on_incompatible_qos(e, t),
                 message_lost=lambda e, t=topic: self._on_message_lost(e, t))
             self.create_subscription(
-                PointCloud2, topic, lambda msg, t=topic: self._on_cloud(msg, t),
+                PointCloud2, entry, lambda msg, t=topic: self._on_cloud(msg, t),
                 qos, callback_group=group, event_callbacks=events)
             self._topics.append(topic)
         self._topic_index = {t: i for i, t in enumerate(self._topics)}
