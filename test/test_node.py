@@ -1494,6 +1494,25 @@ def test_unknown_parameter_overrides_are_named(ros_context, ros_tiny_model_dir):
         node.destroy_node()
 
 
+def test_qos_overrides_are_named_as_ignored(ros_context, ros_tiny_model_dir, capfd):
+    """No publisher or subscription of the node declares ROS's qos_overrides parameters: an
+    override (the usual way to make a subscription reliable) took no effect, and no warning
+    said so."""
+    from rclpy.qos import ReliabilityPolicy
+
+    from beo_ros.ros.node import BeoNode
+    name = 'qos_overrides./beo/input.subscription.reliability'
+    node = BeoNode(context=ros_context, parameter_overrides=[
+        Parameter('model_dir', value=ros_tiny_model_dir), Parameter(name, value='reliable')])
+    try:
+        assert node.ignored_parameters == [name]
+        sub, = node.subscriptions
+        assert sub.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+        assert 'input_reliability sets the QoS' in capfd.readouterr().err
+    finally:
+        node.destroy_node()
+
+
 def test_arguments_before_ros_args_and_bad_ros_args_refused(capsys, monkeypatch):
     from beo_ros.ros import node as node_mod
     real_init = node_mod.rclpy.init

@@ -227,14 +227,17 @@ class BeoNode(Node):
             self._declare_parameters()
         except Exception as e:  # out-of-range / wrong-type overrides
             raise StartupError(f'invalid parameter: {type(e).__name__}: {e}') from e
-        # a typo (-p yaw_stepdeg:=5.0) would otherwise be ignored unseen
+        # a typo (-p yaw_stepdeg:=5.0) would otherwise be ignored unseen, and so would the
+        # qos_overrides of ROS (no publisher or subscription of the node declares them)
         self.ignored_parameters = sorted(
-            n for n in getattr(self, '_parameter_overrides', {})
-            if not self.has_parameter(n) and not n.startswith('qos_overrides.'))
+            n for n in getattr(self, '_parameter_overrides', {}) if not self.has_parameter(n))
         if self.ignored_parameters:
+            qos = any(n.startswith('qos_overrides.') for n in self.ignored_parameters)
             self.get_logger().warning(
                 f"ignoring unknown parameter(s) {', '.join(self.ignored_parameters)} (see "
-                'config/beo.yaml for the parameters)')
+                'config/beo.yaml for the parameters'
+                + ('; QoS overrides are not supported: input_reliability sets the QoS of the '
+                   'input_topics' if qos else '') + ')')
         try:
             params = self._params()
             input_topics = self.get_parameter('input_topics').value
