@@ -959,6 +959,48 @@ def test_two_workers_keep_latest_cloud_and_in_flight_limit(harness2):
     assert c['received'] == c['processed'] + c['dropped_stale']
 
 
+def _identity_gap(status) -> int:
+    """received minus what the README's identity accounts for, from one diagnostics status."""
+    v = {kv.key: int(kv.value) for kv in status.values if kv.value.lstrip('-').isdigit()}
+    return v['received'] - (v['processed'] + v['dropped_stale'] + v['rejected'] + v['errors']
+                            - v['service_failures'] + v['waiting'] + v['in_flight']
+                            + v['dropped_shutdown'])
+
+
+def test_each_diagnostics_message_keeps_the_counter_identity(harness2):
+    """A cloud estimated, a cloud of the same topic rejected behind it (waiting in flight for
+    its turn to publish) and a third waiting for a worker: /diagnostics gave no count of the
+    waiting one, and counted the rejected one in rejected and in_flight at once."""
+    harness = harness2
+    node, gated, msg = _gated_node(harness, 2)
+    published, end_turn, turn_ended = [], node._end_turn, threading.Event()
+
+    def ending_turn(topic, ticket):
+        turn_ended.set()
+        return end_turn(topic, ticket)
+
+    node._end_turn = ending_turn
+    pub, node._pub_diag = node._pub_diag, type('Pub', (), {'publish': published.append})()
+    try:
+        node._on_cloud(msg, '/beo/input')
+        gated.wait(lambda g: len(g.entered) == 1)
+        node._on_cloud(cloud(box_view()[:3]), '/beo/input')   # too few points
+        assert turn_ended.wait(TIMEOUT)   # rejected, waiting for the first cloud's turn
+        node._on_cloud(msg, '/beo/input')
+        node._publish_diagnostics()
+        status = published[-1].status[0]
+        values = {kv.key: kv.value for kv in status.values}
+        assert (values['waiting'], values['in_flight'], values['received']) == ('1', '2', '3')
+        assert _identity_gap(status) == 0
+    finally:
+        gated.gate.set()
+    harness.wait_counter(lambda c: c['processed'] == 2)
+    assert _until(lambda: node.backlog()['in_flight'] == 0)
+    node._publish_diagnostics()
+    node._pub_diag = pub
+    assert all(_identity_gap(m.status[0]) == 0 for m in published), published
+
+
 def test_worker_threads_and_backlog_are_read_only_snapshots(harness2):
     """The public view of the worker threads and of the clouds waiting / in flight."""
     harness = harness2

@@ -21,6 +21,7 @@ were received, even when several of its clouds are in flight on different worker
 from __future__ import annotations
 
 import collections
+import contextlib
 import sys
 import threading
 import time
@@ -65,6 +66,10 @@ LOG_THROTTLE_SEC = 5.0
 LATENCY_WINDOW = 200  # samples kept per stage for the p50 in diagnostics
 # a message-lost report of this many or more is garbage (seen from Fast DDS: 2^31 - 1, 2^64 - 1)
 MAX_PLAUSIBLE_LOST = 2**31 - 1
+# the counters of what becomes of a cloud or service call (the terms of the README's identity):
+# a worker thread counts them as its cloud leaves in_flight, a service call when it is done
+OUTCOMES = frozenset({'processed', 'rejected', 'rejected_format', 'rejected_too_few_points',
+                      'errors', 'dropped_shutdown', 'service_failures'})
 BASE_FRAME_WITHOUT_TF = ('base_frame is set but tf2_ros is not installed; using the '
                          'sensor_origin and up_vector parameters')
 
@@ -361,6 +366,7 @@ class BeoNode(Node):
         self._turn = collections.Counter()      # topic -> ticket allowed to publish now
         self._turn_cond = threading.Condition()
         self._in_flight = 0
+        self._outcome = threading.local()   # .counts: the OUTCOMES counted so far, not yet added
 
     def _subscribe(self, topics, reliability, group):
         """One subscription per resolved topic (``topics``: resolved -> the entry;
@@ -499,8 +505,30 @@ class BeoNode(Node):
 
     # ------------------------------------------------------------------ inputs
     def _count(self, key, n=1):
+        pending = getattr(getattr(self, '_outcome', None), 'counts', None)
+        if pending is not None and key in OUTCOMES:
+            pending[key] += n   # added with the end of the cloud or call: see _one_outcome
+            return
         with self._stats_lock:
             self._counters[key] += n
+
+    @contextlib.contextmanager
+    def _one_outcome(self, in_flight=False):
+        """Count what becomes of one cloud (``in_flight``: as it leaves in_flight) or service
+        call in one step when it is done, so that a diagnostics snapshot finds the counter
+        identity holding (a cloud rejected behind another one of its topic was counted in
+        rejected while it waited in_flight for its turn; a failed call in rejected before
+        service_failures)."""
+        self._outcome.counts = counts = collections.Counter()
+        try:
+            yield
+        finally:
+            self._outcome.counts = None
+            with self._cond:
+                with self._stats_lock:
+                    self._counters.update(counts)
+                if in_flight:
+                    self._in_flight -= 1
 
     def _count_removed(self, est):
         """Count the points the estimator removed from an input cloud before the voxelization,
@@ -574,22 +602,21 @@ class BeoNode(Node):
                 ticket = self._tickets[topic]
                 self._tickets[topic] += 1
                 self._in_flight += 1
-            try:
-                self._process(topic, msg, t_recv, ticket)
-            except BaseException as e:  # noqa: BLE001 - never let one cloud end the worker:
-                # a SystemExit or KeyboardInterrupt raised in an estimate (a library's
-                # sys.exit, or one sent back by a worker process) is no signal here (signals
-                # reach only the main thread); it ended the thread and the clouds waited unseen
-                if self._shutting_down():   # e.g. published after a signal shut rclpy down
-                    self._count('dropped_shutdown')
-                    continue
-                self._count('errors')
-                self.get_logger().error(f'estimation failed for a cloud on {topic}: '
-                                        f'{type(e).__name__}: {e}',
-                                        throttle_duration_sec=LOG_THROTTLE_SEC)
-            finally:
-                with self._cond:
-                    self._in_flight -= 1
+            with self._one_outcome(in_flight=True):
+                try:
+                    self._process(topic, msg, t_recv, ticket)
+                except BaseException as e:  # noqa: BLE001 - never let one cloud end the worker:
+                    # a SystemExit or KeyboardInterrupt raised in an estimate (a library's
+                    # sys.exit, or one sent back by a worker process) is no signal here (signals
+                    # reach only the main thread); it ended the thread and the clouds waited
+                    # unseen
+                    if self._shutting_down():   # e.g. published after a signal shut rclpy down
+                        self._count('dropped_shutdown')
+                        continue
+                    self._count('errors')
+                    self.get_logger().error(f'estimation failed for a cloud on {topic}: '
+                                            f'{type(e).__name__}: {e}',
+                                            throttle_duration_sec=LOG_THROTTLE_SEC)
 
     def _shutting_down(self) -> bool:
         """destroy_node has begun, or the context was shut down (e.g. by a signal)."""
@@ -940,6 +967,10 @@ class BeoNode(Node):
         return await done
 
     def _serve(self, request, response, complete):
+        with self._one_outcome():
+            return self._serve_now(request, response, complete)
+
+    def _serve_now(self, request, response, complete):
         t0 = time.monotonic()
         name = self.resolve_service_name('~/complete' if complete else '~/classify')
         self._count('service_calls')
@@ -1025,7 +1056,9 @@ class BeoNode(Node):
 
     def _publish_diagnostics(self):
         now = time.monotonic()
-        counters = self.counters()
+        with self._cond:   # one snapshot: the counters and the clouds they do not count yet
+            counters = self.counters()
+            waiting, in_flight = len(self._slots), self._in_flight
         t_prev, prev = self._last_diag
         self._last_diag = (now, collections.Counter(counters))
         dt = max(now - t_prev, 1e-6)
@@ -1055,8 +1088,8 @@ class BeoNode(Node):
         values.append(KeyValue(key='worker_processes', value=str(self._n_procs)))
         values.append(KeyValue(key='class_prior', value=prior_text(self._bank)))
         values.append(KeyValue(key='model_dir', value=str(self._serving_dir)))   # answering
-        with self._cond:
-            values.append(KeyValue(key='in_flight', value=str(self._in_flight)))
+        values.append(KeyValue(key='waiting', value=str(waiting)))
+        values.append(KeyValue(key='in_flight', value=str(in_flight)))
         status = DiagnosticStatus(level=level, name=f'{self.get_name()}: estimator',
                                   message=message, hardware_id='beo_ros', values=values)
         self._pub_diag.publish(DiagnosticArray(header=self._diag_header(), status=[status]))
@@ -1075,7 +1108,7 @@ class BeoNode(Node):
                 cond.notify_all()
                 waiting = len(self._slots)   # taken by no worker: they stop before the next
                 self._slots.clear()
-            self._count('dropped_shutdown', waiting)
+                self._count('dropped_shutdown', waiting)
         deadline = time.monotonic() + 30.0
         with self._svc_threads_lock:
             threads = list(self._workers) + list(self._svc_threads)
