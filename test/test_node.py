@@ -959,6 +959,48 @@ def test_two_workers_keep_latest_cloud_and_in_flight_limit(harness2):
     assert c['received'] == c['processed'] + c['dropped_stale']
 
 
+def _identity_gap(status) -> int:
+    """received minus what the README's identity accounts for, from one diagnostics status."""
+    v = {kv.key: int(kv.value) for kv in status.values if kv.value.lstrip('-').isdigit()}
+    return v['received'] - (v['processed'] + v['dropped_stale'] + v['rejected'] + v['errors']
+                            - v['service_failures'] + v['waiting'] + v['in_flight']
+                            + v['dropped_shutdown'])
+
+
+def test_each_diagnostics_message_keeps_the_counter_identity(harness2):
+    """A cloud estimated, a cloud of the same topic rejected behind it (waiting in flight for
+    its turn to publish) and a third waiting for a worker: /diagnostics gave no count of the
+    waiting one, and counted the rejected one in rejected and in_flight at once."""
+    harness = harness2
+    node, gated, msg = _gated_node(harness, 2)
+    published, end_turn, turn_ended = [], node._end_turn, threading.Event()
+
+    def ending_turn(topic, ticket):
+        turn_ended.set()
+        return end_turn(topic, ticket)
+
+    node._end_turn = ending_turn
+    pub, node._pub_diag = node._pub_diag, type('Pub', (), {'publish': published.append})()
+    try:
+        node._on_cloud(msg, '/beo/input')
+        gated.wait(lambda g: len(g.entered) == 1)
+        node._on_cloud(cloud(box_view()[:3]), '/beo/input')   # too few points
+        assert turn_ended.wait(TIMEOUT)   # rejected, waiting for the first cloud's turn
+        node._on_cloud(msg, '/beo/input')
+        node._publish_diagnostics()
+        status = published[-1].status[0]
+        values = {kv.key: kv.value for kv in status.values}
+        assert (values['waiting'], values['in_flight'], values['received']) == ('1', '2', '3')
+        assert _identity_gap(status) == 0
+    finally:
+        gated.gate.set()
+    harness.wait_counter(lambda c: c['processed'] == 2)
+    assert _until(lambda: node.backlog()['in_flight'] == 0)
+    node._publish_diagnostics()
+    node._pub_diag = pub
+    assert all(_identity_gap(m.status[0]) == 0 for m in published), published
+
+
 def test_worker_threads_and_backlog_are_read_only_snapshots(harness2):
     """The public view of the worker threads and of the clouds waiting / in flight."""
     harness = harness2
@@ -1137,6 +1179,24 @@ def test_duplicate_input_topics_are_subscribed_once(ros_context, ros_tiny_model_
     try:
         assert node._topics == ['/beo/a', '/beo/b']
         assert len(list(node.subscriptions)) == 2
+    finally:
+        node.destroy_node()
+
+
+def test_remapped_input_topics_are_subscribed_where_they_resolve(ros_context,
+                                                                 ros_tiny_model_dir):
+    """rcl remaps the name a subscription is created with: the node subscribed with the
+    resolved name, so a remap of that applied too (-r /beo/a:=/beo/b -r /beo/b:=/beo/c: both
+    subscriptions on /beo/c, every cloud there taken twice, none of /beo/b, diagnostics naming
+    /beo/b)."""
+    from beo_ros.ros.node import BeoNode
+    node = BeoNode(context=ros_context, cli_args=[
+        '--ros-args', '-r', '/beo/a:=/beo/b', '-r', '/beo/b:=/beo/c'], parameter_overrides=[
+        Parameter('model_dir', value=ros_tiny_model_dir),
+        Parameter('input_topics', value=['/beo/a', '/beo/b'])])
+    try:
+        assert node._topics == ['/beo/b', '/beo/c']
+        assert [s.topic_name for s in node.subscriptions] == ['/beo/b', '/beo/c']
     finally:
         node.destroy_node()
 
@@ -1472,6 +1532,25 @@ def test_unknown_parameter_overrides_are_named(ros_context, ros_tiny_model_dir):
         Parameter('yaw_stepdeg', value=5.0), Parameter('yaw_step_deg', value=2.0)])
     try:
         assert node.ignored_parameters == ['yaw_stepdeg']
+    finally:
+        node.destroy_node()
+
+
+def test_qos_overrides_are_named_as_ignored(ros_context, ros_tiny_model_dir, capfd):
+    """No publisher or subscription of the node declares ROS's qos_overrides parameters: an
+    override (the usual way to make a subscription reliable) took no effect, and no warning
+    said so."""
+    from rclpy.qos import ReliabilityPolicy
+
+    from beo_ros.ros.node import BeoNode
+    name = 'qos_overrides./beo/input.subscription.reliability'
+    node = BeoNode(context=ros_context, parameter_overrides=[
+        Parameter('model_dir', value=ros_tiny_model_dir), Parameter(name, value='reliable')])
+    try:
+        assert node.ignored_parameters == [name]
+        sub, = node.subscriptions
+        assert sub.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+        assert 'input_reliability sets the QoS' in capfd.readouterr().err
     finally:
         node.destroy_node()
 

@@ -21,6 +21,7 @@ were received, even when several of its clouds are in flight on different worker
 from __future__ import annotations
 
 import collections
+import contextlib
 import sys
 import threading
 import time
@@ -65,6 +66,10 @@ LOG_THROTTLE_SEC = 5.0
 LATENCY_WINDOW = 200  # samples kept per stage for the p50 in diagnostics
 # a message-lost report of this many or more is garbage (seen from Fast DDS: 2^31 - 1, 2^64 - 1)
 MAX_PLAUSIBLE_LOST = 2**31 - 1
+# the counters of what becomes of a cloud or service call (the terms of the README's identity):
+# a worker thread counts them as its cloud leaves in_flight, a service call when it is done
+OUTCOMES = frozenset({'processed', 'rejected', 'rejected_format', 'rejected_too_few_points',
+                      'errors', 'dropped_shutdown', 'service_failures'})
 BASE_FRAME_WITHOUT_TF = ('base_frame is set but tf2_ros is not installed; using the '
                          'sensor_origin and up_vector parameters')
 
@@ -227,14 +232,17 @@ class BeoNode(Node):
             self._declare_parameters()
         except Exception as e:  # out-of-range / wrong-type overrides
             raise StartupError(f'invalid parameter: {type(e).__name__}: {e}') from e
-        # a typo (-p yaw_stepdeg:=5.0) would otherwise be ignored unseen
+        # a typo (-p yaw_stepdeg:=5.0) would otherwise be ignored unseen, and so would the
+        # qos_overrides of ROS (no publisher or subscription of the node declares them)
         self.ignored_parameters = sorted(
-            n for n in getattr(self, '_parameter_overrides', {})
-            if not self.has_parameter(n) and not n.startswith('qos_overrides.'))
+            n for n in getattr(self, '_parameter_overrides', {}) if not self.has_parameter(n))
         if self.ignored_parameters:
+            qos = any(n.startswith('qos_overrides.') for n in self.ignored_parameters)
             self.get_logger().warning(
                 f"ignoring unknown parameter(s) {', '.join(self.ignored_parameters)} (see "
-                'config/beo.yaml for the parameters)')
+                'config/beo.yaml for the parameters'
+                + ('; QoS overrides are not supported: input_reliability sets the QoS of the '
+                   'input_topics' if qos else '') + ')')
         try:
             params = self._params()
             input_topics = self.get_parameter('input_topics').value
@@ -247,10 +255,11 @@ class BeoNode(Node):
             raise StartupError(f'invalid parameter: {reason}')
         return params, self._resolve_topics(input_topics)
 
-    def _resolve_topics(self, input_topics) -> list:
-        """The ``input_topics`` resolved, without repeats (before the models load: a bad name
-        fails fast)."""
-        topics = []
+    def _resolve_topics(self, input_topics) -> dict:
+        """The ``input_topics`` without repeats: resolved name -> the entry to subscribe with
+        (before the models load: a bad name fails fast). rcl remaps the name it subscribes
+        with: given the resolved one, a remap of that (``-r /a:=/b -r /b:=/c``) applied too."""
+        topics = {}
         for topic in input_topics:
             try:
                 resolved = self.resolve_topic_name(topic)
@@ -260,7 +269,7 @@ class BeoNode(Node):
                 self.get_logger().warning(f"input_topics lists '{resolved}' twice: one "
                                           'subscription')
                 continue
-            topics.append(resolved)
+            topics[resolved] = topic
         return topics
 
     def _setup_models(self, bank):
@@ -357,20 +366,22 @@ class BeoNode(Node):
         self._turn = collections.Counter()      # topic -> ticket allowed to publish now
         self._turn_cond = threading.Condition()
         self._in_flight = 0
+        self._outcome = threading.local()   # .counts: the OUTCOMES counted so far, not yet added
 
     def _subscribe(self, topics, reliability, group):
-        """One subscription per resolved topic (``reliability``: input_reliability)."""
+        """One subscription per resolved topic (``topics``: resolved -> the entry;
+        ``reliability``: input_reliability)."""
         self._topics = []
         qos = qos_profile_sensor_data
         if reliability == 'reliable':
             qos = QoSProfile(depth=qos_profile_sensor_data.depth, history=HistoryPolicy.KEEP_LAST,
                              reliability=ReliabilityPolicy.RELIABLE)
-        for topic in topics:
+        for topic, entry in topics.items():
             events = SubscriptionEventCallbacks(
                 incompatible_qos=lambda e, t=topic: self._on_incompatible_qos(e, t),
                 message_lost=lambda e, t=topic: self._on_message_lost(e, t))
             self.create_subscription(
-                PointCloud2, topic, lambda msg, t=topic: self._on_cloud(msg, t),
+                PointCloud2, entry, lambda msg, t=topic: self._on_cloud(msg, t),
                 qos, callback_group=group, event_callbacks=events)
             self._topics.append(topic)
         self._topic_index = {t: i for i, t in enumerate(self._topics)}
@@ -494,8 +505,30 @@ class BeoNode(Node):
 
     # ------------------------------------------------------------------ inputs
     def _count(self, key, n=1):
+        pending = getattr(getattr(self, '_outcome', None), 'counts', None)
+        if pending is not None and key in OUTCOMES:
+            pending[key] += n   # added with the end of the cloud or call: see _one_outcome
+            return
         with self._stats_lock:
             self._counters[key] += n
+
+    @contextlib.contextmanager
+    def _one_outcome(self, in_flight=False):
+        """Count what becomes of one cloud (``in_flight``: as it leaves in_flight) or service
+        call in one step when it is done, so that a diagnostics snapshot finds the counter
+        identity holding (a cloud rejected behind another one of its topic was counted in
+        rejected while it waited in_flight for its turn; a failed call in rejected before
+        service_failures)."""
+        self._outcome.counts = counts = collections.Counter()
+        try:
+            yield
+        finally:
+            self._outcome.counts = None
+            with self._cond:
+                with self._stats_lock:
+                    self._counters.update(counts)
+                if in_flight:
+                    self._in_flight -= 1
 
     def _count_removed(self, est):
         """Count the points the estimator removed from an input cloud before the voxelization,
@@ -569,22 +602,21 @@ class BeoNode(Node):
                 ticket = self._tickets[topic]
                 self._tickets[topic] += 1
                 self._in_flight += 1
-            try:
-                self._process(topic, msg, t_recv, ticket)
-            except BaseException as e:  # noqa: BLE001 - never let one cloud end the worker:
-                # a SystemExit or KeyboardInterrupt raised in an estimate (a library's
-                # sys.exit, or one sent back by a worker process) is no signal here (signals
-                # reach only the main thread); it ended the thread and the clouds waited unseen
-                if self._shutting_down():   # e.g. published after a signal shut rclpy down
-                    self._count('dropped_shutdown')
-                    continue
-                self._count('errors')
-                self.get_logger().error(f'estimation failed for a cloud on {topic}: '
-                                        f'{type(e).__name__}: {e}',
-                                        throttle_duration_sec=LOG_THROTTLE_SEC)
-            finally:
-                with self._cond:
-                    self._in_flight -= 1
+            with self._one_outcome(in_flight=True):
+                try:
+                    self._process(topic, msg, t_recv, ticket)
+                except BaseException as e:  # noqa: BLE001 - never let one cloud end the worker:
+                    # a SystemExit or KeyboardInterrupt raised in an estimate (a library's
+                    # sys.exit, or one sent back by a worker process) is no signal here (signals
+                    # reach only the main thread); it ended the thread and the clouds waited
+                    # unseen
+                    if self._shutting_down():   # e.g. published after a signal shut rclpy down
+                        self._count('dropped_shutdown')
+                        continue
+                    self._count('errors')
+                    self.get_logger().error(f'estimation failed for a cloud on {topic}: '
+                                            f'{type(e).__name__}: {e}',
+                                            throttle_duration_sec=LOG_THROTTLE_SEC)
 
     def _shutting_down(self) -> bool:
         """destroy_node has begun, or the context was shut down (e.g. by a signal)."""
@@ -935,6 +967,10 @@ class BeoNode(Node):
         return await done
 
     def _serve(self, request, response, complete):
+        with self._one_outcome():
+            return self._serve_now(request, response, complete)
+
+    def _serve_now(self, request, response, complete):
         t0 = time.monotonic()
         name = self.resolve_service_name('~/complete' if complete else '~/classify')
         self._count('service_calls')
@@ -1020,7 +1056,9 @@ class BeoNode(Node):
 
     def _publish_diagnostics(self):
         now = time.monotonic()
-        counters = self.counters()
+        with self._cond:   # one snapshot: the counters and the clouds they do not count yet
+            counters = self.counters()
+            waiting, in_flight = len(self._slots), self._in_flight
         t_prev, prev = self._last_diag
         self._last_diag = (now, collections.Counter(counters))
         dt = max(now - t_prev, 1e-6)
@@ -1050,8 +1088,8 @@ class BeoNode(Node):
         values.append(KeyValue(key='worker_processes', value=str(self._n_procs)))
         values.append(KeyValue(key='class_prior', value=prior_text(self._bank)))
         values.append(KeyValue(key='model_dir', value=str(self._serving_dir)))   # answering
-        with self._cond:
-            values.append(KeyValue(key='in_flight', value=str(self._in_flight)))
+        values.append(KeyValue(key='waiting', value=str(waiting)))
+        values.append(KeyValue(key='in_flight', value=str(in_flight)))
         status = DiagnosticStatus(level=level, name=f'{self.get_name()}: estimator',
                                   message=message, hardware_id='beo_ros', values=values)
         self._pub_diag.publish(DiagnosticArray(header=self._diag_header(), status=[status]))
@@ -1070,7 +1108,7 @@ class BeoNode(Node):
                 cond.notify_all()
                 waiting = len(self._slots)   # taken by no worker: they stop before the next
                 self._slots.clear()
-            self._count('dropped_shutdown', waiting)
+                self._count('dropped_shutdown', waiting)
         deadline = time.monotonic() + 30.0
         with self._svc_threads_lock:
             threads = list(self._workers) + list(self._svc_threads)
