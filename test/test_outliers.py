@@ -114,6 +114,18 @@ def test_estimate_points_names_bad_outlier_arguments(tiny):
         tiny.estimate_points(pts, sensor_origin=origin, cluster_tolerance=-0.01)
 
 
+def test_a_voxelization_refusal_after_the_cleaning_names_the_cleaning(tiny):
+    """100 copies of one point and a stray one: the removal leaves points that span 0; the
+    refusal says that the cleaning left them (it named only the span)."""
+    origin = np.array([0.0, 0.0, 2.0])
+    pts = np.vstack([np.tile([0.1, 0.2, 0.0], (100, 1)), [[0.6, -0.3, 0.2]]])
+    with pytest.raises(ValueError, match=r'span 0.*after removing 1 outliers'):
+        tiny.estimate_points(pts, sensor_origin=origin, outlier_neighbors=100)
+    with pytest.raises(ValueError, match='span 0') as e:   # nothing removed: as it was
+        tiny.estimate_points(pts[:100], sensor_origin=origin, outlier_mads=None)
+    assert 'removing' not in str(e.value)
+
+
 def test_estimate_points_on_a_metric_grid_keeps_a_stray_point_out_of_the_placement():
     # a metric (tabletop) grid: without the removal the stray point 3 m behind moves the box
     # off the object (no point inside the grid: refused); with it the answer is the same

@@ -725,7 +725,16 @@ class ModelBank:
                              f'(outlier_mads {outlier_mads}) and {n_off_cluster} outside the '
                              f'largest cluster (cluster_tolerance {cluster_tolerance})')
         t_out = time.perf_counter()
-        view = voxelize_view(pts_in, sensor_origin, up, self.spec, center=center)
+        try:
+            view = voxelize_view(pts_in, sensor_origin, up, self.spec, center=center)
+        except ValueError as e:
+            if not n_outliers + n_off_cluster:
+                raise
+            # e.g. "the points span 0": the cleaning left only copies of one point
+            raise ValueError(f'{e} (the {len(pts_in)} points left of {len(finite)} finite '
+                             f'ones after removing {n_outliers} outliers (outlier_mads '
+                             f'{outlier_mads}) and {n_off_cluster} outside the largest cluster '
+                             f'(cluster_tolerance {cluster_tolerance}))') from None
         t1 = time.perf_counter()
         up = unit_direction(up, 'up')   # valid: voxelize_view has checked it
         point_features = None
