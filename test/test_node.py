@@ -1001,6 +1001,31 @@ def test_each_diagnostics_message_keeps_the_counter_identity(harness2):
     assert all(_identity_gap(m.status[0]) == 0 for m in published), published
 
 
+def test_diagnostics_warn_of_incompatible_publishers_and_lost_clouds(harness2):
+    """A publisher whose QoS cannot match (its clouds never arrive) and clouds the middleware
+    lost were counted, but /diagnostics stayed OK: they are warnings, in the period they
+    happen."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+    node = harness2.node
+    published = []
+    pub, node._pub_diag = node._pub_diag, type('Pub', (), {'publish': published.append})()
+    try:
+        node._publish_diagnostics()
+        assert published[-1].status[0].level == DiagnosticStatus.OK
+        node._count('incompatible_publishers')
+        node._publish_diagnostics()
+        assert published[-1].status[0].level == DiagnosticStatus.WARN
+        assert 'incompatible QoS' in published[-1].status[0].message
+        node._publish_diagnostics()   # the next period: nothing new
+        assert published[-1].status[0].level == DiagnosticStatus.OK
+        node._count('middleware_lost', 3)
+        node._publish_diagnostics()
+        assert published[-1].status[0].level == DiagnosticStatus.WARN
+        assert published[-1].status[0].message == '3 clouds lost in the middleware'
+    finally:
+        node._pub_diag = pub
+
+
 def test_worker_threads_and_backlog_are_read_only_snapshots(harness2):
     """The public view of the worker threads and of the clouds waiting / in flight."""
     harness = harness2

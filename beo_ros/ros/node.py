@@ -1078,6 +1078,13 @@ class BeoNode(Node):
             level, message = (DiagnosticStatus.WARN,
                               f"{delta['dropped_stale']} stale clouds dropped "
                               '(input faster than processing)')
+        elif delta['incompatible_publishers']:   # their clouds never arrive
+            level, message = (DiagnosticStatus.WARN,
+                              f"{delta['incompatible_publishers']} publisher(s) with an "
+                              'incompatible QoS (see input_reliability)')
+        elif delta['middleware_lost']:
+            level, message = (DiagnosticStatus.WARN,
+                              f"{delta['middleware_lost']} clouds lost in the middleware")
         values = [KeyValue(key='received_hz', value=f"{delta['received'] / dt:.2f}"),
                   KeyValue(key='processed_hz', value=f"{delta['processed'] / dt:.2f}")]
         values += [KeyValue(key=f'latency_p50_{k}_ms', value=f'{v * 1e3:.1f}')
