@@ -934,6 +934,58 @@ def test_load_refuses_an_optional_part_present_but_not_listed(tmp_path, tiny_dir
         ModelBank.load(p)
 
 
+def _racing_save(monkeypatch, hook, banks, path, times=1):
+    """Make ModelBank.load save the next bank of ``banks`` (in turn) to ``path`` as it enters
+    its ``hook`` (the first ``times`` times): a save of the directory it reads, in the middle
+    of the read."""
+    import beo_ros.core.bank as bank_mod
+    orig, saves = getattr(bank_mod, hook), []
+
+    def racing(*args):
+        if len(saves) < times:
+            saves.append(banks[len(saves) % len(banks)].save(path))
+        return orig(*args)
+    monkeypatch.setattr(bank_mod, hook, racing)
+    return saves
+
+
+def _pair(tmp_path):
+    old = make_tiny_bank(tmp_path / 'm', n=8, k=2, seed=0)
+    new = make_tiny_bank(n=8, k=2, seed=1)
+    new.training = {'which': 'new'}
+    return old, new, tmp_path / 'm'
+
+
+def test_load_during_a_save_of_the_directory_loads_no_mix(tmp_path, monkeypatch):
+    # the old manifest with the new class files loaded without a word (the checksums were
+    # checked on the old files, the arrays read from the new ones)
+    old, new, path = _pair(tmp_path)
+    _racing_save(monkeypatch, '_load_class_models', [new], path)
+    bank = ModelBank.load(path)
+    W_new = np.array_equal(bank.models[0].W, new.models[0].W)
+    assert W_new == (bank.training == {'which': 'new'}), (W_new, bank.training)
+    np.testing.assert_array_equal(bank.models[1].W, (new if W_new else old).models[1].W)
+
+
+def test_load_during_a_save_of_the_directory_reads_it_again(tmp_path, monkeypatch):
+    # was '.../class_00_box.npz is corrupt: checksum does not match the manifest'
+    old, new, path = _pair(tmp_path)
+    saves = _racing_save(monkeypatch, '_manifest_layout', [new], path)
+    bank = ModelBank.load(path)
+    assert saves and bank.training == {'which': 'new'}
+    np.testing.assert_array_equal(bank.models[0].W, new.models[0].W)
+
+
+def test_load_of_a_directory_saved_over_and_over_says_so(tmp_path, monkeypatch):
+    from beo_ros.core.bank import LOAD_ATTEMPTS
+    old, new, path = _pair(tmp_path)
+    saves = _racing_save(monkeypatch, '_manifest_layout', [new, old], path, times=10)
+    with pytest.raises(ModelError, match=f'corrupt.*was replaced while it was read, '
+                                         f'{LOAD_ATTEMPTS} times'):
+        ModelBank.load(path)
+    assert len(saves) == LOAD_ATTEMPTS
+
+
 # ---------------------------------------------------------------------- the point-cloud path
 def test_estimate_points_pose_and_points(tiny):
     occ = tiny.models[0].mean.reshape((N,) * 3) > 0.5

@@ -28,8 +28,8 @@ from .grid import (GridSpec, _real, symmetric_turns, unit_vector, wrap_yaw as _w
                    yaw_matrix)
 from .inference import FEATURE_NAMES, InferenceEngine, observed_edt, top_modes, top_yaw_modes
 from .model_files import (CLASS_KEYS, FORMAT, OPTIONAL_CLASS_KEYS, OPTIONAL_FILES, UNREADABLE,
-                          VERSION, _check_checksums, _check_manifest_settings, _load_class_models,
-                          _load_classifier, _manifest_layout, _optional_arrays, _read_manifest,
+                          VERSION, _check_manifest_settings, _load_class_models,
+                          _load_classifier, _manifest_layout, _optional_arrays, _read_checked, _read_manifest,
                           _settings_reason, _sha256, check_class_arrays, check_class_names,
                           check_save_target, class_name_problem, is_model_dir)
 from .outliers import OUTLIER_MADS, OUTLIER_NEIGHBORS, clean_points
@@ -63,6 +63,8 @@ PROBE_DEG = (10.0, 20.0)
 # resolve finer yaws, and its rotation maps of every multiple of a finer step cost seconds and
 # gigabytes (0.1 deg: 5 s, 1.4 GB); finer returned yaws come from a second, exact climb
 STAGE2_MIN_STEP_DEG = 1.0
+# ModelBank.load reads a directory that a save replaced meanwhile again, at most this often
+LOAD_ATTEMPTS = 3
 # the yaw steps (degrees) that estimate takes (check_step); commands check theirs against it
 YAW_STEP_RANGE_DEG = (0.05, 90.0)
 
@@ -283,17 +285,40 @@ class ModelBank:
         """Load and check a model directory; raises ModelError naming the bad file.
 
         ``class_prior``: overrides the manifest's (None: the manifest's; 'train' when it has
-        none); a bad value raises ValueError (a bad one in the manifest: ModelError)."""
+        none); a bad value raises ValueError (a bad one in the manifest: ModelError).
+
+        A save of the same directory (see :meth:`save`) while it is read is not a mix: every
+        file is parsed from the bytes checked against the manifest read; when the check
+        fails and the manifest has changed since, the directory is read again (up to
+        ``LOAD_ATTEMPTS`` times)."""
         path = Path(path)
-        mf, manifest = _read_manifest(path)
+        for attempt in range(1, LOAD_ATTEMPTS + 1):
+            mf, manifest, text = _read_manifest(path)
+            try:
+                return cls._load(path, mf, manifest, class_prior)
+            except ModelError as e:
+                try:
+                    replaced = _read_manifest(path)[2] != text
+                except ModelError:   # between the two renames of a save: no directory
+                    replaced = True
+                if not replaced:
+                    raise
+                if attempt == LOAD_ATTEMPTS:
+                    raise ModelError(f'{e} ({path} was replaced while it was read, '
+                                     f'{attempt} times: is it being saved over and over?)') \
+                        from None
+
+    @classmethod
+    def _load(cls, path, mf, manifest, class_prior):
+        """:meth:`load` of the directory ``path`` whose manifest ``mf`` holds ``manifest``."""
         spec, classes, files = _manifest_layout(path, mf, manifest)
-        _check_checksums(path, files)
-        models = _load_class_models(path, files, classes, spec)
-        classifier = _load_classifier(path, files, len(classes))
-        arrays = _optional_arrays(path, files, 'verifier.npz',
+        data = _read_checked(path, files)
+        models = _load_class_models(path, data, classes, spec)
+        classifier = _load_classifier(path, data, len(classes))
+        arrays = _optional_arrays(path, data, 'verifier.npz',
                                   lambda a, where: check_arrays(a, len(classes), spec.size, where))
         verifier = None if arrays is None else OrientationVerifier.from_arrays(arrays)
-        arrays = _optional_arrays(path, files, 'calibration.npz', check_calibration_arrays)
+        arrays = _optional_arrays(path, data, 'calibration.npz', check_calibration_arrays)
         calibration = None if arrays is None else OccupancyCalibration.from_arrays(arrays)
         if class_prior is None:
             class_prior = manifest.get('class_prior', 'train')

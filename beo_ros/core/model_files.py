@@ -22,6 +22,7 @@ Layout of a model directory::
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import zipfile
 import zlib
@@ -172,15 +173,15 @@ def _load_npz(fp):
     return z
 
 
-def _optional_arrays(path, files, name, check):
-    """The arrays of the optional file ``name`` of model directory ``path``, or None when the
-    manifest's ``files`` do not list it; ModelError when it is unreadable or when
-    ``check(arrays, where)`` gives a reason."""
-    if name not in files:
+def _optional_arrays(path, data, name, check):
+    """The arrays of the optional file ``name`` of model directory ``path``, or None when
+    ``data`` (file name -> checked bytes, see :func:`_read_checked`) does not hold it;
+    ModelError when it is unreadable or when ``check(arrays, where)`` gives a reason."""
+    if name not in data:
         return None
     fp = path / name
     try:
-        with _load_npz(fp) as z:
+        with _load_npz(io.BytesIO(data[name])) as z:
             arrays = {k: z[k] for k in z.files}
     except _UNREADABLE_MODEL as e:
         raise ModelError(f'{fp}: unreadable: {type(e).__name__}: {e}') from None
@@ -201,9 +202,9 @@ def _settings_reason(pose_components, training):
 
 
 def _read_manifest(path):
-    """(manifest path, manifest dict) of model directory ``path`` (a Path); ModelError unless
-    it is a directory whose manifest.json parses as this format and version with a grid
-    object."""
+    """(manifest path, manifest dict, its text) of model directory ``path`` (a Path);
+    ModelError unless it is a directory whose manifest.json parses as this format and version
+    with a grid object."""
     mf = path / 'manifest.json'
     if not path.is_dir():
         raise ModelError(f'model directory {path} '
@@ -211,7 +212,8 @@ def _read_manifest(path):
     if not mf.is_file():
         raise ModelError(f'{mf} is missing: not a beo_ros model directory')
     try:
-        manifest = json.loads(mf.read_text())
+        text = mf.read_text()
+        manifest = json.loads(text)
     except (OSError, ValueError, RecursionError) as e:
         # ValueError: JSONDecodeError, UnicodeDecodeError, integers of over 4300 digits;
         # RecursionError: arrays nested thousands deep
@@ -224,7 +226,7 @@ def _read_manifest(path):
     if not isinstance(manifest.get('grid'), dict):
         raise ModelError(f'{mf}: grid must be an object (size, units, ...), got '
                          f'{manifest.get("grid")!r}')
-    return mf, manifest
+    return mf, manifest, text
 
 
 def _manifest_layout(path, mf, manifest):
@@ -260,29 +262,38 @@ def _manifest_layout(path, mf, manifest):
     return spec, classes, files
 
 
-def _check_checksums(path, files):
-    """ModelError unless every file of ``files`` (name -> sha256) is in directory ``path``
-    with that checksum."""
+def _read_checked(path, files):
+    """dict file name -> bytes of every file of ``files`` (name -> sha256) in directory
+    ``path``; ModelError unless each is there with that checksum. The readers parse these
+    bytes, not the files again: what is loaded is what was checked, also when a save replaces
+    the directory meanwhile (it was read as checked, then parsed from the new files)."""
+    data = {}
     for fn, digest in files.items():
         fp = path / fn
-        if not fp.is_file():
+        try:
+            data[fn] = fp.read_bytes() if fp.is_file() else None
+        except OSError:   # removed since (a save replacing the directory)
+            data[fn] = None
+        if data[fn] is None:
             raise ModelError(f'{fp} is listed in the manifest but missing')
-        if _sha256(fp) != digest:
+        if hashlib.sha256(data[fn]).hexdigest() != digest:
             raise ModelError(f'{fp} is corrupt: checksum does not match the manifest')
+    return data
 
 
-def _load_class_models(path, files, classes, spec):
+def _load_class_models(path, data, classes, spec):
     """The ClassModel (float32) of every class name of ``classes``, in order, from its
-    ``class_XX_<name>.npz`` in directory ``path``; ModelError when the file is not listed in
-    ``files``, unreadable, lacks an array or its arrays do not fit the grid ``spec``."""
+    ``class_XX_<name>.npz`` of directory ``path`` in ``data`` (file name -> checked bytes, see
+    :func:`_read_checked`); ModelError when the file is not listed in the manifest,
+    unreadable, lacks an array or its arrays do not fit the grid ``spec``."""
     models = []
     d = spec.size ** 3
     for i, name in enumerate(classes):
         fp = path / f'class_{i:02d}_{name}.npz'
-        if fp.name not in files:
+        if fp.name not in data:
             raise ModelError(f'{fp} for class {name!r} is not listed in the manifest')
         try:
-            with _load_npz(fp) as z:
+            with _load_npz(io.BytesIO(data[fp.name])) as z:
                 arr = {k: z[k] for k in CLASS_KEYS}
                 arr.update({k: z[k] for k in OPTIONAL_CLASS_KEYS if k in z.files})
         except KeyError as e:
@@ -316,15 +327,16 @@ def _load_class_models(path, files, classes, spec):
     return models
 
 
-def _load_classifier(path, files, n_classes):
+def _load_classifier(path, data, n_classes):
     """The classifier dict mode -> arrays of model directory ``path`` for ``n_classes``
-    classes, or None when ``files`` does not list classifier.npz; ModelError when it is
-    unreadable or a mode is unknown or does not fit (see :func:`_check_grid_classifier`)."""
-    if 'classifier.npz' not in files:
+    classes, or None when ``data`` (file name -> checked bytes, see :func:`_read_checked`)
+    does not hold classifier.npz; ModelError when it is unreadable or a mode is unknown or
+    does not fit (see :func:`_check_grid_classifier`)."""
+    if 'classifier.npz' not in data:
         return None
     fp = path / 'classifier.npz'
     try:
-        with _load_npz(fp) as z:
+        with _load_npz(io.BytesIO(data['classifier.npz'])) as z:
             arrays = {k: z[k] for k in z.files}
     except _UNREADABLE_MODEL as e:
         raise ModelError(f'{fp}: unreadable: {type(e).__name__}: {e}') from None
