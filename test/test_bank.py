@@ -1465,11 +1465,35 @@ def test_binary_classifier_probabilities_are_the_regressions():
 
 def test_two_class_model_with_row_standardized_classifier_is_refused(clf_bank, tmp_path):
     bank, _, _ = clf_bank
-    path = bank.save(tmp_path / 'two')
     clf = {mode: dict(c, row_standardize=np.asarray(True)) for mode, c in bank.classifier.items()}
-    ModelBank(bank.models, bank.spec, clf, bank.training).save(path)
-    with pytest.raises(ModelError, match='at least 3 classes'):
+    with pytest.raises(ModelError, match="model bank: classifier 'complete' .*at least 3 classes"):
+        ModelBank(bank.models, bank.spec, clf, bank.training)
+    path = bank.save(tmp_path / 'two')
+    _rewrite_npz(path, 'classifier.npz', partial__row_standardize=np.asarray(True))
+    with pytest.raises(ModelError, match="classifier 'partial' .*at least 3 classes"):
         ModelBank.load(path)
+
+
+@pytest.mark.parametrize('change, msg', [
+    (dict(coef=lambda c: c[:, :3]), "'coef' has shape"),   # estimate: numpy's matmul error
+    (dict(descriptors=lambda c: np.asarray('no')), "'descriptors' must be true or false"),
+    (dict(mean=None), "no 'mean'"),
+    (dict(scale=lambda c: np.zeros_like(c)), "'scale' must be positive"),
+])
+def test_constructor_refuses_the_grid_classifiers_that_load_refuses(clf_bank, tmp_path, change,
+                                                                    msg):
+    # the bank was built, then save wrote a directory that load refused
+    bank, _, _ = clf_bank
+    clf = {mode: dict(c) for mode, c in bank.classifier.items()}
+    for k, f in change.items():
+        if f is None:
+            del clf['partial'][k]
+        else:
+            clf['partial'][k] = f(clf['partial'][k])
+    with pytest.raises(ModelError, match=f"model bank: classifier 'partial'.*{msg}"):
+        ModelBank(bank.models, bank.spec, clf, bank.training)
+    with pytest.raises(ModelError, match="classifier 'partial' must be a dict"):
+        ModelBank(bank.models, bank.spec, dict(clf, partial=[1.0]), bank.training)
 
 
 def test_full_resolution_refinement_sharpens_the_yaw(pose_case):

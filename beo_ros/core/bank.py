@@ -20,9 +20,9 @@ from .calibration import OccupancyCalibration, check_arrays as check_calibration
 from .class_model import ClassModel, ModelError, coarse_noise
 from .classifier import (CLASS_PRIORS, HIDDEN_CLASSIFIER_KEYS, MODES, OPTIONAL_CLASSIFIER_KEYS,
                          POINT_CLASSIFIER_KEYS, POINTS_MODE, _softmax, apply_point_classifier,
-                         check_classifier_arrays, check_point_classifier, classifier_input,
-                         classifier_probabilities, descriptor_count, parse_class_prior,
-                         prior_offset, resolve_class_prior, uses_descriptors)
+                         check_classifier_arrays, check_grid_classifier, check_point_classifier,
+                         classifier_input, classifier_probabilities, descriptor_count,
+                         parse_class_prior, prior_offset, resolve_class_prior, uses_descriptors)
 from .estimate import UNKNOWN_LABEL, Estimate, Hypothesis
 from .grid import (GridSpec, _real, symmetric_turns, unit_vector, wrap_yaw as _wrap, yaw_grid,
                    yaw_matrix)
@@ -46,7 +46,8 @@ __all__ = [
     # classifier
     'CLASS_PRIORS', 'HIDDEN_CLASSIFIER_KEYS', 'MODES', 'OPTIONAL_CLASSIFIER_KEYS',
     'POINT_CLASSIFIER_KEYS', 'POINTS_MODE', 'apply_point_classifier', 'check_classifier_arrays',
-    'check_point_classifier', 'classifier_input', 'classifier_probabilities', 'descriptor_count',
+    'check_grid_classifier', 'check_point_classifier', 'classifier_input',
+    'classifier_probabilities', 'descriptor_count',
     'parse_class_prior', 'prior_offset', 'resolve_class_prior', 'uses_descriptors',
     # model_files
     'CLASS_KEYS', 'FORMAT', 'OPTIONAL_CLASS_KEYS', 'OPTIONAL_FILES', 'UNREADABLE', 'VERSION',
@@ -115,8 +116,13 @@ class ModelBank:
         if unknown:
             raise ModelError(f'unknown classifier mode(s) {unknown} (known: '
                              f'{", ".join(MODES + (POINTS_MODE,))})')
-        if classifier and POINTS_MODE in classifier:
-            check_point_classifier(classifier[POINTS_MODE], len(models))
+        for mode, clf in (classifier or {}).items():
+            # as load checks them: save wrote what load refused, estimate raised numpy's
+            # errors or used a row standardisation of two classes
+            if mode == POINTS_MODE:
+                check_point_classifier(clf, len(models))
+            else:
+                check_grid_classifier(clf, mode, len(models), 'model bank')
         self.models = list(models)
         self.spec = spec
         self.classifier = classifier

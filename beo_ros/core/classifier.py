@@ -186,6 +186,36 @@ def classifier_probabilities(clf, Z, loglik, offset=None):
     return p, unknown
 
 
+def check_grid_classifier(clf, mode, n_classes, where='classifier'):
+    """Raise ModelError (naming ``where``) unless ``clf`` is a grid classifier of a known
+    ``mode`` whose arrays fit ``n_classes`` classes' features and its shape descriptors, and
+    whose row standardisation, if any, has the 3 classes it needs."""
+    if mode not in MODES:
+        raise ModelError(f'{where}: unknown classifier {mode!r} (known: '
+                         f'{", ".join(MODES + (POINTS_MODE,))})')
+    if not isinstance(clf, dict):
+        raise ModelError(f'{where}: classifier {mode!r} must be a dict of arrays')
+    # the flags are read with bool(): a (2,) array raised a bare ValueError, 'no' was True
+    for flag in ('row_standardize', 'descriptors'):
+        a = np.asarray(clf.get(flag, False))
+        if a.shape != () or not (a.dtype == bool or (np.issubdtype(a.dtype, np.integer)
+                                                     and int(a) in (0, 1))):
+            raise ModelError(f'{where}: classifier {mode!r}: {flag!r} must be true or false, '
+                             f'got {a!r}')
+    try:
+        n_d = descriptor_count(clf)
+    except ModelError as e:
+        raise ModelError(f'{where}: classifier {mode!r}: {e}') from None
+    nf = len(FEATURE_NAMES) * n_classes + n_d
+    extra = f' + {n_d} shape descriptors' if n_d else ''
+    check_classifier_arrays(clf, n_classes, nf, f'{where}: classifier {mode!r}',
+                            f'{n_classes} classes x {len(FEATURE_NAMES)} '
+                            f'features{extra}')
+    if bool(clf.get('row_standardize', False)) and n_classes < 3:
+        raise ModelError(f'{where}: classifier {mode!r} standardises features across '
+                         f'classes, which needs at least 3 classes')
+
+
 def check_point_classifier(clf, n_classes, where='classifier'):
     """Raise ModelError unless ``clf`` is a usable 'points' classifier for ``n_classes``:
     mean, scale (C+2,), coef (C, C+2), intercept (C,), unknown_threshold (C,), all finite

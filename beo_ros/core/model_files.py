@@ -31,8 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from .class_model import ClassModel, ModelError
-from .classifier import (MODES, POINTS_MODE, check_classifier_arrays, check_point_classifier,
-                         descriptor_count)
+from .classifier import POINTS_MODE, check_grid_classifier, check_point_classifier
 from .grid import GridSpec
 from .inference import FEATURE_NAMES
 
@@ -331,7 +330,7 @@ def _load_classifier(path, data, n_classes):
     """The classifier dict mode -> arrays of model directory ``path`` for ``n_classes``
     classes, or None when ``data`` (file name -> checked bytes, see :func:`_read_checked`)
     does not hold classifier.npz; ModelError when it is unreadable or a mode is unknown or
-    does not fit (see :func:`_check_grid_classifier`)."""
+    does not fit (see :func:`check_grid_classifier`)."""
     if 'classifier.npz' not in data:
         return None
     fp = path / 'classifier.npz'
@@ -350,36 +349,8 @@ def _load_classifier(path, data, n_classes):
         if mode == POINTS_MODE:
             check_point_classifier(clf, n_classes, str(fp))
         else:
-            _check_grid_classifier(clf, mode, n_classes, fp)
+            check_grid_classifier(clf, mode, n_classes, str(fp))
     return classifier
-
-
-def _check_grid_classifier(clf, mode, n_classes, fp):
-    """ModelError (naming file ``fp``) unless ``clf`` is a grid classifier of a known ``mode``
-    whose arrays fit ``n_classes`` classes' features and its shape descriptors, and whose row
-    standardisation, if any, has the 3 classes it needs."""
-    if mode not in MODES:
-        raise ModelError(f'{fp}: unknown classifier {mode!r} (known: '
-                         f'{", ".join(MODES + (POINTS_MODE,))})')
-    # the flags are read with bool(): a (2,) array raised a bare ValueError, 'no' was True
-    for flag in ('row_standardize', 'descriptors'):
-        a = np.asarray(clf.get(flag, False))
-        if a.shape != () or not (a.dtype == bool or (np.issubdtype(a.dtype, np.integer)
-                                                     and int(a) in (0, 1))):
-            raise ModelError(f'{fp}: classifier {mode!r}: {flag!r} must be true or false, got '
-                             f'{a!r}')
-    try:
-        n_d = descriptor_count(clf)
-    except ModelError as e:
-        raise ModelError(f'{fp}: classifier {mode!r}: {e}') from None
-    nf = len(FEATURE_NAMES) * n_classes + n_d
-    extra = f' + {n_d} shape descriptors' if n_d else ''
-    check_classifier_arrays(clf, n_classes, nf, f'{fp}: classifier {mode!r}',
-                            f'{n_classes} classes x {len(FEATURE_NAMES)} '
-                            f'features{extra}')
-    if bool(clf.get('row_standardize', False)) and n_classes < 3:
-        raise ModelError(f'{fp}: classifier {mode!r} standardises features across '
-                         f'classes, which needs at least 3 classes')
 
 
 def _check_manifest_settings(mf, manifest):
