@@ -1496,6 +1496,13 @@ def test_constructor_refuses_the_grid_classifiers_that_load_refuses(clf_bank, tm
         ModelBank(bank.models, bank.spec, dict(clf, partial=[1.0]), bank.training)
 
 
+def test_constructor_refuses_unexpected_grid_classifier_arrays(clf_bank):
+    bank, _, _ = clf_bank
+    clf = dict(bank.classifier, partial=dict(bank.classifier['partial'], descriptor=True))
+    with pytest.raises(ModelError, match=r"'partial' has unexpected arrays \['descriptor'\]"):
+        ModelBank(bank.models, bank.spec, clf, bank.training)
+
+
 def test_full_resolution_refinement_sharpens_the_yaw(pose_case):
     # estimate() re-solves the chosen class exactly at full resolution within +-3 deg of the
     # pooled optimum; on these asymmetric shapes that must beat the pooled search (measured:
@@ -1863,6 +1870,9 @@ def _rewrite_npz(path, fn, **change):
     # timedelta64, a number to numpy: loaded, then estimate raised UFuncTypeError
     (dict(complete__intercept=np.zeros(3, 'm8[s]')), "'intercept' has shape .*expected numbers"),
     (dict(complete__class_counts=np.ones(3, 'm8[s]')), 'class_counts must be 3 finite counts'),
+    # a misspelt array was ignored without a word (the 'points' classifier refused it)
+    (dict(complete__row_standardise=np.asarray(True)),
+     r"classifier 'complete' has unexpected arrays \['row_standardise'\]"),
 ])
 def test_bad_grid_classifier_arrays_are_refused_on_load(tmp_path, change, msg):
     bank, _ = _prior_bank()

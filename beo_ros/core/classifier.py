@@ -22,6 +22,8 @@ POINT_CLASSIFIER_KEYS = ('mean', 'scale', 'coef', 'intercept', 'unknown_threshol
 OPTIONAL_CLASSIFIER_KEYS = ('class_counts',)
 # a grid classifier's optional hidden layer (classifier_training.fit_mlp): both arrays or neither
 HIDDEN_CLASSIFIER_KEYS = ('hidden_coef', 'hidden_intercept')
+# a grid classifier's optional input settings (see classifier_input and descriptor_count)
+GRID_INPUT_KEYS = ('row_standardize', 'descriptors', 'descriptor_count')
 # named class priors: 'train' keeps the classifier's own probabilities (its training rows'
 # class frequencies are its prior); 'uniform' treats every class as equally likely a priori
 CLASS_PRIORS = ('train', 'uniform')
@@ -214,6 +216,11 @@ def check_grid_classifier(clf, mode, n_classes, where='classifier'):
     if bool(clf.get('row_standardize', False)) and n_classes < 3:
         raise ModelError(f'{where}: classifier {mode!r} standardises features across '
                          f'classes, which needs at least 3 classes')
+    # as the 'points' classifier's: a misspelt 'row_standardise' was ignored without a word
+    unexpected = sorted(set(clf) - set(POINT_CLASSIFIER_KEYS) - set(OPTIONAL_CLASSIFIER_KEYS)
+                        - set(HIDDEN_CLASSIFIER_KEYS) - set(GRID_INPUT_KEYS), key=str)
+    if unexpected:
+        raise ModelError(f'{where}: classifier {mode!r} has unexpected arrays {unexpected}')
 
 
 def check_point_classifier(clf, n_classes, where='classifier'):
