@@ -68,6 +68,21 @@ def test_save_load_round_trip_gives_identical_estimates(tiny_dir, tiny, tmp_path
     assert m1['files'] == m2['files']
 
 
+@pytest.mark.parametrize('name', ['.', 'sub/..'])
+def test_save_to_dot_replaces_the_directory_it_names(tmp_path, monkeypatch, name):
+    # was OSError 'Device or resource busy' (os.replace of '.'), e.g. beo-train -o . after
+    # training in an empty directory
+    bank = make_tiny_bank(n=8, k=2)
+    (tmp_path / 'm').mkdir()
+    if name == 'sub/..':
+        bank.save(tmp_path / 'm')   # a model: replaced as a whole
+        (tmp_path / 'm' / 'sub').mkdir()
+    monkeypatch.chdir(tmp_path / 'm')
+    assert bank.save(name) == tmp_path / 'm'
+    assert ModelBank.load(tmp_path / 'm').classes == bank.classes
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['m']
+
+
 def test_save_writes_numpy_scalars_of_the_training_settings(tiny, tmp_path):
     # fit_bank(k=np.int64(20)) records k in ``training``: json.dumps refused the manifest
     bank = ModelBank(tiny.models, tiny.spec, tiny.classifier,

@@ -223,7 +223,9 @@ class ModelBank:
         on any failure (or Ctrl-C) it is removed and a model already at ``path`` is kept."""
         check_class_names(self.classes, 'cannot save the model')
         path = Path(path)
-        if path.is_symlink() and path.is_dir():   # replace the directory, keep the link
+        # replace the directory, keep the link; '.' and '..' cannot be renamed (an OSError
+        # 'Device or resource busy' after training): the directory they name is
+        if path.is_symlink() and path.is_dir() or path.name in ('', '..'):
             path = path.resolve()
         check_save_target(path)
         path.parent.mkdir(parents=True, exist_ok=True)
