@@ -2150,6 +2150,18 @@ def test_occupancy_variance_is_none_without_a_completion(tiny):
     assert e.occupancy_variance is None
 
 
+def test_model_dir_of_an_unknown_user_is_named_as_missing():
+    # Path.expanduser raised RuntimeError 'Could not determine home directory.': the node
+    # died at start (not a StartupError) and on a set of model_dir
+    import pwd
+    from beo_ros.core.bank import resolve_model_dir
+    with pytest.raises(KeyError):
+        pwd.getpwnam('no_such_beo_user')
+    assert resolve_model_dir('~no_such_beo_user/m') == Path('~no_such_beo_user/m')
+    with pytest.raises(ModelError, match='~no_such_beo_user/m does not exist'):
+        load_models('~no_such_beo_user/m')
+
+
 def test_load_models_takes_a_shipped_models_name(tmp_path, monkeypatch):
     from beo_ros.core.bank import default_model_dir, resolve_model_dir, shipped_models
     assert {'modelnet10_32', 'tabletop_32'} <= set(shipped_models())

@@ -956,7 +956,10 @@ def resolve_model_dir(text) -> Path:
     (loading it then names it as missing)."""
     if not text:
         return default_model_dir()
-    path = Path(text).expanduser()
+    try:
+        path = Path(text).expanduser()
+    except RuntimeError:   # '~user' of no such user: as given (the node crashed on it)
+        return Path(text)
     if path.exists() or len(path.parts) != 1 or str(text).startswith(('.', '~')):
         return path
     shipped = default_model_dir(str(text))
