@@ -1835,6 +1835,23 @@ def test_a_class_name_too_long_for_a_file_name_is_refused(tmp_path, tiny_dir):
     assert ModelBank.load(bank.save(tmp_path / 'new')).classes[0] == '\u00e9' * 100
 
 
+def test_a_class_name_the_file_system_cannot_encode_is_refused(tmp_path, tiny_dir):
+    # a lone surrogate: save raised UnicodeEncodeError, a manifest naming it made load raise it
+    bank = ModelBank.load(tiny_dir)
+    bank.models[0].name = 'box\ud800'
+    with pytest.raises(ModelError, match='file system can encode'):
+        bank.save(tmp_path / 'new')
+    p = _copy(tiny_dir, tmp_path)
+    m = _manifest(p)
+    m['classes'][0] = 'box\ud800'
+    m['files']['class_00_box\ud800.npz'] = m['files'].pop('class_00_box.npz')
+    _write_manifest(p, m)
+    with pytest.raises(ModelError, match='manifest.json: class names must be text the file'):
+        ModelBank.load(p)
+    bank.models[0].name = 'box\udc80'   # undecodable bytes of a file name: fine
+    assert ModelBank.load(bank.save(tmp_path / 'ok')).classes[0] == 'box\udc80'
+
+
 def test_class_names_must_be_distinct(tmp_path, tiny_dir):
     tiny = make_tiny_bank(n=8, k=2)
     with pytest.raises(ModelError, match='unique'):

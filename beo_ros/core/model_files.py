@@ -24,6 +24,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import os
 import zipfile
 import zlib
 from pathlib import Path
@@ -46,13 +47,18 @@ MAX_NAME_BYTES = 200   # 'class_XXX_' + name + '.npz' within a file name's 255 b
 
 def class_name_problem(name):
     """Why ``name`` cannot be a class name ('' when it can): a class is saved as the file
-    ``class_XX_<name>.npz``, so a name must be a non-empty string without '/', '\\' or NUL,
-    not '.' or '..', without leading or trailing whitespace and at most ``MAX_NAME_BYTES``
-    long in UTF-8 (the file name within the 255 bytes file systems allow)."""
+    ``class_XX_<name>.npz``, so a name must be a non-empty string without '/', '\\' or NUL
+    that the file system encoding can encode (no lone surrogate), not '.' or '..', without
+    leading or trailing whitespace and at most ``MAX_NAME_BYTES`` long in UTF-8 (the file name
+    within the 255 bytes file systems allow)."""
     if not isinstance(name, str) or not name:
         return 'class names must be non-empty strings'
     if any(c in name for c in '/\\\0'):
         return "class names cannot contain '/', '\\' or NUL (they name files)"
+    try:
+        os.fsencode(name)
+    except UnicodeEncodeError:   # a lone surrogate: save failed after training, load too
+        return 'class names must be text the file system can encode (they name files)'
     if name in ('.', '..'):
         return "class names cannot be '.' or '..'"
     if name != name.strip():
