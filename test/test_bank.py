@@ -991,6 +991,47 @@ def test_load_during_a_save_of_the_directory_reads_it_again(tmp_path, monkeypatc
     np.testing.assert_array_equal(bank.models[0].W, new.models[0].W)
 
 
+def test_load_during_two_saves_that_restore_the_manifest_reads_it_again(tmp_path, monkeypatch):
+    # the new model is saved as the load checks the files (the old manifest's checksums fail),
+    # then the old one again: the manifest text is the one read, the directory is not
+    import beo_ros.core.bank as bank_mod
+    old, new, path = _pair(tmp_path)
+    _racing_save(monkeypatch, '_manifest_layout', [new], path)
+    orig, calls = bank_mod._read_manifest, []
+
+    def read_manifest(p):
+        calls.append(p)
+        if len(calls) == 2:   # after the failure
+            old.save(path)
+        return orig(p)
+    monkeypatch.setattr(bank_mod, '_read_manifest', read_manifest)
+    bank = ModelBank.load(path)   # was: 'class_00_box.npz is corrupt'
+    np.testing.assert_array_equal(bank.models[0].W, old.models[0].W)
+
+
+def test_load_that_finds_no_directory_between_the_renames_of_a_save_reads_it_again(
+        tmp_path, monkeypatch):
+    # was 'model directory ... does not exist' for a directory that a save was replacing
+    import beo_ros.core.bank as bank_mod
+    old, new, path = _pair(tmp_path)
+    orig, calls = bank_mod._read_manifest, []
+
+    def read_manifest(p):
+        calls.append(p)
+        if len(calls) == 1:   # the first rename of a save has just moved the old model away
+            path.rename(tmp_path / 'old')
+            try:
+                return orig(p)
+            finally:
+                new.save(path)   # the second one
+        return orig(p)
+    monkeypatch.setattr(bank_mod, '_read_manifest', read_manifest)
+    assert ModelBank.load(path).training == {'which': 'new'} and len(calls) == 2
+    with pytest.raises(ModelError, match='does not exist'):   # no directory: no retry
+        ModelBank.load(tmp_path / 'none')
+    assert len(calls) == 3
+
+
 def test_load_of_a_directory_saved_over_and_over_says_so(tmp_path, monkeypatch):
     from beo_ros.core.bank import LOAD_ATTEMPTS
     old, new, path = _pair(tmp_path)

@@ -297,18 +297,24 @@ class ModelBank:
 
         A save of the same directory (see :meth:`save`) while it is read is not a mix: every
         file is parsed from the bytes checked against the manifest read; when the check
-        fails and the manifest has changed since, the directory is read again (up to
+        fails and the directory (or its manifest) has changed since, it is read again (up to
         ``LOAD_ATTEMPTS`` times)."""
         path = Path(path)
         for attempt in range(1, LOAD_ATTEMPTS + 1):
-            mf, manifest, text = _read_manifest(path)
+            before, text = _dir_identity(path), None
             try:
+                mf, manifest, text = _read_manifest(path)
                 return cls._load(path, mf, manifest, class_prior)
             except ModelError as e:
-                try:
-                    replaced = _read_manifest(path)[2] != text
-                except ModelError:   # between the two renames of a save: no directory
-                    replaced = True
+                # another directory now (a save renamed its own into place; the same
+                # manifest text does not tell: a model saved again writes the same one), or
+                # none (between the two renames of a save), or another manifest
+                replaced = _dir_identity(path) != before
+                if not replaced and text is not None:
+                    try:
+                        replaced = _read_manifest(path)[2] != text
+                    except ModelError:
+                        replaced = True
                 if not replaced:
                     raise
                 if attempt == LOAD_ATTEMPTS:
@@ -792,6 +798,16 @@ class ModelBank:
             est.timings['point_descriptors'] = t2 - t1
         est.timings['total'] = time.perf_counter() - t0
         return est
+
+
+def _dir_identity(path):
+    """(device, inode, ctime) of directory ``path`` (followed if a link), None when there is
+    none: a save that replaces it changes it."""
+    try:
+        st = os.stat(path)
+    except (OSError, ValueError):
+        return None
+    return st.st_dev, st.st_ino, st.st_ctime_ns
 
 
 def _json_value(value):
