@@ -29,9 +29,9 @@ from .grid import (GridSpec, _real, symmetric_turns, unit_vector, wrap_yaw as _w
 from .inference import FEATURE_NAMES, InferenceEngine, observed_edt, top_modes, top_yaw_modes
 from .model_files import (CLASS_KEYS, FORMAT, OPTIONAL_CLASS_KEYS, OPTIONAL_FILES, UNREADABLE,
                           VERSION, _check_manifest_settings, _load_class_models,
-                          _load_classifier, _manifest_layout, _optional_arrays, _read_checked, _read_manifest,
-                          _settings_reason, _sha256, check_class_arrays, check_class_names,
-                          check_save_target, class_name_problem, is_model_dir)
+                          _load_classifier, _manifest_layout, _optional_arrays, _read_checked,
+                          _read_manifest, _settings_reason, _sha256, check_class_arrays,
+                          check_class_names, check_save_target, class_name_problem, is_model_dir)
 from .outliers import OUTLIER_MADS, OUTLIER_NEIGHBORS, clean_points
 from .shape import shape_descriptors
 from .verifier import TURNS, OrientationVerifier, check_arrays, quarter_turned_features
