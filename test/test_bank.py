@@ -68,6 +68,21 @@ def test_save_load_round_trip_gives_identical_estimates(tiny_dir, tiny, tmp_path
     assert m1['files'] == m2['files']
 
 
+@pytest.mark.parametrize('name', ['.', 'sub/..'])
+def test_save_to_dot_replaces_the_directory_it_names(tmp_path, monkeypatch, name):
+    # was OSError 'Device or resource busy' (os.replace of '.'), e.g. beo-train -o . after
+    # training in an empty directory
+    bank = make_tiny_bank(n=8, k=2)
+    (tmp_path / 'm').mkdir()
+    if name == 'sub/..':
+        bank.save(tmp_path / 'm')   # a model: replaced as a whole
+        (tmp_path / 'm' / 'sub').mkdir()
+    monkeypatch.chdir(tmp_path / 'm')
+    assert bank.save(name) == tmp_path / 'm'
+    assert ModelBank.load(tmp_path / 'm').classes == bank.classes
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['m']
+
+
 def test_save_writes_numpy_scalars_of_the_training_settings(tiny, tmp_path):
     # fit_bank(k=np.int64(20)) records k in ``training``: json.dumps refused the manifest
     bank = ModelBank(tiny.models, tiny.spec, tiny.classifier,
@@ -934,6 +949,99 @@ def test_load_refuses_an_optional_part_present_but_not_listed(tmp_path, tiny_dir
         ModelBank.load(p)
 
 
+def _racing_save(monkeypatch, hook, banks, path, times=1):
+    """Make ModelBank.load save the next bank of ``banks`` (in turn) to ``path`` as it enters
+    its ``hook`` (the first ``times`` times): a save of the directory it reads, in the middle
+    of the read."""
+    import beo_ros.core.bank as bank_mod
+    orig, saves = getattr(bank_mod, hook), []
+
+    def racing(*args):
+        if len(saves) < times:
+            saves.append(banks[len(saves) % len(banks)].save(path))
+        return orig(*args)
+    monkeypatch.setattr(bank_mod, hook, racing)
+    return saves
+
+
+def _pair(tmp_path):
+    old = make_tiny_bank(tmp_path / 'm', n=8, k=2, seed=0)
+    new = make_tiny_bank(n=8, k=2, seed=1)
+    new.training = {'which': 'new'}
+    return old, new, tmp_path / 'm'
+
+
+def test_load_during_a_save_of_the_directory_loads_no_mix(tmp_path, monkeypatch):
+    # the old manifest with the new class files loaded without a word (the checksums were
+    # checked on the old files, the arrays read from the new ones)
+    old, new, path = _pair(tmp_path)
+    _racing_save(monkeypatch, '_load_class_models', [new], path)
+    bank = ModelBank.load(path)
+    W_new = np.array_equal(bank.models[0].W, new.models[0].W)
+    assert W_new == (bank.training == {'which': 'new'}), (W_new, bank.training)
+    np.testing.assert_array_equal(bank.models[1].W, (new if W_new else old).models[1].W)
+
+
+def test_load_during_a_save_of_the_directory_reads_it_again(tmp_path, monkeypatch):
+    # was '.../class_00_box.npz is corrupt: checksum does not match the manifest'
+    old, new, path = _pair(tmp_path)
+    saves = _racing_save(monkeypatch, '_manifest_layout', [new], path)
+    bank = ModelBank.load(path)
+    assert saves and bank.training == {'which': 'new'}
+    np.testing.assert_array_equal(bank.models[0].W, new.models[0].W)
+
+
+def test_load_during_two_saves_that_restore_the_manifest_reads_it_again(tmp_path, monkeypatch):
+    # the new model is saved as the load checks the files (the old manifest's checksums fail),
+    # then the old one again: the manifest text is the one read, the directory is not
+    import beo_ros.core.bank as bank_mod
+    old, new, path = _pair(tmp_path)
+    _racing_save(monkeypatch, '_manifest_layout', [new], path)
+    orig, calls = bank_mod._read_manifest, []
+
+    def read_manifest(p):
+        calls.append(p)
+        if len(calls) == 2:   # after the failure
+            old.save(path)
+        return orig(p)
+    monkeypatch.setattr(bank_mod, '_read_manifest', read_manifest)
+    bank = ModelBank.load(path)   # was: 'class_00_box.npz is corrupt'
+    np.testing.assert_array_equal(bank.models[0].W, old.models[0].W)
+
+
+def test_load_that_finds_no_directory_between_the_renames_of_a_save_reads_it_again(
+        tmp_path, monkeypatch):
+    # was 'model directory ... does not exist' for a directory that a save was replacing
+    import beo_ros.core.bank as bank_mod
+    old, new, path = _pair(tmp_path)
+    orig, calls = bank_mod._read_manifest, []
+
+    def read_manifest(p):
+        calls.append(p)
+        if len(calls) == 1:   # the first rename of a save has just moved the old model away
+            path.rename(tmp_path / 'old')
+            try:
+                return orig(p)
+            finally:
+                new.save(path)   # the second one
+        return orig(p)
+    monkeypatch.setattr(bank_mod, '_read_manifest', read_manifest)
+    assert ModelBank.load(path).training == {'which': 'new'} and len(calls) == 2
+    with pytest.raises(ModelError, match='does not exist'):   # no directory: no retry
+        ModelBank.load(tmp_path / 'none')
+    assert len(calls) == 3
+
+
+def test_load_of_a_directory_saved_over_and_over_says_so(tmp_path, monkeypatch):
+    from beo_ros.core.bank import LOAD_ATTEMPTS
+    old, new, path = _pair(tmp_path)
+    saves = _racing_save(monkeypatch, '_manifest_layout', [new, old], path, times=10)
+    with pytest.raises(ModelError, match=f'corrupt.*was replaced while it was read, '
+                                         f'{LOAD_ATTEMPTS} times'):
+        ModelBank.load(path)
+    assert len(saves) == LOAD_ATTEMPTS
+
+
 # ---------------------------------------------------------------------- the point-cloud path
 def test_estimate_points_pose_and_points(tiny):
     occ = tiny.models[0].mean.reshape((N,) * 3) > 0.5
@@ -1413,11 +1521,42 @@ def test_binary_classifier_probabilities_are_the_regressions():
 
 def test_two_class_model_with_row_standardized_classifier_is_refused(clf_bank, tmp_path):
     bank, _, _ = clf_bank
-    path = bank.save(tmp_path / 'two')
     clf = {mode: dict(c, row_standardize=np.asarray(True)) for mode, c in bank.classifier.items()}
-    ModelBank(bank.models, bank.spec, clf, bank.training).save(path)
-    with pytest.raises(ModelError, match='at least 3 classes'):
+    with pytest.raises(ModelError, match="model bank: classifier 'complete' .*at least 3 classes"):
+        ModelBank(bank.models, bank.spec, clf, bank.training)
+    path = bank.save(tmp_path / 'two')
+    _rewrite_npz(path, 'classifier.npz', partial__row_standardize=np.asarray(True))
+    with pytest.raises(ModelError, match="classifier 'partial' .*at least 3 classes"):
         ModelBank.load(path)
+
+
+@pytest.mark.parametrize('change, msg', [
+    (dict(coef=lambda c: c[:, :3]), "'coef' has shape"),   # estimate: numpy's matmul error
+    (dict(descriptors=lambda c: np.asarray('no')), "'descriptors' must be true or false"),
+    (dict(mean=None), "no 'mean'"),
+    (dict(scale=lambda c: np.zeros_like(c)), "'scale' must be positive"),
+])
+def test_constructor_refuses_the_grid_classifiers_that_load_refuses(clf_bank, tmp_path, change,
+                                                                    msg):
+    # the bank was built, then save wrote a directory that load refused
+    bank, _, _ = clf_bank
+    clf = {mode: dict(c) for mode, c in bank.classifier.items()}
+    for k, f in change.items():
+        if f is None:
+            del clf['partial'][k]
+        else:
+            clf['partial'][k] = f(clf['partial'][k])
+    with pytest.raises(ModelError, match=f"model bank: classifier 'partial'.*{msg}"):
+        ModelBank(bank.models, bank.spec, clf, bank.training)
+    with pytest.raises(ModelError, match="classifier 'partial' must be a dict"):
+        ModelBank(bank.models, bank.spec, dict(clf, partial=[1.0]), bank.training)
+
+
+def test_constructor_refuses_unexpected_grid_classifier_arrays(clf_bank):
+    bank, _, _ = clf_bank
+    clf = dict(bank.classifier, partial=dict(bank.classifier['partial'], descriptor=True))
+    with pytest.raises(ModelError, match=r"'partial' has unexpected arrays \['descriptor'\]"):
+        ModelBank(bank.models, bank.spec, clf, bank.training)
 
 
 def test_full_resolution_refinement_sharpens_the_yaw(pose_case):
@@ -1737,6 +1876,23 @@ def test_a_class_name_too_long_for_a_file_name_is_refused(tmp_path, tiny_dir):
     assert ModelBank.load(bank.save(tmp_path / 'new')).classes[0] == '\u00e9' * 100
 
 
+def test_a_class_name_the_file_system_cannot_encode_is_refused(tmp_path, tiny_dir):
+    # a lone surrogate: save raised UnicodeEncodeError, a manifest naming it made load raise it
+    bank = ModelBank.load(tiny_dir)
+    bank.models[0].name = 'box\ud800'
+    with pytest.raises(ModelError, match='file system can encode'):
+        bank.save(tmp_path / 'new')
+    p = _copy(tiny_dir, tmp_path)
+    m = _manifest(p)
+    m['classes'][0] = 'box\ud800'
+    m['files']['class_00_box\ud800.npz'] = m['files'].pop('class_00_box.npz')
+    _write_manifest(p, m)
+    with pytest.raises(ModelError, match='manifest.json: class names must be text the file'):
+        ModelBank.load(p)
+    bank.models[0].name = 'box\udc80'   # undecodable bytes of a file name: fine
+    assert ModelBank.load(bank.save(tmp_path / 'ok')).classes[0] == 'box\udc80'
+
+
 def test_class_names_must_be_distinct(tmp_path, tiny_dir):
     tiny = make_tiny_bank(n=8, k=2)
     with pytest.raises(ModelError, match='unique'):
@@ -1787,6 +1943,9 @@ def _rewrite_npz(path, fn, **change):
     # timedelta64, a number to numpy: loaded, then estimate raised UFuncTypeError
     (dict(complete__intercept=np.zeros(3, 'm8[s]')), "'intercept' has shape .*expected numbers"),
     (dict(complete__class_counts=np.ones(3, 'm8[s]')), 'class_counts must be 3 finite counts'),
+    # a misspelt array was ignored without a word (the 'points' classifier refused it)
+    (dict(complete__row_standardise=np.asarray(True)),
+     r"classifier 'complete' has unexpected arrays \['row_standardise'\]"),
 ])
 def test_bad_grid_classifier_arrays_are_refused_on_load(tmp_path, change, msg):
     bank, _ = _prior_bank()
@@ -2047,6 +2206,18 @@ def test_occupancy_variance_is_none_without_a_completion(tiny):
     # what the node's worker processes send back: the grids are dropped
     e = dataclasses.replace(tiny.estimate(views()[0]), completion=None, variance=None)
     assert e.occupancy_variance is None
+
+
+def test_model_dir_of_an_unknown_user_is_named_as_missing():
+    # Path.expanduser raised RuntimeError 'Could not determine home directory.': the node
+    # died at start (not a StartupError) and on a set of model_dir
+    import pwd
+    from beo_ros.core.bank import resolve_model_dir
+    with pytest.raises(KeyError):
+        pwd.getpwnam('no_such_beo_user')
+    assert resolve_model_dir('~no_such_beo_user/m') == Path('~no_such_beo_user/m')
+    with pytest.raises(ModelError, match='~no_such_beo_user/m does not exist'):
+        load_models('~no_such_beo_user/m')
 
 
 def test_load_models_takes_a_shipped_models_name(tmp_path, monkeypatch):

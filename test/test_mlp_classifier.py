@@ -8,6 +8,7 @@ from beo_ros.core.inference import FEATURE_NAMES
 from beo_ros.core.synthetic import primitive_shapes
 from beo_ros.core.training import (MLP_ALPHA, MLP_HIDDEN, fit_bank, fit_mlp,
                                    select_classifier, train_classifier)
+from _models import save_with_classifier
 
 N = 16
 NF = len(FEATURE_NAMES)
@@ -106,7 +107,9 @@ def test_broken_hidden_layer_is_refused_on_load(net_bank, tmp_path, change, matc
     clf = {m: {k: np.array(v, copy=True) for k, v in c.items()}
            for m, c in bank.classifier.items()}
     change(clf['partial'])
-    path = ModelBank(bank.models, bank.spec, clf, bank.training).save(tmp_path / 'bad')
+    with pytest.raises(ModelError, match="model bank: classifier 'partial'.*" + match):
+        ModelBank(bank.models, bank.spec, clf, bank.training)
+    path = save_with_classifier(bank, clf, tmp_path / 'bad')
     with pytest.raises(ModelError, match=match):
         ModelBank.load(path)
 

@@ -1139,6 +1139,10 @@ def test_bad_model_dir_refuses_to_start(ros_context, tmp_path):
     with pytest.raises(StartupError, match='no_such_models'):
         BeoNode(context=ros_context,
                 parameter_overrides=[Parameter('model_dir', value=str(missing))])
+    # a home directory that cannot be found: was a RuntimeError from Path.expanduser
+    with pytest.raises(StartupError, match='~no_such_beo_user/m'):
+        BeoNode(context=ros_context,
+                parameter_overrides=[Parameter('model_dir', value='~no_such_beo_user/m')])
     corrupt = tmp_path / 'corrupt_models'
     corrupt.mkdir()
     (corrupt / 'bank.json').write_text('{not json')

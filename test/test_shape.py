@@ -6,6 +6,7 @@ from beo_ros.core.bank import ModelBank, ModelError, classifier_input, uses_desc
 from beo_ros.core.grid import rotate_grid
 from beo_ros.core.shape import DESCRIPTOR_NAMES, shape_descriptors
 from beo_ros.core.synthetic import partial_view, primitive_shapes
+from _models import save_with_classifier
 
 N = 16
 
@@ -76,8 +77,10 @@ def test_classifier_with_descriptors_is_trained_saved_checked_and_used(tmp_path)
         again.classify_features(f, 'partial')
     # a descriptor classifier whose weights do not fit is refused on load, naming the file
     bad = {m: dict(c, coef=np.asarray(c['coef'])[:, :12]) for m, c in again.classifier.items()}
-    path = ModelBank(again.models, again.spec, bad, again.training).save(tmp_path / 'bad')
-    with pytest.raises(ModelError, match='shape descriptors'):
+    with pytest.raises(ModelError, match='model bank: .*shape descriptors'):
+        ModelBank(again.models, again.spec, bad, again.training)
+    path = save_with_classifier(again, bad, tmp_path / 'bad')
+    with pytest.raises(ModelError, match='classifier.npz: .*shape descriptors'):
         ModelBank.load(path)
     with pytest.raises(ValueError, match='descriptors'):
         fit_bank(X, y, names, GridSpec(size=N), k=3, descriptors='yes')
@@ -130,8 +133,9 @@ def test_classifier_stores_its_descriptor_count_and_old_classifiers_take_the_fir
                                                         again._prior_offset(old))[0][0])
     for bad in (0, len(DESCRIPTOR_NAMES) + 1, 12.0, True):
         clf = dict(old, descriptor_count=np.asarray(bad))
-        p = ModelBank(bank.models, bank.spec, {'partial': clf}, bank.training).save(
-            tmp_path / f'bad{bad!r}')
+        with pytest.raises(ModelError, match='model bank: .*descriptor_count'):
+            ModelBank(bank.models, bank.spec, {'partial': clf}, bank.training)
+        p = save_with_classifier(bank, {'partial': clf}, tmp_path / f'bad{bad!r}')
         with pytest.raises(ModelError, match='descriptor_count'):
             ModelBank.load(p)
 

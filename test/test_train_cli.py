@@ -61,6 +61,7 @@ def leftovers(tmp_path):
     ('..', "cannot be '.' or '..'"),
     (' table', 'whitespace'),
     ('t' * 250, 'at most 200 bytes'),   # trained, then save failed: 'File name too long'
+    ('ta\ud800', 'file system can encode'),   # trained, then save raised UnicodeEncodeError
 ])
 def test_bad_class_names_refused_before_training(model, tmp_path, capsys, name, message):
     path, before = model

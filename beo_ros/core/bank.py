@@ -20,18 +20,18 @@ from .calibration import OccupancyCalibration, check_arrays as check_calibration
 from .class_model import ClassModel, ModelError, coarse_noise
 from .classifier import (CLASS_PRIORS, HIDDEN_CLASSIFIER_KEYS, MODES, OPTIONAL_CLASSIFIER_KEYS,
                          POINT_CLASSIFIER_KEYS, POINTS_MODE, _softmax, apply_point_classifier,
-                         check_classifier_arrays, check_point_classifier, classifier_input,
-                         classifier_probabilities, descriptor_count, parse_class_prior,
-                         prior_offset, resolve_class_prior, uses_descriptors)
+                         check_classifier_arrays, check_grid_classifier, check_point_classifier,
+                         classifier_input, classifier_probabilities, descriptor_count,
+                         parse_class_prior, prior_offset, resolve_class_prior, uses_descriptors)
 from .estimate import UNKNOWN_LABEL, Estimate, Hypothesis
 from .grid import (GridSpec, _real, symmetric_turns, unit_vector, wrap_yaw as _wrap, yaw_grid,
                    yaw_matrix)
 from .inference import FEATURE_NAMES, InferenceEngine, observed_edt, top_modes, top_yaw_modes
 from .model_files import (CLASS_KEYS, FORMAT, OPTIONAL_CLASS_KEYS, OPTIONAL_FILES, UNREADABLE,
-                          VERSION, _check_checksums, _check_manifest_settings, _load_class_models,
-                          _load_classifier, _manifest_layout, _optional_arrays, _read_manifest,
-                          _settings_reason, _sha256, check_class_arrays, check_class_names,
-                          check_save_target, class_name_problem, is_model_dir)
+                          VERSION, _check_manifest_settings, _load_class_models,
+                          _load_classifier, _manifest_layout, _optional_arrays, _read_checked,
+                          _read_manifest, _settings_reason, _sha256, check_class_arrays,
+                          check_class_names, check_save_target, class_name_problem, is_model_dir)
 from .outliers import OUTLIER_MADS, OUTLIER_NEIGHBORS, clean_points
 from .shape import shape_descriptors
 from .verifier import TURNS, OrientationVerifier, check_arrays, quarter_turned_features
@@ -46,7 +46,8 @@ __all__ = [
     # classifier
     'CLASS_PRIORS', 'HIDDEN_CLASSIFIER_KEYS', 'MODES', 'OPTIONAL_CLASSIFIER_KEYS',
     'POINT_CLASSIFIER_KEYS', 'POINTS_MODE', 'apply_point_classifier', 'check_classifier_arrays',
-    'check_point_classifier', 'classifier_input', 'classifier_probabilities', 'descriptor_count',
+    'check_grid_classifier', 'check_point_classifier', 'classifier_input',
+    'classifier_probabilities', 'descriptor_count',
     'parse_class_prior', 'prior_offset', 'resolve_class_prior', 'uses_descriptors',
     # model_files
     'CLASS_KEYS', 'FORMAT', 'OPTIONAL_CLASS_KEYS', 'OPTIONAL_FILES', 'UNREADABLE', 'VERSION',
@@ -63,6 +64,8 @@ PROBE_DEG = (10.0, 20.0)
 # resolve finer yaws, and its rotation maps of every multiple of a finer step cost seconds and
 # gigabytes (0.1 deg: 5 s, 1.4 GB); finer returned yaws come from a second, exact climb
 STAGE2_MIN_STEP_DEG = 1.0
+# ModelBank.load reads a directory that a save replaced meanwhile again, at most this often
+LOAD_ATTEMPTS = 3
 # the yaw steps (degrees) that estimate takes (check_step); commands check theirs against it
 YAW_STEP_RANGE_DEG = (0.05, 90.0)
 
@@ -113,8 +116,13 @@ class ModelBank:
         if unknown:
             raise ModelError(f'unknown classifier mode(s) {unknown} (known: '
                              f'{", ".join(MODES + (POINTS_MODE,))})')
-        if classifier and POINTS_MODE in classifier:
-            check_point_classifier(classifier[POINTS_MODE], len(models))
+        for mode, clf in (classifier or {}).items():
+            # as load checks them: save wrote what load refused, estimate raised numpy's
+            # errors or used a row standardisation of two classes
+            if mode == POINTS_MODE:
+                check_point_classifier(clf, len(models))
+            else:
+                check_grid_classifier(clf, mode, len(models), 'model bank')
         self.models = list(models)
         self.spec = spec
         self.classifier = classifier
@@ -215,7 +223,9 @@ class ModelBank:
         on any failure (or Ctrl-C) it is removed and a model already at ``path`` is kept."""
         check_class_names(self.classes, 'cannot save the model')
         path = Path(path)
-        if path.is_symlink() and path.is_dir():   # replace the directory, keep the link
+        # replace the directory, keep the link; '.' and '..' cannot be renamed (an OSError
+        # 'Device or resource busy' after training): the directory they name is
+        if path.is_symlink() and path.is_dir() or path.name in ('', '..'):
             path = path.resolve()
         check_save_target(path)
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -283,17 +293,46 @@ class ModelBank:
         """Load and check a model directory; raises ModelError naming the bad file.
 
         ``class_prior``: overrides the manifest's (None: the manifest's; 'train' when it has
-        none); a bad value raises ValueError (a bad one in the manifest: ModelError)."""
+        none); a bad value raises ValueError (a bad one in the manifest: ModelError).
+
+        A save of the same directory (see :meth:`save`) while it is read is not a mix: every
+        file is parsed from the bytes checked against the manifest read; when the check
+        fails and the directory (or its manifest) has changed since, it is read again (up to
+        ``LOAD_ATTEMPTS`` times)."""
         path = Path(path)
-        mf, manifest = _read_manifest(path)
+        for attempt in range(1, LOAD_ATTEMPTS + 1):
+            before, text = _dir_identity(path), None
+            try:
+                mf, manifest, text = _read_manifest(path)
+                return cls._load(path, mf, manifest, class_prior)
+            except ModelError as e:
+                # another directory now (a save renamed its own into place; the same
+                # manifest text does not tell: a model saved again writes the same one), or
+                # none (between the two renames of a save), or another manifest
+                replaced = _dir_identity(path) != before
+                if not replaced and text is not None:
+                    try:
+                        replaced = _read_manifest(path)[2] != text
+                    except ModelError:
+                        replaced = True
+                if not replaced:
+                    raise
+                if attempt == LOAD_ATTEMPTS:
+                    raise ModelError(f'{e} ({path} was replaced while it was read, '
+                                     f'{attempt} times: is it being saved over and over?)') \
+                        from None
+
+    @classmethod
+    def _load(cls, path, mf, manifest, class_prior):
+        """:meth:`load` of the directory ``path`` whose manifest ``mf`` holds ``manifest``."""
         spec, classes, files = _manifest_layout(path, mf, manifest)
-        _check_checksums(path, files)
-        models = _load_class_models(path, files, classes, spec)
-        classifier = _load_classifier(path, files, len(classes))
-        arrays = _optional_arrays(path, files, 'verifier.npz',
+        data = _read_checked(path, files)
+        models = _load_class_models(path, data, classes, spec)
+        classifier = _load_classifier(path, data, len(classes))
+        arrays = _optional_arrays(path, data, 'verifier.npz',
                                   lambda a, where: check_arrays(a, len(classes), spec.size, where))
         verifier = None if arrays is None else OrientationVerifier.from_arrays(arrays)
-        arrays = _optional_arrays(path, files, 'calibration.npz', check_calibration_arrays)
+        arrays = _optional_arrays(path, data, 'calibration.npz', check_calibration_arrays)
         calibration = None if arrays is None else OccupancyCalibration.from_arrays(arrays)
         if class_prior is None:
             class_prior = manifest.get('class_prior', 'train')
@@ -770,6 +809,16 @@ class ModelBank:
         return est
 
 
+def _dir_identity(path):
+    """(device, inode, ctime) of directory ``path`` (followed if a link), None when there is
+    none: a save that replaces it changes it."""
+    try:
+        st = os.stat(path)
+    except (OSError, ValueError):
+        return None
+    return st.st_dev, st.st_ino, st.st_ctime_ns
+
+
 def _json_value(value):
     """A numpy scalar or array in the manifest (e.g. ``training=dict(k=np.int64(20))``) as the
     JSON value of its Python equivalent; TypeError for anything else JSON cannot hold."""
@@ -932,7 +981,10 @@ def resolve_model_dir(text) -> Path:
     (loading it then names it as missing)."""
     if not text:
         return default_model_dir()
-    path = Path(text).expanduser()
+    try:
+        path = Path(text).expanduser()
+    except RuntimeError:   # '~user' of no such user: as given (the node crashed on it)
+        return Path(text)
     if path.exists() or len(path.parts) != 1 or str(text).startswith(('.', '~')):
         return path
     shipped = default_model_dir(str(text))

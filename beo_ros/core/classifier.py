@@ -22,6 +22,8 @@ POINT_CLASSIFIER_KEYS = ('mean', 'scale', 'coef', 'intercept', 'unknown_threshol
 OPTIONAL_CLASSIFIER_KEYS = ('class_counts',)
 # a grid classifier's optional hidden layer (classifier_training.fit_mlp): both arrays or neither
 HIDDEN_CLASSIFIER_KEYS = ('hidden_coef', 'hidden_intercept')
+# a grid classifier's optional input settings (see classifier_input and descriptor_count)
+GRID_INPUT_KEYS = ('row_standardize', 'descriptors', 'descriptor_count')
 # named class priors: 'train' keeps the classifier's own probabilities (its training rows'
 # class frequencies are its prior); 'uniform' treats every class as equally likely a priori
 CLASS_PRIORS = ('train', 'uniform')
@@ -184,6 +186,41 @@ def classifier_probabilities(clf, Z, loglik, offset=None):
     explains = L >= clf['unknown_threshold']
     unknown = ~explains[np.arange(len(L)), best] | ((p * explains).sum(axis=1) < 0.5)
     return p, unknown
+
+
+def check_grid_classifier(clf, mode, n_classes, where='classifier'):
+    """Raise ModelError (naming ``where``) unless ``clf`` is a grid classifier of a known
+    ``mode`` whose arrays fit ``n_classes`` classes' features and its shape descriptors, and
+    whose row standardisation, if any, has the 3 classes it needs."""
+    if mode not in MODES:
+        raise ModelError(f'{where}: unknown classifier {mode!r} (known: '
+                         f'{", ".join(MODES + (POINTS_MODE,))})')
+    if not isinstance(clf, dict):
+        raise ModelError(f'{where}: classifier {mode!r} must be a dict of arrays')
+    # the flags are read with bool(): a (2,) array raised a bare ValueError, 'no' was True
+    for flag in ('row_standardize', 'descriptors'):
+        a = np.asarray(clf.get(flag, False))
+        if a.shape != () or not (a.dtype == bool or (np.issubdtype(a.dtype, np.integer)
+                                                     and int(a) in (0, 1))):
+            raise ModelError(f'{where}: classifier {mode!r}: {flag!r} must be true or false, '
+                             f'got {a!r}')
+    try:
+        n_d = descriptor_count(clf)
+    except ModelError as e:
+        raise ModelError(f'{where}: classifier {mode!r}: {e}') from None
+    nf = len(FEATURE_NAMES) * n_classes + n_d
+    extra = f' + {n_d} shape descriptors' if n_d else ''
+    check_classifier_arrays(clf, n_classes, nf, f'{where}: classifier {mode!r}',
+                            f'{n_classes} classes x {len(FEATURE_NAMES)} '
+                            f'features{extra}')
+    if bool(clf.get('row_standardize', False)) and n_classes < 3:
+        raise ModelError(f'{where}: classifier {mode!r} standardises features across '
+                         f'classes, which needs at least 3 classes')
+    # as the 'points' classifier's: a misspelt 'row_standardise' was ignored without a word
+    unexpected = sorted(set(clf) - set(POINT_CLASSIFIER_KEYS) - set(OPTIONAL_CLASSIFIER_KEYS)
+                        - set(HIDDEN_CLASSIFIER_KEYS) - set(GRID_INPUT_KEYS), key=str)
+    if unexpected:
+        raise ModelError(f'{where}: classifier {mode!r} has unexpected arrays {unexpected}')
 
 
 def check_point_classifier(clf, n_classes, where='classifier'):

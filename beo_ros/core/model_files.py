@@ -22,7 +22,9 @@ Layout of a model directory::
 from __future__ import annotations
 
 import hashlib
+import io
 import json
+import os
 import zipfile
 import zlib
 from pathlib import Path
@@ -30,8 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from .class_model import ClassModel, ModelError
-from .classifier import (MODES, POINTS_MODE, check_classifier_arrays, check_point_classifier,
-                         descriptor_count)
+from .classifier import POINTS_MODE, check_grid_classifier, check_point_classifier
 from .grid import GridSpec
 from .inference import FEATURE_NAMES
 
@@ -46,13 +47,18 @@ MAX_NAME_BYTES = 200   # 'class_XXX_' + name + '.npz' within a file name's 255 b
 
 def class_name_problem(name):
     """Why ``name`` cannot be a class name ('' when it can): a class is saved as the file
-    ``class_XX_<name>.npz``, so a name must be a non-empty string without '/', '\\' or NUL,
-    not '.' or '..', without leading or trailing whitespace and at most ``MAX_NAME_BYTES``
-    long in UTF-8 (the file name within the 255 bytes file systems allow)."""
+    ``class_XX_<name>.npz``, so a name must be a non-empty string without '/', '\\' or NUL
+    that the file system encoding can encode (no lone surrogate), not '.' or '..', without
+    leading or trailing whitespace and at most ``MAX_NAME_BYTES`` long in UTF-8 (the file name
+    within the 255 bytes file systems allow)."""
     if not isinstance(name, str) or not name:
         return 'class names must be non-empty strings'
     if any(c in name for c in '/\\\0'):
         return "class names cannot contain '/', '\\' or NUL (they name files)"
+    try:
+        os.fsencode(name)
+    except UnicodeEncodeError:   # a lone surrogate: save failed after training, load too
+        return 'class names must be text the file system can encode (they name files)'
     if name in ('.', '..'):
         return "class names cannot be '.' or '..'"
     if name != name.strip():
@@ -172,15 +178,15 @@ def _load_npz(fp):
     return z
 
 
-def _optional_arrays(path, files, name, check):
-    """The arrays of the optional file ``name`` of model directory ``path``, or None when the
-    manifest's ``files`` do not list it; ModelError when it is unreadable or when
-    ``check(arrays, where)`` gives a reason."""
-    if name not in files:
+def _optional_arrays(path, data, name, check):
+    """The arrays of the optional file ``name`` of model directory ``path``, or None when
+    ``data`` (file name -> checked bytes, see :func:`_read_checked`) does not hold it;
+    ModelError when it is unreadable or when ``check(arrays, where)`` gives a reason."""
+    if name not in data:
         return None
     fp = path / name
     try:
-        with _load_npz(fp) as z:
+        with _load_npz(io.BytesIO(data[name])) as z:
             arrays = {k: z[k] for k in z.files}
     except _UNREADABLE_MODEL as e:
         raise ModelError(f'{fp}: unreadable: {type(e).__name__}: {e}') from None
@@ -201,9 +207,9 @@ def _settings_reason(pose_components, training):
 
 
 def _read_manifest(path):
-    """(manifest path, manifest dict) of model directory ``path`` (a Path); ModelError unless
-    it is a directory whose manifest.json parses as this format and version with a grid
-    object."""
+    """(manifest path, manifest dict, its text) of model directory ``path`` (a Path);
+    ModelError unless it is a directory whose manifest.json parses as this format and version
+    with a grid object."""
     mf = path / 'manifest.json'
     if not path.is_dir():
         raise ModelError(f'model directory {path} '
@@ -211,7 +217,8 @@ def _read_manifest(path):
     if not mf.is_file():
         raise ModelError(f'{mf} is missing: not a beo_ros model directory')
     try:
-        manifest = json.loads(mf.read_text())
+        text = mf.read_text()
+        manifest = json.loads(text)
     except (OSError, ValueError, RecursionError) as e:
         # ValueError: JSONDecodeError, UnicodeDecodeError, integers of over 4300 digits;
         # RecursionError: arrays nested thousands deep
@@ -224,7 +231,7 @@ def _read_manifest(path):
     if not isinstance(manifest.get('grid'), dict):
         raise ModelError(f'{mf}: grid must be an object (size, units, ...), got '
                          f'{manifest.get("grid")!r}')
-    return mf, manifest
+    return mf, manifest, text
 
 
 def _manifest_layout(path, mf, manifest):
@@ -260,29 +267,38 @@ def _manifest_layout(path, mf, manifest):
     return spec, classes, files
 
 
-def _check_checksums(path, files):
-    """ModelError unless every file of ``files`` (name -> sha256) is in directory ``path``
-    with that checksum."""
+def _read_checked(path, files):
+    """dict file name -> bytes of every file of ``files`` (name -> sha256) in directory
+    ``path``; ModelError unless each is there with that checksum. The readers parse these
+    bytes, not the files again: what is loaded is what was checked, also when a save replaces
+    the directory meanwhile (it was read as checked, then parsed from the new files)."""
+    data = {}
     for fn, digest in files.items():
         fp = path / fn
-        if not fp.is_file():
+        try:
+            data[fn] = fp.read_bytes() if fp.is_file() else None
+        except OSError:   # removed since (a save replacing the directory)
+            data[fn] = None
+        if data[fn] is None:
             raise ModelError(f'{fp} is listed in the manifest but missing')
-        if _sha256(fp) != digest:
+        if hashlib.sha256(data[fn]).hexdigest() != digest:
             raise ModelError(f'{fp} is corrupt: checksum does not match the manifest')
+    return data
 
 
-def _load_class_models(path, files, classes, spec):
+def _load_class_models(path, data, classes, spec):
     """The ClassModel (float32) of every class name of ``classes``, in order, from its
-    ``class_XX_<name>.npz`` in directory ``path``; ModelError when the file is not listed in
-    ``files``, unreadable, lacks an array or its arrays do not fit the grid ``spec``."""
+    ``class_XX_<name>.npz`` of directory ``path`` in ``data`` (file name -> checked bytes, see
+    :func:`_read_checked`); ModelError when the file is not listed in the manifest,
+    unreadable, lacks an array or its arrays do not fit the grid ``spec``."""
     models = []
     d = spec.size ** 3
     for i, name in enumerate(classes):
         fp = path / f'class_{i:02d}_{name}.npz'
-        if fp.name not in files:
+        if fp.name not in data:
             raise ModelError(f'{fp} for class {name!r} is not listed in the manifest')
         try:
-            with _load_npz(fp) as z:
+            with _load_npz(io.BytesIO(data[fp.name])) as z:
                 arr = {k: z[k] for k in CLASS_KEYS}
                 arr.update({k: z[k] for k in OPTIONAL_CLASS_KEYS if k in z.files})
         except KeyError as e:
@@ -316,15 +332,16 @@ def _load_class_models(path, files, classes, spec):
     return models
 
 
-def _load_classifier(path, files, n_classes):
+def _load_classifier(path, data, n_classes):
     """The classifier dict mode -> arrays of model directory ``path`` for ``n_classes``
-    classes, or None when ``files`` does not list classifier.npz; ModelError when it is
-    unreadable or a mode is unknown or does not fit (see :func:`_check_grid_classifier`)."""
-    if 'classifier.npz' not in files:
+    classes, or None when ``data`` (file name -> checked bytes, see :func:`_read_checked`)
+    does not hold classifier.npz; ModelError when it is unreadable or a mode is unknown or
+    does not fit (see :func:`check_grid_classifier`)."""
+    if 'classifier.npz' not in data:
         return None
     fp = path / 'classifier.npz'
     try:
-        with _load_npz(fp) as z:
+        with _load_npz(io.BytesIO(data['classifier.npz'])) as z:
             arrays = {k: z[k] for k in z.files}
     except _UNREADABLE_MODEL as e:
         raise ModelError(f'{fp}: unreadable: {type(e).__name__}: {e}') from None
@@ -338,36 +355,8 @@ def _load_classifier(path, files, n_classes):
         if mode == POINTS_MODE:
             check_point_classifier(clf, n_classes, str(fp))
         else:
-            _check_grid_classifier(clf, mode, n_classes, fp)
+            check_grid_classifier(clf, mode, n_classes, str(fp))
     return classifier
-
-
-def _check_grid_classifier(clf, mode, n_classes, fp):
-    """ModelError (naming file ``fp``) unless ``clf`` is a grid classifier of a known ``mode``
-    whose arrays fit ``n_classes`` classes' features and its shape descriptors, and whose row
-    standardisation, if any, has the 3 classes it needs."""
-    if mode not in MODES:
-        raise ModelError(f'{fp}: unknown classifier {mode!r} (known: '
-                         f'{", ".join(MODES + (POINTS_MODE,))})')
-    # the flags are read with bool(): a (2,) array raised a bare ValueError, 'no' was True
-    for flag in ('row_standardize', 'descriptors'):
-        a = np.asarray(clf.get(flag, False))
-        if a.shape != () or not (a.dtype == bool or (np.issubdtype(a.dtype, np.integer)
-                                                     and int(a) in (0, 1))):
-            raise ModelError(f'{fp}: classifier {mode!r}: {flag!r} must be true or false, got '
-                             f'{a!r}')
-    try:
-        n_d = descriptor_count(clf)
-    except ModelError as e:
-        raise ModelError(f'{fp}: classifier {mode!r}: {e}') from None
-    nf = len(FEATURE_NAMES) * n_classes + n_d
-    extra = f' + {n_d} shape descriptors' if n_d else ''
-    check_classifier_arrays(clf, n_classes, nf, f'{fp}: classifier {mode!r}',
-                            f'{n_classes} classes x {len(FEATURE_NAMES)} '
-                            f'features{extra}')
-    if bool(clf.get('row_standardize', False)) and n_classes < 3:
-        raise ModelError(f'{fp}: classifier {mode!r} standardises features across '
-                         f'classes, which needs at least 3 classes')
 
 
 def _check_manifest_settings(mf, manifest):
