@@ -2,6 +2,7 @@
 exact posterior formula, load errors, classifier and the point-cloud entry point."""
 import dataclasses
 import json
+import os
 import shutil
 import warnings
 from pathlib import Path
@@ -2342,3 +2343,24 @@ def test_parse_class_prior_reads_a_class_name_with_an_equals_sign():
                                                    ['w=1', 'cup']), [0.25, 0.75])
     with pytest.raises(ValueError, match="weight of 'cup' is not a number"):
         parse_class_prior('w=1=1,cup=x')
+
+
+def test_save_gives_the_directory_the_umask_permissions_without_touching_the_umask(
+        tmp_path, monkeypatch):
+    """The model directory gets the permissions of the umask (not mkdtemp's 0o700), without
+    setting the process umask to 0 for a moment (other threads then made world-writable
+    files)."""
+    import stat
+    bank = make_tiny_bank()
+    old = os.umask(0o027)
+    try:
+        def no_umask(mask):
+            raise AssertionError(f'save set the umask to {mask:o}')
+        monkeypatch.setattr(os, 'umask', no_umask)
+        path = bank.save(tmp_path / 'm')
+        bank.save(path)   # replacing a model too
+    finally:
+        monkeypatch.undo()
+        os.umask(old)
+    assert stat.S_IMODE(path.stat().st_mode) == 0o750
+    assert ModelBank.load(path).classes == bank.classes

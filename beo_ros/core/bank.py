@@ -229,11 +229,8 @@ class ModelBank:
             path = path.resolve()
         check_save_target(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f'.{path.name}.tmp-', dir=path.parent))
+        tmp = _new_directory(path.parent, f'.{path.name}.tmp-')
         try:
-            umask = os.umask(0)
-            os.umask(umask)
-            tmp.chmod(0o777 & ~umask)   # mkdtemp's 0o700 would outlive the rename
             self._write(tmp)
             if path.is_dir():
                 # two renames: a reader sees the old model or the new one, never a mix (for
@@ -825,6 +822,20 @@ def _json_value(value):
     if isinstance(value, (np.generic, np.ndarray)):
         return value.tolist()
     raise TypeError(f'the manifest cannot hold {type(value).__name__} {value!r} (JSON)')
+
+
+def _new_directory(parent: Path, prefix: str) -> Path:
+    """A new directory ``parent/prefix<random>`` with the permissions of the process's umask
+    (mkdtemp's 0o700 would outlive the rename into place, and reading the umask by setting it
+    to 0 and back left it 0 for the other threads meanwhile)."""
+    for _ in range(100):
+        p = parent / f'{prefix}{os.urandom(6).hex()}'
+        try:
+            os.mkdir(p, 0o777)   # less the umask
+            return p
+        except FileExistsError:
+            continue
+    raise FileExistsError(f'no free name {prefix}* in {parent}')
 
 
 def object_centre(points, rotation, fallback) -> np.ndarray:
