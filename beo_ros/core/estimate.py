@@ -76,9 +76,10 @@ class Estimate:
             ``estimate_points``; see :mod:`beo_ros.core.outliers`).
         n_off_cluster: points removed after them as outside the largest cluster (only from
             ``estimate_points`` with a ``cluster_tolerance``).
-        n_outside_grid: points left after those that fell outside a metric grid (only from
-            ``estimate_points``): not voxelized, so the estimate is of the part inside (an
-            object larger than the grid, or points not in metres).
+        n_outside_grid: points left after those that fell outside the grid (only from
+            ``estimate_points``; a metric grid, or one placed by its ``center``): not
+            voxelized, so the estimate is of the part inside (an object larger than the grid,
+            or points not in metres).
         completed_points: float32 (m,3) centres of voxels with probability >= threshold, input frame
             (only from ``estimate_points``), and ``completed_probability`` float32 (m,).
         dimensions: float64 (3,) extent in metres of those voxels (outer faces) along the axes
