@@ -59,7 +59,9 @@ class Estimate:
             (see :mod:`beo_ros.core.normals`), or None (not computed: no points, or the bank
             has no 'points' classifier); NaN when undefined for this cloud.
         classifier_note: why the 'points' classifier was not used although the bank has one
-            (e.g. its descriptors are undefined for a tiny cloud: the grid rule decided), else ''.
+            (e.g. its descriptors are undefined for a tiny cloud: the grid rule decided), why
+            the class prior was not applied (a classifier without class counts), and / or
+            that the grid has no occupied voxel (classifier_mode 'none'); else ''.
         grid: int8 (N,N,N) labelled input grid (1 occupied, 0 free, -1 unknown).
         pose: float64 (4,4) object frame in the input frame (only from ``estimate_points``): the
             translation is the object centre in metres (the middle of the completed points'
