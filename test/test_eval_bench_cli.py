@@ -319,6 +319,28 @@ def test_bench_options_of_a_phase_not_run_refused(tmp_path, capsys, extra, named
     assert f'not used in this run ({extra[0]}): {named}' in err
 
 
+@pytest.mark.parametrize('extra, named', [
+    (['--no-icp', '--no-scaling', '--icp-init-yaws', '2'], '(--no-icp, --no-scaling): '
+                                                          '--icp-init-yaws'),
+    (['--no-paper', '--no-icp', '--slow-repeats', '3'], '(--no-paper, --no-icp): --slow-repeats'),
+    (['--model', 'm', '--no-paper', '--no-scaling', '--k', '5'],
+     '(--model, --no-paper, --no-scaling): --k'),
+])
+def test_bench_options_of_several_phases_none_run_refused(tmp_path, capsys, extra, named):
+    # before: silently ignored (--no-icp --no-scaling --icp-init-yaws 2 ran the whole bench)
+    with pytest.raises(SystemExit) as ei:
+        bench.parse_args(['--out', str(tmp_path / 'b'), *extra])
+    assert ei.value.code == 2
+    assert f'not used in this run {named}' in capsys.readouterr().err
+
+
+def test_bench_options_of_several_phases_used_by_one_still_accepted(tmp_path):
+    for extra in (['--no-icp', '--icp-init-yaws', '2'], ['--no-scaling', '--icp-init-yaws', '2'],
+                  ['--no-paper', '--slow-repeats', '3'], ['--model', 'm', '--k', '5'],
+                  ['--model', 'm', '--no-paper', '--k', '5']):
+        bench.parse_args(['--out', str(tmp_path / 'b'), *extra])
+
+
 def test_bench_odd_scaling_grid_refused_by_the_parser(tmp_path, capsys):
     # the scaling phase failed at that size with numpy's 'cannot reshape array', after the
     # peers had run
