@@ -81,7 +81,8 @@ def _parser():
                     help='random partial views per object for the OOF classifier (0: none, '
                          'the maximum-likelihood rule)')
     ap.add_argument('--folds', type=int, default=5,
-                    help='folds for out-of-fold features (>= 2; not used with --views 0)')
+                    help='folds for out-of-fold features and the calibration views (>= 2; '
+                    'not used with --views 0 unless --calibration-views is >= 1)')
     ap.add_argument('--pose-components', type=int, default=8,
                     help='leading components per class used by the coarse pose search (>= 1; '
                          "at most the class model's components are used; --mirror banks always "
