@@ -251,6 +251,9 @@ def _check_mode_options(ap, args):
         ap.error('--classes is for npz and mesh input; with --scans use --scan-classes')
     if args.max_iter is not None and not args.mirror:
         ap.error('--max-iter is for --scans --mirror only (the other fits use their own)')
+    if args.verifier_views == 0 and args.jobs != ap.get_default('jobs'):
+        ap.error("--jobs makes the orientation verifier's views: not used with "
+                 + ('--scans (no verifier)' if args.scans else '--verifier-views 0'))
 
 
 def _train_mirror(args, class_prior, replace):

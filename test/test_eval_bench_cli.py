@@ -94,6 +94,16 @@ def test_eval_options_of_the_other_mode_refused(model, tmp_path, capsys, extra, 
     assert not out.exists()
 
 
+def test_eval_cv_jobs_without_verifier_views_refused(tmp_path, capsys):
+    # before: --cv 2 --verifier-views 0 --jobs 2 ran, --jobs ignored (it makes verifier views)
+    out = tmp_path / 'e'
+    assert call(evaluate.main, ['--data', str(write_npz(tmp_path / 'd.npz')), '--out', str(out),
+                                '--cv', '2', '--verifier-views', '0', '--jobs', '2']) == 2
+    assert ("--jobs makes the orientation verifier's views: not used with --verifier-views 0"
+            in capsys.readouterr().err)
+    assert not out.exists()
+
+
 def test_eval_held_out_still_takes_its_own_options(model, tmp_path):
     out = tmp_path / 'e'
     assert call(evaluate.main, ['--model', str(model), '--data',
