@@ -469,6 +469,12 @@ UNUSED_WITH = {
     'no_node': ('node_objects', 'node_rounds', 'node_rates', 'node_duration', 'node_max_drop',
                 'node_workers', 'node_worker_processes', 'node_blas_threads'),
 }
+# options of several phases: unused only when every one of them is switched off
+UNUSED_WITH_ALL = {
+    ('no_icp', 'no_scaling'): ('icp_init_yaws',),
+    ('no_paper', 'no_icp'): ('slow_repeats',),
+    ('model', 'no_paper', 'no_scaling'): ('k',),
+}
 
 
 def parse_args(argv):
@@ -478,12 +484,16 @@ def parse_args(argv):
     for add in (_add_data_options, _add_peer_options, _add_scaling_options, _add_node_options):
         add(ap)
     args = ap.parse_args(argv)
-    unused = [f"--{n.replace('_', '-')}" for switch, names in UNUSED_WITH.items()
-              if getattr(args, switch) for n in names if getattr(args, n) != ap.get_default(n)]
+    groups = [((switch,), names) for switch, names in UNUSED_WITH.items()] + \
+        list(UNUSED_WITH_ALL.items())
+    unused = [(switches, n) for switches, names in groups
+              if all(getattr(args, s) for s in switches) for n in names
+              if getattr(args, n) != ap.get_default(n)]
     if unused:   # an option the run does not use is refused rather than silently ignored
+        switches = [s for s in UNUSED_WITH if any(s in sw for sw, _ in unused)]
         ap.error('not used in this run (' + ', '.join(
-            f"--{s.replace('_', '-')}" for s in UNUSED_WITH if getattr(args, s)) + '): '
-            + ', '.join(unused))
+            f"--{s.replace('_', '-')}" for s in switches) + '): '
+            + ', '.join(f"--{n.replace('_', '-')}" for _, n in unused))
     from beo_ros.core.training import check_grid_size
     for n in args.scaling_grids:   # the scaling phase fits class models at each size
         try:

@@ -345,6 +345,9 @@ def _checked_args(ap, args, rest):
     if unused:
         ap.error(('not used with --cv (each fold trains its own bank): ' if args.cv else
                   'used only with --cv, not in held-out mode: ') + ', '.join(unused))
+    if args.cv and args.verifier_views == 0 and args.jobs != ap.get_default('jobs'):
+        ap.error("--jobs makes the orientation verifier's views: not used with "
+                 '--verifier-views 0')
     if args.model and Path(args.model).exists() and not Path(args.model).is_dir():
         ap.error(f'--model {args.model}: is not a directory')
     try:

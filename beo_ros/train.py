@@ -81,7 +81,8 @@ def _parser():
                     help='random partial views per object for the OOF classifier (0: none, '
                          'the maximum-likelihood rule)')
     ap.add_argument('--folds', type=int, default=5,
-                    help='folds for out-of-fold features (>= 2; not used with --views 0)')
+                    help='folds for out-of-fold features and the calibration views (>= 2; '
+                    'not used with --views 0 unless --calibration-views is >= 1)')
     ap.add_argument('--pose-components', type=int, default=8,
                     help='leading components per class used by the coarse pose search (>= 1; '
                          "at most the class model's components are used; --mirror banks always "
@@ -250,6 +251,9 @@ def _check_mode_options(ap, args):
         ap.error('--classes is for npz and mesh input; with --scans use --scan-classes')
     if args.max_iter is not None and not args.mirror:
         ap.error('--max-iter is for --scans --mirror only (the other fits use their own)')
+    if args.verifier_views == 0 and args.jobs != ap.get_default('jobs'):
+        ap.error("--jobs makes the orientation verifier's views: not used with "
+                 + ('--scans (no verifier)' if args.scans else '--verifier-views 0'))
 
 
 def _train_mirror(args, class_prior, replace):

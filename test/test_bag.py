@@ -1005,6 +1005,21 @@ def test_replay_refuses_the_clock_of_a_bag_past_2038(ros_env_context, tmp_path):
     assert stamp_from_ns(t0 - 1).sec == 2**31 - 1
 
 
+def test_cli_replay_clock_of_a_bag_past_2038_is_not_called_unreadable(tmp_path, capsys,
+                                                                      keep_signal_handlers):
+    """Before: 'beo-replay: cannot read BAG: its stamps go past 2038 ...' for a bag that reads
+    (and plays without --clock): the refusal names the clock, not the bag, as the problem."""
+    p = tmp_path / 'b'
+    with bag.BagWriter(p, storage='sqlite3') as w:
+        w.add_topic('/chatter', 'std_msgs/msg/String')
+        w.write('/chatter', String(data='x'), 2**31 * 1_000_000_000)
+    assert bag.replay_main([str(p), '--all-topics', '--rate', '0', '--clock']) == 2
+    out, err = capsys.readouterr()
+    assert err.startswith(f'beo-replay: {p}: its stamps go past 2038 (') and \
+        err.endswith('beyond what /clock (int32 seconds) holds: play it without the clock\n'), err
+    assert 'cannot read' not in err and err.count('\n') == 1 and out == '', err
+
+
 def test_replay_keeps_every_latched_message_for_late_subscribers(ros_env_context, tmp_path):
     """Three latched messages (three static broadcasters' /tf_static) all reach a late
     transient-local subscriber, even with --depth 1."""

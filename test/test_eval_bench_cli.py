@@ -94,6 +94,16 @@ def test_eval_options_of_the_other_mode_refused(model, tmp_path, capsys, extra, 
     assert not out.exists()
 
 
+def test_eval_cv_jobs_without_verifier_views_refused(tmp_path, capsys):
+    # before: --cv 2 --verifier-views 0 --jobs 2 ran, --jobs ignored (it makes verifier views)
+    out = tmp_path / 'e'
+    assert call(evaluate.main, ['--data', str(write_npz(tmp_path / 'd.npz')), '--out', str(out),
+                                '--cv', '2', '--verifier-views', '0', '--jobs', '2']) == 2
+    assert ("--jobs makes the orientation verifier's views: not used with --verifier-views 0"
+            in capsys.readouterr().err)
+    assert not out.exists()
+
+
 def test_eval_held_out_still_takes_its_own_options(model, tmp_path):
     out = tmp_path / 'e'
     assert call(evaluate.main, ['--model', str(model), '--data',
@@ -317,6 +327,28 @@ def test_bench_options_of_a_phase_not_run_refused(tmp_path, capsys, extra, named
     assert ei.value.code == 2
     err = capsys.readouterr().err
     assert f'not used in this run ({extra[0]}): {named}' in err
+
+
+@pytest.mark.parametrize('extra, named', [
+    (['--no-icp', '--no-scaling', '--icp-init-yaws', '2'], '(--no-icp, --no-scaling): '
+                                                          '--icp-init-yaws'),
+    (['--no-paper', '--no-icp', '--slow-repeats', '3'], '(--no-paper, --no-icp): --slow-repeats'),
+    (['--model', 'm', '--no-paper', '--no-scaling', '--k', '5'],
+     '(--model, --no-paper, --no-scaling): --k'),
+])
+def test_bench_options_of_several_phases_none_run_refused(tmp_path, capsys, extra, named):
+    # before: silently ignored (--no-icp --no-scaling --icp-init-yaws 2 ran the whole bench)
+    with pytest.raises(SystemExit) as ei:
+        bench.parse_args(['--out', str(tmp_path / 'b'), *extra])
+    assert ei.value.code == 2
+    assert f'not used in this run {named}' in capsys.readouterr().err
+
+
+def test_bench_options_of_several_phases_used_by_one_still_accepted(tmp_path):
+    for extra in (['--no-icp', '--icp-init-yaws', '2'], ['--no-scaling', '--icp-init-yaws', '2'],
+                  ['--no-paper', '--slow-repeats', '3'], ['--model', 'm', '--k', '5'],
+                  ['--model', 'm', '--no-paper', '--k', '5']):
+        bench.parse_args(['--out', str(tmp_path / 'b'), *extra])
 
 
 def test_bench_odd_scaling_grid_refused_by_the_parser(tmp_path, capsys):

@@ -214,6 +214,9 @@ def test_objects_without_occupied_voxels_are_dropped_with_a_warning(tmp_path, ca
     (['--scans', '--classes', 'box'], '--classes is for npz and mesh input'),
     (['--k', '0'], '--k: must be in [1, inf)'),
     (['--seed', '-1'], '--seed: must be in [0, inf)'),
+    # before: ignored (the views it makes are the verifier's, and there is none)
+    (['--jobs', '2'], "--jobs makes the orientation verifier's views: not used with "
+                      '--verifier-views 0'),
 ])
 def test_options_that_do_not_apply_or_are_out_of_range_refused(tmp_path, capsys, extra,
                                                                message):

@@ -739,9 +739,9 @@ class ModelBank:
         unit as the points; None: off) only the largest cluster of the remaining points is
         kept (:func:`beo_ros.core.outliers.outside_largest_cluster`; counted in
         ``Estimate.n_off_cluster``): for segments that caught part of another surface or
-        object. Points that fall outside a metric grid are not voxelized (counted in
-        ``Estimate.n_outside_grid``). With a 'points' classifier the
-        side-normal descriptors of the remaining points are computed too
+        object. Points that fall outside the grid (a metric one, or one placed by ``center``)
+        are not voxelized (counted in ``Estimate.n_outside_grid``). With a 'points' classifier
+        the side-normal descriptors of the remaining points are computed too
         (``timings['point_descriptors']``) and passed to :meth:`estimate`. The outlier removal
         grows faster than the points (5 s for a million): downsample big clouds first, as the
         node does (``max_points``).

@@ -59,7 +59,9 @@ class Estimate:
             (see :mod:`beo_ros.core.normals`), or None (not computed: no points, or the bank
             has no 'points' classifier); NaN when undefined for this cloud.
         classifier_note: why the 'points' classifier was not used although the bank has one
-            (e.g. its descriptors are undefined for a tiny cloud: the grid rule decided), else ''.
+            (e.g. its descriptors are undefined for a tiny cloud: the grid rule decided), why
+            the class prior was not applied (a classifier without class counts), and / or
+            that the grid has no occupied voxel (classifier_mode 'none'); else ''.
         grid: int8 (N,N,N) labelled input grid (1 occupied, 0 free, -1 unknown).
         pose: float64 (4,4) object frame in the input frame (only from ``estimate_points``): the
             translation is the object centre in metres (the middle of the completed points'
@@ -76,9 +78,10 @@ class Estimate:
             ``estimate_points``; see :mod:`beo_ros.core.outliers`).
         n_off_cluster: points removed after them as outside the largest cluster (only from
             ``estimate_points`` with a ``cluster_tolerance``).
-        n_outside_grid: points left after those that fell outside a metric grid (only from
-            ``estimate_points``): not voxelized, so the estimate is of the part inside (an
-            object larger than the grid, or points not in metres).
+        n_outside_grid: points left after those that fell outside the grid (only from
+            ``estimate_points``; a metric grid, or one placed by its ``center``): not
+            voxelized, so the estimate is of the part inside (an object larger than the grid,
+            or points not in metres).
         completed_points: float32 (m,3) centres of voxels with probability >= threshold, input frame
             (only from ``estimate_points``), and ``completed_probability`` float32 (m,).
         dimensions: float64 (3,) extent in metres of those voxels (outer faces) along the axes

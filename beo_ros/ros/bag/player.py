@@ -237,6 +237,11 @@ def _check_output_types(node, conns, remap) -> None:
                            f'{bag_topic} ({typ}) on it')
 
 
+class ClockRangeError(ValueError):
+    """The bag's stamps go beyond what ``/clock`` holds (int32 seconds, 2038): a readable bag
+    that cannot be played with the clock."""
+
+
 class BagReadError(ValueError):
     """A bag turned out unreadable (corrupt database, truncated file) during :func:`replay`;
     ``stats``: what was played before."""
@@ -464,8 +469,9 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
             if not conns:
                 return stats
             if clock_hz > 0 and reader.end_time > MAX_NS:
-                raise ValueError(f'its stamps go past 2038 ({reader.end_time} ns), beyond '
-                                 'what /clock (int32 seconds) holds: play it without the clock')
+                raise ClockRangeError(f'{bag_path}: its stamps go past 2038 ({reader.end_time} '
+                                      'ns), beyond what /clock (int32 seconds) holds: play it '
+                                      'without the clock')
             # made before the wait, so that discovery matches /clock with the data topics
             # best effort, depth 1, volatile: rclcpp's ClockQoS
             clock = (_publisher(node, 'rosgraph_msgs/msg/Clock', '/clock', 'best_effort', 1)
