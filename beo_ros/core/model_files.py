@@ -34,7 +34,6 @@ import numpy as np
 from .class_model import ClassModel, ModelError
 from .classifier import POINTS_MODE, check_grid_classifier, check_point_classifier
 from .grid import GridSpec
-from .inference import FEATURE_NAMES
 
 FORMAT = 'beo_ros.models'
 VERSION = 1
