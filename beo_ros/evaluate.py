@@ -235,15 +235,17 @@ def write_figure(summary, examples, path):
             n = vol.shape[0]
             ax.set_xlim(0, n), ax.set_ylim(0, n), ax.set_zlim(0, n)
             ax.set_axis_off()
+            # class names as written: a '$' in one is no mathtext (two failed the savefig)
             ax.set_title(f'{title}' + (f'\n{truth} -> {label}, yaw err {err:.0f} deg'
-                                       if j == 0 else ''), fontsize=8)
+                                       if j == 0 else ''), fontsize=8, parse_math=False)
     if 'partial' in summary:
         ax = fig.add_subplot(rows + 1, 2, 2 * rows + 1)
         cm = np.array(summary['partial']['confusion'])
         ax.imshow(cm / np.maximum(cm.sum(axis=1, keepdims=True), 1), cmap='Blues', vmin=0, vmax=1)
         cl = summary['classes'] + ['unknown']
-        ax.set_xticks(range(len(cl)), cl, rotation=90, fontsize=7)
-        ax.set_yticks(range(len(summary['classes'])), summary['classes'], fontsize=7)
+        ax.set_xticks(range(len(cl)), cl, rotation=90, fontsize=7, parse_math=False)
+        ax.set_yticks(range(len(summary['classes'])), summary['classes'], fontsize=7,
+                      parse_math=False)
         ax.set_title('partial views: confusion (rows truth)', fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=80)

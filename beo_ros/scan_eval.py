@@ -278,7 +278,7 @@ def plot_completions(path, items, spec):
             ax.set_xlim(-0.5, n - 0.5)
             ax.set_ylim(-0.5, n - 0.5)
             ax.set_aspect('equal')
-            ax.set_title(f'{title}: {lab}', fontsize=8)
+            ax.set_title(f'{title}: {lab}', fontsize=8, parse_math=False)   # '$' in a name
         fig.colorbar(sc, ax=row[-1], fraction=0.046, label='P(occupied)')
     fig.suptitle('red: observed points; squares: completed voxels (P >= 0.5), grid index coords')
     fig.tight_layout()

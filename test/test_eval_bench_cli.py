@@ -402,3 +402,22 @@ def test_demo_keep_bag_replaces_the_previous_bag(model, tmp_path, monkeypatch):
                                 '--storage', storage]) == 1
         bags = sorted(p.suffix for p in (out / 'demo_bag').iterdir() if p.suffix != '.yaml')
         assert bags == [suffix], bags
+
+
+def test_figure_takes_class_names_with_dollar_signs(tmp_path):
+    # class names are file names: '$' is legal, but matplotlib read '$...$' in the titles and
+    # tick labels as mathtext ('p$$q' or 'a$_$': a ParseException from savefig, after
+    # eval.json and records.jsonl were written) and rendered 'a$x$' as math
+    names = ['p$$q', 'a$_$']
+    g = np.zeros((8, 8, 8), np.int8)
+    g[3:5, 3:5, 3:5] = 1
+    summary = {'classes': names, 'partial': {'confusion': [[1, 0, 0], [0, 1, 0]]}}
+    evaluate.write_figure(summary, [(names[0], names[1], g, g.astype(np.float32), g == 1, 3.0)],
+                          tmp_path / 'eval.png')
+    assert (tmp_path / 'eval.png').stat().st_size > 0
+    comp = np.zeros((8, 8, 8), np.float32)
+    comp[3:5, 3:5, 3:5] = 0.9
+    scan_eval.plot_completions(tmp_path / 'scan.png', [('p$$q s0/1 -> a$_$',
+                                                         np.argwhere(g == 1), comp)],
+                               types.SimpleNamespace(size=8))
+    assert (tmp_path / 'scan.png').stat().st_size > 0
