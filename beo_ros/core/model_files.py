@@ -32,6 +32,7 @@ import numpy as np
 from .class_model import ClassModel, ModelError
 from .classifier import (MODES, POINTS_MODE, check_classifier_arrays, check_point_classifier,
                          descriptor_count)
+from .estimate import UNKNOWN_LABEL
 from .grid import GridSpec
 from .inference import FEATURE_NAMES
 
@@ -48,13 +49,16 @@ def class_name_problem(name):
     """Why ``name`` cannot be a class name ('' when it can): a class is saved as the file
     ``class_XX_<name>.npz``, so a name must be a non-empty string without '/', '\\' or NUL,
     not '.' or '..', without leading or trailing whitespace and at most ``MAX_NAME_BYTES``
-    long in UTF-8 (the file name within the 255 bytes file systems allow)."""
+    long in UTF-8 (the file name within the 255 bytes file systems allow), and not 'unknown'
+    (the label of an estimate that names no class)."""
     if not isinstance(name, str) or not name:
         return 'class names must be non-empty strings'
     if any(c in name for c in '/\\\0'):
         return "class names cannot contain '/', '\\' or NUL (they name files)"
     if name in ('.', '..'):
         return "class names cannot be '.' or '..'"
+    if name == UNKNOWN_LABEL:   # an object seen as nothing (or rejected) was this class
+        return f"class names cannot be {UNKNOWN_LABEL!r}, the label of no class"
     if name != name.strip():
         return 'class names cannot start or end with whitespace'
     if len(name.encode('utf-8', 'surrogatepass')) > MAX_NAME_BYTES:
