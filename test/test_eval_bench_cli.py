@@ -294,6 +294,8 @@ def test_bench_failure_keeps_an_existing_out(tmp_path):
     # empty lists (ran with the defaults)
     ['--classes'], ['--scaling-train'], ['--scaling-grids'], ['--scaling-yaw-steps'],
     ['--scaling-classes'],
+    # a class model needs 2 objects: the grid curve failed after the peers had run
+    ['--scaling-per-class', '1'], ['--train-per-class', '1'],
 ])
 def test_bench_numbers_checked_by_the_parser(tmp_path, capsys, extra):
     with pytest.raises(SystemExit) as ei:
