@@ -482,3 +482,16 @@ def test_sigterm_does_not_wait_for_the_queued_verifier_chunks():
     finally:
         p.kill()
         p.wait()
+
+
+def test_oof_out_is_written_under_the_name_given(tmp_path):
+    # np.savez appended '.npz' to a name without it: --oof-out oof.dat wrote oof.dat.npz
+    p = write_npz(tmp_path / 'd.npz', count=5)
+    oof = tmp_path / 'oof.dat'
+    assert train.main([str(p), '-o', str(tmp_path / 'm'), '--k', '2', '--views', '1',
+                       '--verifier-views', '0', '--calibration-views', '0',
+                       '--classifier', 'logistic', '--descriptors', 'off',
+                       '--oof-out', str(oof)]) == 0
+    assert sorted(q.name for q in tmp_path.iterdir()) == ['d.npz', 'm', 'oof.dat']
+    with np.load(oof) as z:
+        assert len(z['partial_labels']) == len(z['complete_labels']) == 10

@@ -527,4 +527,5 @@ def _save_out_of_fold_rows(path, rows):
                     arrays[f'{mode}_{key}'] = np.array([rec[key] for rec in r['records']])
     from pathlib import Path
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    np.savez(path, **arrays)
+    with open(path, 'wb') as f:   # the name given: np.savez appends '.npz' to a name without it
+        np.savez(f, **arrays)
