@@ -398,8 +398,9 @@ def _md_peers(res):
              f"{res['icp'].get('init_yaws')} initial yaws)"]
     extra += [f"{p} index {res[p]['index_mb']:.1f} MB, fit {res[p]['fit_s']:.0f} s"
               for p in ('beo', 'paper', 'icp')]
+    # n/a: a peer that classified no query right (null in bench.json)
     extra += [f"{p} yaw median on correctly classified "
-              f"{res[p]['yaw_median_deg_correct_class']:.1f} deg"
+              f"{_fmt(res[p]['yaw_median_deg_correct_class'])} deg"
               for p in ('beo', 'paper', 'icp')]
     return [table(res), ''] + ['- ' + e for e in extra] + ['']
 
