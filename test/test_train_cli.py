@@ -495,3 +495,27 @@ def test_oof_out_is_written_under_the_name_given(tmp_path):
     assert sorted(q.name for q in tmp_path.iterdir()) == ['d.npz', 'm', 'oof.dat']
     with np.load(oof) as z:
         assert len(z['partial_labels']) == len(z['complete_labels']) == 10
+
+
+@pytest.mark.parametrize('extra, message', [
+    (['--row-standardize', 'on'], 'row_standardize needs at least 3 classes'),
+    (['--grid12'], 'a grid of a multiple of 8 (got 12)'),   # the verifier, on a 12^3 npz
+])
+def test_fit_options_checked_before_congealing(tmp_path, capsys, monkeypatch, extra, message):
+    # fit_bank's checks ran after the congealing (minutes on ModelNet)
+    from beo_ros.core import congeal
+
+    def no_congealing(*a, **k):
+        raise AssertionError('congealed before checking the fit options')
+    monkeypatch.setattr(congeal, 'congeal_classes', no_congealing)
+    if extra == ['--grid12']:
+        X, y, names = primitive_shapes(12, 4, np.random.default_rng(0))
+        p = tmp_path / 'd.npz'
+        np.savez(p, voxels=X.astype(np.uint8), labels=y, classes=np.array(names))
+        extra = []
+    else:
+        p = write_npz(tmp_path / 'd.npz')
+    assert train.main([str(p), '-o', str(tmp_path / 'm'), '--k', '2', '--congeal',
+                       *extra]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / 'm').exists()
