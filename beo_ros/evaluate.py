@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -452,13 +453,23 @@ def _report(summary, recs, examples, bank, out, argv):
     if lost:
         print(f"{lost} view(s) had no occupied voxel (objects of a few voxels lost to the "
               "rotation), answered 'unknown' without a yaw, a wrong class and yaw")
-    # strict JSON: non-finite numbers (a mean over no rows) as null
-    (out / 'eval.json').write_text(json.dumps(json_safe(summary), indent=2,
-                                              allow_nan=False) + '\n')
-    # one line per complete object and per view (i: the object's index in --data)
-    (out / 'records.jsonl').write_text(''.join(json.dumps(json_safe(r), allow_nan=False)
-                                               + '\n' for r in recs))
-    write_figure(summary, examples, out / 'eval.png')
+    # each file under a temporary name until all three are complete: a failure or Ctrl-C
+    # while the figure was drawn left eval.json and records.jsonl without eval.png
+    names = ('eval.json', 'records.jsonl', 'eval.png')
+    tmp = {name: out / f'.partial.{name}' for name in names}   # savefig reads the extension
+    try:
+        # strict JSON: non-finite numbers (a mean over no rows) as null
+        tmp['eval.json'].write_text(json.dumps(json_safe(summary), indent=2,
+                                               allow_nan=False) + '\n')
+        # one line per complete object and per view (i: the object's index in --data)
+        tmp['records.jsonl'].write_text(''.join(json.dumps(json_safe(r), allow_nan=False)
+                                                + '\n' for r in recs))
+        write_figure(summary, examples, tmp['eval.png'])
+        for name in names:
+            os.replace(tmp[name], out / name)
+    finally:
+        for path in tmp.values():
+            path.unlink(missing_ok=True)
     print(f'wrote {out / "eval.json"}, {out / "records.jsonl"} and {out / "eval.png"}')
 
 

@@ -423,3 +423,23 @@ def test_figure_takes_class_names_with_dollar_signs(tmp_path):
                                                          np.argwhere(g == 1), comp)],
                                types.SimpleNamespace(size=8))
     assert (tmp_path / 'scan.png').stat().st_size > 0
+
+
+@pytest.mark.parametrize('existing', [False, True])
+def test_eval_interrupted_while_writing_leaves_no_partial_result(model, tmp_path, monkeypatch,
+                                                                existing):
+    # Ctrl-C or SIGTERM while eval.png was drawn left eval.json and records.jsonl in --out
+    # (a result set without its figure; in an existing --out, beside an older eval.png)
+    data = write_npz(tmp_path / 'd.npz', count=2)
+    out = tmp_path / 'e'
+    if existing:
+        out.mkdir()
+        (out / 'notes.txt').write_text('mine')
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(evaluate, 'write_figure', interrupted)
+    assert call(evaluate.main, ['--model', str(model), '--data', str(data),
+                                '--out', str(out)]) == cli.INTERRUPTED
+    assert (sorted(p.name for p in out.iterdir()) == ['notes.txt'] if existing
+            else not out.exists())
