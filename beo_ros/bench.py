@@ -398,8 +398,9 @@ def _md_peers(res):
              f"{res['icp'].get('init_yaws')} initial yaws)"]
     extra += [f"{p} index {res[p]['index_mb']:.1f} MB, fit {res[p]['fit_s']:.0f} s"
               for p in ('beo', 'paper', 'icp')]
+    # n/a: a peer that classified no query right (null in bench.json)
     extra += [f"{p} yaw median on correctly classified "
-              f"{res[p]['yaw_median_deg_correct_class']:.1f} deg"
+              f"{_fmt(res[p]['yaw_median_deg_correct_class'])} deg"
               for p in ('beo', 'paper', 'icp')]
     return [table(res), ''] + ['- ' + e for e in extra] + ['']
 
@@ -518,8 +519,9 @@ def _add_data_options(ap):
     ap.add_argument('--seed', type=count(0), default=0)
     ap.add_argument('--test-frac', type=number(0, 1, lo_open=True, hi_open=True), default=0.2,
                     help='held-out fraction per class, in (0, 1) (default 0.2)')
-    ap.add_argument('--train-per-class', type=count(1), default=None,
-                    help='cap training objects per class (default: all of the split)')
+    # a class model needs 2 objects (1 failed in the first fit, or after the peers with --model)
+    ap.add_argument('--train-per-class', type=count(2), default=None,
+                    help='cap training objects per class, >= 2 (default: all of the split)')
     ap.add_argument('--queries-per-class', type=count(1), default=10,
                     help='cap held-out queries per class (default 10)')
 
@@ -555,7 +557,8 @@ def _add_scaling_options(ap):
     ap.add_argument('--scaling-yaw-steps', type=number(*YAW_STEP_RANGE_DEG), nargs='+',
                     default=[10.0, 5.0, 1.0])
     ap.add_argument('--scaling-classes', type=count(1), nargs='+', default=[2, 5, 10])
-    ap.add_argument('--scaling-per-class', type=count(1), default=8)
+    # >= 2: a class model needs 2 objects (1 failed in the grid curve, after the peers had run)
+    ap.add_argument('--scaling-per-class', type=count(2), default=8)
     ap.add_argument('--scaling-queries', type=count(1), default=6)
 
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -235,15 +236,17 @@ def write_figure(summary, examples, path):
             n = vol.shape[0]
             ax.set_xlim(0, n), ax.set_ylim(0, n), ax.set_zlim(0, n)
             ax.set_axis_off()
+            # class names as written: a '$' in one is no mathtext (two failed the savefig)
             ax.set_title(f'{title}' + (f'\n{truth} -> {label}, yaw err {err:.0f} deg'
-                                       if j == 0 else ''), fontsize=8)
+                                       if j == 0 else ''), fontsize=8, parse_math=False)
     if 'partial' in summary:
         ax = fig.add_subplot(rows + 1, 2, 2 * rows + 1)
         cm = np.array(summary['partial']['confusion'])
         ax.imshow(cm / np.maximum(cm.sum(axis=1, keepdims=True), 1), cmap='Blues', vmin=0, vmax=1)
         cl = summary['classes'] + ['unknown']
-        ax.set_xticks(range(len(cl)), cl, rotation=90, fontsize=7)
-        ax.set_yticks(range(len(summary['classes'])), summary['classes'], fontsize=7)
+        ax.set_xticks(range(len(cl)), cl, rotation=90, fontsize=7, parse_math=False)
+        ax.set_yticks(range(len(summary['classes'])), summary['classes'], fontsize=7,
+                      parse_math=False)
         ax.set_title('partial views: confusion (rows truth)', fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=80)
@@ -453,13 +456,23 @@ def _report(summary, recs, examples, bank, out, argv):
     if lost:
         print(f"{lost} view(s) had no occupied voxel (objects of a few voxels lost to the "
               "rotation), answered 'unknown' without a yaw, a wrong class and yaw")
-    # strict JSON: non-finite numbers (a mean over no rows) as null
-    (out / 'eval.json').write_text(json.dumps(json_safe(summary), indent=2,
-                                              allow_nan=False) + '\n')
-    # one line per complete object and per view (i: the object's index in --data)
-    (out / 'records.jsonl').write_text(''.join(json.dumps(json_safe(r), allow_nan=False)
-                                               + '\n' for r in recs))
-    write_figure(summary, examples, out / 'eval.png')
+    # each file under a temporary name until all three are complete: a failure or Ctrl-C
+    # while the figure was drawn left eval.json and records.jsonl without eval.png
+    names = ('eval.json', 'records.jsonl', 'eval.png')
+    tmp = {name: out / f'.partial.{name}' for name in names}   # savefig reads the extension
+    try:
+        # strict JSON: non-finite numbers (a mean over no rows) as null
+        tmp['eval.json'].write_text(json.dumps(json_safe(summary), indent=2,
+                                               allow_nan=False) + '\n')
+        # one line per complete object and per view (i: the object's index in --data)
+        tmp['records.jsonl'].write_text(''.join(json.dumps(json_safe(r), allow_nan=False)
+                                                + '\n' for r in recs))
+        write_figure(summary, examples, tmp['eval.png'])
+        for name in names:
+            os.replace(tmp[name], out / name)
+    finally:
+        for path in tmp.values():
+            path.unlink(missing_ok=True)
     print(f'wrote {out / "eval.json"}, {out / "records.jsonl"} and {out / "eval.png"}')
 
 

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -278,7 +279,7 @@ def plot_completions(path, items, spec):
             ax.set_xlim(-0.5, n - 0.5)
             ax.set_ylim(-0.5, n - 0.5)
             ax.set_aspect('equal')
-            ax.set_title(f'{title}: {lab}', fontsize=8)
+            ax.set_title(f'{title}: {lab}', fontsize=8, parse_math=False)   # '$' in a name
         fig.colorbar(sc, ax=row[-1], fraction=0.046, label='P(occupied)')
     fig.suptitle('red: observed points; squares: completed voxels (P >= 0.5), grid index coords')
     fig.tight_layout()
@@ -309,14 +310,25 @@ def _run(args, objs, out, t_start):
         print(f'[{si + 1}/{len(groups)}] {"+".join(group)}: {n_held} objects, refit '
               f'{t_fit:.0f} s, running accuracy {acc:.3f}', file=sys.stderr)
     summary = _summary(args, objs.names, recs, len(scenes), len(groups))
-    idx, F, D = _save_oof_features(args, objs, oof, out, summary)
-    if len(groups) > 1:
-        summary['classifier_cv'] = _classifier_cv(objs, idx, F, D)
-    summary['seconds'] = round(time.time() - t_start, 1)
-    (out / 'scan_eval.json').write_text(json.dumps(dict(summary=summary, objects=recs),
-                                                   indent=2) + '\n')
-    if figs:
-        plot_completions(out / 'scan_completions.png', figs, objs.spec)
+    # each file under a temporary name until all are complete: a failure or Ctrl-C in the
+    # second-level comparison left oof_features.npz alone in --out
+    names = ('oof_features.npz', 'scan_eval.json', 'scan_completions.png')
+    tmp = {name: out / f'.partial.{name}' for name in names}   # savefig reads the extension
+    try:
+        idx, F, D = _save_oof_features(args, objs, oof, tmp['oof_features.npz'], summary)
+        if len(groups) > 1:
+            summary['classifier_cv'] = _classifier_cv(objs, idx, F, D)
+        summary['seconds'] = round(time.time() - t_start, 1)
+        tmp['scan_eval.json'].write_text(json.dumps(dict(summary=summary, objects=recs),
+                                                    indent=2) + '\n')
+        if figs:
+            plot_completions(tmp['scan_completions.png'], figs, objs.spec)
+        for name in names:
+            if tmp[name].exists():
+                os.replace(tmp[name], out / name)
+    finally:
+        for path in tmp.values():
+            path.unlink(missing_ok=True)
     print_table(summary)
     return summary
 
@@ -451,10 +463,10 @@ def _box_yaw(b):
                 within_10_deg=round(float(np.mean(np.abs(dev) <= 10)), 4))
 
 
-def _save_oof_features(args, objs, oof, out, summary):
-    """Write oof_features.npz (the out-of-fold features and the side-normal descriptors of the
-    objects that have features) and note the descriptors' time in summary; (idx (m,),
-    F (m, C, F), D (m, 2))."""
+def _save_oof_features(args, objs, oof, path, summary):
+    """Write ``path`` (oof_features.npz: the out-of-fold features and the side-normal
+    descriptors of the objects that have features) and note the descriptors' time in summary;
+    (idx (m,), F (m, C, F), D (m, 2))."""
     from .core.inference import FEATURE_NAMES
     from .core.scan_training import scan_point_descriptors
     idx = np.array([i for i, _ in oof], dtype=int)
@@ -464,7 +476,7 @@ def _save_oof_features(args, objs, oof, out, summary):
     D = scan_point_descriptors(objs.subset(idx))
     summary['point_descriptor_ms_mean'] = round(
         1e3 * (time.perf_counter() - t_d) / max(len(idx), 1), 2)
-    np.savez_compressed(out / 'oof_features.npz', features=F, y=objs.y[idx],
+    np.savez_compressed(path, features=F, y=objs.y[idx],
                         scenes=objs.scenes[idx], object_ids=objs.object_ids[idx],
                         classes=np.array(objs.names), feature_names=np.array(FEATURE_NAMES),
                         point_descriptors=D,

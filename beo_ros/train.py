@@ -47,7 +47,7 @@ def main(argv=None):
         if args.calibrate_only:
             return _calibrate_only(args, X, y, names, spec, training.get('data_sha256'))
         if args.congeal:
-            X, masks = _congeal(args, X, y, names, masks, spec)
+            X, masks = _congeal(args, X, y, names, masks, spec, grids)
         t0 = time.time()
         bank = _fit(args, X, y, names, masks, spec, grids, training, class_prior)
         _save(bank, args.out, replace)
@@ -311,13 +311,19 @@ def _training_info(args, X, y, names, masks):
     return training
 
 
-def _congeal(args, X, y, names, masks, spec):
+def _congeal(args, X, y, names, masks, spec, grids=None):
     """(X, masks) with the yaw of the objects aligned within each class (--congeal)."""
     from .core.congeal import congeal_classes
-    # fit_bank's check, before minutes of congealing: the folds count when a classifier or
-    # a calibration is fitted (--calibration-views unset: one only with a classifier)
-    check_class_counts(y, names, args.folds if args.views > 0
-                       or args.calibration_views else 0)
+    from .core.training import _check_fit_options
+    # fit_bank's checks, before minutes of congealing (a verifier on a grid not a multiple
+    # of 8, --row-standardize on with 2 classes, ... were refused after it); the folds count
+    # when a classifier or a calibration is fitted
+    _, calibration_views = _check_fit_options(
+        names, spec, args.k, masks, args.views, args.folds, None,
+        AUTO_ON_OFF[args.row_standardize], AUTO_ON_OFF[args.descriptors], args.verifier_views,
+        args.classifier, 'auto' if args.calibration_views is None else args.calibration_views,
+        grids, args.oof_out)
+    check_class_counts(y, names, args.folds if args.views > 0 or calibration_views else 0)
     if masks is not None:
         X, masks = congeal_classes(X, y, spec.size, masks=masks, verbose=True)
     else:

@@ -419,6 +419,21 @@ def test_markdown_writes_n_a_for_missing_latencies():
     assert 'p50 n/a ms' in md and '| n/a | n/a |' in md
 
 
+def test_markdown_of_a_peer_that_classified_no_query_right():
+    # its yaw median on correctly classified queries is NaN (null in bench.json): bench.md's
+    # ':.1f' raised a TypeError traceback after bench.json (no bench.md, no PNGs, exit 1)
+    from beo_ros.bench import json_safe, markdown, summarize
+    ok = summarize([0.01, 0.02], [True, True], [3.0, 50.0], [1000])
+    none = json_safe(summarize([0.01, 0.02], [False, False], [3.0, 50.0], [1000]))
+    assert none['yaw_median_deg_correct_class'] is None
+    res = {p: dict(ok, fit_s=1.0, index_mb=0.5) for p in ('beo', 'paper')}
+    res['icp'] = dict(none, fit_s=1.0, index_mb=0.5, db_size=2, db_per_class=1, init_yaws=4)
+    res.update(speedup_vs_icp=2.0, speedup_vs_paper=1.0, node={'skipped': '--no-node'})
+    md = markdown(res)
+    assert 'icp yaw median on correctly classified n/a deg' in md
+    assert 'beo yaw median on correctly classified 26.5 deg' in md
+
+
 def test_bench_domain_is_in_the_linux_safe_range():
     """The node phase's domain keeps its DDS ports clear of Linux's ephemeral ports
     (215-232) and of the tests' own subprocess domains (10-99)."""

@@ -304,6 +304,8 @@ def test_bench_failure_keeps_an_existing_out(tmp_path):
     # empty lists (ran with the defaults)
     ['--classes'], ['--scaling-train'], ['--scaling-grids'], ['--scaling-yaw-steps'],
     ['--scaling-classes'],
+    # a class model needs 2 objects: the grid curve failed after the peers had run
+    ['--scaling-per-class', '1'], ['--train-per-class', '1'],
 ])
 def test_bench_numbers_checked_by_the_parser(tmp_path, capsys, extra):
     with pytest.raises(SystemExit) as ei:
@@ -434,3 +436,42 @@ def test_demo_keep_bag_replaces_the_previous_bag(model, tmp_path, monkeypatch):
                                 '--storage', storage]) == 1
         bags = sorted(p.suffix for p in (out / 'demo_bag').iterdir() if p.suffix != '.yaml')
         assert bags == [suffix], bags
+
+
+def test_figure_takes_class_names_with_dollar_signs(tmp_path):
+    # class names are file names: '$' is legal, but matplotlib read '$...$' in the titles and
+    # tick labels as mathtext ('p$$q' or 'a$_$': a ParseException from savefig, after
+    # eval.json and records.jsonl were written) and rendered 'a$x$' as math
+    names = ['p$$q', 'a$_$']
+    g = np.zeros((8, 8, 8), np.int8)
+    g[3:5, 3:5, 3:5] = 1
+    summary = {'classes': names, 'partial': {'confusion': [[1, 0, 0], [0, 1, 0]]}}
+    evaluate.write_figure(summary, [(names[0], names[1], g, g.astype(np.float32), g == 1, 3.0)],
+                          tmp_path / 'eval.png')
+    assert (tmp_path / 'eval.png').stat().st_size > 0
+    comp = np.zeros((8, 8, 8), np.float32)
+    comp[3:5, 3:5, 3:5] = 0.9
+    scan_eval.plot_completions(tmp_path / 'scan.png', [('p$$q s0/1 -> a$_$',
+                                                         np.argwhere(g == 1), comp)],
+                               types.SimpleNamespace(size=8))
+    assert (tmp_path / 'scan.png').stat().st_size > 0
+
+
+@pytest.mark.parametrize('existing', [False, True])
+def test_eval_interrupted_while_writing_leaves_no_partial_result(model, tmp_path, monkeypatch,
+                                                                existing):
+    # Ctrl-C or SIGTERM while eval.png was drawn left eval.json and records.jsonl in --out
+    # (a result set without its figure; in an existing --out, beside an older eval.png)
+    data = write_npz(tmp_path / 'd.npz', count=2)
+    out = tmp_path / 'e'
+    if existing:
+        out.mkdir()
+        (out / 'notes.txt').write_text('mine')
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(evaluate, 'write_figure', interrupted)
+    assert call(evaluate.main, ['--model', str(model), '--data', str(data),
+                                '--out', str(out)]) == cli.INTERRUPTED
+    assert (sorted(p.name for p in out.iterdir()) == ['notes.txt'] if existing
+            else not out.exists())

@@ -319,3 +319,20 @@ def test_scene_groups_spread_and_fold_the_scenes():
     assert _scene_groups(args, scenes)[1] == [['s0', 's2', 's4'], ['s1', 's3']]
     args = SimpleNamespace(scenes=3, scene_folds=5)   # more folds than scenes: one per scene
     assert _scene_groups(args, scenes)[1] == [['s0'], ['s2'], ['s4']]
+
+
+def test_loso_interrupted_in_the_comparison_leaves_no_partial_result(scan_files, tmp_path,
+                                                                     monkeypatch):
+    # Ctrl-C or SIGTERM in the second-level comparison (after the folds) left
+    # oof_features.npz alone in --out, without scan_eval.json
+    import beo_ros.scan_eval as scan_eval
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(scan_eval, '_classifier_cv', interrupted)
+    out = tmp_path / 'ev'
+    rc = main(['--scans', *map(str, scan_files), '--out', str(out), '--no-congeal', '--k', '2',
+               '--max-iter', '3', '--grid', '16', '--voxel-size', '0.03125',
+               '--yaw-step', '10', '--figures', '0'])
+    assert rc == 130
+    assert not out.exists()

@@ -62,6 +62,8 @@ def leftovers(tmp_path):
     (' table', 'whitespace'),
     ('t' * 250, 'at most 200 bytes'),   # trained, then save failed: 'File name too long'
     ('ta\ud800', 'file system can encode'),   # trained, then save raised UnicodeEncodeError
+    # the label of no class: beo-eval counted an object seen as nothing as one of this class
+    ('unknown', "cannot be 'unknown'"),
 ])
 def test_bad_class_names_refused_before_training(model, tmp_path, capsys, name, message):
     path, before = model
@@ -451,3 +453,73 @@ def test_shipped_model_records_its_training_data(monkeypatch):
     args = SimpleNamespace(inputs=[str(data)], grid=None, classes=None)
     X, y, names, _ = train._load_objects(args)
     assert info['training']['data_sha256'] == training_data_hash(X, y, names)
+
+
+def test_sigterm_does_not_wait_for_the_queued_verifier_chunks():
+    # SIGTERM to beo-train alone (kill PID, docker stop) while --jobs 2 made the verifier's
+    # views: leaving the process pool's 'with' block made every chunk still queued first
+    # (67 s here, minutes on ModelNet) before 'terminated'
+    import signal
+    import subprocess
+    import sys
+    import time
+    code = ('import sys\n'
+            'from beo_ros.cli import interruptible\n'
+            'from beo_ros.core.synthetic import primitive_shapes\n'
+            'from beo_ros.core.training import verifier_training_set\n'
+            'X = primitive_shapes(16, 320)[0]\n'
+            "@interruptible('t')\n"
+            'def main():\n'
+            "    print('start', flush=True)\n"
+            '    verifier_training_set(X, 16, views=20, processes=2)\n'
+            'sys.exit(main())\n')
+    p = subprocess.Popen([sys.executable, '-c', code], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    try:
+        assert p.stdout.readline() == 'start\n'
+        time.sleep(2.0)
+        p.send_signal(signal.SIGTERM)
+        t0 = time.monotonic()
+        _, err = p.communicate(timeout=30)
+        assert p.returncode == 143 and time.monotonic() - t0 < 10, err
+        assert 'Traceback' not in err, err
+    finally:
+        p.kill()
+        p.wait()
+
+
+def test_oof_out_is_written_under_the_name_given(tmp_path):
+    # np.savez appended '.npz' to a name without it: --oof-out oof.dat wrote oof.dat.npz
+    p = write_npz(tmp_path / 'd.npz', count=5)
+    oof = tmp_path / 'oof.dat'
+    assert train.main([str(p), '-o', str(tmp_path / 'm'), '--k', '2', '--views', '1',
+                       '--verifier-views', '0', '--calibration-views', '0',
+                       '--classifier', 'logistic', '--descriptors', 'off',
+                       '--oof-out', str(oof)]) == 0
+    assert sorted(q.name for q in tmp_path.iterdir()) == ['d.npz', 'm', 'oof.dat']
+    with np.load(oof) as z:
+        assert len(z['partial_labels']) == len(z['complete_labels']) == 10
+
+
+@pytest.mark.parametrize('extra, message', [
+    (['--row-standardize', 'on'], 'row_standardize needs at least 3 classes'),
+    (['--grid12'], 'a grid of a multiple of 8 (got 12)'),   # the verifier, on a 12^3 npz
+])
+def test_fit_options_checked_before_congealing(tmp_path, capsys, monkeypatch, extra, message):
+    # fit_bank's checks ran after the congealing (minutes on ModelNet)
+    from beo_ros.core import congeal
+
+    def no_congealing(*a, **k):
+        raise AssertionError('congealed before checking the fit options')
+    monkeypatch.setattr(congeal, 'congeal_classes', no_congealing)
+    if extra == ['--grid12']:
+        X, y, names = primitive_shapes(12, 4, np.random.default_rng(0))
+        p = tmp_path / 'd.npz'
+        np.savez(p, voxels=X.astype(np.uint8), labels=y, classes=np.array(names))
+        extra = []
+    else:
+        p = write_npz(tmp_path / 'd.npz')
+    assert train.main([str(p), '-o', str(tmp_path / 'm'), '--k', '2', '--congeal',
+                       *extra]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / 'm').exists()

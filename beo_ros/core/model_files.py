@@ -33,6 +33,7 @@ import numpy as np
 
 from .class_model import ClassModel, ModelError
 from .classifier import POINTS_MODE, check_grid_classifier, check_point_classifier
+from .estimate import UNKNOWN_LABEL
 from .grid import GridSpec
 
 FORMAT = 'beo_ros.models'
@@ -49,7 +50,8 @@ def class_name_problem(name):
     ``class_XX_<name>.npz``, so a name must be a non-empty string without '/', '\\' or NUL
     that the file system encoding can encode (no lone surrogate), not '.' or '..', without
     leading or trailing whitespace and at most ``MAX_NAME_BYTES`` long in UTF-8 (the file name
-    within the 255 bytes file systems allow)."""
+    within the 255 bytes file systems allow), and not 'unknown' (the label of an estimate that
+    names no class)."""
     if not isinstance(name, str) or not name:
         return 'class names must be non-empty strings'
     if any(c in name for c in '/\\\0'):
@@ -60,6 +62,8 @@ def class_name_problem(name):
         return 'class names must be text the file system can encode (they name files)'
     if name in ('.', '..'):
         return "class names cannot be '.' or '..'"
+    if name == UNKNOWN_LABEL:   # an object seen as nothing (or rejected) was this class
+        return f"class names cannot be {UNKNOWN_LABEL!r}, the label of no class"
     if name != name.strip():
         return 'class names cannot start or end with whitespace'
     if len(name.encode('utf-8', 'surrogatepass')) > MAX_NAME_BYTES:

@@ -134,6 +134,14 @@ def _quiet_on_sigint():
     signal.signal(signal.SIGINT, lambda signum, frame: os._exit(128 + signal.SIGINT))
 
 
+def _kill_pool(ex):
+    """Kill the processes of ProcessPoolExecutor ``ex`` at once and drop its queued work."""
+    for p in list((getattr(ex, '_processes', None) or {}).values()):
+        if p.is_alive():
+            p.kill()
+    ex.shutdown(wait=False, cancel_futures=True)
+
+
 def verifier_training_set(X, n, views=6, seed=0, processes=1, verbose=False):
     """Rows for the orientation verifier from objects X (m, n^3) in their canonical pose:
     ``views`` random partial views of each (the evaluation protocol), each turned into the
@@ -152,9 +160,16 @@ def verifier_training_set(X, n, views=6, seed=0, processes=1, verbose=False):
               for i in range(0, len(X), VERIFIER_CHUNK)]
     if processes > 1:
         from concurrent.futures import ProcessPoolExecutor
-        with ProcessPoolExecutor(processes, initializer=_quiet_on_sigint) as ex:
+        ex = ProcessPoolExecutor(processes, initializer=_quiet_on_sigint)
+        try:
             parts = list(progress_bar(ex.map(_verifier_chunk, chunks), 'verifier views',
                                       total=len(chunks), disable=not verbose))
+        except BaseException:
+            # SIGTERM to this process alone (kill PID, docker stop) or a failure: leaving a
+            # 'with' block would make every chunk still queued first (minutes)
+            _kill_pool(ex)
+            raise
+        ex.shutdown()
     else:
         parts = [_verifier_chunk(c) for c in progress_bar(chunks, 'verifier views',
                                                           disable=not verbose)]
@@ -512,4 +527,5 @@ def _save_out_of_fold_rows(path, rows):
                     arrays[f'{mode}_{key}'] = np.array([rec[key] for rec in r['records']])
     from pathlib import Path
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    np.savez(path, **arrays)
+    with open(path, 'wb') as f:   # the name given: np.savez appends '.npz' to a name without it
+        np.savez(f, **arrays)
