@@ -496,3 +496,16 @@ def test_demo_default_model(tmp_path):
     assert (out / 'beo_demo.png').is_file()
     print(f'demo on the shipped model: {time.monotonic() - t:.1f} s, '
           f'{res["correct"]}/{res["inputs"]} labels right')
+
+
+def test_demo_figure_takes_class_names_with_dollar_signs(tmp_path):
+    """Class names may hold '$' (they name files): the demo's panel titles are plain text, not
+    mathtext ('p$$q' failed the savefig with a ParseException)."""
+    from beo_ros.ros import demo
+    rng = np.random.default_rng(0)
+    inputs = [dict(stamp_ns=i, true_class=name, points=rng.normal(size=(50, 3)))
+              for i, name in enumerate(('p$$q', 'a$_$', 'box'))]
+    rows = [dict(label=name, true_class=name, probability=0.5)
+            for name in ('p$$q', 'a$x$', 'box')]
+    demo.plot(inputs, rows, {0: rng.normal(size=(20, 3))}, tmp_path / 'demo.png')
+    assert (tmp_path / 'demo.png').stat().st_size > 0

@@ -258,7 +258,7 @@ def plot(inputs, rows, completed_pts, path):
         label = r['label'] or 'no estimate'
         prob = '' if r['probability'] is None else f' {r["probability"]:.2f}'
         ax.set_title(f'{inp["true_class"]}\n-> {label}{prob}', fontsize=9,
-                     color='black' if ok else 'tab:red')
+                     color='black' if ok else 'tab:red', parse_math=False)   # '$' in a name
     fig.suptitle('beo-demo: input view (blue), completed object (orange)', fontsize=11)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
