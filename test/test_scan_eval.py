@@ -13,6 +13,11 @@ from beo_ros.scan_eval import (
     scene_cv_predictions)
 
 
+# a small, fast leave-one-scene-out run (grid 16, few iterations, no figures)
+SMALL_LOSO = ['--no-congeal', '--k', '2', '--max-iter', '3', '--grid', '16', '--voxel-size',
+              '0.03125', '--yaw-step', '10', '--figures', '0']
+
+
 def _scene_points(kind, rng, n_obj=2):
     """Camera at the origin (y down, z forward) pitched down 40 deg, table 0.6 m below it, and
     ``n_obj`` boxes or cylinders on the table (their camera-facing surfaces). -> (points, labels)"""
@@ -131,9 +136,7 @@ def test_loso_saves_out_of_fold_features(scan_files, tmp_path, monkeypatch):
         return real_fit(objs, *a, **k)
     monkeypatch.setattr(scan_eval, 'fit_models', spy)
     out = tmp_path / 'ev'
-    rc = main(['--scans', *map(str, scan_files), '--out', str(out), '--no-congeal', '--k', '2',
-               '--max-iter', '3', '--grid', '16', '--voxel-size', '0.03125',
-               '--yaw-step', '10', '--figures', '0'])
+    rc = main(['--scans', *map(str, scan_files), '--out', str(out), *SMALL_LOSO])
     assert rc == 0
     z = np.load(out / 'oof_features.npz')
     m = len(z['y'])
@@ -210,9 +213,7 @@ def test_loso_counts_an_object_without_occupied_voxels_as_unknown(scan_files, tm
     out = tmp_path / 'ev'
     stdout = io.StringIO()
     with contextlib.redirect_stdout(stdout):
-        rc = main(['--scans', *map(str, scan_files), '--out', str(out), '--no-congeal',
-                   '--k', '2', '--max-iter', '3', '--grid', '16', '--voxel-size', '0.03125',
-                   '--yaw-step', '10', '--figures', '0'])
+        rc = main(['--scans', *map(str, scan_files), '--out', str(out), *SMALL_LOSO])
     assert rc == 0
     assert 'accuracy' in stdout.getvalue()   # the table follows a redirected stdout
     # the second-level rules are over the 7 objects with features: their counts say so (the
@@ -281,9 +282,8 @@ def test_loso_from_points_uses_the_deployment_path(scan_files, tmp_path, monkeyp
         return real(self, *a, **k)
     monkeypatch.setattr(ModelBank, 'estimate_points', spy)
     out = tmp_path / 'fp'
-    rc = main(['--scans', *map(str, scan_files), '--out', str(out), '--no-congeal', '--k', '2',
-               '--max-iter', '3', '--grid', '16', '--voxel-size', '0.03125',
-               '--yaw-step', '10', '--figures', '0', '--from-points', '--scenes', '2'])
+    rc = main(['--scans', *map(str, scan_files), '--out', str(out), *SMALL_LOSO,
+               '--from-points', '--scenes', '2'])
     assert rc == 0
     z = np.load(out / 'oof_features.npz')
     assert str(z['grid_source']) == 'estimate_points'
@@ -331,8 +331,6 @@ def test_loso_interrupted_in_the_comparison_leaves_no_partial_result(scan_files,
         raise KeyboardInterrupt
     monkeypatch.setattr(scan_eval, '_classifier_cv', interrupted)
     out = tmp_path / 'ev'
-    rc = main(['--scans', *map(str, scan_files), '--out', str(out), '--no-congeal', '--k', '2',
-               '--max-iter', '3', '--grid', '16', '--voxel-size', '0.03125',
-               '--yaw-step', '10', '--figures', '0'])
+    rc = main(['--scans', *map(str, scan_files), '--out', str(out), *SMALL_LOSO])
     assert rc == 130
     assert not out.exists()
