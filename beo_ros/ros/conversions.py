@@ -19,6 +19,7 @@ from sensor_msgs.msg import PointField, PointCloud2
 
 from beo_ros.core.bank import object_extent
 from beo_ros.core.grid import quaternion_matrix, wrap_yaw
+from beo_ros.ros import MAX_STAMP_NS
 
 __all__ = [
     'CloudFormatError', 'cloud_to_xyz', 'xyz_to_cloud', 'matrix_to_pose', 'pose_to_matrix',
@@ -261,9 +262,6 @@ def _voxel_size(est) -> float:
     if g is None:
         return 0.0
     return float(np.linalg.norm(np.asarray(g)[:3, 0]))
-
-
-MAX_STAMP_NS = (2 ** 31 - 1) * 1_000_000_000 + 999_999_999   # int32 seconds
 
 
 def stamp_from_ns(ns: int) -> Time:

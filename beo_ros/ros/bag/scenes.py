@@ -5,6 +5,7 @@ import math
 import shutil
 from pathlib import Path
 
+from beo_ros.ros import MAX_STAMP_NS
 from beo_ros.ros.bag.msgtypes import CLOUD_TYPE, check_topic_name
 from beo_ros.ros.bag.storage import BagWriter
 
@@ -15,7 +16,7 @@ DEFAULT_FRAME = 'camera'
 T0_NS = 1_700_000_000_000_000_000  # first stamp written by pcd2bag (and the demo)
 # the last stamp a header holds (builtin_interfaces/Time: int32 seconds, 2038-01-19); the bag's
 # own int64 nanoseconds go further, but each message's header stamp equals its bag stamp
-MAX_NS = (2**31 - 1) * 1_000_000_000 + 999_999_999
+MAX_NS = MAX_STAMP_NS
 
 
 class NoObjects(ValueError):
