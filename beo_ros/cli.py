@@ -136,6 +136,23 @@ def json_safe(obj):
     return obj
 
 
+@contextlib.contextmanager
+def complete_files(out, names):
+    """Yield {name: temporary path} in directory ``out`` for the files ``names``; when the block
+    completes, those written are renamed to ``out/name`` together, and on a failure or Ctrl-C
+    none is: no result set without some of its files. The temporary names keep the extension
+    (matplotlib's savefig reads it)."""
+    tmp = {name: out / f'.partial.{name}' for name in names}
+    try:
+        yield tmp
+        for name in names:
+            if tmp[name].exists():
+                os.replace(tmp[name], out / name)
+    finally:
+        for path in tmp.values():
+            path.unlink(missing_ok=True)
+
+
 def out_dir_problem(out):
     """Why ``out`` cannot be the output directory, or None; creates nothing."""
     # a symbolic link to nothing exists for mkdir ('File exists' once the inputs had loaded)

@@ -18,14 +18,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from .cli import count, interruptible, json_safe, out_dir_problem, output_dir
+from .cli import complete_files, count, interruptible, json_safe, out_dir_problem, output_dir
 from .core.bank import load_models, parse_class_prior
 from .core.calibration import calibration_sums, metrics_from_sums
 from .core.grid import GridSpec, symmetric_turns, yaw_error, yaw_error_up_to
@@ -456,11 +455,8 @@ def _report(summary, recs, examples, bank, out, argv):
     if lost:
         print(f"{lost} view(s) had no occupied voxel (objects of a few voxels lost to the "
               "rotation), answered 'unknown' without a yaw, a wrong class and yaw")
-    # each file under a temporary name until all three are complete: a failure or Ctrl-C
-    # while the figure was drawn left eval.json and records.jsonl without eval.png
-    names = ('eval.json', 'records.jsonl', 'eval.png')
-    tmp = {name: out / f'.partial.{name}' for name in names}   # savefig reads the extension
-    try:
+    # a failure or Ctrl-C while the figure was drawn left eval.json and records.jsonl alone
+    with complete_files(out, ('eval.json', 'records.jsonl', 'eval.png')) as tmp:
         # strict JSON: non-finite numbers (a mean over no rows) as null
         tmp['eval.json'].write_text(json.dumps(json_safe(summary), indent=2,
                                                allow_nan=False) + '\n')
@@ -468,11 +464,6 @@ def _report(summary, recs, examples, bank, out, argv):
         tmp['records.jsonl'].write_text(''.join(json.dumps(json_safe(r), allow_nan=False)
                                                 + '\n' for r in recs))
         write_figure(summary, examples, tmp['eval.png'])
-        for name in names:
-            os.replace(tmp[name], out / name)
-    finally:
-        for path in tmp.values():
-            path.unlink(missing_ok=True)
     print(f'wrote {out / "eval.json"}, {out / "records.jsonl"} and {out / "eval.png"}')
 
 

@@ -29,14 +29,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from .cli import count, interruptible, number
+from .cli import complete_files, count, interruptible, number
 from .core.bank import YAW_STEP_RANGE_DEG
 from .core.training import check_grid_size
 
@@ -310,11 +309,9 @@ def _run(args, objs, out, t_start):
         print(f'[{si + 1}/{len(groups)}] {"+".join(group)}: {n_held} objects, refit '
               f'{t_fit:.0f} s, running accuracy {acc:.3f}', file=sys.stderr)
     summary = _summary(args, objs.names, recs, len(scenes), len(groups))
-    # each file under a temporary name until all are complete: a failure or Ctrl-C in the
-    # second-level comparison left oof_features.npz alone in --out
-    names = ('oof_features.npz', 'scan_eval.json', 'scan_completions.png')
-    tmp = {name: out / f'.partial.{name}' for name in names}   # savefig reads the extension
-    try:
+    # a failure or Ctrl-C in the second-level comparison left oof_features.npz alone in --out
+    with complete_files(out, ('oof_features.npz', 'scan_eval.json',
+                              'scan_completions.png')) as tmp:
         idx, F, D = _save_oof_features(args, objs, oof, tmp['oof_features.npz'], summary)
         if len(groups) > 1:
             summary['classifier_cv'] = _classifier_cv(objs, idx, F, D)
@@ -323,12 +320,6 @@ def _run(args, objs, out, t_start):
                                                     indent=2) + '\n')
         if figs:
             plot_completions(tmp['scan_completions.png'], figs, objs.spec)
-        for name in names:
-            if tmp[name].exists():
-                os.replace(tmp[name], out / name)
-    finally:
-        for path in tmp.values():
-            path.unlink(missing_ok=True)
     print_table(summary)
     return summary
 
