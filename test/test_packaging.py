@@ -311,6 +311,29 @@ def test_setup_recreates_a_venv_without_pip(tmp_path):
     assert 'reusing' in r.stdout
 
 
+def test_setup_recreates_a_venv_made_elsewhere(tmp_path):
+    # a clone moved (or copied) with its .venv: the venv kept the old path in its scripts and
+    # in the CMake files setup had rewritten, and every re-run failed in the interface build
+    # ('includes non-existent path <old clone>/.venv/.../numpy/_core/include')
+    import subprocess
+    old, new = tmp_path / 'old' / '.venv', tmp_path / 'new' / '.venv'
+    subprocess.run([sys.executable, '-m', 'venv', str(old)], check=True)
+    old.parent.rename(new.parent)
+
+    def run(venv):
+        r = _bash(f'VENV={venv}\nPY={sys.executable}\n' + _functions()
+                  + _snippet('step "python venv at .venv/"', 'VPY="$VENV/bin/python"'))
+        assert r.returncode == 0, r.stderr
+        return r.stdout
+
+    assert 'recreating' in run(new)
+    cfg = (new / 'pyvenv.cfg').read_text()
+    assert f' -m venv {new}\n' in cfg, cfg
+    assert 'reusing' in run(new)   # made here: kept
+    (tmp_path / 'link').symlink_to(new.parent)   # the same clone through a symlinked path
+    assert 'reusing' in run(tmp_path / 'link' / '.venv')
+
+
 LDD_CHECK = ('# an unmatched glob must not pass', 'echo "    ok"')
 
 

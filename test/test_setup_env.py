@@ -112,6 +112,21 @@ def test_ensure_ament_prefix(monkeypatch, tmp_path):
     assert 'AMENT_PREFIX_PATH' not in os.environ
 
 
+def test_ensure_ament_prefix_knows_a_listed_prefix_by_another_name(monkeypatch, tmp_path):
+    # the venv run through a symlinked path, listed by its real one behind an overlay (a colcon
+    # install of beo_ros): it was put first again, and its share/beo_ros (models, config)
+    # shadowed the overlay's
+    real = tmp_path / 'venv'
+    index = real / 'share' / 'ament_index' / 'resource_index' / 'packages'
+    index.mkdir(parents=True)
+    (index / 'beo_ros').write_text('')
+    (tmp_path / 'link').symlink_to(real)
+    listed = os.pathsep.join(['/ws/install/beo_ros', str(real)])
+    monkeypatch.setenv('AMENT_PREFIX_PATH', listed)
+    assert ensure_ament_prefix(str(tmp_path / 'link')) == listed
+    assert os.environ['AMENT_PREFIX_PATH'] == listed
+
+
 def test_ament_index_finds_interfaces_in_venv(monkeypatch):
     monkeypatch.delenv('AMENT_PREFIX_PATH', raising=False)
     ensure_ament_prefix()

@@ -19,7 +19,9 @@ def _has_ament_packages(prefix):
 
 def ensure_ament_prefix(prefix=None):
     """Prepend ``prefix`` (default ``sys.prefix``) to ``AMENT_PREFIX_PATH`` when beo_interfaces
-    (or beo_ros) is registered in that prefix's ament index and the variable lacks it.
+    (or beo_ros) is registered in that prefix's ament index and the variable lacks it (under
+    any name: a symlinked path to a listed prefix is that prefix, and its place is kept, e.g.
+    behind an overlay workspace listed first).
 
     Idempotent. Returns the resulting ``AMENT_PREFIX_PATH`` (possibly empty string).
     """
@@ -27,7 +29,7 @@ def ensure_ament_prefix(prefix=None):
     current = os.environ.get('AMENT_PREFIX_PATH', '')
     parts = [p for p in current.split(os.pathsep) if p]
     if _has_ament_packages(prefix) and not any(
-            os.path.abspath(p) == prefix for p in parts):
+            os.path.realpath(p) == os.path.realpath(prefix) for p in parts):
         parts.insert(0, prefix)
         os.environ['AMENT_PREFIX_PATH'] = os.pathsep.join(parts)
     return os.environ.get('AMENT_PREFIX_PATH', '')
