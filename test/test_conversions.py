@@ -269,6 +269,21 @@ def test_yaw_quaternion_rotates_about_up(up):
         yaw_quaternion(1.0, (0, 0, 0))
 
 
+def test_quaternions_of_huge_or_tiny_norm():
+    # normalized by the norm alone: one of 1e200 components overflowed to the identity, one of
+    # 1e-170 underflowed to NaN, and yaw_quaternion refused up=(0, 0, 1e200) as not finite
+    quarter = quaternion_to_rotation([0, 0, 1, 1])
+    for scale in (1e200, 1e-170, 1e-300):
+        np.testing.assert_allclose(quaternion_to_rotation([0, 0, scale, scale]), quarter,
+                                   atol=1e-12)
+        q = yaw_quaternion(0.7, (0, 0, scale))
+        np.testing.assert_allclose([q.x, q.y, q.z, q.w], [0, 0, math.sin(0.35), math.cos(0.35)],
+                                   atol=1e-12)
+    for bad in ([0, 0, 0, 0], [0, 0, np.nan, 1], [0, 0, 1]):
+        with pytest.raises(ValueError, match='quaternion'):
+            quaternion_to_rotation(bad)
+
+
 def test_estimate_to_msg():
     conv = pytest.importorskip('beo_ros.ros.conversions')
     try:
