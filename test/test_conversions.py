@@ -163,6 +163,10 @@ def test_unorganized_zero_row_step_tolerated(pts):
     msg = hand_cloud(pts, [('x', 0, F32), ('y', 4, F32), ('z', 8, F32)], 12)
     msg.row_step = 0
     np.testing.assert_allclose(cloud_to_xyz(msg)[0], pts, atol=1e-6)
+    # data too long: the error named row_step 288 (what it was taken as), not the 0 given
+    msg.data = msg.data + msg.data[:12]
+    with pytest.raises(CloudFormatError, match=r'row_step 288 for the 0 given\) needs 288 to'):
+        cloud_to_xyz(msg)
 
 
 def test_duplicate_fields_other_than_xyz_are_ignored(pts):

@@ -60,8 +60,9 @@ def cloud_to_xyz(msg: PointCloud2):
 
     Raises:
         CloudFormatError: missing, duplicate, overlapping or non-float x/y/z, a field
-        overrunning ``point_step``, ``row_step < width * point_step``, data shorter or longer
-        than the layout (longer than ``height * row_step``).
+        overrunning ``point_step``, ``row_step < width * point_step`` (height > 1: an
+        unorganized cloud's is taken as ``width * point_step``), data shorter or longer than
+        the layout (longer than ``height * row_step``).
     """
     height, width = int(msg.height), int(msg.width)
     point_step, row_step = int(msg.point_step), int(msg.row_step)
@@ -109,7 +110,9 @@ def cloud_to_xyz(msg: PointCloud2):
     if not need <= len(data) <= height * row_step:   # the last row's padding may be missing
         raise CloudFormatError(
             f'PointCloud2 data has {len(data)} bytes, layout {height}x{width} (point_step '
-            f'{point_step}, row_step {row_step}) needs {need} to {height * row_step}')
+            f'{point_step}, row_step {row_step}'
+            + (f' for the {int(msg.row_step)} given' if row_step != int(msg.row_step) else '')
+            + f') needs {need} to {height * row_step}')
     order = '>' if msg.is_bigendian else '<'
     dtype = np.dtype({
         'names': ['x', 'y', 'z'],
