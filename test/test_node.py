@@ -425,6 +425,8 @@ def test_parameters_validated_and_runtime_changeable(harness, tmp_path):
                              ('min_points', 5, ''),   # the core needs 10 points
                              ('completion_threshold', 1.5, ''),
                              ('up_vector', [0.0, 0.0, 0.0], 'non-zero'),
+                             # length 1.3e-9, but no component at the core's 1e-9
+                             ('up_vector', [9e-10, 9e-10, 0.0], 'non-zero'),
                              ('up_vector', [0.0, 1.0], '3 elements'),
                              ('sensor_origin', [0.0, float('inf'), 0.0], 'finite'),
                              ('sensor_origin', [1e300, 0.0, 0.0], 'within'),
