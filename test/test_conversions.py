@@ -163,6 +163,10 @@ def test_unorganized_zero_row_step_tolerated(pts):
     msg = hand_cloud(pts, [('x', 0, F32), ('y', 4, F32), ('z', 8, F32)], 12)
     msg.row_step = 0
     np.testing.assert_allclose(cloud_to_xyz(msg)[0], pts, atol=1e-6)
+    # data too long: the error named row_step 288 (what it was taken as), not the 0 given
+    msg.data = msg.data + msg.data[:12]
+    with pytest.raises(CloudFormatError, match=r'row_step 288 for the 0 given\) needs 288 to'):
+        cloud_to_xyz(msg)
 
 
 def test_duplicate_fields_other_than_xyz_are_ignored(pts):
@@ -267,6 +271,21 @@ def test_yaw_quaternion_rotates_about_up(up):
                                                [math.sin(yaw), math.cos(yaw)]], atol=1e-12)
     with pytest.raises(ValueError):
         yaw_quaternion(1.0, (0, 0, 0))
+
+
+def test_quaternions_of_huge_or_tiny_norm():
+    # normalized by the norm alone: one of 1e200 components overflowed to the identity, one of
+    # 1e-170 underflowed to NaN, and yaw_quaternion refused up=(0, 0, 1e200) as not finite
+    quarter = quaternion_to_rotation([0, 0, 1, 1])
+    for scale in (1e200, 1e-170, 1e-300):
+        np.testing.assert_allclose(quaternion_to_rotation([0, 0, scale, scale]), quarter,
+                                   atol=1e-12)
+        q = yaw_quaternion(0.7, (0, 0, scale))
+        np.testing.assert_allclose([q.x, q.y, q.z, q.w], [0, 0, math.sin(0.35), math.cos(0.35)],
+                                   atol=1e-12)
+    for bad in ([0, 0, 0, 0], [0, 0, np.nan, 1], [0, 0, 1]):
+        with pytest.raises(ValueError, match='quaternion'):
+            quaternion_to_rotation(bad)
 
 
 def test_estimate_to_msg():

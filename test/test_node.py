@@ -425,6 +425,8 @@ def test_parameters_validated_and_runtime_changeable(harness, tmp_path):
                              ('min_points', 5, ''),   # the core needs 10 points
                              ('completion_threshold', 1.5, ''),
                              ('up_vector', [0.0, 0.0, 0.0], 'non-zero'),
+                             # length 1.3e-9, but no component at the core's 1e-9
+                             ('up_vector', [9e-10, 9e-10, 0.0], 'non-zero'),
                              ('up_vector', [0.0, 1.0], '3 elements'),
                              ('sensor_origin', [0.0, float('inf'), 0.0], 'finite'),
                              ('sensor_origin', [1e300, 0.0, 0.0], 'within'),
@@ -537,12 +539,23 @@ def test_a_service_call_cut_short_by_shutdown_is_not_an_error(harness, monkeypat
     assert node.counters()['service_failures'] == before['service_failures'] + 1
 
 
-def test_an_empty_frame_id_is_counted(harness):
+def test_an_empty_frame_id_is_counted(harness, monkeypatch):
     node = harness.node
     before = node.counters()['empty_frame_id']
     node._prepare(cloud(box_view(), frame=''), node._params())
     node._prepare(cloud(box_view()), node._params())
     assert node.counters()['empty_frame_id'] == before + 1
+    # with base_frame set the warning says up is up_vector's: not when a request gave up
+    said = []
+
+    class Log:
+        def warning(self, text, **kwargs):
+            said.append(text)
+    monkeypatch.setattr(node, 'get_logger', Log)
+    p = dict(node._params(), base_frame='base_link')
+    node._prepare(cloud(box_view(), frame=''), p, up=[0.0, 0.0, 1.0])
+    node._prepare(cloud(box_view(), frame=''), p)
+    assert ['up_vector' in t for t in said] == [False, True], said
 
 
 def test_implausible_message_lost_reports_are_not_added(harness):

@@ -18,7 +18,7 @@ from geometry_msgs.msg import Point, Pose, Quaternion, Vector3
 from sensor_msgs.msg import PointField, PointCloud2
 
 from beo_ros.core.bank import object_extent
-from beo_ros.core.grid import quaternion_matrix, wrap_yaw
+from beo_ros.core.grid import quaternion_matrix, unit_vector, wrap_yaw
 from beo_ros.ros import MAX_STAMP_NS
 
 __all__ = [
@@ -60,8 +60,9 @@ def cloud_to_xyz(msg: PointCloud2):
 
     Raises:
         CloudFormatError: missing, duplicate, overlapping or non-float x/y/z, a field
-        overrunning ``point_step``, ``row_step < width * point_step``, data shorter or longer
-        than the layout (longer than ``height * row_step``).
+        overrunning ``point_step``, ``row_step < width * point_step`` (height > 1: an
+        unorganized cloud's is taken as ``width * point_step``), data shorter or longer than
+        the layout (longer than ``height * row_step``).
     """
     height, width = int(msg.height), int(msg.width)
     point_step, row_step = int(msg.point_step), int(msg.row_step)
@@ -109,7 +110,9 @@ def cloud_to_xyz(msg: PointCloud2):
     if not need <= len(data) <= height * row_step:   # the last row's padding may be missing
         raise CloudFormatError(
             f'PointCloud2 data has {len(data)} bytes, layout {height}x{width} (point_step '
-            f'{point_step}, row_step {row_step}) needs {need} to {height * row_step}')
+            f'{point_step}, row_step {row_step}'
+            + (f' for the {int(msg.row_step)} given' if row_step != int(msg.row_step) else '')
+            + f') needs {need} to {height * row_step}')
     order = '>' if msg.is_bigendian else '<'
     dtype = np.dtype({
         'names': ['x', 'y', 'z'],
@@ -201,8 +204,13 @@ def rotation_to_quaternion(r) -> np.ndarray:
 
 
 def quaternion_to_rotation(q) -> np.ndarray:
-    """Quaternion (x, y, z, w) (any norm > 0) -> (3, 3) rotation matrix."""
-    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    """Quaternion (x, y, z, w) (any norm > 0) -> (3, 3) rotation matrix; ValueError for one
+    that is all 0 or not finite. (Normalized without overflow: one of 1e200 components came
+    out the identity, one of 1e-170 NaN.)"""
+    q = np.asarray(q, dtype=np.float64)
+    if q.shape != (4,) or not np.isfinite(q).all() or not np.abs(q).max() > 0:
+        raise ValueError(f'quaternion must be 4 finite components, not all 0, got {q.tolist()}')
+    x, y, z, w = unit_vector(q)
     return quaternion_matrix((w, x, y, z))
 
 
@@ -222,7 +230,8 @@ def matrix_to_pose(t) -> Pose:
 
 
 def pose_to_matrix(pose: Pose) -> np.ndarray:
-    """geometry_msgs/Pose -> (4, 4) float64 homogeneous transform."""
+    """geometry_msgs/Pose -> (4, 4) float64 homogeneous transform (ValueError for an
+    orientation that is all 0 or not finite)."""
     o = pose.orientation
     t = np.eye(4)
     t[:3, :3] = quaternion_to_rotation([o.x, o.y, o.z, o.w])
@@ -236,10 +245,9 @@ def yaw_quaternion(yaw: float, up=(0.0, 0.0, 1.0)) -> Quaternion:
     Not the published object orientation unless ``up`` is the frame's z axis: that one turns
     the frame's z onto up as well (``Estimate.pose``, the object frame: z up, x the heading)."""
     axis = np.asarray(up, dtype=np.float64)
-    norm = np.linalg.norm(axis)
-    if not np.isfinite(norm) or norm == 0:
+    if axis.shape != (3,) or not np.isfinite(axis).all() or not np.abs(axis).max() > 0:
         raise ValueError(f'up must be a finite non-zero vector, got {up!r}')
-    axis = axis / norm * math.sin(yaw / 2.0)
+    axis = unit_vector(axis) * math.sin(yaw / 2.0)   # no overflow: up=(0, 0, 1e200) was refused
     return Quaternion(x=float(axis[0]), y=float(axis[1]), z=float(axis[2]),
                       w=float(math.cos(yaw / 2.0)))
 

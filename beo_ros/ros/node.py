@@ -674,7 +674,8 @@ class BeoNode(Node):
             self._count('empty_frame_id')
             self.get_logger().warning(
                 "a cloud with an empty header.frame_id: its estimate is published in frame ''"
-                + (", and up is up_vector, not TF's" if p['base_frame'] else ''),
+                + (", and up is up_vector, not TF's" if p['base_frame'] and up is None
+                   else ''),   # (not when the service request gives up)
                 throttle_duration_sec=LOG_THROTTLE_SEC)
         if up is None:
             up = self._tf_up(cloud.header.frame_id, p)

@@ -12,7 +12,7 @@ from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescr
 from beo_ros.core.bank import check_step
 from beo_ros.core.bank import default_model_dir as shipped_model_dir
 from beo_ros.core.outliers import OUTLIER_MADS, OUTLIER_NEIGHBORS
-from beo_ros.core.voxelize import MAX_COORDINATE, MIN_POINTS
+from beo_ros.core.voxelize import MAX_COORDINATE, MIN_DIRECTION, MIN_POINTS
 
 DEFAULT_MODEL = 'modelnet10_32'
 MIN_ESTIMATE_TIMEOUT = 1.0  # s; an estimate takes 0.03-0.1 s
@@ -30,7 +30,9 @@ def default_model_dir() -> str:
 
 def vector_reason(name, value, nonzero=False) -> str | None:
     """Why the 3-vector ``value`` of ``name`` is invalid (None when it is fine): not 3 finite
-    components within +-MAX_COORDINATE, or (``nonzero``) of length 0."""
+    components within +-MAX_COORDINATE, or (``nonzero``) none of them as large as the core's
+    MIN_DIRECTION (as ``unit_direction`` refuses it: a length above it was accepted, and every
+    cloud then rejected)."""
     v = list(value)
     if len(v) != 3:
         return f'{name} must have 3 elements, got {len(v)}'
@@ -38,8 +40,8 @@ def vector_reason(name, value, nonzero=False) -> str | None:
         return f'{name} must be finite, got {v}'
     if max(abs(x) for x in v) > MAX_COORDINATE:
         return f'{name} components must be within +-{MAX_COORDINATE:g}, got {v}'
-    if nonzero and math.hypot(*v) < 1e-9:
-        return f'{name} must be non-zero'
+    if nonzero and max(abs(x) for x in v) < MIN_DIRECTION:
+        return f'{name} must be non-zero (largest component at least {MIN_DIRECTION:g})'
     return None
 
 
