@@ -1914,3 +1914,23 @@ def test_blas_threads_of_two_nodes_in_one_process(ros_context, ros_tiny_model_di
             for node in nodes:
                 node.destroy_node()
         assert blas_threads() == before
+
+
+def test_diagnostics_status_names_the_node_with_its_namespace(ros_context, ros_tiny_model_dir,
+                                                               monkeypatch):
+    """Two nodes named beo in /r1 and /r2 (one process): their /diagnostics statuses differ.
+    Before, both were 'beo: estimator', so a monitor or aggregator took them for one."""
+    from beo_ros.ros.node import BeoNode
+
+    names = []
+    nodes = [BeoNode(context=ros_context, namespace=ns, parameter_overrides=[
+        Parameter('model_dir', value=ros_tiny_model_dir)]) for ns in ('/r1', '/r2')]
+    try:
+        for node in nodes:
+            monkeypatch.setattr(node._pub_diag, 'publish',
+                                lambda m: names.extend(s.name for s in m.status))
+            node._publish_diagnostics()
+    finally:
+        for node in nodes:
+            node.destroy_node()
+    assert names == ['r1/beo: estimator', 'r2/beo: estimator']

@@ -1097,7 +1097,9 @@ class BeoNode(Node):
         values.append(KeyValue(key='model_dir', value=str(self._serving_dir)))   # answering
         values.append(KeyValue(key='waiting', value=str(waiting)))
         values.append(KeyValue(key='in_flight', value=str(in_flight)))
-        status = DiagnosticStatus(level=level, name=f'{self.get_name()}: estimator',
+        # with the namespace ('r1/beo'): beo nodes in /r1 and /r2 sent statuses of one name
+        name = self.get_fully_qualified_name().lstrip('/')
+        status = DiagnosticStatus(level=level, name=f'{name}: estimator',
                                   message=message, hardware_id='beo_ros', values=values)
         self._pub_diag.publish(DiagnosticArray(header=self._diag_header(), status=[status]))
 
