@@ -1934,3 +1934,18 @@ def test_diagnostics_status_names_the_node_with_its_namespace(ros_context, ros_t
         for node in nodes:
             node.destroy_node()
     assert names == ['r1/beo: estimator', 'r2/beo: estimator']
+
+
+def test_shutdown_lines_name_the_node_with_its_namespace(ros_context, ros_tiny_model_dir,
+                                                          capfd):
+    """The lines destroy_node logs (clouds not published) come from 'r1.beo.shutdown' for a
+    node in /r1, as its other lines from 'r1.beo'. Before, from 'beo.shutdown' in any
+    namespace: with two nodes it did not say which one lost the clouds."""
+    from beo_ros.ros.node import BeoNode
+
+    node = BeoNode(context=ros_context, namespace='/r1', parameter_overrides=[
+        Parameter('model_dir', value=ros_tiny_model_dir)])
+    node._count('dropped_shutdown')
+    node.destroy_node()
+    err = capfd.readouterr().err
+    assert '[r1.beo.shutdown]: 1 cloud(s) received but not published' in err, err

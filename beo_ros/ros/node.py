@@ -1138,8 +1138,8 @@ class BeoNode(Node):
 
     def _shutdown_logger(self):
         """A logger for shutdown messages: not the node's, whose /rosout publisher may be gone
-        with the context."""
-        return rclpy.logging.get_logger(f'{self.get_name()}.shutdown')
+        with the context. Named after the node's logger ('r1.beo.shutdown' in /r1)."""
+        return rclpy.logging.get_logger(f'{self.get_logger().name}.shutdown')
 
     def destroy_node(self):
         """Stop the worker threads and processes, then destroy the node. Idempotent; called
