@@ -420,8 +420,9 @@ def test_parameters_validated_and_runtime_changeable(harness, tmp_path):
         return node.set_parameters([Parameter(name, value=value)])[0]
 
     for name, value, why in (('yaw_step_deg', 100.0, ''), ('yaw_step_deg', 0.01, ''),
-                             # within rclpy's 1e-6 tolerance of the range, outside the core's
-                             ('yaw_step_deg', 0.04999996, '[0.05, 90]'),
+                             # within rclpy's 1e-6 tolerance of the range, outside it
+                             ('yaw_step_deg', 0.04999996, '[0.05, 45]'),
+                             ('yaw_step_deg', 45.00004, '[0.05, 45]'),
                              ('min_points', 5, ''),   # the core needs 10 points
                              ('completion_threshold', 1.5, ''),
                              ('up_vector', [0.0, 0.0, 0.0], 'non-zero'),
