@@ -1950,3 +1950,50 @@ def test_shutdown_lines_name_the_node_with_its_namespace(ros_context, ros_tiny_m
     node.destroy_node()
     err = capfd.readouterr().err
     assert '[r1.beo.shutdown]: 1 cloud(s) received but not published' in err, err
+
+
+def test_destroy_node_lets_a_spinning_executor_send_the_answers_it_waited_for(harness1):
+    """destroy_node while the executor spins on: the call it waited for is answered. Before,
+    the executor resumed the call only after the services were destroyed (here: it was not
+    spinning for a moment): the answer was lost, counted nowhere, and spin_once raised
+    InvalidHandle (2 of 8 destroys while spinning)."""
+    harness = harness1
+    node, gated, _ = _gated_node(harness, 1)
+    future = harness.classify.call_async(harness.good_request())
+    destroying = threading.Thread(target=node.destroy_node)
+    try:
+        gated.wait(lambda g: len(g.entered) == 1)   # the call waits in its thread
+        harness.stop.set()   # the executor pauses (it is not shut down)
+        harness.thread.join(timeout=5.0)
+        destroying.start()
+        assert _until(lambda: node._destroyed)
+        gated.gate.set()
+        destroying.join(timeout=0.3)   # the call's thread is done; the executor resumes
+        harness.stop.clear()
+        harness.thread = threading.Thread(target=harness._spin, daemon=True)
+        harness.thread.start()
+        assert _until(future.done, 10.0), node.counters()
+        assert future.result().success
+    finally:
+        gated.gate.set()
+        destroying.join(timeout=TIMEOUT)
+    assert node.counters()['service_dropped_shutdown'] == 0
+
+
+def test_an_answer_the_executor_does_not_take_at_destroy_node_is_counted(harness1):
+    """The executor stopped spinning (not shut down, as after rclpy.spin's Ctrl-C) while a
+    call was served: destroy_node waits ANSWER_WAIT s for it to take the answer, then counts
+    it in service_dropped_shutdown. Before, it was counted nowhere."""
+    harness = harness1
+    node, gated, _ = _gated_node(harness, 1)
+    harness.classify.call_async(harness.good_request())
+    try:
+        gated.wait(lambda g: len(g.entered) == 1)
+        harness.stop.set()
+        harness.thread.join(timeout=5.0)
+        threading.Timer(0.3, gated.gate.set).start()
+        node.destroy_node()
+    finally:
+        gated.gate.set()
+    c = node.counters()
+    assert c['service_calls'] == 1 and c['service_dropped_shutdown'] == 1, c
