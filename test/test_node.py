@@ -420,8 +420,9 @@ def test_parameters_validated_and_runtime_changeable(harness, tmp_path):
         return node.set_parameters([Parameter(name, value=value)])[0]
 
     for name, value, why in (('yaw_step_deg', 100.0, ''), ('yaw_step_deg', 0.01, ''),
-                             # within rclpy's 1e-6 tolerance of the range, outside the core's
-                             ('yaw_step_deg', 0.04999996, '[0.05, 90]'),
+                             # within rclpy's 1e-6 tolerance of the range, outside it
+                             ('yaw_step_deg', 0.04999996, '[0.05, 45]'),
+                             ('yaw_step_deg', 45.00004, '[0.05, 45]'),
                              ('min_points', 5, ''),   # the core needs 10 points
                              ('completion_threshold', 1.5, ''),
                              ('up_vector', [0.0, 0.0, 0.0], 'non-zero'),
@@ -1927,3 +1928,85 @@ def test_blas_threads_of_two_nodes_in_one_process(ros_context, ros_tiny_model_di
             for node in nodes:
                 node.destroy_node()
         assert blas_threads() == before
+
+
+def test_diagnostics_status_names_the_node_with_its_namespace(ros_context, ros_tiny_model_dir,
+                                                               monkeypatch):
+    """Two nodes named beo in /r1 and /r2 (one process): their /diagnostics statuses differ.
+    Before, both were 'beo: estimator', so a monitor or aggregator took them for one."""
+    from beo_ros.ros.node import BeoNode
+
+    names = []
+    nodes = [BeoNode(context=ros_context, namespace=ns, parameter_overrides=[
+        Parameter('model_dir', value=ros_tiny_model_dir)]) for ns in ('/r1', '/r2')]
+    try:
+        for node in nodes:
+            monkeypatch.setattr(node._pub_diag, 'publish',
+                                lambda m: names.extend(s.name for s in m.status))
+            node._publish_diagnostics()
+    finally:
+        for node in nodes:
+            node.destroy_node()
+    assert names == ['r1/beo: estimator', 'r2/beo: estimator']
+
+
+def test_shutdown_lines_name_the_node_with_its_namespace(ros_context, ros_tiny_model_dir,
+                                                          capfd):
+    """The lines destroy_node logs (clouds not published) come from 'r1.beo.shutdown' for a
+    node in /r1, as its other lines from 'r1.beo'. Before, from 'beo.shutdown' in any
+    namespace: with two nodes it did not say which one lost the clouds."""
+    from beo_ros.ros.node import BeoNode
+
+    node = BeoNode(context=ros_context, namespace='/r1', parameter_overrides=[
+        Parameter('model_dir', value=ros_tiny_model_dir)])
+    node._count('dropped_shutdown')
+    node.destroy_node()
+    err = capfd.readouterr().err
+    assert '[r1.beo.shutdown]: 1 cloud(s) received but not published' in err, err
+
+
+def test_destroy_node_lets_a_spinning_executor_send_the_answers_it_waited_for(harness1):
+    """destroy_node while the executor spins on: the call it waited for is answered. Before,
+    the executor resumed the call only after the services were destroyed (here: it was not
+    spinning for a moment): the answer was lost, counted nowhere, and spin_once raised
+    InvalidHandle (2 of 8 destroys while spinning)."""
+    harness = harness1
+    node, gated, _ = _gated_node(harness, 1)
+    future = harness.classify.call_async(harness.good_request())
+    destroying = threading.Thread(target=node.destroy_node)
+    try:
+        gated.wait(lambda g: len(g.entered) == 1)   # the call waits in its thread
+        harness.stop.set()   # the executor pauses (it is not shut down)
+        harness.thread.join(timeout=5.0)
+        destroying.start()
+        assert _until(lambda: node._destroyed)
+        gated.gate.set()
+        destroying.join(timeout=0.3)   # the call's thread is done; the executor resumes
+        harness.stop.clear()
+        harness.thread = threading.Thread(target=harness._spin, daemon=True)
+        harness.thread.start()
+        assert _until(future.done, 10.0), node.counters()
+        assert future.result().success
+    finally:
+        gated.gate.set()
+        destroying.join(timeout=TIMEOUT)
+    assert node.counters()['service_dropped_shutdown'] == 0
+
+
+def test_an_answer_the_executor_does_not_take_at_destroy_node_is_counted(harness1):
+    """The executor stopped spinning (not shut down, as after rclpy.spin's Ctrl-C) while a
+    call was served: destroy_node waits ANSWER_WAIT s for it to take the answer, then counts
+    it in service_dropped_shutdown. Before, it was counted nowhere."""
+    harness = harness1
+    node, gated, _ = _gated_node(harness, 1)
+    harness.classify.call_async(harness.good_request())
+    try:
+        gated.wait(lambda g: len(g.entered) == 1)
+        harness.stop.set()
+        harness.thread.join(timeout=5.0)
+        threading.Timer(0.3, gated.gate.set).start()
+        node.destroy_node()
+    finally:
+        gated.gate.set()
+    c = node.counters()
+    assert c['service_calls'] == 1 and c['service_dropped_shutdown'] == 1, c

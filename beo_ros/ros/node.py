@@ -64,6 +64,8 @@ except ImportError:  # tf2_ros is not on PyPI; parameters are used instead
 
 LOG_THROTTLE_SEC = 5.0
 LATENCY_WINDOW = 200  # samples kept per stage for the p50 in diagnostics
+# seconds destroy_node gives a spinning executor to take the answers of the calls it waited for
+ANSWER_WAIT = 1.0
 # a message-lost report of this many or more is garbage (seen from Fast DDS: 2^31 - 1, 2^64 - 1)
 MAX_PLAUSIBLE_LOST = 2**31 - 1
 # the counters of what becomes of a cloud or service call (the terms of the README's identity):
@@ -181,6 +183,7 @@ class BeoNode(Node):
         self._rcl_destroyed = False   # ... and rclpy's part of it is done
         self._svc_threads = set()   # service calls being served (each in a thread of its own)
         self._svc_threads_lock = threading.Lock()
+        self._svc_answers = set()   # answers handed to the executor, not yet taken (events)
         try:
             self._setup(bank)
         except BaseException:
@@ -936,6 +939,8 @@ class BeoNode(Node):
         # a done callback makes set_result wake the executor, which then resumes this call
         done.add_done_callback(lambda _: None)
 
+        taken = threading.Event()   # the executor resumed this call: it sends the answer
+
         def run():
             try:
                 result = self._serve(request, response, complete)
@@ -944,12 +949,15 @@ class BeoNode(Node):
             finally:
                 with self._svc_threads_lock:
                     self._svc_threads.discard(threading.current_thread())
+                    self._svc_answers.add(taken)
             try:
                 if isinstance(result, BaseException):
                     done.set_exception(result)
                 else:
                     done.set_result(result)
             except Exception:  # the executor is shut down: nobody waits for the answer
+                with self._svc_threads_lock:
+                    self._svc_answers.discard(taken)
                 self._count('service_dropped_shutdown')
 
         thread = threading.Thread(target=run, name='beo_service', daemon=True)
@@ -965,7 +973,12 @@ class BeoNode(Node):
                 return response
             self._svc_threads.add(thread)
         thread.start()
-        return await done
+        try:
+            return await done
+        finally:
+            with self._svc_threads_lock:
+                self._svc_answers.discard(taken)
+            taken.set()
 
     def _serve(self, request, response, complete):
         with self._one_outcome():
@@ -1098,7 +1111,9 @@ class BeoNode(Node):
         values.append(KeyValue(key='model_dir', value=str(self._serving_dir)))   # answering
         values.append(KeyValue(key='waiting', value=str(waiting)))
         values.append(KeyValue(key='in_flight', value=str(in_flight)))
-        status = DiagnosticStatus(level=level, name=f'{self.get_name()}: estimator',
+        # with the namespace ('r1/beo'): beo nodes in /r1 and /r2 sent statuses of one name
+        name = self.get_fully_qualified_name().lstrip('/')
+        status = DiagnosticStatus(level=level, name=f'{name}: estimator',
                                   message=message, hardware_id='beo_ros', values=values)
         self._pub_diag.publish(DiagnosticArray(header=self._diag_header(), status=[status]))
 
@@ -1108,7 +1123,8 @@ class BeoNode(Node):
     # ------------------------------------------------------------------ teardown
     def _shutdown_worker(self):
         """Stop the worker threads; each finishes (and publishes) the cloud it is working on.
-        Service calls being served are waited for too (within the same 30 s)."""
+        Service calls being served are waited for too (within the same 30 s), and then the
+        executor's taking their answers (within ANSWER_WAIT s)."""
         cond = getattr(self, '_cond', None)
         if cond is not None:
             with cond:
@@ -1123,6 +1139,18 @@ class BeoNode(Node):
         for worker in threads:
             if worker.is_alive() and worker is not threading.current_thread():
                 worker.join(timeout=max(deadline - time.monotonic(), 0.1))
+        # an executor that still spins sends their answers once it takes them: before the
+        # services are destroyed (destroyed first, the answers were lost, uncounted, and its
+        # spin raised InvalidHandle); those it does not take in time are counted
+        with self._svc_threads_lock:
+            answers = list(self._svc_answers)
+        deadline = time.monotonic() + ANSWER_WAIT
+        for taken in answers:
+            taken.wait(max(deadline - time.monotonic(), 0.0))
+        with self._svc_threads_lock:
+            lost, self._svc_answers = len(self._svc_answers), set()
+        if lost:
+            self._count('service_dropped_shutdown', lost)
 
     def _shutdown_pool(self):
         """Stop the worker processes (after the threads: their last estimates need them)."""
@@ -1137,8 +1165,8 @@ class BeoNode(Node):
 
     def _shutdown_logger(self):
         """A logger for shutdown messages: not the node's, whose /rosout publisher may be gone
-        with the context."""
-        return rclpy.logging.get_logger(f'{self.get_name()}.shutdown')
+        with the context. Named after the node's logger ('r1.beo.shutdown' in /r1)."""
+        return rclpy.logging.get_logger(f'{self.get_logger().name}.shutdown')
 
     def destroy_node(self):
         """Stop the worker threads and processes, then destroy the node. Idempotent; called

@@ -9,7 +9,7 @@ import math
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 ParameterType)
 
-from beo_ros.core.bank import check_step
+from beo_ros.core.bank import YAW_STEP_RANGE_DEG
 from beo_ros.core.bank import default_model_dir as shipped_model_dir
 from beo_ros.core.outliers import OUTLIER_MADS, OUTLIER_NEIGHBORS
 from beo_ros.core.voxelize import MAX_COORDINATE, MIN_DIRECTION, MIN_POINTS
@@ -17,6 +17,7 @@ from beo_ros.core.voxelize import MAX_COORDINATE, MIN_DIRECTION, MIN_POINTS
 DEFAULT_MODEL = 'modelnet10_32'
 MIN_ESTIMATE_TIMEOUT = 1.0  # s; an estimate takes 0.03-0.1 s
 INPUT_RELIABILITY = ('best_effort', 'reliable')
+YAW_STEP_DEG = (YAW_STEP_RANGE_DEG[0], 45.0)   # the parameter's range (the core's goes to 90)
 # checked with check() when the node starts (class_prior and model_dir: by loading the models)
 CHECKED_AT_START = ('sensor_origin', 'up_vector', 'min_points', 'max_points', 'workers',
                     'worker_processes', 'completion_threshold', 'yaw_step_deg',
@@ -93,7 +94,7 @@ def declare(declare_parameter) -> tuple:
                     'camera optical frame held level; floats, with a decimal point)',
         type=ParameterType.PARAMETER_DOUBLE_ARRAY))
     d('yaw_step_deg', 1.0, _fdesc('Resolution of the returned yaw (degrees); the search '
-                                  'over all classes runs at max(2, this)', 0.05, 45.0))
+                                  'over all classes runs at max(2, this)', *YAW_STEP_DEG))
     d('min_points', 30, _idesc('Fewer finite points than this: the cloud is rejected',
                                MIN_POINTS, 1_000_000))
     d('max_points', 50000, _idesc('More points than this: random downsampling (fixed seed)',
@@ -152,12 +153,10 @@ def check(name, value, merged) -> str | None:
                 f"({merged['max_points']})")
     if name == 'input_reliability' and value not in INPUT_RELIABILITY:
         return f'input_reliability must be one of {INPUT_RELIABILITY}, got {value!r}'
-    if name == 'yaw_step_deg':
+    if name == 'yaw_step_deg' and not YAW_STEP_DEG[0] <= value <= YAW_STEP_DEG[1]:
         # rclpy's range check lets values within 1e-6 (relative) of a bound pass
-        try:
-            check_step(name, value)
-        except ValueError as e:
-            return str(e)
+        return (f'yaw_step_deg must be in [{YAW_STEP_DEG[0]:g}, {YAW_STEP_DEG[1]:g}] degrees, '
+                f'got {value!r}')
     if name == 'estimate_timeout' and 0 < value < MIN_ESTIMATE_TIMEOUT:
         # each timeout kills and restarts the worker processes (seconds): a limit below
         # what an estimate takes would restart them for every cloud
