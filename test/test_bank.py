@@ -244,6 +244,20 @@ def test_grid_without_occupied_voxel_is_no_object(tiny, fill):
     assert w == pytest.approx({'box': 0.75, 'cylinder': 0.25})
 
 
+@pytest.mark.parametrize('mode, n_in', [('points', 2 + 2), ('complete', 2 * 6)])
+def test_grid_without_occupied_voxel_scores_the_training_prior_of_any_classifier(tiny, mode,
+                                                                                 n_in):
+    # under the 'train' prior the scores are the classifier's training rows per class: only a
+    # 'partial' classifier's were looked at, so a 'points'-only bank (as tabletop_32) or a
+    # 'complete'-only one said uniform
+    clf = dict(mean=np.zeros(n_in), scale=np.ones(n_in), coef=np.zeros((2, n_in)),
+               intercept=np.zeros(2), unknown_threshold=np.full(2, -np.inf),
+               class_counts=np.array([30.0, 10.0]))
+    bank = ModelBank(tiny.models, tiny.spec, {mode: clf})
+    e = bank.estimate(np.zeros((N,) * 3, np.int8))
+    assert e.scores == pytest.approx({'box': 0.75, 'cylinder': 0.25})
+
+
 def test_fine_yaw_steps_refine_exactly_without_fine_pooled_maps(tiny):
     # below 1 deg only the last exact climb runs at the finer step: the pooled maps of every
     # 0.1 deg (3600 yaws: 5 s and 1.4 GB at 32^3) must not be built, and the finer yaw is the

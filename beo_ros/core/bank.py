@@ -714,7 +714,11 @@ class ModelBank:
         prior as scores, nothing completed, no pose hypotheses."""
         weights = self._prior_weights
         if weights is None:   # the 'train' prior: the classifier's training rows per class
-            counts = ((self.classifier or {}).get('partial') or {}).get('class_counts')
+            # (the 'partial' one's, else those of the bank's other classifier: a bank with a
+            # 'points' or 'complete' classifier only answered uniform)
+            clfs = self.classifier or {}
+            counts = next((clfs[m]['class_counts'] for m in ('partial', 'complete', POINTS_MODE)
+                           if 'class_counts' in clfs.get(m, {})), None)
             weights = np.ones(len(self.classes)) if counts is None else \
                 np.asarray(counts, dtype=np.float64)
         weights = np.asarray(weights, dtype=np.float64) / np.sum(weights)
