@@ -432,6 +432,20 @@ def test_scoring_a_subset_of_rows_equals_the_same_rows_of_all(tiny):
                                        rtol=1e-4, atol=1e-6)
 
 
+@pytest.mark.parametrize('step', [1.0, 7.0, 50.0])
+def test_hypothesis_score_of_a_yaw_beyond_a_turn_is_that_of_the_same_yaw(tiny, step):
+    # a verifier-turned yaw (refined yaw + 90 k degrees) can exceed 2 pi; its pooled score was
+    # read at row rint(yaw / step) % len(grid), but a step that does not divide 360 deg gives
+    # a grid of another period (8 x 50 deg = 400 deg): 460 deg was scored at 50 deg, not 100
+    _, part = views()
+    feats, per = tiny.features(part)
+    for deg in (10.0, 100.0, 200.0):
+        y = np.deg2rad(deg)
+        want = tiny._pooled_score(part, 0, per[0], y, step)
+        for turns in (1, 2):
+            assert tiny._pooled_score(part, 0, per[0], y + turns * 2 * np.pi, step) == want
+
+
 def test_scoring_a_row_twice_gives_its_score_twice(tiny):
     # the rotation's extra cells (observed cells that show the same canonical cell) went to the
     # last copy of a repeated row only: the first copy was scored without them

@@ -540,7 +540,9 @@ class ModelBank:
         the stage-2 grid of ``step_deg`` (whose rotation maps are cached), as the hypotheses'
         scores."""
         yaws = yaw_grid(step_deg)
-        row = int(np.rint(yaw / np.deg2rad(step_deg))) % len(yaws)
+        # the yaw in [0, 2 pi) first: a grid of a step that does not divide 360 deg (7, 50)
+        # has no period of 2 pi, and a turned yaw beyond it was scored at another yaw
+        row = int(np.rint(np.mod(yaw, 2 * np.pi) / np.deg2rad(step_deg))) % len(yaws)
         return float(self.engine.scores(self._pooled(grid, per_c), yaws, c, full=True,
                                         rows=[row])[0, 0])
 
