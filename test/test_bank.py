@@ -1588,6 +1588,25 @@ def test_constructor_refuses_unexpected_grid_classifier_arrays(clf_bank):
         ModelBank(bank.models, bank.spec, clf, bank.training)
 
 
+@pytest.mark.parametrize('change, msg', [
+    (dict(noise_variance=0.0), 'noise variances must be positive'),
+    (dict(noise_variance=np.nan), 'NaN or Inf'),
+    (dict(coarse_noise_variance=-1.0), 'noise variances must be positive'),
+    (dict(mean='nan'), 'NaN or Inf'),
+    (dict(loading_covariance=np.eye(7, dtype=np.float32)), "'loading_covariance' has shape"),
+    (dict(mean_variance=np.zeros(5, np.float32)), "'mean_variance' has shape"),
+])
+def test_constructor_refuses_the_class_models_that_load_refuses(tiny, change, msg):
+    # a zero or NaN noise variance gave NaN class probabilities and a label without a word, a
+    # NaN mean an IndexError, a loading covariance of another k numpy's errors in the
+    # completion: load refuses them (check_class_arrays), the constructor took them
+    if change.get('mean') == 'nan':
+        change = dict(mean=np.where(np.arange(N ** 3) == 0, np.nan, tiny.models[0].mean))
+    bad = dataclasses.replace(tiny.models[0], **change)
+    with pytest.raises(ModelError, match=f"class 'box': .*{msg}"):
+        ModelBank([bad, tiny.models[1]], tiny.spec)
+
+
 def test_full_resolution_refinement_sharpens_the_yaw(pose_case):
     # estimate() re-solves the chosen class exactly at full resolution within +-3 deg of the
     # pooled optimum; on these asymmetric shapes that must beat the pooled search (measured:

@@ -110,6 +110,11 @@ class ModelBank:
             if m.W.ndim != 2 or m.W.shape[0] != d or m.mean.shape != (d,):
                 raise ModelError(f'class {m.name!r}: W {m.W.shape} / mean {m.mean.shape} do not '
                                  f'match the {spec.size}^3 grid')
+            # as load checks them: a zero or NaN noise variance gave NaN class probabilities
+            # (and a label) without a word, a NaN mean an IndexError, a loading covariance of
+            # another k numpy's shape error in the completion
+            check_class_arrays({k: np.asarray(getattr(m, k)) for k in CLASS_KEYS}, d,
+                               f'class {m.name!r}', spec.size)
         # a mode of another name was never used (the max-likelihood rule decided) and save
         # wrote a classifier.npz that load refuses
         unknown = sorted(set(classifier or {}) - set(MODES) - {POINTS_MODE})
