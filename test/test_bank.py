@@ -1607,6 +1607,17 @@ def test_constructor_refuses_the_class_models_that_load_refuses(tiny, change, ms
         ModelBank([bad, tiny.models[1]], tiny.spec)
 
 
+@pytest.mark.parametrize('noise_map', [np.full(N ** 3 // 8, np.nan), np.zeros(N ** 3 // 8),
+                                       np.ones(5)])
+def test_constructor_refuses_the_coarse_noise_maps_that_load_refuses(tiny, noise_map):
+    # stage 2 with the map (stage2_noise_map=True) divides by it: NaN or 0 made every score
+    # NaN and estimate raised IndexError, a map of another size numpy's broadcast error
+    bad = [dataclasses.replace(m, coarse_noise_map=noise_map.astype(np.float32))
+           for m in tiny.models]
+    with pytest.raises(ModelError, match="class 'box': coarse_noise_map must be 512 values"):
+        ModelBank(bad, tiny.spec, stage2_noise_map=True)
+
+
 def test_full_resolution_refinement_sharpens_the_yaw(pose_case):
     # estimate() re-solves the chosen class exactly at full resolution within +-3 deg of the
     # pooled optimum; on these asymmetric shapes that must beat the pooled search (measured:

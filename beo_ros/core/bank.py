@@ -31,7 +31,8 @@ from .model_files import (CLASS_KEYS, FORMAT, OPTIONAL_CLASS_KEYS, OPTIONAL_FILE
                           VERSION, _check_manifest_settings, _load_class_models,
                           _load_classifier, _manifest_layout, _optional_arrays, _read_checked,
                           _read_manifest, _settings_reason, _sha256, check_class_arrays,
-                          check_class_names, check_save_target, class_name_problem, is_model_dir)
+                          check_class_names, check_noise_map, check_save_target,
+                          class_name_problem, is_model_dir)
 from .outliers import OUTLIER_MADS, OUTLIER_NEIGHBORS, clean_points
 from .shape import shape_descriptors
 from .verifier import TURNS, OrientationVerifier, check_arrays, quarter_turned_features
@@ -115,6 +116,7 @@ class ModelBank:
             # another k numpy's shape error in the completion
             check_class_arrays({k: np.asarray(getattr(m, k)) for k in CLASS_KEYS}, d,
                                f'class {m.name!r}', spec.size)
+            check_noise_map(m.coarse_noise_map, m.W, m.mean, d, f'class {m.name!r}')
         # a mode of another name was never used (the max-likelihood rule decided) and save
         # wrote a classifier.npz that load refuses
         unknown = sorted(set(classifier or {}) - set(MODES) - {POINTS_MODE})
