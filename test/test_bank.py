@@ -446,6 +446,17 @@ def test_hypothesis_score_of_a_yaw_beyond_a_turn_is_that_of_the_same_yaw(tiny, s
             assert tiny._pooled_score(part, 0, per[0], y + turns * 2 * np.pi, step) == want
 
 
+def test_hypothesis_score_of_a_yaw_in_the_last_gap_of_the_grid_is_that_of_the_nearest(tiny):
+    # a step that does not divide 360 deg leaves a wider gap before 360: yaw_grid(80) ends at
+    # 320 deg, and 350 deg was scored at 320 (rint(350 / 80) = 4), not at the nearer 0 deg
+    _, part = views()
+    feats, per = tiny.features(part)
+    at = {deg: tiny._pooled_score(part, 0, per[0], np.deg2rad(deg), 80.0) for deg in (0, 320)}
+    assert at[0] != at[320]
+    for deg in (350.0, -10.0, 710.0):
+        assert tiny._pooled_score(part, 0, per[0], np.deg2rad(deg), 80.0) == at[0]
+
+
 def test_scoring_a_row_twice_gives_its_score_twice(tiny):
     # the rotation's extra cells (observed cells that show the same canonical cell) went to the
     # last copy of a repeated row only: the first copy was scored without them

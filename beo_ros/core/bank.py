@@ -24,8 +24,8 @@ from .classifier import (CLASS_PRIORS, HIDDEN_CLASSIFIER_KEYS, MODES, OPTIONAL_C
                          classifier_input, classifier_probabilities, descriptor_count,
                          parse_class_prior, prior_offset, resolve_class_prior, uses_descriptors)
 from .estimate import UNKNOWN_LABEL, Estimate, Hypothesis
-from .grid import (GridSpec, _real, symmetric_turns, unit_vector, wrap_yaw as _wrap, yaw_grid,
-                   yaw_matrix)
+from .grid import (GridSpec, _real, symmetric_turns, unit_vector, wrap_yaw as _wrap, yaw_error,
+                   yaw_grid, yaw_matrix)
 from .inference import FEATURE_NAMES, InferenceEngine, observed_edt, top_modes, top_yaw_modes
 from .model_files import (CLASS_KEYS, FORMAT, OPTIONAL_CLASS_KEYS, OPTIONAL_FILES, UNREADABLE,
                           VERSION, _check_manifest_settings, _load_class_models,
@@ -547,9 +547,10 @@ class ModelBank:
         the stage-2 grid of ``step_deg`` (whose rotation maps are cached), as the hypotheses'
         scores."""
         yaws = yaw_grid(step_deg)
-        # the yaw in [0, 2 pi) first: a grid of a step that does not divide 360 deg (7, 50)
-        # has no period of 2 pi, and a turned yaw beyond it was scored at another yaw
-        row = int(np.rint(np.mod(yaw, 2 * np.pi) / np.deg2rad(step_deg))) % len(yaws)
+        # the nearest on the circle: a grid of a step that does not divide 360 deg (7, 50) has
+        # no period of 2 pi (a turned yaw beyond it was scored at another yaw) and a wider gap
+        # between its last yaw and 360 deg (358 deg is nearer 0 than 350 deg)
+        row = int(np.argmin(yaw_error(yaws, yaw)))
         return float(self.engine.scores(self._pooled(grid, per_c), yaws, c, full=True,
                                         rows=[row])[0, 0])
 
