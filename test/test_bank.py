@@ -244,6 +244,20 @@ def test_grid_without_occupied_voxel_is_no_object(tiny, fill):
     assert w == pytest.approx({'box': 0.75, 'cylinder': 0.25})
 
 
+@pytest.mark.parametrize('mode, n_in', [('points', 2 + 2), ('complete', 2 * 6)])
+def test_grid_without_occupied_voxel_scores_the_training_prior_of_any_classifier(tiny, mode,
+                                                                                 n_in):
+    # under the 'train' prior the scores are the classifier's training rows per class: only a
+    # 'partial' classifier's were looked at, so a 'points'-only bank (as tabletop_32) or a
+    # 'complete'-only one said uniform
+    clf = dict(mean=np.zeros(n_in), scale=np.ones(n_in), coef=np.zeros((2, n_in)),
+               intercept=np.zeros(2), unknown_threshold=np.full(2, -np.inf),
+               class_counts=np.array([30.0, 10.0]))
+    bank = ModelBank(tiny.models, tiny.spec, {mode: clf})
+    e = bank.estimate(np.zeros((N,) * 3, np.int8))
+    assert e.scores == pytest.approx({'box': 0.75, 'cylinder': 0.25})
+
+
 def test_fine_yaw_steps_refine_exactly_without_fine_pooled_maps(tiny):
     # below 1 deg only the last exact climb runs at the finer step: the pooled maps of every
     # 0.1 deg (3600 yaws: 5 s and 1.4 GB at 32^3) must not be built, and the finer yaw is the
@@ -416,6 +430,31 @@ def test_scoring_a_subset_of_rows_equals_the_same_rows_of_all(tiny):
             all_ = eng.scores(P, yaws, 1, full=full)
             np.testing.assert_allclose(eng.scores(P, yaws, 1, full=full, rows=rows), all_[rows],
                                        rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.parametrize('step', [1.0, 7.0, 50.0])
+def test_hypothesis_score_of_a_yaw_beyond_a_turn_is_that_of_the_same_yaw(tiny, step):
+    # a verifier-turned yaw (refined yaw + 90 k degrees) can exceed 2 pi; its pooled score was
+    # read at row rint(yaw / step) % len(grid), but a step that does not divide 360 deg gives
+    # a grid of another period (8 x 50 deg = 400 deg): 460 deg was scored at 50 deg, not 100
+    _, part = views()
+    feats, per = tiny.features(part)
+    for deg in (10.0, 100.0, 200.0):
+        y = np.deg2rad(deg)
+        want = tiny._pooled_score(part, 0, per[0], y, step)
+        for turns in (1, 2):
+            assert tiny._pooled_score(part, 0, per[0], y + turns * 2 * np.pi, step) == want
+
+
+def test_hypothesis_score_of_a_yaw_in_the_last_gap_of_the_grid_is_that_of_the_nearest(tiny):
+    # a step that does not divide 360 deg leaves a wider gap before 360: yaw_grid(80) ends at
+    # 320 deg, and 350 deg was scored at 320 (rint(350 / 80) = 4), not at the nearer 0 deg
+    _, part = views()
+    feats, per = tiny.features(part)
+    at = {deg: tiny._pooled_score(part, 0, per[0], np.deg2rad(deg), 80.0) for deg in (0, 320)}
+    assert at[0] != at[320]
+    for deg in (350.0, -10.0, 710.0):
+        assert tiny._pooled_score(part, 0, per[0], np.deg2rad(deg), 80.0) == at[0]
 
 
 def test_scoring_a_row_twice_gives_its_score_twice(tiny):
@@ -1558,6 +1597,36 @@ def test_constructor_refuses_unexpected_grid_classifier_arrays(clf_bank):
     clf = dict(bank.classifier, partial=dict(bank.classifier['partial'], descriptor=True))
     with pytest.raises(ModelError, match=r"'partial' has unexpected arrays \['descriptor'\]"):
         ModelBank(bank.models, bank.spec, clf, bank.training)
+
+
+@pytest.mark.parametrize('change, msg', [
+    (dict(noise_variance=0.0), 'noise variances must be positive'),
+    (dict(noise_variance=np.nan), 'NaN or Inf'),
+    (dict(coarse_noise_variance=-1.0), 'noise variances must be positive'),
+    (dict(mean='nan'), 'NaN or Inf'),
+    (dict(loading_covariance=np.eye(7, dtype=np.float32)), "'loading_covariance' has shape"),
+    (dict(mean_variance=np.zeros(5, np.float32)), "'mean_variance' has shape"),
+])
+def test_constructor_refuses_the_class_models_that_load_refuses(tiny, change, msg):
+    # a zero or NaN noise variance gave NaN class probabilities and a label without a word, a
+    # NaN mean an IndexError, a loading covariance of another k numpy's errors in the
+    # completion: load refuses them (check_class_arrays), the constructor took them
+    if change.get('mean') == 'nan':
+        change = dict(mean=np.where(np.arange(N ** 3) == 0, np.nan, tiny.models[0].mean))
+    bad = dataclasses.replace(tiny.models[0], **change)
+    with pytest.raises(ModelError, match=f"class 'box': .*{msg}"):
+        ModelBank([bad, tiny.models[1]], tiny.spec)
+
+
+@pytest.mark.parametrize('noise_map', [np.full(N ** 3 // 8, np.nan), np.zeros(N ** 3 // 8),
+                                       np.ones(5)])
+def test_constructor_refuses_the_coarse_noise_maps_that_load_refuses(tiny, noise_map):
+    # stage 2 with the map (stage2_noise_map=True) divides by it: NaN or 0 made every score
+    # NaN and estimate raised IndexError, a map of another size numpy's broadcast error
+    bad = [dataclasses.replace(m, coarse_noise_map=noise_map.astype(np.float32))
+           for m in tiny.models]
+    with pytest.raises(ModelError, match="class 'box': coarse_noise_map must be 512 values"):
+        ModelBank(bad, tiny.spec, stage2_noise_map=True)
 
 
 def test_full_resolution_refinement_sharpens_the_yaw(pose_case):

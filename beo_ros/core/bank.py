@@ -24,14 +24,15 @@ from .classifier import (CLASS_PRIORS, HIDDEN_CLASSIFIER_KEYS, MODES, OPTIONAL_C
                          classifier_input, classifier_probabilities, descriptor_count,
                          parse_class_prior, prior_offset, resolve_class_prior, uses_descriptors)
 from .estimate import UNKNOWN_LABEL, Estimate, Hypothesis
-from .grid import (GridSpec, _real, symmetric_turns, unit_vector, wrap_yaw as _wrap, yaw_grid,
-                   yaw_matrix)
+from .grid import (GridSpec, _real, symmetric_turns, unit_vector, wrap_yaw as _wrap, yaw_error,
+                   yaw_grid, yaw_matrix)
 from .inference import FEATURE_NAMES, InferenceEngine, observed_edt, top_modes, top_yaw_modes
 from .model_files import (CLASS_KEYS, FORMAT, OPTIONAL_CLASS_KEYS, OPTIONAL_FILES, UNREADABLE,
                           VERSION, _check_manifest_settings, _load_class_models,
                           _load_classifier, _manifest_layout, _optional_arrays, _read_checked,
                           _read_manifest, _settings_reason, _sha256, check_class_arrays,
-                          check_class_names, check_save_target, class_name_problem, is_model_dir)
+                          check_class_names, check_noise_map, check_save_target,
+                          class_name_problem, is_model_dir)
 from .outliers import OUTLIER_MADS, OUTLIER_NEIGHBORS, clean_points
 from .shape import shape_descriptors
 from .verifier import TURNS, OrientationVerifier, check_arrays, quarter_turned_features
@@ -110,6 +111,12 @@ class ModelBank:
             if m.W.ndim != 2 or m.W.shape[0] != d or m.mean.shape != (d,):
                 raise ModelError(f'class {m.name!r}: W {m.W.shape} / mean {m.mean.shape} do not '
                                  f'match the {spec.size}^3 grid')
+            # as load checks them: a zero or NaN noise variance gave NaN class probabilities
+            # (and a label) without a word, a NaN mean an IndexError, a loading covariance of
+            # another k numpy's shape error in the completion
+            check_class_arrays({k: np.asarray(getattr(m, k)) for k in CLASS_KEYS}, d,
+                               f'class {m.name!r}', spec.size)
+            check_noise_map(m.coarse_noise_map, m.W, m.mean, d, f'class {m.name!r}')
         # a mode of another name was never used (the max-likelihood rule decided) and save
         # wrote a classifier.npz that load refuses
         unknown = sorted(set(classifier or {}) - set(MODES) - {POINTS_MODE})
@@ -540,7 +547,10 @@ class ModelBank:
         the stage-2 grid of ``step_deg`` (whose rotation maps are cached), as the hypotheses'
         scores."""
         yaws = yaw_grid(step_deg)
-        row = int(np.rint(yaw / np.deg2rad(step_deg))) % len(yaws)
+        # the nearest on the circle: a grid of a step that does not divide 360 deg (7, 50) has
+        # no period of 2 pi (a turned yaw beyond it was scored at another yaw) and a wider gap
+        # between its last yaw and 360 deg (358 deg is nearer 0 than 350 deg)
+        row = int(np.argmin(yaw_error(yaws, yaw)))
         return float(self.engine.scores(self._pooled(grid, per_c), yaws, c, full=True,
                                         rows=[row])[0, 0])
 
@@ -714,7 +724,11 @@ class ModelBank:
         prior as scores, nothing completed, no pose hypotheses."""
         weights = self._prior_weights
         if weights is None:   # the 'train' prior: the classifier's training rows per class
-            counts = ((self.classifier or {}).get('partial') or {}).get('class_counts')
+            # (the 'partial' one's, else those of the bank's other classifier: a bank with a
+            # 'points' or 'complete' classifier only answered uniform)
+            clfs = self.classifier or {}
+            counts = next((clfs[m]['class_counts'] for m in ('partial', 'complete', POINTS_MODE)
+                           if 'class_counts' in clfs.get(m, {})), None)
             weights = np.ones(len(self.classes)) if counts is None else \
                 np.asarray(counts, dtype=np.float64)
         weights = np.asarray(weights, dtype=np.float64) / np.sum(weights)

@@ -164,6 +164,27 @@ def check_class_arrays(arr, d, where, size):
         raise ModelError(f'{where}: loading_covariance must be symmetric positive semi-definite')
 
 
+def check_noise_map(noise_map, W, mean, d, where):
+    """Raise ModelError unless the optional ``coarse_noise_map`` (None or an array) of a class
+    of loadings W (d, k) and mean (d,) is d / 8 values that the float32 stage-2 sums can be
+    divided by."""
+    if noise_map is None:
+        return
+    noise_map = np.asarray(noise_map)
+    # stage 2 divides the float32 sums of W and mean by it: a map value below this
+    # overflows them, as a W beyond the limit of check_class_arrays does
+    top = max(float(np.abs(W).max(initial=0.0)), float(np.abs(mean).max()))
+    f32 = np.finfo(np.float32)
+    low, high = max(4 * (d // 8) * top ** 2 / float(f32.max), float(f32.tiny)), f32.max
+    if noise_map.shape != (d // 8,) or not (noise_map.min() >= low
+                                            and noise_map.max() <= high):
+        raise ModelError(f'{where}: coarse_noise_map must be {d // 8} values in '
+                         f'[{low:.3g}, {high:.3g}], got shape {noise_map.shape}'
+                         + (f', values {float(noise_map.min()):.3g} to '
+                            f'{float(noise_map.max()):.3g}'
+                            if noise_map.shape == (d // 8,) else ''))
+
+
 # what np.load raises for a file it cannot read: a truncated or overwritten npz (whose
 # checksum may still match a manifest written after it) fails inside zipfile or zlib
 UNREADABLE = (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error)
@@ -311,19 +332,7 @@ def _load_class_models(path, data, classes, spec):
         check_class_arrays(arr, d, fp, spec.size)
         W = arr['W']
         noise_map = arr.get('coarse_noise_map')
-        if noise_map is not None:
-            # stage 2 divides the float32 sums of W and mean by it: a map value below this
-            # overflows them, as a W beyond the limit of check_class_arrays does
-            top = max(float(np.abs(W).max(initial=0.0)), float(np.abs(arr['mean']).max()))
-            f32 = np.finfo(np.float32)
-            low, high = max(4 * (d // 8) * top ** 2 / float(f32.max), float(f32.tiny)), f32.max
-            if noise_map.shape != (d // 8,) or not (noise_map.min() >= low
-                                                    and noise_map.max() <= high):
-                raise ModelError(f'{fp}: coarse_noise_map must be {d // 8} values in '
-                                 f'[{low:.3g}, {high:.3g}], got shape {noise_map.shape}'
-                                 + (f', values {float(noise_map.min()):.3g} to '
-                                    f'{float(noise_map.max()):.3g}'
-                                    if noise_map.shape == (d // 8,) else ''))
+        check_noise_map(noise_map, W, arr['mean'], d, fp)
         models.append(ClassModel(
             name=name, W=W.astype(np.float32), mean=arr['mean'].astype(np.float32),
             noise_variance=float(arr['noise_variance']),
