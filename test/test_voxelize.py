@@ -407,6 +407,24 @@ def test_a_self_return_does_not_blind_the_splats():
     assert np.isfinite(v).all() and (v[:4] == 0).all()
 
 
+def test_an_occluder_point_at_the_sensor_does_not_blind_it():
+    # a point of another object in the sensor's own voxel (a self-return, a driver's (0, 0, 0)
+    # for no return) became a cube around the sensor that hid the whole grid
+    spec = GridSpec(N, units='metric', voxel_size=0.02)
+    rng = np.random.default_rng(4)
+    wall = np.c_[np.full(3000, 0.5), rng.uniform(-0.6, 0.0, 3000), rng.uniform(-0.2, 0.6, 3000)]
+    a = voxelize_view(box_front(), np.zeros(3), [0, 0, 1], spec, occluders=wall)
+    for extra in ([0.0, 0.0, 0.0], [0.004, 0.0, 0.0]):
+        b = voxelize_view(box_front(), np.zeros(3), [0, 0, 1], spec,
+                          occluders=np.r_[wall, [extra]])
+        np.testing.assert_array_equal(b.grid, a.grid)
+    occ = np.zeros((16, 16, 16), bool)
+    occ[12, 4:12, 4:12] = True
+    g = label_free_unknown(occ, (3.0, 8.0, 8.0), occluder_voxels=np.array([[3, 8, 8]]))
+    assert (g[5:11, 6:10, 6:10] == FREE).all()
+    assert (g[13:, 6:10, 6:10] == UNKNOWN).all()
+
+
 def test_points_outside_a_grid_placed_at_center_blame_the_center():
     # a 5 cm object 10 m from the given center: the message blamed the object's size or unit
     spec = GridSpec(16, units='metric', voxel_size=0.05)

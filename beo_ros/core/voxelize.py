@@ -253,7 +253,8 @@ def label_free_unknown(occupied: np.ndarray, origin_grid, close_holes: bool = Tr
         close_holes: block rays with a morphological closing of ``occupied`` (fills one-voxel
             holes of sparse surfaces so they do not leak free space behind the object).
         occluder_voxels: optional int (k, 3) grid indices (may lie outside the grid) of other
-            geometry that blocks rays (e.g. neighbouring objects) but is not this object.
+            geometry that blocks rays (e.g. neighbouring objects) but is not this object; one at
+            the sensor's own voxel is ignored, like occupied voxels and splats there.
         splats: optional (k, 3) grid coordinates of surface points that block rays as squares
             of half-width ``splat_half`` voxels facing the sensor: for surfaces sampled more
             sparsely than the voxels, whose gaps the closing does not bridge.
@@ -281,7 +282,9 @@ def label_free_unknown(occupied: np.ndarray, origin_grid, close_holes: bool = Tr
     out = np.full(occupied.shape, FREE, dtype=np.int8)
     verts, tris = cube_surface(blocked)
     if occluder_voxels is not None and len(occluder_voxels):
-        ov, ot = cube_soup(np.asarray(occluder_voxels))
+        # nor an occluder's (a cube around the sensor would hide the whole grid)
+        ov = np.asarray(occluder_voxels)
+        ov, ot = cube_soup(ov[np.any(ov != sensor_voxel, axis=1)])
         verts, tris = np.concatenate([verts, ov]), np.concatenate([tris, ot + len(verts)])
     if splats is not None and len(splats) and splat_half > 0:
         # nor do points in it (a self-return would otherwise hide the whole view behind it)
