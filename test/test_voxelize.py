@@ -388,6 +388,20 @@ def test_sensor_in_an_occupied_voxel_still_sees_free_space():
     assert g[12, 8, 8] == OCCUPIED
 
 
+def test_sensor_on_the_face_of_an_occupied_voxel_still_sees_free_space():
+    # the sensor exactly on a voxel face (its own voxel on one side, an occupied one on the
+    # other): Embree hit that face at t = 0 on every ray leaving it, all unknown but behind it
+    occ = np.zeros((16, 16, 16), bool)
+    occ[12, 4:12, 4:12] = True         # a wall in front of the sensor
+    occ[3, 8, 8] = True                # the sensor sits on its +x face
+    for sensor in ((3.5, 8.0, 8.0), (3.5, 8.3, 7.9), (3.5 + 1e-6, 8.0, 8.0)):
+        g = label_free_unknown(occ, sensor)
+        assert (g[5:11, 6:10, 6:10] == FREE).all()
+        assert (g[13:, 6:10, 6:10] == UNKNOWN).all()
+        assert (g[:3, 7:10, 7:10] == UNKNOWN).all()   # behind the voxel it sits on
+        assert g[3, 8, 8] == OCCUPIED
+
+
 def test_a_self_return_does_not_blind_the_splats():
     # a sparse wall blocks rays as squares facing the sensor; a point in the sensor's own voxel
     # made a square right at the sensor that hid the whole view (0.1 voxel off), or, exactly at

@@ -24,6 +24,7 @@ MIN_EXTENT = 1e-6  # input units (m): points spanning no more than this are refu
 MAX_COORDINATE = 1e6  # input units (m): points and positions beyond are refused (overflow)
 MIN_DIRECTION = 1e-9  # a direction (``up``) whose largest component is below this is refused
 _RAY_MARGIN = 0.25  # voxels: a ray stops this short of the voxel centre it is cast at
+_RAY_TNEAR = 1e-6  # fraction of a ray: hits nearer its start (the sensor) are not counted
 # voxels: points spaced wider than this (median nearest neighbour) also block rays as squares
 SPARSE_SPACING = 0.75
 SPLAT_SCALE = 0.75  # half-width of those squares, in point spacings
@@ -311,7 +312,9 @@ def label_free_unknown(occupied: np.ndarray, origin_grid, close_holes: bool = Tr
         rays = np.empty((len(d), 6), np.float32)
         rays[:, :3] = o + t0 * d
         rays[:, 3:] = (1.0 - t0) * d
-        hit = scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0, tfar=1.0).numpy()
+        # (tnear > 0: a sensor on the face of a blocked voxel is not hidden by it from what lies
+        # on its side of the face; Embree counts the hit at t = 0 on every ray leaving it)
+        hit = scene.test_occlusions(o3d.core.Tensor(rays), tnear=_RAY_TNEAR, tfar=1.0).numpy()
         hit &= dist > _RAY_MARGIN
         out.reshape(-1)[hit] = UNKNOWN
     out[occupied] = OCCUPIED
