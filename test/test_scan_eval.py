@@ -334,3 +334,21 @@ def test_loso_interrupted_in_the_comparison_leaves_no_partial_result(scan_files,
     rc = main(['--scans', *map(str, scan_files), '--out', str(out), *SMALL_LOSO])
     assert rc == 130
     assert not out.exists()
+
+
+def test_figures_are_shared_by_classes_whose_names_share_a_prefix(monkeypatch):
+    # a figure counted for every class whose name starts its title: 'cup' took the 'cupboard'
+    # figures as its own, and --figures 4 drew two cupboards and no cup
+    import types
+    from beo_ros import scan_eval
+    est = types.SimpleNamespace(label='cup', completion=np.zeros((4, 4, 4)))
+    monkeypatch.setattr(scan_eval, 'fit_models', lambda *a, **k: None)
+    monkeypatch.setattr(scan_eval, '_evaluate_object',
+                        lambda args, objs, bank, i: ({}, None, np.zeros((1, 3)), est))
+    objs = types.SimpleNamespace(names=['cup', 'cupboard'], y=np.array([1, 1, 1, 0, 0]),
+                                 scenes=np.array(['s0'] * 5), object_ids=np.arange(5),
+                                 subset=lambda sel: None)
+    args = types.SimpleNamespace(k=1, max_iter=1, congeal=False, mirror=False, figures=4)
+    figs = []
+    scan_eval._evaluate_fold(args, objs, ['s0'], [], figs, [])
+    assert sorted(f[0].split()[0] for f in figs) == ['cup', 'cup', 'cupboard', 'cupboard']
