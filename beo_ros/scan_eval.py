@@ -381,9 +381,15 @@ def _evaluate_object(args, objs, bank, i):
     from .core.inference import FEATURE_NAMES
     names = objs.names
     if args.from_points:
-        est = bank.estimate_points(objs.points[i], sensor_origin=(0.0, 0.0, 0.0),
-                                   up=objs.ups[i], yaw_step_deg=args.yaw_step)
-        T = est.grid_to_input
+        try:
+            est = bank.estimate_points(objs.points[i], sensor_origin=(0.0, 0.0, 0.0),
+                                       up=objs.ups[i], yaw_step_deg=args.yaw_step)
+            T = est.grid_to_input
+        except ValueError as e:   # e.g. fewer than 10 points left after the outlier removal
+            # nothing voxelized: the estimate of an all-unknown grid ('unknown', counted wrong)
+            est = bank.estimate(np.full(objs.spec.shape, -1, dtype=np.int8))
+            est.classifier_note = f'estimate_points refused its points: {e}'
+            T = objs.grid_to_input[i]
     else:
         est = bank.estimate(objs.grids[i], yaw_step_deg=args.yaw_step)
         T = objs.grid_to_input[i]

@@ -294,6 +294,33 @@ def test_loso_from_points_uses_the_deployment_path(scan_files, tmp_path, monkeyp
     assert len(calls) == 4   # every object's estimate went through estimate_points
 
 
+def test_loso_from_points_counts_a_refused_object_as_unknown(scan_files, tmp_path, monkeypatch,
+                                                             capsys):
+    # estimate_points refusing one object's points (fewer than 10 left after the outlier
+    # removal) ended the whole run after the folds' fits, naming no scene or object
+    from beo_ros.core.bank import ModelBank
+    real = ModelBank.estimate_points
+    calls = []
+
+    def refuse_first(self, *a, **k):
+        calls.append(1)
+        if len(calls) == 1:
+            raise ValueError('need at least 10 points, got 9')
+        return real(self, *a, **k)
+    monkeypatch.setattr(ModelBank, 'estimate_points', refuse_first)
+    out = tmp_path / 'fp'
+    rc = main(['--scans', *map(str, scan_files), '--out', str(out), *SMALL_LOSO,
+               '--from-points', '--scenes', '2'])
+    assert rc == 0
+    objects = json.loads((out / 'scan_eval.json').read_text())['objects']
+    assert [r['pred'] for r in objects].count('unknown') == 1
+    bad = next(r for r in objects if r['pred'] == 'unknown')
+    assert not bad['correct'] and bad['n_occupied'] == 0
+    assert f"{bad['scene']}/{bad['object']}: estimate_points refused its points: need at least " \
+        '10 points' in capsys.readouterr().err
+    assert len(np.load(out / 'oof_features.npz')['y']) == 3
+
+
 @pytest.mark.parametrize('argv, message', [
     (['--scenes', '-1'], 'argument --scenes: must be in [0, inf)'),
     (['--scene-folds', '1'], '--scene-folds must be 0'),
