@@ -313,12 +313,21 @@ def test_far_sensor_keeps_voxel_precision():
     # a TypeError (cannot cast) before: x, y, z records, as a PCD or PointCloud2 reader gives
     (dict(points=np.rec.fromarrays(box_front(100).T, names='x,y,z')), 'array of numbers'),
     (dict(points={'x': 1.0}), 'points must be an'),
+    # min_points 0 and no finite point: numpy's 'zero-size array to reduction operation' before
+    (dict(points=np.zeros((0, 3)), min_points=0), 'need at least 1 finite points, got 0'),
+    (dict(points=np.full((5, 3), np.nan), min_points=0), 'need at least 1 finite points'),
 ])
 def test_validation(kwargs, match):
     args = dict(points=box_front(100), sensor_origin=np.zeros(3), up=[0, 0, 1], spec=GridSpec(8))
     args.update(kwargs)
     with pytest.raises(ValueError, match=match):
         voxelize_view(**args)
+
+
+def test_finite_points_of_none_with_min_points_0():
+    from beo_ros.core.voxelize import finite_points
+    for pts in (np.zeros((0, 3)), np.full((5, 3), np.nan)):
+        assert finite_points(pts, min_points=0).shape == (0, 3)
 
 
 def test_empty_occluders_are_none():

@@ -65,7 +65,7 @@ def _check_points(points, min_points: int) -> np.ndarray:
     pts = pts[np.isfinite(pts).all(axis=1)]
     if len(pts) < min_points:
         raise ValueError(f'need at least {min_points} finite points, got {len(pts)}')
-    if np.abs(pts).max() > MAX_COORDINATE:
+    if len(pts) and np.abs(pts).max() > MAX_COORDINATE:
         raise ValueError(f'points must lie within +-{MAX_COORDINATE:g} (input units, m), got '
                          f'a coordinate of {np.abs(pts).max():g}')
     return pts
@@ -356,7 +356,7 @@ def voxelize_view(points, sensor_origin, up, spec: GridSpec, center=None, floor=
     Occupied voxels are those containing a point; the rest are free/unknown by ray casting from
     the sensor (see :func:`label_free_unknown`).
     """
-    pts = _check_points(points, min_points)
+    pts = _check_points(points, max(min_points, 1))   # (min_points 0: no points, no object)
     origin = _check_vec(sensor_origin, 'sensor_origin')
     upv = _check_vec(up, 'up', unit=True)
     if center is not None:
