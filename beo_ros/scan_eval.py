@@ -261,13 +261,13 @@ def classifier_comparison(F, y, groups, names=None, variants=CLASSIFIER_VARIANTS
 
 
 def plot_completions(path, items, spec):
-    """items: list of (title, points_grid (n, 3), completion (N, N, N))."""
+    """items: list of (title, points_grid (n, 3), completion (N, N, N)[, class index])."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
     n = spec.size
     fig, axes = plt.subplots(len(items), 3, figsize=(11, 3.4 * len(items)), squeeze=False)
-    for row, (title, pg, comp) in zip(axes, items):
+    for row, (title, pg, comp, *_) in zip(axes, items):
         idx = np.argwhere(comp >= 0.5)
         p = comp[comp >= 0.5]
         for ax, (a, b), lab in zip(row, [(0, 2), (1, 2), (0, 1)],
@@ -367,11 +367,11 @@ def _evaluate_fold(args, objs, group, recs, figs, oof):
             oof.append((i, feats))
         recs.append(rec)
         wanted = len(figs) < args.figures and (
-            sum(r[0].startswith(names[objs.y[i]]) for r in figs) < max(
+            sum(r[3] == objs.y[i] for r in figs) < max(
                 1, args.figures // len(names)))
         if wanted:
             title = f'{names[objs.y[i]]} {objs.scenes[i]}/{objs.object_ids[i]} -> {est.label}'
-            figs.append((title, pg, est.completion))
+            figs.append((title, pg, est.completion, objs.y[i]))
     return len(te), t_fit
 
 
@@ -381,9 +381,15 @@ def _evaluate_object(args, objs, bank, i):
     from .core.inference import FEATURE_NAMES
     names = objs.names
     if args.from_points:
-        est = bank.estimate_points(objs.points[i], sensor_origin=(0.0, 0.0, 0.0),
-                                   up=objs.ups[i], yaw_step_deg=args.yaw_step)
-        T = est.grid_to_input
+        try:
+            est = bank.estimate_points(objs.points[i], sensor_origin=(0.0, 0.0, 0.0),
+                                       up=objs.ups[i], yaw_step_deg=args.yaw_step)
+            T = est.grid_to_input
+        except ValueError as e:   # e.g. fewer than 10 points left after the outlier removal
+            # nothing voxelized: the estimate of an all-unknown grid ('unknown', counted wrong)
+            est = bank.estimate(np.full(objs.spec.shape, -1, dtype=np.int8))
+            est.classifier_note = f'estimate_points refused its points: {e}'
+            T = objs.grid_to_input[i]
     else:
         est = bank.estimate(objs.grids[i], yaw_step_deg=args.yaw_step)
         T = objs.grid_to_input[i]

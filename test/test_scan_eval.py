@@ -294,6 +294,33 @@ def test_loso_from_points_uses_the_deployment_path(scan_files, tmp_path, monkeyp
     assert len(calls) == 4   # every object's estimate went through estimate_points
 
 
+def test_loso_from_points_counts_a_refused_object_as_unknown(scan_files, tmp_path, monkeypatch,
+                                                             capsys):
+    # estimate_points refusing one object's points (fewer than 10 left after the outlier
+    # removal) ended the whole run after the folds' fits, naming no scene or object
+    from beo_ros.core.bank import ModelBank
+    real = ModelBank.estimate_points
+    calls = []
+
+    def refuse_first(self, *a, **k):
+        calls.append(1)
+        if len(calls) == 1:
+            raise ValueError('need at least 10 points, got 9')
+        return real(self, *a, **k)
+    monkeypatch.setattr(ModelBank, 'estimate_points', refuse_first)
+    out = tmp_path / 'fp'
+    rc = main(['--scans', *map(str, scan_files), '--out', str(out), *SMALL_LOSO,
+               '--from-points', '--scenes', '2'])
+    assert rc == 0
+    objects = json.loads((out / 'scan_eval.json').read_text())['objects']
+    assert [r['pred'] for r in objects].count('unknown') == 1
+    bad = next(r for r in objects if r['pred'] == 'unknown')
+    assert not bad['correct'] and bad['n_occupied'] == 0
+    assert f"{bad['scene']}/{bad['object']}: estimate_points refused its points: need at least " \
+        '10 points' in capsys.readouterr().err
+    assert len(np.load(out / 'oof_features.npz')['y']) == 3
+
+
 @pytest.mark.parametrize('argv, message', [
     (['--scenes', '-1'], 'argument --scenes: must be in [0, inf)'),
     (['--scene-folds', '1'], '--scene-folds must be 0'),
@@ -334,3 +361,21 @@ def test_loso_interrupted_in_the_comparison_leaves_no_partial_result(scan_files,
     rc = main(['--scans', *map(str, scan_files), '--out', str(out), *SMALL_LOSO])
     assert rc == 130
     assert not out.exists()
+
+
+def test_figures_are_shared_by_classes_whose_names_share_a_prefix(monkeypatch):
+    # a figure counted for every class whose name starts its title: 'cup' took the 'cupboard'
+    # figures as its own, and --figures 4 drew two cupboards and no cup
+    import types
+    from beo_ros import scan_eval
+    est = types.SimpleNamespace(label='cup', completion=np.zeros((4, 4, 4)))
+    monkeypatch.setattr(scan_eval, 'fit_models', lambda *a, **k: None)
+    monkeypatch.setattr(scan_eval, '_evaluate_object',
+                        lambda args, objs, bank, i: ({}, None, np.zeros((1, 3)), est))
+    objs = types.SimpleNamespace(names=['cup', 'cupboard'], y=np.array([1, 1, 1, 0, 0]),
+                                 scenes=np.array(['s0'] * 5), object_ids=np.arange(5),
+                                 subset=lambda sel: None)
+    args = types.SimpleNamespace(k=1, max_iter=1, congeal=False, mirror=False, figures=4)
+    figs = []
+    scan_eval._evaluate_fold(args, objs, ['s0'], [], figs, [])
+    assert sorted(f[0].split()[0] for f in figs) == ['cup', 'cup', 'cupboard', 'cupboard']

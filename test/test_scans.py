@@ -104,6 +104,21 @@ def test_load_scene_applies_the_viewpoint(tmp_path):
         load_scene(tmp_path / 'zero.pcd')
 
 
+def test_load_scene_moves_double_map_coordinates_before_rounding_to_float32(tmp_path):
+    # x y z typed F 8 in a map frame (UTM-like, 4000 km out) with the sensor's pose in VIEWPOINT:
+    # they were rounded to float32 (0.25 m steps there) before the move to the sensor frame
+    rng = np.random.default_rng(0)
+    local = rng.uniform(-0.5, 0.5, (100, 3)) + [0, 0, 1.0]
+    t = np.array([512345.0, 4123456.0, 10.0])
+    pts = local + t
+    write_pcd(tmp_path / 'map.pcd', {'x': pts[:, 0], 'y': pts[:, 1], 'z': pts[:, 2],
+                                     'label': np.full(100, 20, np.uint32)},
+              viewpoint=(*t, 1, 0, 0, 0))
+    s = load_scene(tmp_path / 'map.pcd')
+    assert s.points.dtype == np.float32
+    np.testing.assert_allclose(s.points, local, atol=1e-6)
+
+
 @pytest.mark.parametrize('label_type,values,match', [
     ('I', b'-1', 'not integers'),          # a cast wrapped it to 4294967295: an object label
     ('F', b'nan', 'not integers'), ('F', b'20.5', 'not integers'), ('F', b'-3', 'not integers'),

@@ -313,12 +313,21 @@ def test_far_sensor_keeps_voxel_precision():
     # a TypeError (cannot cast) before: x, y, z records, as a PCD or PointCloud2 reader gives
     (dict(points=np.rec.fromarrays(box_front(100).T, names='x,y,z')), 'array of numbers'),
     (dict(points={'x': 1.0}), 'points must be an'),
+    # min_points 0 and no finite point: numpy's 'zero-size array to reduction operation' before
+    (dict(points=np.zeros((0, 3)), min_points=0), 'need at least 1 finite points, got 0'),
+    (dict(points=np.full((5, 3), np.nan), min_points=0), 'need at least 1 finite points'),
 ])
 def test_validation(kwargs, match):
     args = dict(points=box_front(100), sensor_origin=np.zeros(3), up=[0, 0, 1], spec=GridSpec(8))
     args.update(kwargs)
     with pytest.raises(ValueError, match=match):
         voxelize_view(**args)
+
+
+def test_finite_points_of_none_with_min_points_0():
+    from beo_ros.core.voxelize import finite_points
+    for pts in (np.zeros((0, 3)), np.full((5, 3), np.nan)):
+        assert finite_points(pts, min_points=0).shape == (0, 3)
 
 
 def test_empty_occluders_are_none():
@@ -388,6 +397,20 @@ def test_sensor_in_an_occupied_voxel_still_sees_free_space():
     assert g[12, 8, 8] == OCCUPIED
 
 
+def test_sensor_on_the_face_of_an_occupied_voxel_still_sees_free_space():
+    # the sensor exactly on a voxel face (its own voxel on one side, an occupied one on the
+    # other): Embree hit that face at t = 0 on every ray leaving it, all unknown but behind it
+    occ = np.zeros((16, 16, 16), bool)
+    occ[12, 4:12, 4:12] = True         # a wall in front of the sensor
+    occ[3, 8, 8] = True                # the sensor sits on its +x face
+    for sensor in ((3.5, 8.0, 8.0), (3.5, 8.3, 7.9), (3.5 + 1e-6, 8.0, 8.0)):
+        g = label_free_unknown(occ, sensor)
+        assert (g[5:11, 6:10, 6:10] == FREE).all()
+        assert (g[13:, 6:10, 6:10] == UNKNOWN).all()
+        assert (g[:3, 7:10, 7:10] == UNKNOWN).all()   # behind the voxel it sits on
+        assert g[3, 8, 8] == OCCUPIED
+
+
 def test_a_self_return_does_not_blind_the_splats():
     # a sparse wall blocks rays as squares facing the sensor; a point in the sensor's own voxel
     # made a square right at the sensor that hid the whole view (0.1 voxel off), or, exactly at
@@ -405,6 +428,24 @@ def test_a_self_return_does_not_blind_the_splats():
         assert (g[13:, 6:10, 6:10] == UNKNOWN).all()
     v, _ = facing_squares(np.array([[0.0, 0, 0], [2.0, 0, 0]]), np.zeros(3), 0.5)
     assert np.isfinite(v).all() and (v[:4] == 0).all()
+
+
+def test_an_occluder_point_at_the_sensor_does_not_blind_it():
+    # a point of another object in the sensor's own voxel (a self-return, a driver's (0, 0, 0)
+    # for no return) became a cube around the sensor that hid the whole grid
+    spec = GridSpec(N, units='metric', voxel_size=0.02)
+    rng = np.random.default_rng(4)
+    wall = np.c_[np.full(3000, 0.5), rng.uniform(-0.6, 0.0, 3000), rng.uniform(-0.2, 0.6, 3000)]
+    a = voxelize_view(box_front(), np.zeros(3), [0, 0, 1], spec, occluders=wall)
+    for extra in ([0.0, 0.0, 0.0], [0.004, 0.0, 0.0]):
+        b = voxelize_view(box_front(), np.zeros(3), [0, 0, 1], spec,
+                          occluders=np.r_[wall, [extra]])
+        np.testing.assert_array_equal(b.grid, a.grid)
+    occ = np.zeros((16, 16, 16), bool)
+    occ[12, 4:12, 4:12] = True
+    g = label_free_unknown(occ, (3.0, 8.0, 8.0), occluder_voxels=np.array([[3, 8, 8]]))
+    assert (g[5:11, 6:10, 6:10] == FREE).all()
+    assert (g[13:, 6:10, 6:10] == UNKNOWN).all()
 
 
 def test_points_outside_a_grid_placed_at_center_blame_the_center():

@@ -74,7 +74,7 @@ def load_scene(path, require_labels: bool = True) -> Scene:
                        f'table, >= {FIRST_OBJECT_LABEL} the objects)')
     n = pcd.n_points
     try:
-        pts = pcd.xyz().astype(np.float32)
+        pts = pcd.xyz()   # float32 once in the sensor frame: F 8 map coordinates keep their mm
     except PCDError as e:
         raise PCDError(f'{path}: {e}') from None
     for key in ('label', 'rgba', 'rgb'):
@@ -83,6 +83,7 @@ def load_scene(path, require_labels: bool = True) -> Scene:
     viewpoint = np.asarray(pcd.viewpoint, dtype=np.float64)
     if not (viewpoint == IDENTITY_VIEWPOINT).all():   # identity: the points as they are
         pts = _to_sensor_frame(pts, viewpoint, path)
+    pts = pts.astype(np.float32)
     labels = _labels(pcd['label'], path) if 'label' in pcd else np.zeros(n, np.uint32)
     rgb = np.zeros((n, 3), np.uint8)
     for key in ('rgba', 'rgb'):
@@ -96,14 +97,15 @@ def load_scene(path, require_labels: bool = True) -> Scene:
 
 
 def _to_sensor_frame(points, viewpoint, path) -> np.ndarray:
-    """float32 (n, 3) file points -> the frame of the sensor whose pose is ``viewpoint``."""
+    """(n, 3) file points -> float64 points in the frame of the sensor whose pose is
+    ``viewpoint``."""
     t, q = viewpoint[:3], viewpoint[3:]
     norm = float(np.linalg.norm(q))
     if not np.isfinite(viewpoint).all() or norm < 1e-6:
         raise PCDError(f'{path}: VIEWPOINT {viewpoint.tolist()} is not a pose (non-finite '
                        'numbers or a zero quaternion)')
     R = quaternion_matrix(q / norm)   # sensor axes in the file's frame (columns)
-    return ((points.astype(np.float64) - t) @ R).astype(np.float32)   # rows: R^T (p - t)
+    return (points.astype(np.float64) - t) @ R   # rows: R^T (p - t)
 
 
 def _labels(values, path) -> np.ndarray:

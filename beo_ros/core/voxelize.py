@@ -24,6 +24,7 @@ MIN_EXTENT = 1e-6  # input units (m): points spanning no more than this are refu
 MAX_COORDINATE = 1e6  # input units (m): points and positions beyond are refused (overflow)
 MIN_DIRECTION = 1e-9  # a direction (``up``) whose largest component is below this is refused
 _RAY_MARGIN = 0.25  # voxels: a ray stops this short of the voxel centre it is cast at
+_RAY_TNEAR = 1e-6  # fraction of a ray: hits nearer its start (the sensor) are not counted
 # voxels: points spaced wider than this (median nearest neighbour) also block rays as squares
 SPARSE_SPACING = 0.75
 SPLAT_SCALE = 0.75  # half-width of those squares, in point spacings
@@ -64,7 +65,7 @@ def _check_points(points, min_points: int) -> np.ndarray:
     pts = pts[np.isfinite(pts).all(axis=1)]
     if len(pts) < min_points:
         raise ValueError(f'need at least {min_points} finite points, got {len(pts)}')
-    if np.abs(pts).max() > MAX_COORDINATE:
+    if len(pts) and np.abs(pts).max() > MAX_COORDINATE:
         raise ValueError(f'points must lie within +-{MAX_COORDINATE:g} (input units, m), got '
                          f'a coordinate of {np.abs(pts).max():g}')
     return pts
@@ -253,7 +254,8 @@ def label_free_unknown(occupied: np.ndarray, origin_grid, close_holes: bool = Tr
         close_holes: block rays with a morphological closing of ``occupied`` (fills one-voxel
             holes of sparse surfaces so they do not leak free space behind the object).
         occluder_voxels: optional int (k, 3) grid indices (may lie outside the grid) of other
-            geometry that blocks rays (e.g. neighbouring objects) but is not this object.
+            geometry that blocks rays (e.g. neighbouring objects) but is not this object; one at
+            the sensor's own voxel is ignored, like occupied voxels and splats there.
         splats: optional (k, 3) grid coordinates of surface points that block rays as squares
             of half-width ``splat_half`` voxels facing the sensor: for surfaces sampled more
             sparsely than the voxels, whose gaps the closing does not bridge.
@@ -281,7 +283,9 @@ def label_free_unknown(occupied: np.ndarray, origin_grid, close_holes: bool = Tr
     out = np.full(occupied.shape, FREE, dtype=np.int8)
     verts, tris = cube_surface(blocked)
     if occluder_voxels is not None and len(occluder_voxels):
-        ov, ot = cube_soup(np.asarray(occluder_voxels))
+        # nor an occluder's (a cube around the sensor would hide the whole grid)
+        ov = np.asarray(occluder_voxels)
+        ov, ot = cube_soup(ov[np.any(ov != sensor_voxel, axis=1)])
         verts, tris = np.concatenate([verts, ov]), np.concatenate([tris, ot + len(verts)])
     if splats is not None and len(splats) and splat_half > 0:
         # nor do points in it (a self-return would otherwise hide the whole view behind it)
@@ -308,7 +312,9 @@ def label_free_unknown(occupied: np.ndarray, origin_grid, close_holes: bool = Tr
         rays = np.empty((len(d), 6), np.float32)
         rays[:, :3] = o + t0 * d
         rays[:, 3:] = (1.0 - t0) * d
-        hit = scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0, tfar=1.0).numpy()
+        # (tnear > 0: a sensor on the face of a blocked voxel is not hidden by it from what lies
+        # on its side of the face; Embree counts the hit at t = 0 on every ray leaving it)
+        hit = scene.test_occlusions(o3d.core.Tensor(rays), tnear=_RAY_TNEAR, tfar=1.0).numpy()
         hit &= dist > _RAY_MARGIN
         out.reshape(-1)[hit] = UNKNOWN
     out[occupied] = OCCUPIED
@@ -350,7 +356,7 @@ def voxelize_view(points, sensor_origin, up, spec: GridSpec, center=None, floor=
     Occupied voxels are those containing a point; the rest are free/unknown by ray casting from
     the sensor (see :func:`label_free_unknown`).
     """
-    pts = _check_points(points, min_points)
+    pts = _check_points(points, max(min_points, 1))   # (min_points 0: no points, no object)
     origin = _check_vec(sensor_origin, 'sensor_origin')
     upv = _check_vec(up, 'up', unit=True)
     if center is not None:
