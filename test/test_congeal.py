@@ -68,3 +68,24 @@ def test_congeal_classes_names_grids_of_another_size(n, masks_n):
     which = 'X' if n != 16 else 'masks'
     with pytest.raises(ValueError, match=f'{which} must hold 3 grids of n\\^3'):
         congeal_classes(X, np.zeros(3, int), n, masks=masks)
+
+
+def test_congeal_yaws_refuses_no_objects_and_bad_options_by_name():
+    # no objects was "'int' object has no attribute 'astype'", a step or pool of 0 a
+    # ZeroDivisionError, a negative step numpy's 'cannot reshape'
+    n = 16
+    X = np.stack([rotate_grid(l_shape(n), r).ravel() for r in np.deg2rad([0, 90])])
+    with pytest.raises(ValueError, match='at least one object'):
+        congeal_yaws(np.zeros((0, n ** 3), np.float32), n)
+    for kwargs, msg in [(dict(yaw_step_deg=0), 'yaw_step_deg'),
+                        (dict(yaw_step_deg=-10.0), 'yaw_step_deg'),
+                        (dict(yaw_step_deg=float('nan')), 'yaw_step_deg'),
+                        (dict(pool=0), 'pool'), (dict(iters=-1), 'iters'),
+                        (dict(prior=-0.5), 'prior')]:
+        with pytest.raises(ValueError, match=msg):
+            congeal_yaws(X, n, **kwargs)
+        # also when no class has two objects to congeal
+        with pytest.raises(ValueError, match=msg):
+            congeal_classes(X, np.array([0, 1]), n, **kwargs)
+    # the objective of no grids is 0 bits (was numpy's 'cannot reshape')
+    assert class_entropy(np.zeros((0, n ** 3), np.float32), n) == 0.0

@@ -24,7 +24,8 @@ def _pool(a, n, p):
     if p == 1:
         return a
     m = n // p
-    return a.reshape(len(a), m, p, m, p, m, p).sum(axis=(2, 4, 6)).reshape(len(a), -1)
+    # not -1: no rows is (0, m^3) too
+    return a.reshape(len(a), m, p, m, p, m, p).sum(axis=(2, 4, 6)).reshape(len(a), m ** 3)
 
 
 def _h(p):
@@ -36,14 +37,37 @@ def _cost(S, N, prior):
     return (N * _h((S + prior) / (N + 2 * prior))).sum(axis=-1)
 
 
+def _check_options(yaw_step_deg, iters, prior, pool):
+    """ValueError naming the first congealing option out of range (else a ZeroDivisionError
+    for a step or pool of 0, numpy's 'cannot reshape' for a negative step, ...)."""
+    def real(v):
+        return not isinstance(v, (bool, np.bool_)) and isinstance(v, (int, float, np.number)) \
+            and np.isfinite(v)
+
+    def integer(v):
+        return not isinstance(v, (bool, np.bool_)) and isinstance(v, (int, np.integer))
+
+    if not (real(yaw_step_deg) and 0 < yaw_step_deg <= 360):
+        raise ValueError(f'yaw_step_deg must be a number in (0, 360], got {yaw_step_deg!r}')
+    if not (integer(iters) and iters >= 0):
+        raise ValueError(f'iters must be an integer >= 0, got {iters!r}')
+    if not (real(prior) and prior >= 0):
+        raise ValueError(f'prior must be a finite number >= 0, got {prior!r}')
+    if not (integer(pool) and pool >= 1):
+        raise ValueError(f'pool must be an integer >= 1, got {pool!r}')
+
+
 def congeal_yaws(X, n, masks=None, yaw_step_deg=10.0, iters=6, prior=0.5, pool=2, seed=0,
                  verbose=False):
     """Congeal one class: (yaws (m,) radians to rotate each object by, cost per sweep list).
 
-    X: (m, n^3) occupancy in [0, 1]; masks: optional bool (m, n^3), True = observed.
+    X: (m, n^3) occupancy in [0, 1], m >= 1; masks: optional bool (m, n^3), True = observed.
     """
     X = np.asarray(X, dtype=np.float32)
     m = len(X)
+    if m == 0:   # else "'int' object has no attribute 'astype'" from the empty sums
+        raise ValueError('X must hold at least one object, got 0')
+    _check_options(yaw_step_deg, iters, prior, pool)
     if n % pool:
         pool = 1
     yaws = np.deg2rad(np.arange(0.0, 360.0, yaw_step_deg))
@@ -117,6 +141,7 @@ def congeal_classes(X, y, n, masks=None, yaw_step_deg=10.0, iters=6, prior=0.5, 
     y = np.asarray(y)
     if len(X) == 0:
         raise ValueError('X must hold at least one object, got 0')
+    _check_options(yaw_step_deg, iters, prior, pool)   # also when no class has 2 objects
     if len(y) != len(X):
         raise ValueError(f'y must hold one label per object ({len(X)}), got {len(y)}')
     # else an IndexError in the rotation maps, or numpy's reshape error after the congealing
