@@ -89,3 +89,17 @@ def test_congeal_yaws_refuses_no_objects_and_bad_options_by_name():
             congeal_classes(X, np.array([0, 1]), n, **kwargs)
     # the objective of no grids is 0 bits (was numpy's 'cannot reshape')
     assert class_entropy(np.zeros((0, n ** 3), np.float32), n) == 0.0
+
+
+def test_prior_zero_with_voxels_nobody_observes_still_congeals():
+    # prior 0 (no pseudo counts) made a voxel that no object observes 0/0: the objective was
+    # NaN, no object ever moved and the history was all NaN
+    n = 16
+    base = l_shape(n)
+    rot = np.deg2rad([0, 90, 180, 270])
+    X = np.stack([rotate_grid(base, r).ravel() for r in rot])
+    masks = np.ones(X.shape, bool)
+    masks[:, : 2 * n * n] = False      # the first two x slices: unknown in every object
+    yaws, hist = congeal_yaws(X, n, masks, prior=0.0, yaw_step_deg=90.0)
+    assert np.isfinite(hist).all() and hist[-1] < hist[0]
+    assert np.isfinite(class_entropy(X, n, masks, prior=0.0))

@@ -34,7 +34,8 @@ def _h(p):
 
 
 def _cost(S, N, prior):
-    return (N * _h((S + prior) / (N + 2 * prior))).sum(axis=-1)
+    # a voxel no object observes costs nothing (with prior 0 it was 0/0: a NaN objective)
+    return (N * _h((S + prior) / np.maximum(N + 2 * prior, 1e-12))).sum(axis=-1)
 
 
 def _check_options(yaw_step_deg, iters, prior, pool):
