@@ -174,3 +174,23 @@ def test_matches_training_grid_statistics():
 def test_a_directory_is_called_so(tmp_path):
     with pytest.raises(MeshError, match='a directory, not a mesh file'):
         load_mesh(tmp_path)
+
+
+def test_a_subnormal_extent_is_refused_naming_the_file(tmp_path):
+    # a box 3e-310 wide: the scale size / extent overflowed to inf and the voxelization
+    # failed with numpy's 'index -9223372036854775808 is out of bounds for axis 0'
+    from beo_ros.core.datasets import load_meshes
+    box = trimesh.creation.box((1, 2, 3))
+    tiny = trimesh.Trimesh(box.vertices * 1e-310, box.faces, process=False)
+    with pytest.raises(MeshError, match='too small to scale to 32 voxels'):
+        voxelize_mesh(tiny)
+    path = tmp_path / 'chair_0001.off'
+    path.write_text(f'OFF\n8 {len(box.faces)} 0\n'
+                    + ''.join(' '.join(repr(float(c)) for c in v) + '\n'
+                              for v in tiny.vertices)
+                    + ''.join('3 ' + ' '.join(map(str, f)) + '\n' for f in box.faces))
+    with pytest.raises(MeshError, match='chair_0001.off: mesh extent .* too small'):
+        load_meshes([path], 32)
+    # 1e-300 still scales: the same grid as the unit box
+    np.testing.assert_array_equal(voxelize_mesh(trimesh.Trimesh(
+        box.vertices * 1e-300, box.faces, process=False)), voxelize_mesh(box))

@@ -71,6 +71,9 @@ def mesh_to_grid_transform(mesh, size: int = 32) -> np.ndarray:
     if not np.isfinite(largest) or largest <= 0:
         raise MeshError('mesh has zero or non-finite extent')
     s = size / largest
+    if not np.isfinite(s):   # a subnormal extent: the scale overflows, NaN grid indices
+        raise MeshError(f'mesh extent {largest!r} is too small to scale to {size} voxels '
+                        '(float64 overflow)')
     t = np.eye(4)
     t[:3, :3] *= s
     t[:3, 3] = (size - 1) / 2.0 - s * (0.5 * lo + 0.5 * hi)   # lo + hi may overflow
