@@ -8,6 +8,8 @@ import trimesh
 
 from beo_ros.core.meshes import MeshError, load_mesh, mesh_to_grid_transform, voxelize_mesh
 
+from _shapes import box_off
+
 DATA = Path(os.environ.get('BEO_DATA_DIR')
             or Path(__file__).resolve().parents[1].parent / 'shared' / 'data')
 MESHES = sorted((DATA / 'meshes').glob('*.off')) if (DATA / 'meshes').is_dir() else []
@@ -194,3 +196,19 @@ def test_a_subnormal_extent_is_refused_naming_the_file(tmp_path):
     # 1e-300 still scales: the same grid as the unit box
     np.testing.assert_array_equal(voxelize_mesh(trimesh.Trimesh(
         box.vertices * 1e-300, box.faces, process=False)), voxelize_mesh(box))
+
+
+@pytest.mark.parametrize('header', ['OFF\n8 12 0\n', 'OFF 8 12 0\n', 'OFF8 12 0\n'])
+def test_a_truncated_off_file_is_refused(tmp_path, header):
+    # trimesh reads the faces a cut-off download still has without a word: 6 of a box's 12
+    # triangles made a hollow grid of 1287 voxels instead of 8448
+    full = tmp_path / 'full.off'
+    box_off(full, 1, 2, 3)
+    body = full.read_text().split('\n', 2)[2]
+    (tmp_path / 'whole.off').write_text(header + body)
+    assert len(load_mesh(tmp_path / 'whole.off').faces) == 12
+    cut = tmp_path / 'cut.off'
+    cut.write_text(header + ''.join(body.splitlines(keepends=True)[:8 + 6]))
+    with pytest.raises(MeshError, match=r'cut.off: truncated OFF file: its header declares 12 '
+                                        r'faces, it ends after 6'):
+        load_mesh(cut)

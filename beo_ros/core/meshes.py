@@ -22,10 +22,26 @@ class MeshError(ValueError):
     """A mesh file is missing, unreadable or has no triangles."""
 
 
+def _off_face_counts(path):
+    """(faces its header declares, face lines it has) of an OFF file, None when the header
+    cannot be read (trimesh reads the faces of a truncated file without a word)."""
+    with open(path, 'rb') as f:
+        lines = [line.split(b'#', 1)[0].strip() for line in f.read().splitlines()]
+    lines = [line for line in lines if line]
+    try:
+        counts = lines[0].lstrip(b'\xef\xbb\xbf').lstrip(b'C').removeprefix(b'OFF').split()
+        start = 1 if counts else 2   # 'OFF 8 12 0' (or 'OFF8 12 0') or the counts below
+        vertices, faces = (int(c) for c in (counts or lines[1].split())[:2])
+    except (IndexError, ValueError):
+        return None
+    return faces, max(len(lines) - start - vertices, 0)
+
+
 def load_mesh(path) -> trimesh.Trimesh:
     """Load an OFF/OBJ/STL/PLY file as one triangle mesh (scenes are concatenated).
 
-    Raises :class:`MeshError` (a ValueError; FileNotFoundError-like message for missing files).
+    Raises :class:`MeshError` (a ValueError; FileNotFoundError-like message for missing files),
+    also for an OFF file with fewer faces than its header declares (truncated).
     """
     path = os.fspath(path)
     if not os.path.isfile(path):
@@ -40,6 +56,10 @@ def load_mesh(path) -> trimesh.Trimesh:
         raise MeshError(f'{path}: cannot parse mesh ({type(exc).__name__}: {exc})') from exc
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise MeshError(f'{path}: mesh has no triangles')
+    counts = _off_face_counts(path) if ext == '.off' else None
+    if counts and counts[1] < counts[0]:   # a truncated download: holes, a hollow grid
+        raise MeshError(f'{path}: truncated OFF file: its header declares {counts[0]} faces, '
+                        f'it ends after {counts[1]}')
     # vertices no triangle uses (left over in many ModelNet files) would set the extent
     mesh.remove_unreferenced_vertices()
     v = np.asarray(mesh.vertices)
