@@ -212,3 +212,18 @@ def test_a_truncated_off_file_is_refused(tmp_path, header):
     with pytest.raises(MeshError, match=r'cut.off: truncated OFF file: its header declares 12 '
                                         r'faces, it ends after 6'):
         load_mesh(cut)
+
+
+@pytest.mark.parametrize('index', [9, -1])
+def test_a_ply_face_index_outside_the_vertices_is_refused(tmp_path, index):
+    # past the end was a raw IndexError out of load_mesh (a traceback from beo-train), a
+    # negative index wrapped around to another vertex without a word
+    faces = [[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, index]]
+    path = tmp_path / 'tet.ply'
+    path.write_text('ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\n'
+                    'property float z\nelement face 4\nproperty list uchar int vertex_indices\n'
+                    'end_header\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n'
+                    + ''.join('3 ' + ' '.join(map(str, f)) + '\n' for f in faces))
+    with pytest.raises(MeshError, match=f'tet.ply: a face refers to vertex {index}, the mesh '
+                                        r'has 4 vertices \(0..3\)'):
+        load_mesh(path)

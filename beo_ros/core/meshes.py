@@ -60,6 +60,11 @@ def load_mesh(path) -> trimesh.Trimesh:
     if counts and counts[1] < counts[0]:   # a truncated download: holes, a hollow grid
         raise MeshError(f'{path}: truncated OFF file: its header declares {counts[0]} faces, '
                         f'it ends after {counts[1]}')
+    faces = np.asarray(mesh.faces)
+    bad = faces[(faces < 0) | (faces >= len(mesh.vertices))]
+    if len(bad):   # PLY: an IndexError past the end, a negative index wrapped around silently
+        raise MeshError(f'{path}: a face refers to vertex {int(bad[0])}, the mesh has '
+                        f'{len(mesh.vertices)} vertices (0..{len(mesh.vertices) - 1})')
     # vertices no triangle uses (left over in many ModelNet files) would set the extent
     mesh.remove_unreferenced_vertices()
     v = np.asarray(mesh.vertices)
