@@ -227,3 +227,12 @@ def test_a_ply_face_index_outside_the_vertices_is_refused(tmp_path, index):
     with pytest.raises(MeshError, match=f'tet.ply: a face refers to vertex {index}, the mesh '
                                         r'has 4 vertices \(0..3\)'):
         load_mesh(path)
+
+
+def test_an_obj_vertex_line_of_two_numbers_is_refused_naming_the_file(tmp_path):
+    # trimesh then reads every vertex as 2-D: the voxelization failed with numpy's 'could not
+    # broadcast input array from shape (2,) into shape (3,)', naming no file
+    path = tmp_path / 'tet.obj'
+    path.write_text('v 0 0 0\nv 1 0 0\nv 0 1\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n')
+    with pytest.raises(MeshError, match=r'tet.obj: vertices must have 3 coordinates'):
+        voxelize_mesh(path)

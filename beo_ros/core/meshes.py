@@ -60,6 +60,9 @@ def load_mesh(path) -> trimesh.Trimesh:
     if counts and counts[1] < counts[0]:   # a truncated download: holes, a hollow grid
         raise MeshError(f'{path}: truncated OFF file: its header declares {counts[0]} faces, '
                         f'it ends after {counts[1]}')
+    if np.shape(mesh.vertices)[1:] != (3,):   # an OBJ 'v' line of 2 numbers: all read as 2-D
+        raise MeshError(f'{path}: vertices must have 3 coordinates (x y z), got shape '
+                        f'{np.shape(mesh.vertices)} (a vertex line with fewer numbers?)')
     faces = np.asarray(mesh.faces)
     bad = faces[(faces < 0) | (faces >= len(mesh.vertices))]
     if len(bad):   # PLY: an IndexError past the end, a negative index wrapped around silently
