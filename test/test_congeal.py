@@ -103,3 +103,15 @@ def test_prior_zero_with_voxels_nobody_observes_still_congeals():
     yaws, hist = congeal_yaws(X, n, masks, prior=0.0, yaw_step_deg=90.0)
     assert np.isfinite(hist).all() and hist[-1] < hist[0]
     assert np.isfinite(class_entropy(X, n, masks, prior=0.0))
+
+
+def test_congeal_classes_keeps_the_shape_of_grids():
+    # (m, n, n, n) grids, which the shape check accepts, came back as (m, n^3) rows
+    n = 16
+    X = np.stack([rotate_grid(l_shape(n), r) for r in np.deg2rad([0, 90, 200])])
+    masks = np.ones(X.shape, bool)
+    Xa, Ma = congeal_classes(X, np.zeros(3, int), n, masks=masks)
+    assert Xa.shape == X.shape and Ma.shape == masks.shape
+    assert congeal_classes(X, np.zeros(3, int), n).shape == X.shape
+    flat = congeal_classes(X.reshape(3, -1), np.zeros(3, int), n)
+    np.testing.assert_array_equal(flat, Xa.reshape(3, -1))

@@ -134,9 +134,9 @@ def congeal_classes(X, y, n, masks=None, yaw_step_deg=10.0, iters=6, prior=0.5, 
                     verbose=False, return_yaws=False):
     """Align the yaw of the objects of each class by congealing (see module doc).
 
-    Returns the aligned X (same dtype), or (X, masks) when ``masks`` is given (masks rotated
-    consistently: voxels rotated in from outside the grid are unknown); with ``return_yaws`` the
-    per-object yaws (radians, about +z) are appended.
+    Returns the aligned X (same dtype and shape), or (X, masks) when ``masks`` is given (masks
+    rotated consistently: voxels rotated in from outside the grid are unknown); with
+    ``return_yaws`` the per-object yaws (radians, about +z) are appended.
     """
     X = np.asarray(X)
     y = np.asarray(y)
@@ -160,8 +160,8 @@ def congeal_classes(X, y, n, masks=None, yaw_step_deg=10.0, iters=6, prior=0.5, 
         yaws[sel], _ = congeal_yaws(X[sel], n, None if masks is None else masks[sel],
                                     yaw_step_deg, iters, prior, pool, verbose=verbose)
     Xr, Mr = apply_yaws(X, n, yaws, masks)
-    Xr = Xr.astype(X.dtype)
-    out = (Xr,) if masks is None else (Xr, Mr)
+    Xr = Xr.astype(X.dtype).reshape(X.shape)   # (m, n, n, n) grids stay grids
+    out = (Xr,) if masks is None else (Xr, Mr.reshape(np.shape(masks)))
     if return_yaws:
         out = out + (yaws,)
     return out[0] if len(out) == 1 else out
