@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from beo_ros.core.congeal import class_entropy, congeal_classes, congeal_yaws
+from beo_ros.core.congeal import apply_yaws, class_entropy, congeal_classes, congeal_yaws
 from beo_ros.core.grid import rotate_grid
 
 
@@ -115,3 +115,12 @@ def test_congeal_classes_keeps_the_shape_of_grids():
     assert congeal_classes(X, np.zeros(3, int), n).shape == X.shape
     flat = congeal_classes(X.reshape(3, -1), np.zeros(3, int), n)
     np.testing.assert_array_equal(flat, Xa.reshape(3, -1))
+
+
+def test_apply_yaws_of_no_objects_with_masks():
+    # no objects passed without masks but failed with numpy's 'need at least one array to
+    # stack' with them
+    n = 8
+    Xr, Mr = apply_yaws(np.zeros((0, n ** 3), np.float32), n, np.zeros(0),
+                        masks=np.zeros((0, n ** 3), bool))
+    assert Xr.shape == (0, n ** 3) and Mr.shape == (0, n ** 3) and Mr.dtype == bool

@@ -116,7 +116,8 @@ def apply_yaws(X, n, yaws, masks=None):
     if masks is None:
         return Xr, None
     Mr = np.stack([rotate_grid(np.asarray(masks[i], bool).reshape(n, n, n), yaws[i],
-                               fill=False).ravel() for i in range(len(X))])
+                               fill=False).ravel() for i in range(len(X))]) if len(X) else \
+        np.zeros((0, n ** 3), dtype=bool)   # np.stack of no arrays fails
     return Xr, Mr
 
 
