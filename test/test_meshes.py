@@ -236,3 +236,15 @@ def test_an_obj_vertex_line_of_two_numbers_is_refused_naming_the_file(tmp_path):
     path.write_text('v 0 0 0\nv 1 0 0\nv 0 1\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n')
     with pytest.raises(MeshError, match=r'tet.obj: vertices must have 3 coordinates'):
         voxelize_mesh(path)
+
+
+@pytest.mark.parametrize('cut', [-30, 10])
+def test_a_binary_stl_of_the_wrong_length_is_called_so(tmp_path, cut):
+    # trimesh refuses a truncated (or padded) binary STL and then reads it as ASCII: the
+    # error said 'mesh has no triangles' of a file that declares 12
+    data = trimesh.exchange.stl.export_stl(trimesh.creation.box((1, 2, 3)))
+    path = tmp_path / 'box.stl'
+    path.write_bytes(data[:cut] if cut < 0 else data + bytes(cut))
+    with pytest.raises(MeshError, match=f'box.stl: binary STL of {len(data) + cut} bytes, its '
+                                        r'header declares 12 triangles \(684 bytes\)'):
+        load_mesh(path)

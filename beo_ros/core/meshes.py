@@ -22,6 +22,12 @@ class MeshError(ValueError):
     """A mesh file is missing, unreadable or has no triangles."""
 
 
+def _head(path, n):
+    """The first ``n`` bytes of a file."""
+    with open(path, 'rb') as f:
+        return f.read(n)
+
+
 def _off_face_counts(path):
     """(faces its header declares, face lines it has) of an OFF file, None when the header
     cannot be read (trimesh reads the faces of a truncated file without a word)."""
@@ -55,6 +61,15 @@ def load_mesh(path) -> trimesh.Trimesh:
     except Exception as exc:  # trimesh raises many types on corrupt input
         raise MeshError(f'{path}: cannot parse mesh ({type(exc).__name__}: {exc})') from exc
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        size = os.path.getsize(path)
+        head = _head(path, 84)
+        if ext == '.stl' and len(head) == 84 and not head.lstrip().startswith(b'solid'):
+            # trimesh refuses a binary STL of another length, then reads it as ASCII: nothing
+            count = int.from_bytes(head[80:84], 'little')
+            if size != 84 + 50 * count:
+                raise MeshError(f'{path}: binary STL of {size} bytes, its header declares '
+                                f'{count} triangles ({84 + 50 * count} bytes): truncated or '
+                                'padded')
         raise MeshError(f'{path}: mesh has no triangles')
     counts = _off_face_counts(path) if ext == '.off' else None
     if counts and counts[1] < counts[0]:   # a truncated download: holes, a hollow grid
