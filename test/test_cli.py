@@ -594,3 +594,18 @@ def test_fit_bank_refuses_oof_path_without_classifier(tmp_path):
                  oof_path=tmp_path / 'oof.npz')
     with pytest.raises(ValueError, match='class names must be unique'):
         fit_bank(X, y, ['box', 'box'], GridSpec(size=N), k=2, classifier_views=0)
+
+
+def test_fit_bank_refuses_a_seed_that_is_no_integer_at_once(monkeypatch):
+    # None was a TypeError ('object of type 'NoneType' has no len()') after the class models
+    # and the classifier were fitted, -1 numpy's 'expected non-negative integer'
+    from beo_ros.core import training
+    from beo_ros.core.grid import GridSpec
+    X, y, names = primitive_shapes(N, 3, np.random.default_rng(0))
+
+    def no_fit(*a, **k):
+        raise AssertionError('fitted before checking the seed')
+    monkeypatch.setattr(training, 'fit_class_models', no_fit)
+    for bad in (None, -1, 1.5, True):
+        with pytest.raises(ValueError, match=f'seed must be an integer >= 0, got {bad!r}'):
+            training.fit_bank(X, y, names, GridSpec(size=N), k=2, seed=bad)

@@ -349,7 +349,7 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
     """
     C, calibration_views = _check_fit_options(
         names, spec, k, masks, classifier_views, folds, C, row_standardize, descriptors,
-        verifier_views, classifier_kind, calibration_views, grids, oof_path)
+        verifier_views, classifier_kind, calibration_views, grids, oof_path, seed)
     weights = resolve_class_prior(class_prior, names)
     cv_prior = class_prior if isinstance(class_prior, str) else weights
     X = np.asarray(X, dtype=np.float32)
@@ -406,7 +406,7 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
 
 def _check_fit_options(names, spec, k, masks, classifier_views, folds, C, row_standardize,
                        descriptors, verifier_views, classifier_kind, calibration_views, grids,
-                       oof_path):
+                       oof_path, seed=0):
     """Check the options of :func:`fit_bank` before its long fits (ValueError naming the first
     bad one, in fit_bank's order) and return (C: ``C_OPTIONS`` when None,
     calibration_views: an integer, 'auto' resolved as fit_bank documents)."""
@@ -446,6 +446,11 @@ def _check_fit_options(names, spec, k, masks, classifier_views, folds, C, row_st
     check_grid_size(spec.size)
     if not (isinstance(k, (int, np.integer)) and k >= 1):
         raise ValueError(f'k must be an integer >= 1, got {k!r}')
+    if isinstance(seed, (bool, np.bool_)) or not (isinstance(seed, (int, np.integer))
+                                                  and seed >= 0):
+        # else numpy's 'expected non-negative integer', or with None a TypeError after the
+        # class models and the classifier were fitted
+        raise ValueError(f'seed must be an integer >= 0, got {seed!r}')
     if classifier_views > 0 and len(names) < 2:
         raise ValueError(f'a classifier needs 2 or more classes, got {len(names)} '
                          f'({list(names)}); train none (classifier_views=0) for a one-class '
