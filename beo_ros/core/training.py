@@ -423,6 +423,13 @@ def _check_fit_options(names, spec, k, masks, classifier_views, folds, C, row_st
         raise ValueError('row_standardize needs at least 3 classes')
     if not (isinstance(verifier_views, (int, np.integer)) and verifier_views >= 0):
         raise ValueError(f'verifier_views must be an integer >= 0, got {verifier_views!r}')
+    # else a TypeError after the class models were fitted; with folds 1 'class ... has 0
+    # training objects', with folds 0 no classifier at all, without a word
+    if isinstance(classifier_views, (bool, np.bool_)) or not (
+            isinstance(classifier_views, (int, np.integer)) and classifier_views >= 0):
+        raise ValueError(f'classifier_views must be an integer >= 0, got {classifier_views!r}')
+    if classifier_views and not (isinstance(folds, (int, np.integer)) and folds >= 2):
+        raise ValueError(f'the out-of-fold classifier features need folds >= 2, got {folds!r}')
     if verifier_views and (masks is not None or spec.size % 8):
         raise ValueError('the orientation verifier needs whole objects in their canonical pose '
                          f'(no masks) on a grid of a multiple of 8 (got {spec.size})')
