@@ -632,3 +632,22 @@ def test_fit_bank_refuses_classifier_views_and_folds_it_cannot_use(monkeypatch, 
     with pytest.raises(ValueError, match=message):
         training.fit_bank(X, y, names, GridSpec(size=N), k=2, calibration_views=0,
                           verifier_views=0, **kw)
+
+
+@pytest.mark.parametrize('kw, message', [
+    (dict(pose_components=0), 'pose_components must be an integer >= 1, got 0'),
+    (dict(training=['k', 2]), 'training settings must be a mapping'),
+])
+def test_fit_bank_refuses_bank_settings_before_the_fits(monkeypatch, kw, message):
+    # the bank's ModelError (or dict()'s error of a list) came after the class models were
+    # fitted (minutes on ModelNet)
+    from beo_ros.core import training
+    from beo_ros.core.grid import GridSpec
+    X, y, names = primitive_shapes(N, 3, np.random.default_rng(0))
+
+    def no_fit(*a, **k):
+        raise AssertionError('fitted before checking the options')
+    monkeypatch.setattr(training, 'fit_class_models', no_fit)
+    with pytest.raises(ValueError, match=message):
+        training.fit_bank(X, y, names, GridSpec(size=N), k=2, classifier_views=0,
+                          verifier_views=0, **kw)

@@ -24,7 +24,7 @@ from .classifier_training import (C_OPTIONS, CLASSIFIER_KINDS, MLP_ALPHA, MLP_HI
 from .datasets import (drop_empty_objects, load_meshes, load_voxel_npz, mesh_class_name,
                        select_classes, training_data_hash)
 from .grid import yaw_error
-from .model_files import check_class_names
+from .model_files import _settings_reason, check_class_names
 from .shape import shape_descriptors
 from .synthetic import random_partial_view
 from .verifier import TURNS, OrientationVerifier, turned_features
@@ -350,6 +350,9 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
     C, calibration_views = _check_fit_options(
         names, spec, k, masks, classifier_views, folds, C, row_standardize, descriptors,
         verifier_views, classifier_kind, calibration_views, grids, oof_path, seed)
+    reason = _settings_reason(pose_components, training)
+    if reason:   # else the bank's ModelError after all the fits
+        raise ValueError(reason)
     weights = resolve_class_prior(class_prior, names)
     cv_prior = class_prior if isinstance(class_prior, str) else weights
     X = np.asarray(X, dtype=np.float32)
