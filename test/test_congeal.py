@@ -124,3 +124,18 @@ def test_apply_yaws_of_no_objects_with_masks():
     Xr, Mr = apply_yaws(np.zeros((0, n ** 3), np.float32), n, np.zeros(0),
                         masks=np.zeros((0, n ** 3), bool))
     assert Xr.shape == (0, n ** 3) and Mr.shape == (0, n ** 3) and Mr.dtype == bool
+
+
+def test_nan_where_unobserved_does_not_poison_the_objective():
+    # X * mask kept NaN (the VBPCA convention for unknown entries): every cost was NaN, no
+    # object moved and the yaws came back all 0
+    n = 16
+    rot = np.deg2rad([0, 90, 180, 270])
+    X = np.stack([rotate_grid(l_shape(n), r).ravel() for r in rot])
+    masks = np.ones(X.shape, bool)
+    masks[:, :300] = False
+    Xn = np.where(masks, X, np.nan)
+    yaws, hist = congeal_yaws(Xn, n, masks, yaw_step_deg=90.0)
+    np.testing.assert_array_equal(yaws, congeal_yaws(X, n, masks, yaw_step_deg=90.0)[0])
+    assert np.isfinite(hist).all() and hist[-1] < hist[0]
+    assert class_entropy(Xn, n, masks) == class_entropy(X, n, masks)

@@ -62,7 +62,8 @@ def congeal_yaws(X, n, masks=None, yaw_step_deg=10.0, iters=6, prior=0.5, pool=2
                  verbose=False):
     """Congeal one class: (yaws (m,) radians to rotate each object by, cost per sweep list).
 
-    X: (m, n^3) occupancy in [0, 1], m >= 1; masks: optional bool (m, n^3), True = observed.
+    X: (m, n^3) occupancy in [0, 1] (anything, NaN too, where unobserved), m >= 1; masks:
+    optional bool (m, n^3), True = observed.
     """
     X = np.asarray(X, dtype=np.float32)
     m = len(X)
@@ -74,7 +75,7 @@ def congeal_yaws(X, n, masks=None, yaw_step_deg=10.0, iters=6, prior=0.5, pool=2
     yaws = np.deg2rad(np.arange(0.0, 360.0, yaw_step_deg))
     idx = yaw_source_index(n, yaws)                                  # (Y, n^3)
     Mf = np.ones_like(X) if masks is None else np.asarray(masks, dtype=np.float32)
-    Xo = X * Mf
+    Xo = np.where(Mf > 0, X, 0)   # not X * Mf: NaN where unobserved made every cost NaN
     pad = lambda a: np.append(a, np.float32(0))  # noqa: E731  outside the grid: unobserved
 
     def rotated(i):  # pooled occupancy and observed counts of object i at every candidate yaw
@@ -127,7 +128,7 @@ def class_entropy(X, n, masks=None, prior=0.5, pool=2):
     Mf = np.ones_like(X) if masks is None else np.asarray(masks, dtype=np.float32)
     if n % pool:
         pool = 1
-    return float(_cost(_pool(X * Mf, n, pool).sum(0).astype(np.float64),
+    return float(_cost(_pool(np.where(Mf > 0, X, 0), n, pool).sum(0).astype(np.float64),
                        _pool(Mf, n, pool).sum(0).astype(np.float64), prior))
 
 
