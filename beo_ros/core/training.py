@@ -156,6 +156,10 @@ def verifier_training_set(X, n, views=6, seed=0, processes=1, verbose=False):
     X = np.asarray(X)
     if X.ndim != 2 or not len(X):
         raise ValueError(f'the verifier needs objects X (m >= 1, n^3), got shape {X.shape}')
+    if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)) \
+            or X.shape[1] != n ** 3:   # else numpy's 'cannot reshape' in every worker
+        raise ValueError(f'the verifier needs objects X of n^3 = {n!r}^3 voxels, got shape '
+                         f'{X.shape}')
     chunks = [(X[i:i + VERIFIER_CHUNK], n, views, seed, i // VERIFIER_CHUNK)
               for i in range(0, len(X), VERIFIER_CHUNK)]
     if processes > 1:
