@@ -139,3 +139,17 @@ def test_nan_where_unobserved_does_not_poison_the_objective():
     np.testing.assert_array_equal(yaws, congeal_yaws(X, n, masks, yaw_step_deg=90.0)[0])
     assert np.isfinite(hist).all() and hist[-1] < hist[0]
     assert class_entropy(Xn, n, masks) == class_entropy(X, n, masks)
+
+
+@pytest.mark.parametrize('n', [8, 32])
+def test_congeal_yaws_and_class_entropy_name_grids_of_another_size(n):
+    # 16^3 grids with n = 8 gave yaws from their first 512 voxels without a word, with
+    # n = 32 an IndexError in the rotation maps; class_entropy numpy's 'cannot reshape'
+    X = np.stack([rotate_grid(l_shape(16), r).ravel() for r in np.deg2rad([0, 90, 200])])
+    for fn in (congeal_yaws, class_entropy):
+        with pytest.raises(ValueError, match=r'X must hold 3 grids of n\^3'):
+            fn(X, n)
+    with pytest.raises(ValueError, match=r'masks must hold 3 grids of n\^3'):
+        congeal_yaws(X, 16, masks=np.ones((3, n ** 3), bool))
+    # (m, n, n, n) grids are grids too
+    assert class_entropy(X.reshape(3, 16, 16, 16), 16) == class_entropy(X, 16)

@@ -58,6 +58,16 @@ def _check_options(yaw_step_deg, iters, prior, pool):
         raise ValueError(f'pool must be an integer >= 1, got {pool!r}')
 
 
+def _check_grids(X, masks, n):
+    """ValueError unless X (and masks) hold len(X) grids of n^3 voxels: else an IndexError in
+    the rotation maps (larger n), yaws from the first n^3 voxels without a word (smaller n),
+    or numpy's reshape error after the congealing."""
+    for name, a in (('X', X), ('masks', masks)):
+        if a is not None and np.shape(a) not in ((len(X), n ** 3), (len(X), n, n, n)):
+            raise ValueError(f'{name} must hold {len(X)} grids of n^3 = {n ** 3} voxels (n = {n}),'
+                             f' got shape {np.shape(a)}')
+
+
 def congeal_yaws(X, n, masks=None, yaw_step_deg=10.0, iters=6, prior=0.5, pool=2, seed=0,
                  verbose=False):
     """Congeal one class: (yaws (m,) radians to rotate each object by, cost per sweep list).
@@ -70,6 +80,10 @@ def congeal_yaws(X, n, masks=None, yaw_step_deg=10.0, iters=6, prior=0.5, pool=2
     if m == 0:   # else "'int' object has no attribute 'astype'" from the empty sums
         raise ValueError('X must hold at least one object, got 0')
     _check_options(yaw_step_deg, iters, prior, pool)
+    _check_grids(X, masks, n)
+    X = X.reshape(m, n ** 3)
+    if masks is not None:
+        masks = np.reshape(masks, (m, n ** 3))
     if n % pool:
         pool = 1
     yaws = np.deg2rad(np.arange(0.0, 360.0, yaw_step_deg))
@@ -125,7 +139,9 @@ def apply_yaws(X, n, yaws, masks=None):
 def class_entropy(X, n, masks=None, prior=0.5, pool=2):
     """The congealing objective (bits) of a set of grids as they are."""
     X = np.asarray(X, dtype=np.float32)
-    Mf = np.ones_like(X) if masks is None else np.asarray(masks, dtype=np.float32)
+    _check_grids(X, masks, n)
+    X = X.reshape(len(X), n ** 3)
+    Mf = np.ones_like(X) if masks is None else np.reshape(masks, X.shape).astype(np.float32)
     if n % pool:
         pool = 1
     return float(_cost(_pool(np.where(Mf > 0, X, 0), n, pool).sum(0).astype(np.float64),
@@ -147,11 +163,7 @@ def congeal_classes(X, y, n, masks=None, yaw_step_deg=10.0, iters=6, prior=0.5, 
     _check_options(yaw_step_deg, iters, prior, pool)   # also when no class has 2 objects
     if len(y) != len(X):
         raise ValueError(f'y must hold one label per object ({len(X)}), got {len(y)}')
-    # else an IndexError in the rotation maps, or numpy's reshape error after the congealing
-    for name, a in (('X', X), ('masks', masks)):
-        if a is not None and np.shape(a) not in ((len(X), n ** 3), (len(X), n, n, n)):
-            raise ValueError(f'{name} must hold {len(X)} grids of n^3 = {n ** 3} voxels (n = {n}),'
-                             f' got shape {np.shape(a)}')
+    _check_grids(X, masks, n)
     yaws = np.zeros(len(X))
     for c in np.unique(y):
         sel = np.flatnonzero(y == c)
