@@ -248,3 +248,23 @@ def test_a_binary_stl_of_the_wrong_length_is_called_so(tmp_path, cut):
     with pytest.raises(MeshError, match=f'box.stl: binary STL of {len(data) + cut} bytes, its '
                                         r'header declares 12 triangles \(684 bytes\)'):
         load_mesh(path)
+
+
+def test_an_off_file_with_faces_of_five_corners_loads(tmp_path):
+    # trimesh's OFF reader fails on faces of more than 4 corners ("The 'out' kwarg is
+    # necessary when using the string multiply ufunc"): a closed pentagonal prism (legal OFF)
+    # was refused as 'cannot parse mesh'
+    a = np.linspace(0, 2 * np.pi, 6)[:-1]
+    v = [(np.cos(t), np.sin(t), z) for z in (0, 1) for t in a]
+    faces = ['5 0 1 2 3 4', '5 9 8 7 6 5'] + [f'4 {i} {5 + i} {5 + (i + 1) % 5} {(i + 1) % 5}'
+                                              for i in range(5)]
+    path = tmp_path / 'prism.off'
+    path.write_text('OFF\n10 7 0\n' + ''.join(f'{x} {y} {z}\n' for x, y, z in np.array(v))
+                    + '\n'.join(faces) + '\n')
+    mesh = load_mesh(path)
+    assert len(mesh.faces) == 2 * 3 + 5 * 2 and mesh.is_watertight
+    np.testing.assert_allclose(abs(mesh.volume), 5 / 2 * np.sin(2 * np.pi / 5))
+    # a face line cut short is still refused
+    path.write_text(path.read_text().replace('5 9 8 7 6 5', '5 9 8 7'))
+    with pytest.raises(MeshError, match='prism.off: cannot parse mesh'):
+        load_mesh(path)

@@ -28,9 +28,9 @@ def _head(path, n):
         return f.read(n)
 
 
-def _off_face_counts(path):
-    """(faces its header declares, face lines it has) of an OFF file, None when the header
-    cannot be read (trimesh reads the faces of a truncated file without a word)."""
+def _off_sections(path):
+    """(vertex count, face count, the lines after the counts) of an OFF file, comments and
+    blank lines dropped; None when its header cannot be read."""
     with open(path, 'rb') as f:
         lines = [line.split(b'#', 1)[0].strip() for line in f.read().splitlines()]
     lines = [line for line in lines if line]
@@ -40,7 +40,29 @@ def _off_face_counts(path):
         vertices, faces = (int(c) for c in (counts or lines[1].split())[:2])
     except (IndexError, ValueError):
         return None
-    return faces, max(len(lines) - start - vertices, 0)
+    return vertices, faces, lines[start:]
+
+
+def _off_polygon_mesh(path):
+    """The mesh of an OFF file, every face a triangle fan (trimesh's OFF reader fails on faces
+    of more than 4 corners: 'The 'out' kwarg is necessary when using the string multiply
+    ufunc'); None when it cannot be read so either."""
+    sections = _off_sections(path)
+    if sections is None:
+        return None
+    nv, nf, lines = sections
+    try:
+        v = np.array([line.split()[:3] for line in lines[:nv]], dtype=np.float64).reshape(nv, 3)
+        tris = []
+        for line in lines[nv:nv + nf]:
+            count, *rest = line.split()
+            corners = [int(c) for c in rest[:int(count)]]
+            if len(corners) != int(count):   # a face line cut short
+                return None
+            tris += [(corners[0], corners[i], corners[i + 1]) for i in range(1, len(corners) - 1)]
+    except ValueError:
+        return None
+    return trimesh.Trimesh(v, np.array(tris, dtype=np.int64).reshape(-1, 3), process=False)
 
 
 def load_mesh(path) -> trimesh.Trimesh:
@@ -59,7 +81,9 @@ def load_mesh(path) -> trimesh.Trimesh:
     try:
         mesh = trimesh.load(path, force='mesh', process=False)
     except Exception as exc:  # trimesh raises many types on corrupt input
-        raise MeshError(f'{path}: cannot parse mesh ({type(exc).__name__}: {exc})') from exc
+        mesh = _off_polygon_mesh(path) if ext == '.off' else None
+        if mesh is None:
+            raise MeshError(f'{path}: cannot parse mesh ({type(exc).__name__}: {exc})') from exc
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         size = os.path.getsize(path)
         head = _head(path, 84)
@@ -71,10 +95,11 @@ def load_mesh(path) -> trimesh.Trimesh:
                                 f'{count} triangles ({84 + 50 * count} bytes): truncated or '
                                 'padded')
         raise MeshError(f'{path}: mesh has no triangles')
-    counts = _off_face_counts(path) if ext == '.off' else None
-    if counts and counts[1] < counts[0]:   # a truncated download: holes, a hollow grid
-        raise MeshError(f'{path}: truncated OFF file: its header declares {counts[0]} faces, '
-                        f'it ends after {counts[1]}')
+    sections = _off_sections(path) if ext == '.off' else None
+    if sections and len(sections[2]) - sections[0] < sections[1]:
+        # a truncated download (trimesh reads the faces it still has): holes, a hollow grid
+        raise MeshError(f'{path}: truncated OFF file: its header declares {sections[1]} faces, '
+                        f'it ends after {max(len(sections[2]) - sections[0], 0)}')
     if np.shape(mesh.vertices)[1:] != (3,):   # an OBJ 'v' line of 2 numbers: all read as 2-D
         raise MeshError(f'{path}: vertices must have 3 coordinates (x y z), got shape '
                         f'{np.shape(mesh.vertices)} (a vertex line with fewer numbers?)')
