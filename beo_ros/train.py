@@ -393,6 +393,11 @@ def _load_objects(args):
     parts = [(p, *load_voxel_npz(p)) for p, z in zip(args.inputs, is_npz) if z]
     mesh_paths = [p for p, z in zip(args.inputs, is_npz) if not z]
     n = args.grid or (parts[0][4] if parts else 32)
+    if not args.grid and parts:   # else "GridSpec.size must be ...", naming no file
+        try:
+            check_grid_size(n)
+        except ValueError as e:
+            raise ValueError(f'{parts[0][0]}: grids of {n}^3: {e}') from None
     if mesh_paths:   # all at once: one class list for every mesh
         parts.append(('the meshes', *load_meshes(mesh_paths, n), n))
     Xs, ys, names = [], [], []

@@ -594,3 +594,60 @@ def test_fit_bank_refuses_oof_path_without_classifier(tmp_path):
                  oof_path=tmp_path / 'oof.npz')
     with pytest.raises(ValueError, match='class names must be unique'):
         fit_bank(X, y, ['box', 'box'], GridSpec(size=N), k=2, classifier_views=0)
+
+
+def test_fit_bank_refuses_a_seed_that_is_no_integer_at_once(monkeypatch):
+    # None was a TypeError ('object of type 'NoneType' has no len()') after the class models
+    # and the classifier were fitted, -1 numpy's 'expected non-negative integer'
+    from beo_ros.core import training
+    from beo_ros.core.grid import GridSpec
+    X, y, names = primitive_shapes(N, 3, np.random.default_rng(0))
+
+    def no_fit(*a, **k):
+        raise AssertionError('fitted before checking the seed')
+    monkeypatch.setattr(training, 'fit_class_models', no_fit)
+    for bad in (None, -1, 1.5, True):
+        with pytest.raises(ValueError, match=f'seed must be an integer >= 0, got {bad!r}'):
+            training.fit_bank(X, y, names, GridSpec(size=N), k=2, seed=bad)
+
+
+@pytest.mark.parametrize('kw, message', [
+    (dict(classifier_views=1, folds=1), 'the out-of-fold classifier features need folds >= 2'),
+    (dict(classifier_views=1, folds=0), 'the out-of-fold classifier features need folds >= 2'),
+    (dict(classifier_views=1, folds=2.5), 'need folds >= 2, got 2.5'),
+    (dict(classifier_views=1.5), 'classifier_views must be an integer >= 0, got 1.5'),
+    (dict(classifier_views=-1), 'classifier_views must be an integer >= 0, got -1'),
+])
+def test_fit_bank_refuses_classifier_views_and_folds_it_cannot_use(monkeypatch, kw, message):
+    # folds 1 was "class 'box' has 0 training objects", folds 0 a bank without the
+    # classifier asked for (no word), 2.5 and 1.5 TypeErrors after the class models were
+    # fitted, -1 no classifier
+    from beo_ros.core import training
+    from beo_ros.core.grid import GridSpec
+    X, y, names = primitive_shapes(N, 3, np.random.default_rng(0))
+
+    def no_fit(*a, **k):
+        raise AssertionError('fitted before checking the options')
+    monkeypatch.setattr(training, 'fit_class_models', no_fit)
+    with pytest.raises(ValueError, match=message):
+        training.fit_bank(X, y, names, GridSpec(size=N), k=2, calibration_views=0,
+                          verifier_views=0, **kw)
+
+
+@pytest.mark.parametrize('kw, message', [
+    (dict(pose_components=0), 'pose_components must be an integer >= 1, got 0'),
+    (dict(training=['k', 2]), 'training settings must be a mapping'),
+])
+def test_fit_bank_refuses_bank_settings_before_the_fits(monkeypatch, kw, message):
+    # the bank's ModelError (or dict()'s error of a list) came after the class models were
+    # fitted (minutes on ModelNet)
+    from beo_ros.core import training
+    from beo_ros.core.grid import GridSpec
+    X, y, names = primitive_shapes(N, 3, np.random.default_rng(0))
+
+    def no_fit(*a, **k):
+        raise AssertionError('fitted before checking the options')
+    monkeypatch.setattr(training, 'fit_class_models', no_fit)
+    with pytest.raises(ValueError, match=message):
+        training.fit_bank(X, y, names, GridSpec(size=N), k=2, classifier_views=0,
+                          verifier_views=0, **kw)

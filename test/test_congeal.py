@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from beo_ros.core.congeal import class_entropy, congeal_classes, congeal_yaws
+from beo_ros.core.congeal import apply_yaws, class_entropy, congeal_classes, congeal_yaws
 from beo_ros.core.grid import rotate_grid
 
 
@@ -68,3 +68,88 @@ def test_congeal_classes_names_grids_of_another_size(n, masks_n):
     which = 'X' if n != 16 else 'masks'
     with pytest.raises(ValueError, match=f'{which} must hold 3 grids of n\\^3'):
         congeal_classes(X, np.zeros(3, int), n, masks=masks)
+
+
+def test_congeal_yaws_refuses_no_objects_and_bad_options_by_name():
+    # no objects was "'int' object has no attribute 'astype'", a step or pool of 0 a
+    # ZeroDivisionError, a negative step numpy's 'cannot reshape'
+    n = 16
+    X = np.stack([rotate_grid(l_shape(n), r).ravel() for r in np.deg2rad([0, 90])])
+    with pytest.raises(ValueError, match='at least one object'):
+        congeal_yaws(np.zeros((0, n ** 3), np.float32), n)
+    for kwargs, msg in [(dict(yaw_step_deg=0), 'yaw_step_deg'),
+                        (dict(yaw_step_deg=-10.0), 'yaw_step_deg'),
+                        (dict(yaw_step_deg=float('nan')), 'yaw_step_deg'),
+                        (dict(pool=0), 'pool'), (dict(iters=-1), 'iters'),
+                        (dict(prior=-0.5), 'prior')]:
+        with pytest.raises(ValueError, match=msg):
+            congeal_yaws(X, n, **kwargs)
+        # also when no class has two objects to congeal
+        with pytest.raises(ValueError, match=msg):
+            congeal_classes(X, np.array([0, 1]), n, **kwargs)
+    # the objective of no grids is 0 bits (was numpy's 'cannot reshape')
+    assert class_entropy(np.zeros((0, n ** 3), np.float32), n) == 0.0
+
+
+def test_prior_zero_with_voxels_nobody_observes_still_congeals():
+    # prior 0 (no pseudo counts) made a voxel that no object observes 0/0: the objective was
+    # NaN, no object ever moved and the history was all NaN
+    n = 16
+    base = l_shape(n)
+    rot = np.deg2rad([0, 90, 180, 270])
+    X = np.stack([rotate_grid(base, r).ravel() for r in rot])
+    masks = np.ones(X.shape, bool)
+    masks[:, : 2 * n * n] = False      # the first two x slices: unknown in every object
+    yaws, hist = congeal_yaws(X, n, masks, prior=0.0, yaw_step_deg=90.0)
+    assert np.isfinite(hist).all() and hist[-1] < hist[0]
+    assert np.isfinite(class_entropy(X, n, masks, prior=0.0))
+
+
+def test_congeal_classes_keeps_the_shape_of_grids():
+    # (m, n, n, n) grids, which the shape check accepts, came back as (m, n^3) rows
+    n = 16
+    X = np.stack([rotate_grid(l_shape(n), r) for r in np.deg2rad([0, 90, 200])])
+    masks = np.ones(X.shape, bool)
+    Xa, Ma = congeal_classes(X, np.zeros(3, int), n, masks=masks)
+    assert Xa.shape == X.shape and Ma.shape == masks.shape
+    assert congeal_classes(X, np.zeros(3, int), n).shape == X.shape
+    flat = congeal_classes(X.reshape(3, -1), np.zeros(3, int), n)
+    np.testing.assert_array_equal(flat, Xa.reshape(3, -1))
+
+
+def test_apply_yaws_of_no_objects_with_masks():
+    # no objects passed without masks but failed with numpy's 'need at least one array to
+    # stack' with them
+    n = 8
+    Xr, Mr = apply_yaws(np.zeros((0, n ** 3), np.float32), n, np.zeros(0),
+                        masks=np.zeros((0, n ** 3), bool))
+    assert Xr.shape == (0, n ** 3) and Mr.shape == (0, n ** 3) and Mr.dtype == bool
+
+
+def test_nan_where_unobserved_does_not_poison_the_objective():
+    # X * mask kept NaN (the VBPCA convention for unknown entries): every cost was NaN, no
+    # object moved and the yaws came back all 0
+    n = 16
+    rot = np.deg2rad([0, 90, 180, 270])
+    X = np.stack([rotate_grid(l_shape(n), r).ravel() for r in rot])
+    masks = np.ones(X.shape, bool)
+    masks[:, :300] = False
+    Xn = np.where(masks, X, np.nan)
+    yaws, hist = congeal_yaws(Xn, n, masks, yaw_step_deg=90.0)
+    np.testing.assert_array_equal(yaws, congeal_yaws(X, n, masks, yaw_step_deg=90.0)[0])
+    assert np.isfinite(hist).all() and hist[-1] < hist[0]
+    assert class_entropy(Xn, n, masks) == class_entropy(X, n, masks)
+
+
+@pytest.mark.parametrize('n', [8, 32])
+def test_congeal_yaws_and_class_entropy_name_grids_of_another_size(n):
+    # 16^3 grids with n = 8 gave yaws from their first 512 voxels without a word, with
+    # n = 32 an IndexError in the rotation maps; class_entropy numpy's 'cannot reshape'
+    X = np.stack([rotate_grid(l_shape(16), r).ravel() for r in np.deg2rad([0, 90, 200])])
+    for fn in (congeal_yaws, class_entropy):
+        with pytest.raises(ValueError, match=r'X must hold 3 grids of n\^3'):
+            fn(X, n)
+    with pytest.raises(ValueError, match=r'masks must hold 3 grids of n\^3'):
+        congeal_yaws(X, 16, masks=np.ones((3, n ** 3), bool))
+    # (m, n, n, n) grids are grids too
+    assert class_entropy(X.reshape(3, 16, 16, 16), 16) == class_entropy(X, 16)

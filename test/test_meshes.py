@@ -8,6 +8,8 @@ import trimesh
 
 from beo_ros.core.meshes import MeshError, load_mesh, mesh_to_grid_transform, voxelize_mesh
 
+from _shapes import box_off
+
 DATA = Path(os.environ.get('BEO_DATA_DIR')
             or Path(__file__).resolve().parents[1].parent / 'shared' / 'data')
 MESHES = sorted((DATA / 'meshes').glob('*.off')) if (DATA / 'meshes').is_dir() else []
@@ -174,3 +176,95 @@ def test_matches_training_grid_statistics():
 def test_a_directory_is_called_so(tmp_path):
     with pytest.raises(MeshError, match='a directory, not a mesh file'):
         load_mesh(tmp_path)
+
+
+def test_a_subnormal_extent_is_refused_naming_the_file(tmp_path):
+    # a box 3e-310 wide: the scale size / extent overflowed to inf and the voxelization
+    # failed with numpy's 'index -9223372036854775808 is out of bounds for axis 0'
+    from beo_ros.core.datasets import load_meshes
+    box = trimesh.creation.box((1, 2, 3))
+    tiny = trimesh.Trimesh(box.vertices * 1e-310, box.faces, process=False)
+    with pytest.raises(MeshError, match='too small to scale to 32 voxels'):
+        voxelize_mesh(tiny)
+    path = tmp_path / 'chair_0001.off'
+    path.write_text(f'OFF\n8 {len(box.faces)} 0\n'
+                    + ''.join(' '.join(repr(float(c)) for c in v) + '\n'
+                              for v in tiny.vertices)
+                    + ''.join('3 ' + ' '.join(map(str, f)) + '\n' for f in box.faces))
+    with pytest.raises(MeshError, match='chair_0001.off: mesh extent .* too small'):
+        load_meshes([path], 32)
+    # 1e-300 still scales: the same grid as the unit box
+    np.testing.assert_array_equal(voxelize_mesh(trimesh.Trimesh(
+        box.vertices * 1e-300, box.faces, process=False)), voxelize_mesh(box))
+
+
+@pytest.mark.parametrize('header', ['OFF\n8 12 0\n', 'OFF 8 12 0\n', 'OFF8 12 0\n'])
+def test_a_truncated_off_file_is_refused(tmp_path, header):
+    # trimesh reads the faces a cut-off download still has without a word: 6 of a box's 12
+    # triangles made a hollow grid of 1287 voxels instead of 8448
+    full = tmp_path / 'full.off'
+    box_off(full, 1, 2, 3)
+    body = full.read_text().split('\n', 2)[2]
+    (tmp_path / 'whole.off').write_text(header + body)
+    assert len(load_mesh(tmp_path / 'whole.off').faces) == 12
+    cut = tmp_path / 'cut.off'
+    cut.write_text(header + ''.join(body.splitlines(keepends=True)[:8 + 6]))
+    with pytest.raises(MeshError, match=r'cut.off: truncated OFF file: its header declares 12 '
+                                        r'faces, it ends after 6'):
+        load_mesh(cut)
+
+
+@pytest.mark.parametrize('index', [9, -1])
+def test_a_ply_face_index_outside_the_vertices_is_refused(tmp_path, index):
+    # past the end was a raw IndexError out of load_mesh (a traceback from beo-train), a
+    # negative index wrapped around to another vertex without a word
+    faces = [[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, index]]
+    path = tmp_path / 'tet.ply'
+    path.write_text('ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\n'
+                    'property float z\nelement face 4\nproperty list uchar int vertex_indices\n'
+                    'end_header\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n'
+                    + ''.join('3 ' + ' '.join(map(str, f)) + '\n' for f in faces))
+    with pytest.raises(MeshError, match=f'tet.ply: a face refers to vertex {index}, the mesh '
+                                        r'has 4 vertices \(0..3\)'):
+        load_mesh(path)
+
+
+def test_an_obj_vertex_line_of_two_numbers_is_refused_naming_the_file(tmp_path):
+    # trimesh then reads every vertex as 2-D: the voxelization failed with numpy's 'could not
+    # broadcast input array from shape (2,) into shape (3,)', naming no file
+    path = tmp_path / 'tet.obj'
+    path.write_text('v 0 0 0\nv 1 0 0\nv 0 1\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n')
+    with pytest.raises(MeshError, match=r'tet.obj: vertices must have 3 coordinates'):
+        voxelize_mesh(path)
+
+
+@pytest.mark.parametrize('cut', [-30, 10])
+def test_a_binary_stl_of_the_wrong_length_is_called_so(tmp_path, cut):
+    # trimesh refuses a truncated (or padded) binary STL and then reads it as ASCII: the
+    # error said 'mesh has no triangles' of a file that declares 12
+    data = trimesh.exchange.stl.export_stl(trimesh.creation.box((1, 2, 3)))
+    path = tmp_path / 'box.stl'
+    path.write_bytes(data[:cut] if cut < 0 else data + bytes(cut))
+    with pytest.raises(MeshError, match=f'box.stl: binary STL of {len(data) + cut} bytes, its '
+                                        r'header declares 12 triangles \(684 bytes\)'):
+        load_mesh(path)
+
+
+def test_an_off_file_with_faces_of_five_corners_loads(tmp_path):
+    # trimesh's OFF reader fails on faces of more than 4 corners ("The 'out' kwarg is
+    # necessary when using the string multiply ufunc"): a closed pentagonal prism (legal OFF)
+    # was refused as 'cannot parse mesh'
+    a = np.linspace(0, 2 * np.pi, 6)[:-1]
+    v = [(np.cos(t), np.sin(t), z) for z in (0, 1) for t in a]
+    faces = ['5 0 1 2 3 4', '5 9 8 7 6 5'] + [f'4 {i} {5 + i} {5 + (i + 1) % 5} {(i + 1) % 5}'
+                                              for i in range(5)]
+    path = tmp_path / 'prism.off'
+    path.write_text('OFF\n10 7 0\n' + ''.join(f'{x} {y} {z}\n' for x, y, z in np.array(v))
+                    + '\n'.join(faces) + '\n')
+    mesh = load_mesh(path)
+    assert len(mesh.faces) == 2 * 3 + 5 * 2 and mesh.is_watertight
+    np.testing.assert_allclose(abs(mesh.volume), 5 / 2 * np.sin(2 * np.pi / 5))
+    # a face line cut short is still refused
+    path.write_text(path.read_text().replace('5 9 8 7 6 5', '5 9 8 7'))
+    with pytest.raises(MeshError, match='prism.off: cannot parse mesh'):
+        load_mesh(path)

@@ -136,3 +136,19 @@ def test_frac10_and_r4_match_their_definitions():
     dist = np.abs((t90[None, :] - np.arange(90.0)[:, None] + 45.0) % 90.0 - 45.0)
     assert frac10 == pytest.approx((dist <= 10.0).mean(axis=1).max(), abs=2.0 / len(theta))
     assert frac10 > 0.5
+
+
+@pytest.mark.parametrize('kwargs, msg', [
+    (dict(max_nn=0), 'max_nn must be an integer >= 1, got 0'),
+    (dict(max_nn=2.5), 'max_nn'),
+    (dict(max_nn=float('nan')), 'max_nn'),
+    (dict(radius=-0.02), 'radius must be a finite number > 0'),
+    (dict(radius=float('nan')), 'radius'),
+    (dict(max_query=-5), 'max_query must be an integer >= 1 or None, got -5'),
+])
+def test_bad_neighbourhood_parameters_are_refused_by_name(kwargs, msg):
+    # max_nn 0 failed in numpy ('zero-size array to reduction operation maximum'), a NaN
+    # max_nn in int(), a negative radius gave normals from any distance and a negative
+    # max_query no query points at all
+    with pytest.raises(ValueError, match=msg):
+        point_normals(box_front(), SENSOR, **kwargs)

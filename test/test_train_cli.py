@@ -276,6 +276,19 @@ def test_grid_must_match_the_npz(tmp_path, capsys):
     assert 'd.npz: grid 16 differs from 32 (--grid)' in capsys.readouterr().err
 
 
+@pytest.mark.parametrize('n', [3, 5])
+def test_an_npz_grid_size_a_model_cannot_use_is_refused_naming_the_file(tmp_path, capsys, n):
+    # 3^3 grids were refused as 'GridSpec.size must be an integer in [4, 256], got 3', naming
+    # neither the file nor where the size came from
+    X = np.zeros((4, n ** 3), np.uint8)
+    X[:, 0] = 1
+    p = tmp_path / 'd.npz'
+    np.savez(p, voxels=X, labels=[0, 0, 1, 1], classes=np.array(['a', 'b']))
+    assert train.main([str(p), '-o', str(tmp_path / 'm')] + FAST) == 2
+    assert f'd.npz: grids of {n}^3: the grid size must be an even integer in [4, 256]' in \
+        capsys.readouterr().err
+
+
 def test_classes_apply_to_meshes(tmp_path, capsys):
     paths = []
     for i in range(3):

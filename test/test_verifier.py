@@ -105,6 +105,14 @@ def test_training_set_without_views_or_objects_says_so():
         verifier_training_set(X[:0], N, views=2)
 
 
+@pytest.mark.parametrize('n', [N // 2, float(N)])
+def test_training_set_names_grids_of_another_size(n):
+    # numpy's 'cannot reshape array of size 4096 into shape (8,8,8)' (a float n: a TypeError)
+    X, y = asymmetric_shapes(1, np.random.default_rng(0))
+    with pytest.raises(ValueError, match=r'needs objects X of n\^3 = .*\^3 voxels, got shape'):
+        verifier_training_set(X, n, views=1)
+
+
 def test_fit_checks_its_input():
     v = OrientationVerifier()
     with pytest.raises(ValueError, match='same m'):

@@ -24,7 +24,8 @@ def _pool(a, n, p):
     if p == 1:
         return a
     m = n // p
-    return a.reshape(len(a), m, p, m, p, m, p).sum(axis=(2, 4, 6)).reshape(len(a), -1)
+    # not -1: no rows is (0, m^3) too
+    return a.reshape(len(a), m, p, m, p, m, p).sum(axis=(2, 4, 6)).reshape(len(a), m ** 3)
 
 
 def _h(p):
@@ -33,23 +34,62 @@ def _h(p):
 
 
 def _cost(S, N, prior):
-    return (N * _h((S + prior) / (N + 2 * prior))).sum(axis=-1)
+    # a voxel no object observes costs nothing (with prior 0 it was 0/0: a NaN objective)
+    return (N * _h((S + prior) / np.maximum(N + 2 * prior, 1e-12))).sum(axis=-1)
+
+
+def _check_options(yaw_step_deg, iters, prior, pool):
+    """ValueError naming the first congealing option out of range (else a ZeroDivisionError
+    for a step or pool of 0, numpy's 'cannot reshape' for a negative step, ...)."""
+    def real(v):
+        return not isinstance(v, (bool, np.bool_)) and isinstance(v, (int, float, np.number)) \
+            and np.isfinite(v)
+
+    def integer(v):
+        return not isinstance(v, (bool, np.bool_)) and isinstance(v, (int, np.integer))
+
+    if not (real(yaw_step_deg) and 0 < yaw_step_deg <= 360):
+        raise ValueError(f'yaw_step_deg must be a number in (0, 360], got {yaw_step_deg!r}')
+    if not (integer(iters) and iters >= 0):
+        raise ValueError(f'iters must be an integer >= 0, got {iters!r}')
+    if not (real(prior) and prior >= 0):
+        raise ValueError(f'prior must be a finite number >= 0, got {prior!r}')
+    if not (integer(pool) and pool >= 1):
+        raise ValueError(f'pool must be an integer >= 1, got {pool!r}')
+
+
+def _check_grids(X, masks, n):
+    """ValueError unless X (and masks) hold len(X) grids of n^3 voxels: else an IndexError in
+    the rotation maps (larger n), yaws from the first n^3 voxels without a word (smaller n),
+    or numpy's reshape error after the congealing."""
+    for name, a in (('X', X), ('masks', masks)):
+        if a is not None and np.shape(a) not in ((len(X), n ** 3), (len(X), n, n, n)):
+            raise ValueError(f'{name} must hold {len(X)} grids of n^3 = {n ** 3} voxels (n = {n}),'
+                             f' got shape {np.shape(a)}')
 
 
 def congeal_yaws(X, n, masks=None, yaw_step_deg=10.0, iters=6, prior=0.5, pool=2, seed=0,
                  verbose=False):
     """Congeal one class: (yaws (m,) radians to rotate each object by, cost per sweep list).
 
-    X: (m, n^3) occupancy in [0, 1]; masks: optional bool (m, n^3), True = observed.
+    X: (m, n^3) occupancy in [0, 1] (anything, NaN too, where unobserved), m >= 1; masks:
+    optional bool (m, n^3), True = observed.
     """
     X = np.asarray(X, dtype=np.float32)
     m = len(X)
+    if m == 0:   # else "'int' object has no attribute 'astype'" from the empty sums
+        raise ValueError('X must hold at least one object, got 0')
+    _check_options(yaw_step_deg, iters, prior, pool)
+    _check_grids(X, masks, n)
+    X = X.reshape(m, n ** 3)
+    if masks is not None:
+        masks = np.reshape(masks, (m, n ** 3))
     if n % pool:
         pool = 1
     yaws = np.deg2rad(np.arange(0.0, 360.0, yaw_step_deg))
     idx = yaw_source_index(n, yaws)                                  # (Y, n^3)
     Mf = np.ones_like(X) if masks is None else np.asarray(masks, dtype=np.float32)
-    Xo = X * Mf
+    Xo = np.where(Mf > 0, X, 0)   # not X * Mf: NaN where unobserved made every cost NaN
     pad = lambda a: np.append(a, np.float32(0))  # noqa: E731  outside the grid: unobserved
 
     def rotated(i):  # pooled occupancy and observed counts of object i at every candidate yaw
@@ -91,17 +131,20 @@ def apply_yaws(X, n, yaws, masks=None):
     if masks is None:
         return Xr, None
     Mr = np.stack([rotate_grid(np.asarray(masks[i], bool).reshape(n, n, n), yaws[i],
-                               fill=False).ravel() for i in range(len(X))])
+                               fill=False).ravel() for i in range(len(X))]) if len(X) else \
+        np.zeros((0, n ** 3), dtype=bool)   # np.stack of no arrays fails
     return Xr, Mr
 
 
 def class_entropy(X, n, masks=None, prior=0.5, pool=2):
     """The congealing objective (bits) of a set of grids as they are."""
     X = np.asarray(X, dtype=np.float32)
-    Mf = np.ones_like(X) if masks is None else np.asarray(masks, dtype=np.float32)
+    _check_grids(X, masks, n)
+    X = X.reshape(len(X), n ** 3)
+    Mf = np.ones_like(X) if masks is None else np.reshape(masks, X.shape).astype(np.float32)
     if n % pool:
         pool = 1
-    return float(_cost(_pool(X * Mf, n, pool).sum(0).astype(np.float64),
+    return float(_cost(_pool(np.where(Mf > 0, X, 0), n, pool).sum(0).astype(np.float64),
                        _pool(Mf, n, pool).sum(0).astype(np.float64), prior))
 
 
@@ -109,21 +152,18 @@ def congeal_classes(X, y, n, masks=None, yaw_step_deg=10.0, iters=6, prior=0.5, 
                     verbose=False, return_yaws=False):
     """Align the yaw of the objects of each class by congealing (see module doc).
 
-    Returns the aligned X (same dtype), or (X, masks) when ``masks`` is given (masks rotated
-    consistently: voxels rotated in from outside the grid are unknown); with ``return_yaws`` the
-    per-object yaws (radians, about +z) are appended.
+    Returns the aligned X (same dtype and shape), or (X, masks) when ``masks`` is given (masks
+    rotated consistently: voxels rotated in from outside the grid are unknown); with
+    ``return_yaws`` the per-object yaws (radians, about +z) are appended.
     """
     X = np.asarray(X)
     y = np.asarray(y)
     if len(X) == 0:
         raise ValueError('X must hold at least one object, got 0')
+    _check_options(yaw_step_deg, iters, prior, pool)   # also when no class has 2 objects
     if len(y) != len(X):
         raise ValueError(f'y must hold one label per object ({len(X)}), got {len(y)}')
-    # else an IndexError in the rotation maps, or numpy's reshape error after the congealing
-    for name, a in (('X', X), ('masks', masks)):
-        if a is not None and np.shape(a) not in ((len(X), n ** 3), (len(X), n, n, n)):
-            raise ValueError(f'{name} must hold {len(X)} grids of n^3 = {n ** 3} voxels (n = {n}),'
-                             f' got shape {np.shape(a)}')
+    _check_grids(X, masks, n)
     yaws = np.zeros(len(X))
     for c in np.unique(y):
         sel = np.flatnonzero(y == c)
@@ -134,8 +174,8 @@ def congeal_classes(X, y, n, masks=None, yaw_step_deg=10.0, iters=6, prior=0.5, 
         yaws[sel], _ = congeal_yaws(X[sel], n, None if masks is None else masks[sel],
                                     yaw_step_deg, iters, prior, pool, verbose=verbose)
     Xr, Mr = apply_yaws(X, n, yaws, masks)
-    Xr = Xr.astype(X.dtype)
-    out = (Xr,) if masks is None else (Xr, Mr)
+    Xr = Xr.astype(X.dtype).reshape(X.shape)   # (m, n, n, n) grids stay grids
+    out = (Xr,) if masks is None else (Xr, Mr.reshape(np.shape(masks)))
     if return_yaws:
         out = out + (yaws,)
     return out[0] if len(out) == 1 else out

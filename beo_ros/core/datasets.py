@@ -210,11 +210,15 @@ def mesh_class_name(path) -> str:
 def load_meshes(paths, size):
     """Voxelize mesh files; the class of each is :func:`mesh_class_name`."""
     from pathlib import Path
-    from .meshes import load_mesh, voxelize_mesh
+    from .meshes import MeshError, load_mesh, voxelize_mesh
     X, names_of = [], []
     for p in paths:
         p = Path(p)
-        X.append(voxelize_mesh(load_mesh(p), size).ravel())
+        mesh = load_mesh(p)
+        try:
+            X.append(voxelize_mesh(mesh, size).ravel())
+        except MeshError as e:   # named the mesh, not the file
+            raise MeshError(f'{p}: {e}') from None
         names_of.append(mesh_class_name(p))
     names = sorted(set(names_of))
     return np.array(X, dtype=np.float32), np.array([names.index(s) for s in names_of]), names

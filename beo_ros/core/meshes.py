@@ -22,10 +22,54 @@ class MeshError(ValueError):
     """A mesh file is missing, unreadable or has no triangles."""
 
 
+def _head(path, n):
+    """The first ``n`` bytes of a file."""
+    with open(path, 'rb') as f:
+        return f.read(n)
+
+
+def _off_sections(path):
+    """(vertex count, face count, the lines after the counts) of an OFF file, comments and
+    blank lines dropped; None when its header cannot be read."""
+    with open(path, 'rb') as f:
+        lines = [line.split(b'#', 1)[0].strip() for line in f.read().splitlines()]
+    lines = [line for line in lines if line]
+    try:
+        counts = lines[0].lstrip(b'\xef\xbb\xbf').lstrip(b'C').removeprefix(b'OFF').split()
+        start = 1 if counts else 2   # 'OFF 8 12 0' (or 'OFF8 12 0') or the counts below
+        vertices, faces = (int(c) for c in (counts or lines[1].split())[:2])
+    except (IndexError, ValueError):
+        return None
+    return vertices, faces, lines[start:]
+
+
+def _off_polygon_mesh(path):
+    """The mesh of an OFF file, every face a triangle fan (trimesh's OFF reader fails on faces
+    of more than 4 corners: 'The 'out' kwarg is necessary when using the string multiply
+    ufunc'); None when it cannot be read so either."""
+    sections = _off_sections(path)
+    if sections is None:
+        return None
+    nv, nf, lines = sections
+    try:
+        v = np.array([line.split()[:3] for line in lines[:nv]], dtype=np.float64).reshape(nv, 3)
+        tris = []
+        for line in lines[nv:nv + nf]:
+            count, *rest = line.split()
+            corners = [int(c) for c in rest[:int(count)]]
+            if len(corners) != int(count):   # a face line cut short
+                return None
+            tris += [(corners[0], corners[i], corners[i + 1]) for i in range(1, len(corners) - 1)]
+    except ValueError:
+        return None
+    return trimesh.Trimesh(v, np.array(tris, dtype=np.int64).reshape(-1, 3), process=False)
+
+
 def load_mesh(path) -> trimesh.Trimesh:
     """Load an OFF/OBJ/STL/PLY file as one triangle mesh (scenes are concatenated).
 
-    Raises :class:`MeshError` (a ValueError; FileNotFoundError-like message for missing files).
+    Raises :class:`MeshError` (a ValueError; FileNotFoundError-like message for missing files),
+    also for an OFF file with fewer faces than its header declares (truncated).
     """
     path = os.fspath(path)
     if not os.path.isfile(path):
@@ -37,9 +81,33 @@ def load_mesh(path) -> trimesh.Trimesh:
     try:
         mesh = trimesh.load(path, force='mesh', process=False)
     except Exception as exc:  # trimesh raises many types on corrupt input
-        raise MeshError(f'{path}: cannot parse mesh ({type(exc).__name__}: {exc})') from exc
+        mesh = _off_polygon_mesh(path) if ext == '.off' else None
+        if mesh is None:
+            raise MeshError(f'{path}: cannot parse mesh ({type(exc).__name__}: {exc})') from exc
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        size = os.path.getsize(path)
+        head = _head(path, 84)
+        if ext == '.stl' and len(head) == 84 and not head.lstrip().startswith(b'solid'):
+            # trimesh refuses a binary STL of another length, then reads it as ASCII: nothing
+            count = int.from_bytes(head[80:84], 'little')
+            if size != 84 + 50 * count:
+                raise MeshError(f'{path}: binary STL of {size} bytes, its header declares '
+                                f'{count} triangles ({84 + 50 * count} bytes): truncated or '
+                                'padded')
         raise MeshError(f'{path}: mesh has no triangles')
+    sections = _off_sections(path) if ext == '.off' else None
+    if sections and len(sections[2]) - sections[0] < sections[1]:
+        # a truncated download (trimesh reads the faces it still has): holes, a hollow grid
+        raise MeshError(f'{path}: truncated OFF file: its header declares {sections[1]} faces, '
+                        f'it ends after {max(len(sections[2]) - sections[0], 0)}')
+    if np.shape(mesh.vertices)[1:] != (3,):   # an OBJ 'v' line of 2 numbers: all read as 2-D
+        raise MeshError(f'{path}: vertices must have 3 coordinates (x y z), got shape '
+                        f'{np.shape(mesh.vertices)} (a vertex line with fewer numbers?)')
+    faces = np.asarray(mesh.faces)
+    bad = faces[(faces < 0) | (faces >= len(mesh.vertices))]
+    if len(bad):   # PLY: an IndexError past the end, a negative index wrapped around silently
+        raise MeshError(f'{path}: a face refers to vertex {int(bad[0])}, the mesh has '
+                        f'{len(mesh.vertices)} vertices (0..{len(mesh.vertices) - 1})')
     # vertices no triangle uses (left over in many ModelNet files) would set the extent
     mesh.remove_unreferenced_vertices()
     v = np.asarray(mesh.vertices)
@@ -71,6 +139,9 @@ def mesh_to_grid_transform(mesh, size: int = 32) -> np.ndarray:
     if not np.isfinite(largest) or largest <= 0:
         raise MeshError('mesh has zero or non-finite extent')
     s = size / largest
+    if not np.isfinite(s):   # a subnormal extent: the scale overflows, NaN grid indices
+        raise MeshError(f'mesh extent {largest!r} is too small to scale to {size} voxels '
+                        '(float64 overflow)')
     t = np.eye(4)
     t[:3, :3] *= s
     t[:3, 3] = (size - 1) / 2.0 - s * (0.5 * lo + 0.5 * hi)   # lo + hi may overflow

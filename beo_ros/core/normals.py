@@ -67,6 +67,7 @@ def point_normals(points, sensor_origin=(0.0, 0.0, 0.0), radius=RADIUS, max_nn=M
     Args:
         points: (n, 3) finite points in metres, any frame.
         sensor_origin: (3,) sensor position in the same frame (normals are turned toward it).
+        radius: neighbourhood radius (metres, > 0); max_nn: at most this many neighbours (>= 1).
         max_query: normals are computed at at most this many points (every ceil(n / max_query)-th
             point; the neighbourhoods still come from all n points); None: at all points.
 
@@ -77,10 +78,21 @@ def point_normals(points, sensor_origin=(0.0, 0.0, 0.0), radius=RADIUS, max_nn=M
     """
     from scipy.spatial import cKDTree
     pts, _, origin = _check(points, (0.0, 0.0, 1.0), sensor_origin)
+    # else numpy's 'zero-size array to reduction operation' (max_nn 0), an int() error, or
+    # normals from any distance (a negative radius)
+    if isinstance(radius, (bool, np.bool_)) or not isinstance(radius, (int, float, np.number)) \
+            or not (np.isfinite(radius) and radius > 0):
+        raise ValueError(f'radius must be a finite number > 0 (metres), got {radius!r}')
+    for name, value in (('max_nn', max_nn), ('max_query', max_query)):
+        if not (name == 'max_query' and value is None) and (
+                isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer))
+                or value < 1):
+            raise ValueError(f'{name} must be an integer >= 1'
+                             + (' or None' if name == 'max_query' else '') + f', got {value!r}')
     n = len(pts)
     if n == 0:   # cKDTree.query of no points fails in numpy's max()
         return np.zeros(0, dtype=np.intp), np.zeros((0, 3)), np.zeros(0)
-    step = 1 if not max_query or n <= max_query else int(np.ceil(n / max_query))
+    step = 1 if max_query is None or n <= max_query else int(np.ceil(n / max_query))
     idx = np.arange(0, n, step)
     k = min(int(max_nn), n)
     # an unbalanced (sliding-midpoint) tree builds and queries faster on these dense, thin

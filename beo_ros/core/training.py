@@ -24,7 +24,7 @@ from .classifier_training import (C_OPTIONS, CLASSIFIER_KINDS, MLP_ALPHA, MLP_HI
 from .datasets import (drop_empty_objects, load_meshes, load_voxel_npz, mesh_class_name,
                        select_classes, training_data_hash)
 from .grid import yaw_error
-from .model_files import check_class_names
+from .model_files import _settings_reason, check_class_names
 from .shape import shape_descriptors
 from .synthetic import random_partial_view
 from .verifier import TURNS, OrientationVerifier, turned_features
@@ -156,6 +156,10 @@ def verifier_training_set(X, n, views=6, seed=0, processes=1, verbose=False):
     X = np.asarray(X)
     if X.ndim != 2 or not len(X):
         raise ValueError(f'the verifier needs objects X (m >= 1, n^3), got shape {X.shape}')
+    if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)) \
+            or X.shape[1] != n ** 3:   # else numpy's 'cannot reshape' in every worker
+        raise ValueError(f'the verifier needs objects X of n^3 = {n!r}^3 voxels, got shape '
+                         f'{X.shape}')
     chunks = [(X[i:i + VERIFIER_CHUNK], n, views, seed, i // VERIFIER_CHUNK)
               for i in range(0, len(X), VERIFIER_CHUNK)]
     if processes > 1:
@@ -349,7 +353,10 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
     """
     C, calibration_views = _check_fit_options(
         names, spec, k, masks, classifier_views, folds, C, row_standardize, descriptors,
-        verifier_views, classifier_kind, calibration_views, grids, oof_path)
+        verifier_views, classifier_kind, calibration_views, grids, oof_path, seed)
+    reason = _settings_reason(pose_components, training)
+    if reason:   # else the bank's ModelError after all the fits
+        raise ValueError(reason)
     weights = resolve_class_prior(class_prior, names)
     cv_prior = class_prior if isinstance(class_prior, str) else weights
     X = np.asarray(X, dtype=np.float32)
@@ -406,7 +413,7 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
 
 def _check_fit_options(names, spec, k, masks, classifier_views, folds, C, row_standardize,
                        descriptors, verifier_views, classifier_kind, calibration_views, grids,
-                       oof_path):
+                       oof_path, seed=0):
     """Check the options of :func:`fit_bank` before its long fits (ValueError naming the first
     bad one, in fit_bank's order) and return (C: ``C_OPTIONS`` when None,
     calibration_views: an integer, 'auto' resolved as fit_bank documents)."""
@@ -423,6 +430,13 @@ def _check_fit_options(names, spec, k, masks, classifier_views, folds, C, row_st
         raise ValueError('row_standardize needs at least 3 classes')
     if not (isinstance(verifier_views, (int, np.integer)) and verifier_views >= 0):
         raise ValueError(f'verifier_views must be an integer >= 0, got {verifier_views!r}')
+    # else a TypeError after the class models were fitted; with folds 1 'class ... has 0
+    # training objects', with folds 0 no classifier at all, without a word
+    if isinstance(classifier_views, (bool, np.bool_)) or not (
+            isinstance(classifier_views, (int, np.integer)) and classifier_views >= 0):
+        raise ValueError(f'classifier_views must be an integer >= 0, got {classifier_views!r}')
+    if classifier_views and not (isinstance(folds, (int, np.integer)) and folds >= 2):
+        raise ValueError(f'the out-of-fold classifier features need folds >= 2, got {folds!r}')
     if verifier_views and (masks is not None or spec.size % 8):
         raise ValueError('the orientation verifier needs whole objects in their canonical pose '
                          f'(no masks) on a grid of a multiple of 8 (got {spec.size})')
@@ -446,6 +460,11 @@ def _check_fit_options(names, spec, k, masks, classifier_views, folds, C, row_st
     check_grid_size(spec.size)
     if not (isinstance(k, (int, np.integer)) and k >= 1):
         raise ValueError(f'k must be an integer >= 1, got {k!r}')
+    if isinstance(seed, (bool, np.bool_)) or not (isinstance(seed, (int, np.integer))
+                                                  and seed >= 0):
+        # else numpy's 'expected non-negative integer', or with None a TypeError after the
+        # class models and the classifier were fitted
+        raise ValueError(f'seed must be an integer >= 0, got {seed!r}')
     if classifier_views > 0 and len(names) < 2:
         raise ValueError(f'a classifier needs 2 or more classes, got {len(names)} '
                          f'({list(names)}); train none (classifier_views=0) for a one-class '
