@@ -11,13 +11,13 @@ import time
 from pathlib import Path
 
 from beo_ros.cli import INTERRUPTED, TERMINATED, count, interruptible, number
-from beo_ros.ros.bag.msgtypes import CLOUD_TYPE, check_node_name, check_topic_name
+from beo_ros.ros.bag.msgtypes import CLOUD_TYPE, check_node_name
 from beo_ros.ros.bag.player import (ACK_TIMEOUT_S, BagReadError, ClockRangeError, parse_remaps,
                                      replay)
 from beo_ros.ros.bag.recorder import BagWriteError, parse_topic_specs, record
 from beo_ros.ros.bag.recover import recover_bag
 from beo_ros.ros.bag.scenes import (DEFAULT_FRAME, DEFAULT_INPUT_TOPIC, PLANE_TOPIC, UP_TOPIC,
-                                    pcd_to_bag)
+                                    check_cloud_topic, pcd_to_bag)
 from beo_ros.ros.bag.storage import STORAGES, bag_info, storage_errors
 
 MAX_PERIOD_S = 86_400.0            # --period / --object-period bound of beo-pcd2bag
@@ -293,7 +293,7 @@ def pcd2bag_main(argv=None) -> int:
     missing = [s for s in args.scenes if not Path(s).is_file()]
     if missing:
         p.error(f'no such file: {", ".join(missing)}')
-    _valid(p, check_topic_name, args.topic)
+    _valid(p, check_cloud_topic, args.topic)
     _refuse_output(p, args.output)
     try:
         summary = pcd_to_bag(args.scenes, args.output, storage=args.storage, topic=args.topic,
