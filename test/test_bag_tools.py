@@ -582,3 +582,16 @@ def test_cli_pcd2bag_refuses_the_up_or_plane_topic_as_cloud_topic_before_reading
     assert not out.exists()
     with pytest.raises(ValueError, match='give another'):   # before a scene is read
         bag.pcd_to_bag([tmp_path / 'missing.pcd'], out, topic=topic)
+
+
+def test_cli_pcd2bag_calls_a_directory_a_directory(tmp_path, capsys):
+    """Before: 'beo-pcd2bag: error: no such file: DIR' for a scene path that is a directory
+    (it exists; e.g. the folder of the scenes given instead of its files)."""
+    with pytest.raises(SystemExit) as e:
+        bag.pcd2bag_main([str(tmp_path), '-o', str(tmp_path / 'b')])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert f'error: a directory, not a PCD file: {tmp_path}' in err and 'no such' not in err
+    with pytest.raises(SystemExit):
+        bag.pcd2bag_main([str(tmp_path / 'x.pcd'), '-o', str(tmp_path / 'b')])
+    assert f'error: no such file: {tmp_path / "x.pcd"}' in capsys.readouterr().err

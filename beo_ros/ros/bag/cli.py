@@ -290,6 +290,9 @@ def pcd2bag_main(argv=None) -> int:
                    help='skip objects with fewer points (default 50)')
     p.add_argument('--json', action='store_true', help='print the summary as JSON')
     args = p.parse_args(argv)
+    folders = [s for s in args.scenes if Path(s).is_dir()]
+    if folders:
+        p.error(f'a directory, not a PCD file: {", ".join(folders)}')
     missing = [s for s in args.scenes if not Path(s).is_file()]
     if missing:
         p.error(f'no such file: {", ".join(missing)}')
