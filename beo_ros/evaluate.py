@@ -379,6 +379,14 @@ def _load_inputs(args, class_prior):
             print(f'beo-eval: classes without objects in {args.data} left out: '
                   f'{[c for c in names if c not in present]}', file=sys.stderr)
             X, y, names = select_classes(X, y, names, present, args.data)
+        # stratified folds deal each class round-robin: a fold past the largest class's
+        # number of objects holds none, and its bank would be trained for nothing
+        most = int(np.bincount(y).max())
+        if (args.folds or args.cv) > most:
+            raise ValueError(f'--cv {args.cv}' + (f' --folds {args.folds}' if args.folds else '')
+                             + f': {args.data} has at most {most} objects of a class, so the '
+                             f'folds past {most} would hold no object to evaluate (give --cv '
+                             f'or --folds <= {most})')
         return X, y, names, n, None
     bank = load_models(args.model, class_prior)
     # the classes of the objects, not the file's whole class list: a subset file may

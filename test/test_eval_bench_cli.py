@@ -184,6 +184,20 @@ def test_eval_cv_needs_two_classes_up_front(tmp_path, capsys, monkeypatch):
     assert not out.exists()
 
 
+@pytest.mark.parametrize('args', [['--cv', '5'], ['--cv', '10', '--folds', '5']])
+def test_eval_cv_refuses_folds_that_hold_no_object(tmp_path, capsys, monkeypatch, args):
+    # before: with 4 objects per class, --cv 5 trained a bank for fold 4 (every object in its
+    # training set) and evaluated nothing with it; 'folds' listed it with 'test': 0
+    data = write_npz(tmp_path / 'd.npz', count=4)   # 4 boxes, 4 cylinders
+    monkeypatch.setattr(evaluate, 'fit_bank', lambda *a, **k: pytest.fail('trained anyway'))
+    out = tmp_path / 'e'
+    assert call(evaluate.main, [*args, '--data', str(data), '--verifier-views', '0',
+                                '--out', str(out)]) == 2
+    err = capsys.readouterr().err
+    assert 'has at most 4 objects of a class' in err and 'no object to evaluate' in err
+    assert not out.exists()
+
+
 def test_eval_cv_trains_without_objects_that_have_no_occupied_voxel(tmp_path, capsys):
     # fit_bank refuses them (beo-train drops them): --cv used to end with "grid has no
     # occupied voxel"; they are left out of the training folds and still evaluated
