@@ -594,3 +594,30 @@ def test_fit_bank_refuses_oof_path_without_classifier(tmp_path):
                  oof_path=tmp_path / 'oof.npz')
     with pytest.raises(ValueError, match='class names must be unique'):
         fit_bank(X, y, ['box', 'box'], GridSpec(size=N), k=2, classifier_views=0)
+
+
+def test_progress_in_a_file_or_pipe_is_whole_lines(capsys, monkeypatch):
+    # before: tqdm's bars went to a log as they do to a terminal: carriage returns, cursor-up
+    # escapes and a redrawn bar per step, several per line
+    from beo_ros.core import training
+    assert list(training.progress_bar(range(3), 'views')) == [0, 1, 2]
+    err = capsys.readouterr().err
+    assert '\r' not in err and '\x1b' not in err
+    assert err.startswith('views: 3/3 in ') and err.count('\n') == 1
+    monkeypatch.setattr(training, 'PROGRESS_LINE_S', 0.0)   # a line per step
+    assert list(training.progress_bar(iter('ab'), 'fold 0', total=2)) == ['a', 'b']
+    assert capsys.readouterr().err.splitlines()[:2] == ['fold 0: 1/2', 'fold 0: 2/2']
+    assert list(training.progress_bar(range(2), 'x', disable=True)) == [0, 1]
+    assert capsys.readouterr().err == ''
+
+
+def test_eval_progress_in_a_log_is_lines(tmp_path, capsys):
+    """beo-eval with stderr in a file: lines, not bars (beo-train's come from the same
+    progress_bar)."""
+    from beo_ros.core.synthetic import make_tiny_bank
+    make_tiny_bank(tmp_path / 'm', n=N, k=2)
+    write_npz(tmp_path / 'd.npz', count=2)
+    assert evaluate.main(['--model', str(tmp_path / 'm'), '--data', str(tmp_path / 'd.npz'),
+                          '--out', str(tmp_path / 'e')]) == 0
+    err = capsys.readouterr().err
+    assert '\r' not in err and '\x1b' not in err and 'evaluating: 4/4 in ' in err
