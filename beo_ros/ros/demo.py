@@ -131,12 +131,15 @@ def _run_node_on_bag(bag_path, model_dir, bank, up, origin, timeout):
 
     from beo_ros.ros import bag
     from beo_ros.ros.conversions import interfaces, ns_from_stamp
+    from beo_ros.ros.env import check_domain_id
     from beo_ros.ros.node import BeoNode, StartupError, drain_executor
     msgs = interfaces()
     ctx = rclpy.Context()
     try:
         rclpy.init(args=[], context=ctx)   # not sys.argv: no remap rules from the command line
+        check_domain_id(ctx)
     except Exception as e:  # noqa: BLE001 - rclpy's RCLError: a ROS_DOMAIN_ID that is no number
+        ctx.try_shutdown()
         raise StartupError(f'cannot start ROS: {type(e).__name__}: {e}') from None
     estimates, completed = {}, {}
     lock = threading.Lock()

@@ -19,6 +19,7 @@ from beo_ros.ros.bag.recover import recover_bag
 from beo_ros.ros.bag.scenes import (DEFAULT_FRAME, DEFAULT_INPUT_TOPIC, PLANE_TOPIC, UP_TOPIC,
                                     check_cloud_topic, pcd_to_bag)
 from beo_ros.ros.bag.storage import STORAGES, bag_info, storage_errors
+from beo_ros.ros.env import check_domain_id
 
 MAX_PERIOD_S = 86_400.0            # --period / --object-period bound of beo-pcd2bag
 
@@ -64,6 +65,7 @@ def _cli_node(name, sigterm_stops: bool = True, prog: str = 'beo'):
         # no command-line arguments: rcl would take the tool's own ones (-r OLD:=NEW) as remap
         # rules
         rclpy.init(args=[], signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+        check_domain_id(rclpy.get_default_context())
         node = rclpy.create_node(name)
     except Exception as e:  # noqa: BLE001 - rclpy's RCLError and the like
         rclpy.try_shutdown()
