@@ -280,6 +280,8 @@ def main(argv=None):
             else:
                 summary, recs, examples = _evaluate_held_out(args, bank, X, y, names, rng)
             _report(summary, recs, examples, bank, out, argv)
+    except BrokenPipeError:   # stdout's reader is gone: see cli.interruptible
+        raise
     except (ValueError, OSError) as e:
         print(f'beo-eval: error: {e}', file=sys.stderr)
         return 2
@@ -450,19 +452,10 @@ def _cross_validate(args, X, y, names, n, class_prior, rng):
 
 
 def _report(summary, recs, examples, bank, out, argv):
-    """Print the table and write eval.json, records.jsonl and eval.png into ``out``."""
+    """Write eval.json, records.jsonl and eval.png into ``out`` and print the table."""
     summary['class_prior'] = bank.class_prior if isinstance(bank.class_prior, str) else \
         dict(zip(bank.classes, map(float, bank.class_prior)))
     summary['command'] = 'beo-eval ' + ' '.join(sys.argv[1:] if argv is None else argv)
-    print_table(summary)
-    empty = sum(r['empty_object'] for r in recs if r['mode'] == 'complete')
-    if empty:
-        print(f"{empty} object(s) have no occupied voxel at all, answered 'unknown', "
-              "a wrong class")
-    lost = sum(r['empty_view'] and not r['empty_object'] for r in recs if r['mode'] == 'partial')
-    if lost:
-        print(f"{lost} view(s) had no occupied voxel (objects of a few voxels lost to the "
-              "rotation), answered 'unknown' without a yaw, a wrong class and yaw")
     # a failure or Ctrl-C while the figure was drawn left eval.json and records.jsonl alone
     with complete_files(out, ('eval.json', 'records.jsonl', 'eval.png')) as tmp:
         # strict JSON: non-finite numbers (a mean over no rows) as null
@@ -472,6 +465,16 @@ def _report(summary, recs, examples, bank, out, argv):
         tmp['records.jsonl'].write_text(''.join(json.dumps(json_safe(r), allow_nan=False)
                                                 + '\n' for r in recs))
         write_figure(summary, examples, tmp['eval.png'])
+    # the files first: a reader of stdout gone (beo-eval ... | head -1) stops the printing
+    print_table(summary)
+    empty = sum(r['empty_object'] for r in recs if r['mode'] == 'complete')
+    if empty:
+        print(f"{empty} object(s) have no occupied voxel at all, answered 'unknown', "
+              "a wrong class")
+    lost = sum(r['empty_view'] and not r['empty_object'] for r in recs if r['mode'] == 'partial')
+    if lost:
+        print(f"{lost} view(s) had no occupied voxel (objects of a few voxels lost to the "
+              "rotation), answered 'unknown' without a yaw, a wrong class and yaw")
     print(f'wrote {out / "eval.json"}, {out / "records.jsonl"} and {out / "eval.png"}')
 
 

@@ -531,6 +531,8 @@ def main(argv=None):
         ap.error(f'--out {args.out}: {problem}')
     try:
         run(args)
+    except BrokenPipeError:   # stdout's reader is gone: see cli.interruptible
+        raise
     except (ValueError, OSError) as e:
         print(f'beo-eval: error: {e}', file=sys.stderr)
         return 2

@@ -657,6 +657,24 @@ def test_commands_on_a_domain_id_over_232_say_so_in_one_line(tmp_path, ros_tiny_
     assert not (tmp_path / 'r').exists() and not (tmp_path / 'demo').exists()
 
 
+def test_bag_tools_with_stdout_reader_gone_end_quietly_with_141(tmp_path, ros_domain_id):
+    """stdout a pipe whose reader has exited. Before: beo-replay said 'cannot read BAG:
+    [Errno 32] Broken pipe' (exit 2), beo-pcd2bag ended in a traceback (exit 1)."""
+    write_test_bag(tmp_path / 'b', 'sqlite3', n=1)
+    scene = write_scene_pcd(tmp_path / 's.pcd')
+    for args in (['-m', 'beo_ros.ros.bag', str(tmp_path / 'b'), '--rate', '0'],
+                 ['-c', 'import sys; from beo_ros.ros.bag import pcd2bag_main; '
+                        'sys.exit(pcd2bag_main(sys.argv[1:]))', str(scene), '-o',
+                  str(tmp_path / 'p')]):
+        r, w = os.pipe()
+        os.close(r)
+        p = subprocess.run([sys.executable, *args], stdout=w, stderr=subprocess.PIPE,
+                           text=True, env=cli_env(ros_domain_id), timeout=120)
+        os.close(w)
+        assert p.returncode == 141 and p.stderr == '', p.stderr
+    assert (tmp_path / 'p' / 'metadata.yaml').exists()
+
+
 def test_cli_node_ignores_the_tools_own_remap_arguments(monkeypatch, keep_signal_handlers):
     # rclpy.init(args=None) took sys.argv: beo-replay -r /a:=/b became a global rcl remap too
     monkeypatch.setattr(sys, 'argv', ['beo-replay', 'bag', '-r', '/a:=/b', '-r', '/b:=/a'])

@@ -1,5 +1,6 @@
 """beo-train and beo-eval command lines on a small generated voxel npz."""
 import json
+import os
 
 import numpy as np
 import pytest
@@ -621,3 +622,32 @@ def test_eval_progress_in_a_log_is_lines(tmp_path, capsys):
                           '--out', str(tmp_path / 'e')]) == 0
     err = capsys.readouterr().err
     assert '\r' not in err and '\x1b' not in err and 'evaluating: 4/4 in ' in err
+
+
+def test_stdout_reader_gone_ends_quietly_with_141_and_keeps_the_results(tmp_path):
+    """stdout a pipe whose reader has exited (beo-eval ... | head -1). Before: beo-eval said
+    'error: [Errno 32] Broken pipe' (exit 2) and removed the --out it had made, its results
+    unwritten (the table was printed first); beo-train and beo-pcd2bag ended in a traceback
+    (exit 1); beo-record and beo-replay said 'cannot write BAG' / 'cannot read BAG'."""
+    import subprocess
+    import sys
+    from pathlib import Path
+    from beo_ros.core.synthetic import make_tiny_bank
+    make_tiny_bank(tmp_path / 'm', n=N, k=2)
+    write_npz(tmp_path / 'd.npz', count=2)
+    repo = Path(__file__).resolve().parents[1]
+    for module, args, out in (
+            ('beo_ros.evaluate', ['--model', 'm', '--data', 'd.npz', '--out', 'e'], 'e'),
+            ('beo_ros.train', ['d.npz', '-o', 'm2', '--k', '2', '--views', '0',
+                               '--verifier-views', '0'], 'm2')):
+        r, w = os.pipe()
+        os.close(r)   # the reader is gone before the first line
+        p = subprocess.run([sys.executable, '-m', module, *args], stdout=w, cwd=tmp_path,
+                           stderr=subprocess.PIPE, text=True, timeout=300,
+                           env=dict(os.environ, PYTHONPATH=str(repo)))
+        os.close(w)
+        assert p.returncode == 141, p.stderr
+        assert 'Traceback' not in p.stderr and 'error' not in p.stderr, p.stderr
+        assert sorted(f.name for f in (tmp_path / out).iterdir()), module
+    assert sorted(f.name for f in (tmp_path / 'e').iterdir()) == ['eval.json', 'eval.png',
+                                                                  'records.jsonl']

@@ -313,6 +313,8 @@ def main(argv=None) -> int:
     except StartupError as e:   # ROS or the node did not start: as beo-node, exit code 1
         print(f'beo-demo: {e}', file=sys.stderr)
         return 1
+    except BrokenPipeError:   # stdout's reader is gone: see cli.interruptible
+        raise
     except (OSError, sqlite3.Error) as e:   # a full disk (the demo bag: sqlite3's own error)
         print(f'beo-demo: error: {e}', file=sys.stderr)
         return 2

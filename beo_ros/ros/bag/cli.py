@@ -199,6 +199,8 @@ def replay_main(argv=None) -> int:
                 print(f'beo-replay: interrupted after {stats.messages} message(s)',
                       file=sys.stderr)
                 code = INTERRUPTED
+        except BrokenPipeError:   # stdout's reader is gone, not the bag: cli.interruptible
+            raise
         except TimeoutError as e:
             print(f'beo-replay: {e}', file=sys.stderr)
             code = 3
@@ -249,6 +251,8 @@ def record_main(argv=None) -> int:
             stats = record(node, args.output, specs, storage=args.storage, wait=args.wait,
                            duration=args.duration, count=args.count, stop=stop)
             print(json.dumps(stats.to_dict(), indent=2) if args.json else stats.table())
+        except BrokenPipeError:   # stdout's reader is gone, not the bag: cli.interruptible
+            raise
         except KeyError as e:
             print(f'beo-record: {e.args[0]}', file=sys.stderr)
             code = 2
