@@ -187,6 +187,8 @@ def verifier_training_set(X, n, views=6, seed=0, processes=1, verbose=False):
         raise ValueError(f'the verifier needs objects X (m >= 1, n^3), got shape {X.shape}')
     chunks = [(X[i:i + VERIFIER_CHUNK], n, views, seed, i // VERIFIER_CHUNK)
               for i in range(0, len(X), VERIFIER_CHUNK)]
+    # at most a process per chunk: the pool forks all it is given at once, idle or not
+    processes = min(processes, len(chunks))
     if processes > 1:
         from concurrent.futures import ProcessPoolExecutor
         ex = ProcessPoolExecutor(processes, initializer=_quiet_on_sigint)
