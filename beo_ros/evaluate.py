@@ -308,7 +308,8 @@ def _parser():
     ap.add_argument('--views', type=count(0), default=1,
                     help='partial views per evaluated object')
     ap.add_argument('--seed', type=count(0), default=0)
-    ap.add_argument('--out', default='beo_eval_out', help='directory for JSON and PNG')
+    ap.add_argument('--out', default='beo_eval_out',
+                    help='directory for JSON and PNG (default: %(default)s)')
     ap.add_argument('--scans', nargs='+', help='tabletop PCD scans: leave-one-scene-out CV')
     ap.add_argument('--verifier-views', type=count(0), default=6, metavar='N',
                     help='--cv: random views per object for the orientation verifier of each '

@@ -284,6 +284,18 @@ def test_scans_ctrl_c_one_line_130_and_no_empty_out(tmp_path, capsys, monkeypatc
     assert not out.exists()
 
 
+def test_scans_default_out_is_the_same_for_beo_eval_and_python_m_scan_eval(tmp_path,
+                                                                           monkeypatch):
+    # before: beo-eval --scans X wrote beo_eval_out, python -m beo_ros.scan_eval --scans X
+    # (prog 'beo-eval --scans', the help beo-eval points to) wrote beo_scan_eval
+    monkeypatch.chdir(tmp_path)
+    outs = []
+    monkeypatch.setattr(scan_eval, 'run', lambda args: outs.append(args.out))
+    assert call(evaluate.main, ['--scans', 'learn1.pcd']) == 0
+    assert call(scan_eval.main, ['--scans', 'learn1.pcd']) == 0
+    assert outs == ['beo_eval_out', 'beo_eval_out']
+
+
 # ---------------------------------------------------------------------- beo-bench
 @pytest.mark.parametrize('case', ['data', 'classes', 'k', 'model'])
 def test_bench_bad_input_leaves_no_out(tmp_path, capsys, case):
