@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ['BROKEN_PIPE', 'INTERRUPTED', 'TERMINATED', 'Terminated', 'count', 'existing_parent', 'interruptible',
-           'json_safe', 'number', 'out_dir_problem', 'output_dir', 'writable_dir']
+__all__ = ['BROKEN_PIPE', 'INTERRUPTED', 'TERMINATED', 'Terminated', 'count', 'existing_parent',
+           'interruptible', 'json_safe', 'number', 'out_dir_problem', 'output_dir', 'writable_dir']
 
 INTERRUPTED = 130   # the shell's code for a process ended by SIGINT
 TERMINATED = 143    # ... and by SIGTERM
