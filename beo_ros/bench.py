@@ -623,6 +623,8 @@ def main(argv=None):
     args = parse_args(argv)
     try:
         return run(args)
+    except BrokenPipeError:   # stdout's reader is gone: see cli.interruptible
+        raise
     except (ValueError, OSError) as e:
         print(f'beo-bench: error: {e}', file=sys.stderr)
         return 2

@@ -21,11 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ['INTERRUPTED', 'TERMINATED', 'Terminated', 'count', 'existing_parent', 'interruptible',
-           'json_safe', 'number', 'out_dir_problem', 'output_dir', 'writable_dir']
+__all__ = ['BROKEN_PIPE', 'INTERRUPTED', 'TERMINATED', 'Terminated', 'count', 'existing_parent',
+           'interruptible', 'json_safe', 'number', 'out_dir_problem', 'output_dir', 'writable_dir']
 
 INTERRUPTED = 130   # the shell's code for a process ended by SIGINT
 TERMINATED = 143    # ... and by SIGTERM
+BROKEN_PIPE = 141   # ... and by SIGPIPE
 
 
 class Terminated(KeyboardInterrupt):
@@ -83,7 +84,8 @@ def _raise_terminated(signum, frame):
 def interruptible(prog: str):
     """Decorator for a command's ``main``: Ctrl-C ends it with one line on stderr and exit
     code 130 instead of a traceback, SIGTERM likewise with exit code 143 (the command cleans
-    up in its own ``finally`` blocks; while it runs, SIGTERM raises :class:`Terminated`).
+    up in its own ``finally`` blocks; while it runs, SIGTERM raises :class:`Terminated`), and
+    a stdout whose reader has gone (a closed pipe) quietly with 141, as SIGPIPE would.
     While it runs, a warning (a scan's left-out objects, a fit that did not converge) is one
     line ``PROG: warning: ...``, not Python's file, line number and source line."""
     def wrap(main):
@@ -103,6 +105,12 @@ def interruptible(prog: str):
                     if isinstance(e.__cause__, KeyboardInterrupt):
                         raise e.__cause__ from None
                     raise
+            except BrokenPipeError:
+                # stdout's reader went away (beo-eval ... | head -1): stop quietly, as a command
+                # that SIGPIPE ends; stdout to /dev/null, or the flush at exit fails again
+                with contextlib.suppress(OSError, ValueError, AttributeError):
+                    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+                return BROKEN_PIPE
             except Terminated:
                 print(f'{prog}: terminated', file=sys.stderr)
                 return TERMINATED

@@ -280,6 +280,8 @@ def main(argv=None):
             else:
                 summary, recs, examples = _evaluate_held_out(args, bank, X, y, names, rng)
             _report(summary, recs, examples, bank, out, argv)
+    except BrokenPipeError:   # stdout's reader is gone: see cli.interruptible
+        raise
     except (ValueError, OSError) as e:
         print(f'beo-eval: error: {e}', file=sys.stderr)
         return 2
@@ -306,7 +308,8 @@ def _parser():
     ap.add_argument('--views', type=count(0), default=1,
                     help='partial views per evaluated object')
     ap.add_argument('--seed', type=count(0), default=0)
-    ap.add_argument('--out', default='beo_eval_out', help='directory for JSON and PNG')
+    ap.add_argument('--out', default='beo_eval_out',
+                    help='directory for JSON and PNG (default: %(default)s)')
     ap.add_argument('--scans', nargs='+', help='tabletop PCD scans: leave-one-scene-out CV')
     ap.add_argument('--verifier-views', type=count(0), default=6, metavar='N',
                     help='--cv: random views per object for the orientation verifier of each '
@@ -379,6 +382,14 @@ def _load_inputs(args, class_prior):
             print(f'beo-eval: classes without objects in {args.data} left out: '
                   f'{[c for c in names if c not in present]}', file=sys.stderr)
             X, y, names = select_classes(X, y, names, present, args.data)
+        # stratified folds deal each class round-robin: a fold past the largest class's
+        # number of objects holds none, and its bank would be trained for nothing
+        most = int(np.bincount(y).max())
+        if (args.folds or args.cv) > most:
+            raise ValueError(f'--cv {args.cv}' + (f' --folds {args.folds}' if args.folds else '')
+                             + f': {args.data} has at most {most} objects of a class, so the '
+                             f'folds past {most} would hold no object to evaluate (give --cv '
+                             f'or --folds <= {most})')
         return X, y, names, n, None
     bank = load_models(args.model, class_prior)
     # the classes of the objects, not the file's whole class list: a subset file may
@@ -442,19 +453,10 @@ def _cross_validate(args, X, y, names, n, class_prior, rng):
 
 
 def _report(summary, recs, examples, bank, out, argv):
-    """Print the table and write eval.json, records.jsonl and eval.png into ``out``."""
+    """Write eval.json, records.jsonl and eval.png into ``out`` and print the table."""
     summary['class_prior'] = bank.class_prior if isinstance(bank.class_prior, str) else \
         dict(zip(bank.classes, map(float, bank.class_prior)))
     summary['command'] = 'beo-eval ' + ' '.join(sys.argv[1:] if argv is None else argv)
-    print_table(summary)
-    empty = sum(r['empty_object'] for r in recs if r['mode'] == 'complete')
-    if empty:
-        print(f"{empty} object(s) have no occupied voxel at all, answered 'unknown', "
-              "a wrong class")
-    lost = sum(r['empty_view'] and not r['empty_object'] for r in recs if r['mode'] == 'partial')
-    if lost:
-        print(f"{lost} view(s) had no occupied voxel (objects of a few voxels lost to the "
-              "rotation), answered 'unknown' without a yaw, a wrong class and yaw")
     # a failure or Ctrl-C while the figure was drawn left eval.json and records.jsonl alone
     with complete_files(out, ('eval.json', 'records.jsonl', 'eval.png')) as tmp:
         # strict JSON: non-finite numbers (a mean over no rows) as null
@@ -464,6 +466,16 @@ def _report(summary, recs, examples, bank, out, argv):
         tmp['records.jsonl'].write_text(''.join(json.dumps(json_safe(r), allow_nan=False)
                                                 + '\n' for r in recs))
         write_figure(summary, examples, tmp['eval.png'])
+    # the files first: a reader of stdout gone (beo-eval ... | head -1) stops the printing
+    print_table(summary)
+    empty = sum(r['empty_object'] for r in recs if r['mode'] == 'complete')
+    if empty:
+        print(f"{empty} object(s) have no occupied voxel at all, answered 'unknown', "
+              "a wrong class")
+    lost = sum(r['empty_view'] and not r['empty_object'] for r in recs if r['mode'] == 'partial')
+    if lost:
+        print(f"{lost} view(s) had no occupied voxel (objects of a few voxels lost to the "
+              "rotation), answered 'unknown' without a yaw, a wrong class and yaw")
     print(f'wrote {out / "eval.json"}, {out / "records.jsonl"} and {out / "eval.png"}')
 
 

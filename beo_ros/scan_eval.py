@@ -44,7 +44,10 @@ def add_arguments(ap):
     ap.add_argument('--scans', nargs='+', required=True, help='labelled OSD PCD scenes')
     ap.add_argument('--scan-classes', default='box:0-16,cylinder:33-44',
                     help='class:scene ranges, by the number in learnN.pcd')
-    ap.add_argument('--out', default='beo_scan_eval', help='directory for JSON and PNG')
+    # beo-eval's own default: python -m beo_ros.scan_eval --scans ... writes where beo-eval
+    # --scans ... does
+    ap.add_argument('--out', default='beo_eval_out',
+                    help='directory for JSON and PNG (default: %(default)s)')
     ap.add_argument('--k', type=count(1), default=8, help='upper bound on components per class')
     ap.add_argument('--max-iter', type=count(1), default=40, help='VBPCA iterations per refit')
     ap.add_argument('--no-congeal', dest='congeal', action='store_false',
@@ -537,6 +540,8 @@ def main(argv=None):
         ap.error(f'--out {args.out}: {problem}')
     try:
         run(args)
+    except BrokenPipeError:   # stdout's reader is gone: see cli.interruptible
+        raise
     except (ValueError, OSError) as e:
         print(f'beo-eval: error: {e}', file=sys.stderr)
         return 2

@@ -51,6 +51,8 @@ def main(argv=None):
         t0 = time.time()
         bank = _fit(args, X, y, names, masks, spec, grids, training, class_prior)
         _save(bank, args.out, replace)
+    except BrokenPipeError:   # stdout's reader is gone: see cli.interruptible
+        raise
     except (ValueError, OSError) as e:
         print(f'beo-train: error: {e}', file=sys.stderr)
         return 2

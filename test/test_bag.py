@@ -634,6 +634,47 @@ def test_cli_tools_that_cannot_start_ros_say_so_in_one_line(tmp_path, monkeypatc
     assert not (tmp_path / 'r').exists()
 
 
+@pytest.mark.parametrize('prog, args', [
+    ('beo-node', ['-m', 'beo_ros.node']),
+    ('beo-replay', ['-m', 'beo_ros.ros.bag', 'BAG']),
+    ('beo-record', ['-c', 'import sys; from beo_ros.ros.bag import record_main; '
+                          'sys.exit(record_main(sys.argv[1:]))', '/x:std_msgs/msg/String',
+                    '-o', 'REC']),
+    ('beo-demo', ['-m', 'beo_ros.ros.demo', '--out', 'DEMO', '--model', 'MODEL'])])
+def test_commands_on_a_domain_id_over_232_say_so_in_one_line(tmp_path, ros_tiny_model_dir,
+                                                             prog, args):
+    """ROS_DOMAIN_ID=233 (rcl takes it): before, Fast DDS ended the process when the node was
+    made, exit 1 with its own two lines on stdout and nothing on stderr (beo-demo after
+    writing its bag)."""
+    write_test_bag(tmp_path / 'b', 'sqlite3', n=1)
+    subs = {'BAG': str(tmp_path / 'b'), 'REC': str(tmp_path / 'r'),
+            'DEMO': str(tmp_path / 'demo'), 'MODEL': str(ros_tiny_model_dir)}
+    p = subprocess.run([sys.executable, *[subs.get(a, a) for a in args]],
+                       env=cli_env(233), capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert p.returncode == 1, (p.stdout, p.stderr)
+    assert p.stderr.startswith(f'{prog}: cannot start') and p.stderr.count('\n') == 1, p.stderr
+    assert 'ROS_DOMAIN_ID 233 is over 232' in p.stderr and 'RTPS' not in p.stdout, p.stdout
+    assert not (tmp_path / 'r').exists() and not (tmp_path / 'demo').exists()
+
+
+def test_bag_tools_with_stdout_reader_gone_end_quietly_with_141(tmp_path, ros_domain_id):
+    """stdout a pipe whose reader has exited. Before: beo-replay said 'cannot read BAG:
+    [Errno 32] Broken pipe' (exit 2), beo-pcd2bag ended in a traceback (exit 1)."""
+    write_test_bag(tmp_path / 'b', 'sqlite3', n=1)
+    scene = write_scene_pcd(tmp_path / 's.pcd')
+    for args in (['-m', 'beo_ros.ros.bag', str(tmp_path / 'b'), '--rate', '0'],
+                 ['-c', 'import sys; from beo_ros.ros.bag import pcd2bag_main; '
+                        'sys.exit(pcd2bag_main(sys.argv[1:]))', str(scene), '-o',
+                  str(tmp_path / 'p')]):
+        r, w = os.pipe()
+        os.close(r)
+        p = subprocess.run([sys.executable, *args], stdout=w, stderr=subprocess.PIPE,
+                           text=True, env=cli_env(ros_domain_id), timeout=120)
+        os.close(w)
+        assert p.returncode == 141 and p.stderr == '', p.stderr
+    assert (tmp_path / 'p' / 'metadata.yaml').exists()
+
+
 def test_cli_node_ignores_the_tools_own_remap_arguments(monkeypatch, keep_signal_handlers):
     # rclpy.init(args=None) took sys.argv: beo-replay -r /a:=/b became a global rcl remap too
     monkeypatch.setattr(sys, 'argv', ['beo-replay', 'bag', '-r', '/a:=/b', '-r', '/b:=/a'])

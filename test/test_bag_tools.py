@@ -564,3 +564,34 @@ def test_a_bag_with_a_service_event_topic_plays_and_recovers(ros_env_context, tm
         assert summary['topics'] == {'/s': 3, '/node/get_state/_service_event': 3}
     from lifecycle_msgs.srv import GetState_Event
     assert bag.msgtype_of(GetState_Event) == 'lifecycle_msgs/srv/GetState_Event'
+
+
+@pytest.mark.parametrize('topic', ['/beo/up', 'beo/table_plane', '~/up'])
+def test_cli_pcd2bag_refuses_the_up_or_plane_topic_as_cloud_topic_before_reading(
+        tmp_path, capsys, topic):
+    """Before: every scene was read, then 'beo-pcd2bag: /beo/up: already has type
+    sensor_msgs/msg/PointCloud2' (exit 2, no usage line), naming neither --topic nor the clash."""
+    out = tmp_path / 'b'
+    with pytest.raises(SystemExit) as e:
+        bag.pcd2bag_main([str(write_scene_pcd(tmp_path / 's.pcd')), '-o', str(out),
+                          '--topic', topic])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith('usage: beo-pcd2bag') and 'Traceback' not in err
+    assert f"error: the object cloud topic {topic!r} is the " in err and 'give another' in err
+    assert not out.exists()
+    with pytest.raises(ValueError, match='give another'):   # before a scene is read
+        bag.pcd_to_bag([tmp_path / 'missing.pcd'], out, topic=topic)
+
+
+def test_cli_pcd2bag_calls_a_directory_a_directory(tmp_path, capsys):
+    """Before: 'beo-pcd2bag: error: no such file: DIR' for a scene path that is a directory
+    (it exists; e.g. the folder of the scenes given instead of its files)."""
+    with pytest.raises(SystemExit) as e:
+        bag.pcd2bag_main([str(tmp_path), '-o', str(tmp_path / 'b')])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert f'error: a directory, not a PCD file: {tmp_path}' in err and 'no such' not in err
+    with pytest.raises(SystemExit):
+        bag.pcd2bag_main([str(tmp_path / 'x.pcd'), '-o', str(tmp_path / 'b')])
+    assert f'error: no such file: {tmp_path / "x.pcd"}' in capsys.readouterr().err

@@ -1,5 +1,6 @@
 """beo-train and beo-eval command lines on a small generated voxel npz."""
 import json
+import os
 
 import numpy as np
 import pytest
@@ -651,3 +652,59 @@ def test_fit_bank_refuses_bank_settings_before_the_fits(monkeypatch, kw, message
     with pytest.raises(ValueError, match=message):
         training.fit_bank(X, y, names, GridSpec(size=N), k=2, classifier_views=0,
                           verifier_views=0, **kw)
+
+
+def test_progress_in_a_file_or_pipe_is_whole_lines(capsys, monkeypatch):
+    # before: tqdm's bars went to a log as they do to a terminal: carriage returns, cursor-up
+    # escapes and a redrawn bar per step, several per line
+    from beo_ros.core import training
+    assert list(training.progress_bar(range(3), 'views')) == [0, 1, 2]
+    err = capsys.readouterr().err
+    assert '\r' not in err and '\x1b' not in err
+    assert err.startswith('views: 3/3 in ') and err.count('\n') == 1
+    monkeypatch.setattr(training, 'PROGRESS_LINE_S', 0.0)   # a line per step
+    assert list(training.progress_bar(iter('ab'), 'fold 0', total=2)) == ['a', 'b']
+    assert capsys.readouterr().err.splitlines()[:2] == ['fold 0: 1/2', 'fold 0: 2/2']
+    assert list(training.progress_bar(range(2), 'x', disable=True)) == [0, 1]
+    assert capsys.readouterr().err == ''
+
+
+def test_eval_progress_in_a_log_is_lines(tmp_path, capsys):
+    """beo-eval with stderr in a file: lines, not bars (beo-train's come from the same
+    progress_bar)."""
+    from beo_ros.core.synthetic import make_tiny_bank
+    make_tiny_bank(tmp_path / 'm', n=N, k=2)
+    write_npz(tmp_path / 'd.npz', count=2)
+    assert evaluate.main(['--model', str(tmp_path / 'm'), '--data', str(tmp_path / 'd.npz'),
+                          '--out', str(tmp_path / 'e')]) == 0
+    err = capsys.readouterr().err
+    assert '\r' not in err and '\x1b' not in err and 'evaluating: 4/4 in ' in err
+
+
+def test_stdout_reader_gone_ends_quietly_with_141_and_keeps_the_results(tmp_path):
+    """stdout a pipe whose reader has exited (beo-eval ... | head -1). Before: beo-eval said
+    'error: [Errno 32] Broken pipe' (exit 2) and removed the --out it had made, its results
+    unwritten (the table was printed first); beo-train and beo-pcd2bag ended in a traceback
+    (exit 1); beo-record and beo-replay said 'cannot write BAG' / 'cannot read BAG'."""
+    import subprocess
+    import sys
+    from pathlib import Path
+    from beo_ros.core.synthetic import make_tiny_bank
+    make_tiny_bank(tmp_path / 'm', n=N, k=2)
+    write_npz(tmp_path / 'd.npz', count=2)
+    repo = Path(__file__).resolve().parents[1]
+    for module, args, out in (
+            ('beo_ros.evaluate', ['--model', 'm', '--data', 'd.npz', '--out', 'e'], 'e'),
+            ('beo_ros.train', ['d.npz', '-o', 'm2', '--k', '2', '--views', '0',
+                               '--verifier-views', '0'], 'm2')):
+        r, w = os.pipe()
+        os.close(r)   # the reader is gone before the first line
+        p = subprocess.run([sys.executable, '-m', module, *args], stdout=w, cwd=tmp_path,
+                           stderr=subprocess.PIPE, text=True, timeout=300,
+                           env=dict(os.environ, PYTHONPATH=str(repo)))
+        os.close(w)
+        assert p.returncode == 141, p.stderr
+        assert 'Traceback' not in p.stderr and 'error' not in p.stderr, p.stderr
+        assert sorted(f.name for f in (tmp_path / out).iterdir()), module
+    assert sorted(f.name for f in (tmp_path / 'e').iterdir()) == ['eval.json', 'eval.png',
+                                                                  'records.jsonl']

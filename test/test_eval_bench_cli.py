@@ -184,6 +184,20 @@ def test_eval_cv_needs_two_classes_up_front(tmp_path, capsys, monkeypatch):
     assert not out.exists()
 
 
+@pytest.mark.parametrize('args', [['--cv', '5'], ['--cv', '10', '--folds', '5']])
+def test_eval_cv_refuses_folds_that_hold_no_object(tmp_path, capsys, monkeypatch, args):
+    # before: with 4 objects per class, --cv 5 trained a bank for fold 4 (every object in its
+    # training set) and evaluated nothing with it; 'folds' listed it with 'test': 0
+    data = write_npz(tmp_path / 'd.npz', count=4)   # 4 boxes, 4 cylinders
+    monkeypatch.setattr(evaluate, 'fit_bank', lambda *a, **k: pytest.fail('trained anyway'))
+    out = tmp_path / 'e'
+    assert call(evaluate.main, [*args, '--data', str(data), '--verifier-views', '0',
+                                '--out', str(out)]) == 2
+    err = capsys.readouterr().err
+    assert 'has at most 4 objects of a class' in err and 'no object to evaluate' in err
+    assert not out.exists()
+
+
 def test_eval_cv_trains_without_objects_that_have_no_occupied_voxel(tmp_path, capsys):
     # fit_bank refuses them (beo-train drops them): --cv used to end with "grid has no
     # occupied voxel"; they are left out of the training folds and still evaluated
@@ -268,6 +282,18 @@ def test_scans_ctrl_c_one_line_130_and_no_empty_out(tmp_path, capsys, monkeypatc
     assert call(evaluate.main, ['--scans', 'learn1.pcd', '--out', str(out)]) == 130
     assert 'beo-eval: interrupted' in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_scans_default_out_is_the_same_for_beo_eval_and_python_m_scan_eval(tmp_path,
+                                                                           monkeypatch):
+    # before: beo-eval --scans X wrote beo_eval_out, python -m beo_ros.scan_eval --scans X
+    # (prog 'beo-eval --scans', the help beo-eval points to) wrote beo_scan_eval
+    monkeypatch.chdir(tmp_path)
+    outs = []
+    monkeypatch.setattr(scan_eval, 'run', lambda args: outs.append(args.out))
+    assert call(evaluate.main, ['--scans', 'learn1.pcd']) == 0
+    assert call(scan_eval.main, ['--scans', 'learn1.pcd']) == 0
+    assert outs == ['beo_eval_out', 'beo_eval_out']
 
 
 # ---------------------------------------------------------------------- beo-bench

@@ -216,3 +216,18 @@ def test_load_scan_objects_refuses_a_scene_given_twice(tmp_path):
         with pytest.raises(ValueError, match=r"learn0\.pcd: scene 'learn0' given twice "
                                              r'\(also .*learn0\.pcd\)'):
             load_scan_objects(paths, scan_classes='box:0')
+
+
+@pytest.mark.parametrize('bad, message', [('learn.pcd', 'no such file'),
+                                          ('lern3.pcd', 'no such file'),
+                                          ('scans', 'a directory, not a PCD file')])
+def test_load_scan_objects_refuses_a_path_that_is_no_file(tmp_path, bad, message):
+    # before: a path without a scene number of the classes was skipped unopened ('scene None
+    # is in no class' with beo-train's verbose note, nothing with beo-eval --scans): a typo
+    # or an unmatched glob ('learn*.pcd') left a scan out, or ended in 'no scan matched the
+    # scan classes' naming no file
+    (tmp_path / 'scans').mkdir()
+    with pytest.raises(ValueError, match=f'{bad}: {message}'):
+        load_scan_objects([OSD / 'learn0.pcd', OSD / 'learn1.pcd', tmp_path / bad], 'box:0-1')
+    with pytest.raises(ValueError, match=f'{bad}: {message}'):
+        load_scan_objects(iter([tmp_path / bad]))

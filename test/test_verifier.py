@@ -45,6 +45,27 @@ def trained():
     return X, y, F, turn, obj, OrientationVerifier(**PARAMS).fit(F, turn, y[obj], N)
 
 
+def test_verifier_views_start_no_more_processes_than_chunks(trained, monkeypatch):
+    # before: --jobs 40 on 7 objects (3 chunks here, 1 with the real 64-object chunks) forked
+    # 40 worker processes at once (the pool starts all it is given), 37 of them idle
+    import concurrent.futures
+    X = trained[0]
+    monkeypatch.setattr('beo_ros.core.training.VERIFIER_CHUNK', 3)  # 3 chunks of 7 objects
+    pools = []
+    real = concurrent.futures.ProcessPoolExecutor
+
+    def pool(workers, **kwargs):
+        pools.append(workers)
+        return real(workers, **kwargs)
+    monkeypatch.setattr(concurrent.futures, 'ProcessPoolExecutor', pool)
+    rows = verifier_training_set(X[:7], N, views=1, seed=0, processes=40)
+    assert pools == [3]
+    verifier_training_set(X[:3], N, views=1, seed=0, processes=40)   # one chunk: no pool
+    assert pools == [3]
+    for a, b in zip(rows, verifier_training_set(X[:7], N, views=1, seed=0)):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_training_rows_are_the_true_pose_and_its_turns(trained, monkeypatch):
     X, y, F, turn, obj, _ = trained
     assert F.shape == (len(X) * 3 * 4, 1536)

@@ -133,13 +133,18 @@ def load_scan_objects(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32, voxel_s
     """Every segmented object of the scans whose scene number has a class, as partial grids.
 
     Scenes whose number is in no class are skipped (with a note when verbose). Raises ValueError
-    when a class ends up with fewer than 2 objects or no scan has a class, when two scans of
-    the classes have one file name (a scene is its file stem: its objects would count twice,
-    or two scenes be held out as one), or (naming the scan and object) when a table plane or an
-    object's grid cannot be made.
+    for a path that is not a file, when a class ends up with fewer than 2 objects or no scan
+    has a class, when two scans of the classes have one file name (a scene is its file stem:
+    its objects would count twice, or two scenes be held out as one), or (naming the scan and
+    object) when a table plane or an object's grid cannot be made.
     """
     names, table = parse_scan_classes(scan_classes)
     spec = grid_spec(grid, voxel_size)
+    paths = list(paths)
+    for p in paths:   # a typo (or a glob that matched nothing) is no scene in no class
+        if not Path(p).is_file():
+            raise ValueError(f'{p}: ' + ('a directory, not a PCD file' if Path(p).is_dir()
+                                         else 'no such file'))
     X, M, y, scenes, oids, pts_all, ups, ds, T, outside = [], [], [], [], [], [], [], [], [], []
     notes = {}
     seen = {}

@@ -44,12 +44,41 @@ __all__ = [
     'mesh_class_name', 'load_meshes',
 ]
 
+# seconds between the progress lines of a loop when stderr is a file or a pipe
+PROGRESS_LINE_S = 30.0
+
+
 def progress_bar(it, desc, total=None, disable=False):
+    """``it``, with progress on stderr: a tqdm bar on a terminal; in a file or a pipe (a log),
+    where a bar's carriage returns and cursor moves are garbage, whole lines ``DESC: i/total``
+    at most every :data:`PROGRESS_LINE_S` seconds and ``DESC: total/total in T s`` at the end."""
+    if disable:
+        return it
+    try:
+        tty = sys.stderr.isatty()
+    except (AttributeError, ValueError):   # no stderr (None), or a closed one
+        return it
+    if not tty:
+        return _progress_lines(it, desc, len(it) if total is None and hasattr(it, '__len__')
+                               else total)
     try:
         from tqdm import tqdm
-        return tqdm(it, desc=desc, total=total, disable=disable, file=sys.stderr, leave=False)
+        return tqdm(it, desc=desc, total=total, file=sys.stderr, leave=False)
     except ImportError:  # pragma: no cover - tqdm is a dependency
         return it
+
+
+def _progress_lines(it, desc, total):
+    """``progress_bar`` in a file or a pipe: see there."""
+    t0 = last = time.monotonic()
+    of = '' if total is None else f'/{total}'
+    i = 0
+    for i, item in enumerate(it, 1):
+        yield item
+        if time.monotonic() - last >= PROGRESS_LINE_S:
+            last = time.monotonic()
+            print(f'{desc}: {i}{of}', file=sys.stderr, flush=True)
+    print(f'{desc}: {i}{of} in {time.monotonic() - t0:.1f} s', file=sys.stderr, flush=True)
 
 
 def fit_class_models(X, y, names, spec, k=20, masks=None, max_iter=200, tol=1e-5):
@@ -162,6 +191,8 @@ def verifier_training_set(X, n, views=6, seed=0, processes=1, verbose=False):
                          f'{X.shape}')
     chunks = [(X[i:i + VERIFIER_CHUNK], n, views, seed, i // VERIFIER_CHUNK)
               for i in range(0, len(X), VERIFIER_CHUNK)]
+    # at most a process per chunk: the pool forks all it is given at once, idle or not
+    processes = min(processes, len(chunks))
     if processes > 1:
         from concurrent.futures import ProcessPoolExecutor
         ex = ProcessPoolExecutor(processes, initializer=_quiet_on_sigint)

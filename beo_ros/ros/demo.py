@@ -131,12 +131,15 @@ def _run_node_on_bag(bag_path, model_dir, bank, up, origin, timeout):
 
     from beo_ros.ros import bag
     from beo_ros.ros.conversions import interfaces, ns_from_stamp
+    from beo_ros.ros.env import check_domain_id
     from beo_ros.ros.node import BeoNode, StartupError, drain_executor
     msgs = interfaces()
     ctx = rclpy.Context()
     try:
         rclpy.init(args=[], context=ctx)   # not sys.argv: no remap rules from the command line
+        check_domain_id(ctx)
     except Exception as e:  # noqa: BLE001 - rclpy's RCLError: a ROS_DOMAIN_ID that is no number
+        ctx.try_shutdown()
         raise StartupError(f'cannot start ROS: {type(e).__name__}: {e}') from None
     estimates, completed = {}, {}
     lock = threading.Lock()
@@ -310,6 +313,8 @@ def main(argv=None) -> int:
     except StartupError as e:   # ROS or the node did not start: as beo-node, exit code 1
         print(f'beo-demo: {e}', file=sys.stderr)
         return 1
+    except BrokenPipeError:   # stdout's reader is gone: see cli.interruptible
+        raise
     except (OSError, sqlite3.Error) as e:   # a full disk (the demo bag: sqlite3's own error)
         print(f'beo-demo: error: {e}', file=sys.stderr)
         return 2

@@ -33,3 +33,17 @@ def ensure_ament_prefix(prefix=None):
         parts.insert(0, prefix)
         os.environ['AMENT_PREFIX_PATH'] = os.pathsep.join(parts)
     return os.environ.get('AMENT_PREFIX_PATH', '')
+
+
+# the largest ROS domain id whose DDS ports (7400 + 250 * id + ...) stay below 65536
+MAX_DOMAIN_ID = 232
+
+
+def check_domain_id(context):
+    """``ValueError`` when the domain id of the initialised rclpy ``context`` (ROS_DOMAIN_ID)
+    is over :data:`MAX_DOMAIN_ID`: rcl takes it, but Fast DDS then ends the process when the
+    first node is created (exit 1, its own message on stdout, nothing on stderr)."""
+    domain = context.get_domain_id()
+    if domain > MAX_DOMAIN_ID:
+        raise ValueError(f'ROS_DOMAIN_ID {domain} is over {MAX_DOMAIN_ID} (its DDS ports would '
+                         'be past 65535)')

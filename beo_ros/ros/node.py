@@ -47,6 +47,7 @@ from visualization_msgs.msg import MarkerArray
 from beo_ros.core.bank import load_models, parse_class_prior, resolve_model_dir, shipped_models
 from beo_ros.ros.conversions import (CloudFormatError, cloud_to_xyz, completed_cloud,
                                      estimate_to_msg, interfaces)
+from beo_ros.ros.env import check_domain_id
 from beo_ros.ros.markers import object_markers
 from beo_ros.ros.params import (CHECKED_AT_START, declare, default_model_dir, refusal,
                                 vector_reason)
@@ -1280,7 +1281,9 @@ def main(args=None):
         sys.exit(2)
     try:
         rclpy.init(args=args)
+        check_domain_id(rclpy.get_default_context())
     except Exception as e:  # e.g. --params-file of a missing or malformed file
+        rclpy.try_shutdown()
         print(f'beo-node: cannot start: {type(e).__name__}: {e}', file=sys.stderr)
         sys.exit(1)
     node = None

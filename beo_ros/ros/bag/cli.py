@@ -11,14 +11,15 @@ import time
 from pathlib import Path
 
 from beo_ros.cli import INTERRUPTED, TERMINATED, count, interruptible, number
-from beo_ros.ros.bag.msgtypes import CLOUD_TYPE, check_node_name, check_topic_name
+from beo_ros.ros.bag.msgtypes import CLOUD_TYPE, check_node_name
 from beo_ros.ros.bag.player import (ACK_TIMEOUT_S, BagReadError, ClockRangeError, parse_remaps,
                                      replay)
 from beo_ros.ros.bag.recorder import BagWriteError, parse_topic_specs, record
 from beo_ros.ros.bag.recover import recover_bag
 from beo_ros.ros.bag.scenes import (DEFAULT_FRAME, DEFAULT_INPUT_TOPIC, PLANE_TOPIC, UP_TOPIC,
-                                    pcd_to_bag)
+                                    check_cloud_topic, pcd_to_bag)
 from beo_ros.ros.bag.storage import STORAGES, bag_info, storage_errors
+from beo_ros.ros.env import check_domain_id
 
 MAX_PERIOD_S = 86_400.0            # --period / --object-period bound of beo-pcd2bag
 
@@ -64,6 +65,7 @@ def _cli_node(name, sigterm_stops: bool = True, prog: str = 'beo'):
         # no command-line arguments: rcl would take the tool's own ones (-r OLD:=NEW) as remap
         # rules
         rclpy.init(args=[], signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+        check_domain_id(rclpy.get_default_context())
         node = rclpy.create_node(name)
     except Exception as e:  # noqa: BLE001 - rclpy's RCLError and the like
         rclpy.try_shutdown()
@@ -197,6 +199,8 @@ def replay_main(argv=None) -> int:
                 print(f'beo-replay: interrupted after {stats.messages} message(s)',
                       file=sys.stderr)
                 code = INTERRUPTED
+        except BrokenPipeError:   # stdout's reader is gone, not the bag: cli.interruptible
+            raise
         except TimeoutError as e:
             print(f'beo-replay: {e}', file=sys.stderr)
             code = 3
@@ -247,6 +251,8 @@ def record_main(argv=None) -> int:
             stats = record(node, args.output, specs, storage=args.storage, wait=args.wait,
                            duration=args.duration, count=args.count, stop=stop)
             print(json.dumps(stats.to_dict(), indent=2) if args.json else stats.table())
+        except BrokenPipeError:   # stdout's reader is gone, not the bag: cli.interruptible
+            raise
         except KeyError as e:
             print(f'beo-record: {e.args[0]}', file=sys.stderr)
             code = 2
@@ -290,10 +296,13 @@ def pcd2bag_main(argv=None) -> int:
                    help='skip objects with fewer points (default 50)')
     p.add_argument('--json', action='store_true', help='print the summary as JSON')
     args = p.parse_args(argv)
+    folders = [s for s in args.scenes if Path(s).is_dir()]
+    if folders:
+        p.error(f'a directory, not a PCD file: {", ".join(folders)}')
     missing = [s for s in args.scenes if not Path(s).is_file()]
     if missing:
         p.error(f'no such file: {", ".join(missing)}')
-    _valid(p, check_topic_name, args.topic)
+    _valid(p, check_cloud_topic, args.topic)
     _refuse_output(p, args.output)
     try:
         summary = pcd_to_bag(args.scenes, args.output, storage=args.storage, topic=args.topic,

@@ -61,6 +61,17 @@ def _scene_stamps(counts, period: float, object_period: float, t0_ns: int) -> li
     return out
 
 
+def check_cloud_topic(topic: str) -> str:
+    """``topic`` expanded (``check_topic_name``) as the object cloud topic of a pcd2bag bag;
+    ``ValueError`` if it is not a valid name or is the up vector's or the plane's topic."""
+    full = check_topic_name(topic)
+    if full in (UP_TOPIC, PLANE_TOPIC):
+        raise ValueError(f'the object cloud topic {topic!r} is the '
+                         f"{'up vector' if full == UP_TOPIC else 'table plane'}'s topic "
+                         f'{full}: give another')
+    return full
+
+
 def pcd_to_bag(scenes, bag_path, *, storage: str = 'sqlite3', topic: str = DEFAULT_INPUT_TOPIC,
                frame_id: str = DEFAULT_FRAME, period: float = 2.0, object_period: float = 0.25,
                min_points: int = 50, t0_ns: int = T0_NS) -> dict:
@@ -70,7 +81,8 @@ def pcd_to_bag(scenes, bag_path, *, storage: str = 'sqlite3', topic: str = DEFAU
     object if that is later); its up vector and plane carry that stamp, its objects follow
     ``object_period`` apart (first one at the scene stamp), so every cloud has a unique stamp.
     Scenes without object labels are skipped (listed in ``'skipped'``); ``ValueError`` if none is
-    left, for a bad scene or topic name, or stamps past what a header stamp holds
+    left, for a bad scene or topic name (or ``topic`` :data:`UP_TOPIC` or :data:`PLANE_TOPIC`),
+    or stamps past what a header stamp holds
     (:data:`MAX_NS`, 2038-01-19: its seconds are int32). No bag is left behind
     on any failure (Ctrl-C included).
 
@@ -87,7 +99,7 @@ def pcd_to_bag(scenes, bag_path, *, storage: str = 'sqlite3', topic: str = DEFAU
         raise ValueError('period and object_period must be finite numbers')
     if period < 0 or object_period < 0:
         raise ValueError('period and object_period must be >= 0')
-    topic = check_topic_name(topic)
+    topic = check_cloud_topic(topic)
     summary = {'bag': str(bag_path), 'storage': storage, 'scenes': [], 'skipped': [],
                'topics': {}}
     # every scene is read before the bag is opened: a bad one leaves no half-written bag
