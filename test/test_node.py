@@ -552,10 +552,11 @@ def test_an_empty_frame_id_is_counted(harness, monkeypatch):
     class Log:
         def warning(self, text, **kwargs):
             said.append(text)
-    monkeypatch.setattr(node, 'get_logger', Log)
     p = dict(node._params(), base_frame='base_link')
-    node._prepare(cloud(box_view(), frame=''), p, up=[0.0, 0.0, 1.0])
-    node._prepare(cloud(box_view(), frame=''), p)
+    with monkeypatch.context() as m:   # (ros_context's monkeypatch outlives the harness)
+        m.setattr(node, 'get_logger', Log)
+        node._prepare(cloud(box_view(), frame=''), p, up=[0.0, 0.0, 1.0])
+        node._prepare(cloud(box_view(), frame=''), p)
     assert ['up_vector' in t for t in said] == [False, True], said
 
 
