@@ -795,9 +795,15 @@ def _print_summary(res):
               f"vs paper: {res['speedup_vs_paper']:.1f}x")
     node = res['node']
     if 'objects_per_s' in node:
+        sus = node['sustained_rate_hz']
+        # no rate sustained: the figures are those of the lowest rate (it read 'sustains 0 Hz')
+        lowest = min((r['rate_hz'] for r in node.get('rates') or ()), default=None)
         print(f"node (workers={node['workers']}, "
-              f"worker_processes={node.get('worker_processes', 0)}): sustains "
-              f"{node['sustained_rate_hz'] or 0:g} Hz replay, {_fmt(node['objects_per_s'], '.2f')} "
+              f"worker_processes={node.get('worker_processes', 0)}): "
+              + (f"sustains {sus:g} Hz replay, " if sus is not None else
+                 'sustains none of the replay rates; at the lowest'
+                 + (f' ({lowest:g} Hz)' if lowest is not None else '') + ': ')
+              + f"{_fmt(node['objects_per_s'], '.2f')} "
               f"objects/s out ({node['dropped_stale']} dropped, {node['lost']} lost), "
               f"end-to-end p50 {_fmt(node['e2e_p50_ms'])} ms, p95 {_fmt(node['e2e_p95_ms'])} ms; "
               f"highest output {_fmt(node.get('max_objects_per_s'), '.2f')}/s")

@@ -550,3 +550,23 @@ def test_peers_answer_a_view_with_no_occupied_voxel_as_a_miss(shapes, capsys):
     res['beo'] = dict(res['paper'], fit_s=1.0, index_mb=0.5)
     res.update(speedup_vs_icp=1.0, speedup_vs_paper=1.0, node={'skipped': '--no-node'})
     assert '1 of the 3 views have no occupied voxel' in markdown(res)
+
+
+def _node_entry(sustained_hz, rates=(2.0, 4.0)):
+    """A bench.json 'node' entry as json_safe leaves it (NaN -> None)."""
+    rows = [{'rate_hz': r, 'sent': 4, 'estimates': 3, 'objects_per_s': 1.5, 'dropped_stale': 1,
+             'lost': 0, 'e2e_p50_ms': 40.0, 'e2e_p95_ms': 60.0} for r in rates]
+    return {'objects_per_s': 1.5, 'sustained_rate_hz': sustained_hz, 'dropped_stale': 1,
+            'lost': 0, 'e2e_p50_ms': 40.0, 'e2e_p95_ms': 60.0, 'max_objects_per_s': 1.5,
+            'mode': 'm', 'workers': 1, 'worker_processes': 0, 'rates': rows}
+
+
+def test_node_summary_line_says_when_no_rate_is_sustained(capsys):
+    # it read 'sustains 0 Hz replay, 1.50 objects/s out' (the figures of the lowest rate)
+    from beo_ros.bench import _print_summary
+    _print_summary({'node': _node_entry(None)})
+    out = capsys.readouterr().out
+    assert 'sustains none of the replay rates; at the lowest (2 Hz): 1.50 objects/s out' in out
+    assert '0 Hz' not in out
+    _print_summary({'node': _node_entry(4.0)})
+    assert 'sustains 4 Hz replay, 1.50 objects/s out' in capsys.readouterr().out
