@@ -570,3 +570,23 @@ def test_node_summary_line_says_when_no_rate_is_sustained(capsys):
     assert '0 Hz' not in out
     _print_summary({'node': _node_entry(4.0)})
     assert 'sustains 4 Hz replay, 1.50 objects/s out' in capsys.readouterr().out
+
+
+def test_rate_row_of_a_single_estimate_has_no_latency_percentiles(capsys):
+    """One estimate gave p50 = p95 = its latency, a spread from one sample; they are n/a
+    (NaN, null in bench.json) and the one latency stays the row's maximum."""
+    from beo_ros.bench import _print_summary, json_safe, markdown
+    from beo_ros.bench_node import _rate_row
+    probe = {'sent': {'1': 0.0, '2': 0.1, '3': 0.2}, 'got': {'1': 0.05}, 'wall_s': 0.2}
+    d = {'received': 3, 'processed': 1, 'dropped_stale': 2, 'rejected': 0, 'errors': 0}
+    row = _rate_row(10.0, probe, d, 0.05)
+    assert row['estimates'] == 1 and row['e2e_max_ms'] == pytest.approx(50.0)
+    assert math.isnan(row['e2e_p50_ms']) and math.isnan(row['e2e_p95_ms'])
+    two = _rate_row(10.0, dict(probe, got={'1': 0.05, '2': 0.17}), dict(d, processed=2), 0.05)
+    assert two['e2e_p50_ms'] == pytest.approx(60.0) and two['e2e_p95_ms'] == pytest.approx(69.0)
+    # the headline's are the row's (here the lowest rate's: none sustained)
+    node = json_safe(dict(_node_entry(None), rates=[row], e2e_p50_ms=row['e2e_p50_ms'],
+                          e2e_p95_ms=row['e2e_p95_ms']))
+    assert '| 10 | 3 | 1 | 0.00 | 2 | 0 | n/a | n/a |' in markdown({'node': node})
+    _print_summary({'node': node})
+    assert 'end-to-end p50 n/a ms, p95 n/a ms' in capsys.readouterr().out
