@@ -244,9 +244,27 @@ def scaling(args, X, y, names, n, tr, queries, bank, rng):
         'grid': _scaling_grid(args, X, Xtr[sub], ytr[sub], names, n, sq),
         'yaw_step': _scaling_yaw_step(args, sq, bank),
         'classes': _scaling_classes(args, Xtr[sub], ytr[sub], names, n, sq, bank),
-        'note': (f'{len(sq)} queries per point; grid and class curves use class models fitted '
-                 f'on {args.scaling_per_class} objects per class (latency does not depend on '
-                 'the training set size for beo)')}
+        'note': _scaling_note(args, len(sq))}
+
+
+def _scaling_note(args, n_queries):
+    """The 'note' of the scaling section: what each curve measures (``n_queries`` queries)."""
+    # it said "latency does not depend on the training set size for beo": a class gets
+    # min(k, its objects - 1) components, so beo's model grows with the objects up to k + 1
+    whole = (", at the whole split the beo peer's bank" if args.model is None else '')
+    runs = f"{args.repeats} run{'s' if args.repeats != 1 else ''}"
+    return (f"{n_queries} quer{'y' if n_queries == 1 else 'ies'} per point for beo ({runs} "
+            'each), the first '
+            f'{_icp_scaling_queries(n_queries)} for icp (1 run); vs training objects: beo class '
+            f'models refitted on each class-stratified subset (min(k={args.k}, objects per '
+            f'class - 1) components per class){whole}; icp a database of all the subset\'s '
+            f'objects; grid and class curves: class models fitted on {args.scaling_per_class} '
+            f"objects per class; yaw-step curve: the beo peer's bank")
+
+
+def _icp_scaling_queries(n_queries):
+    """How many of the scaling queries the icp database answers (it is slow)."""
+    return max(1, n_queries // 2)
 
 
 def _scaling_train_objects(args, Xtr, ytr, names, n, sq, bank, rng):
@@ -266,7 +284,8 @@ def _scaling_train_objects(args, Xtr, ytr, names, n, sq, bank, rng):
         bl, bm = latency_point(beo_predict(b), sq, args.repeats)
         db = ICPDatabase(per_class=None, n_init_yaws=args.icp_init_yaws, seed=args.seed).fit(
             Xtr[sel], ytr[sel], names, n)
-        il, im = latency_point(answer_empty_views(db.predict), sq[:max(1, len(sq) // 2)], 1)
+        il, im = latency_point(answer_empty_views(db.predict), sq[:_icp_scaling_queries(len(sq))],
+                               1)
         pts.append(dict(n_train=int(len(sel)), beo_ms=bl, beo_mb=bm, icp_ms=il, icp_mb=im,
                         icp_db_size=db.size))
     return pts

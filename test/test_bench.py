@@ -590,3 +590,30 @@ def test_rate_row_of_a_single_estimate_has_no_latency_percentiles(capsys):
     assert '| 10 | 3 | 1 | 0.00 | 2 | 0 | n/a | n/a |' in markdown({'node': node})
     _print_summary({'node': node})
     assert 'end-to-end p50 n/a ms, p95 n/a ms' in capsys.readouterr().out
+
+
+def test_scaling_note_says_what_each_curve_measures(shapes):
+    """The note said every point had the scaling queries (icp's training-object points have
+    half of them, one run each) and that beo's latency 'does not depend on the training set
+    size' (a class gets min(k, objects - 1) components: fewer objects, a faster model; and
+    the whole split's point is the beo peer's own bank)."""
+    import types
+
+    from beo_ros.bench import fit_class_bank, markdown, scaling
+    pytest.importorskip('open3d')
+    X, y, names, views = shapes
+    queries = [dict(grid=g, yaw=float(yaw), label=label, index=i)
+               for i, (g, yaw, label) in enumerate(views[:4])]
+    args = types.SimpleNamespace(scaling_queries=4, scaling_per_class=3, scaling_train=[6],
+                                 scaling_grids=[16], scaling_yaw_steps=[10.0],
+                                 scaling_classes=[2], k=2, repeats=1, icp_init_yaws=1, seed=0,
+                                 model=None)
+    bank = fit_class_bank(X, y, names, N, 2)
+    sc = scaling(args, X, y, names, N, np.arange(len(X)), queries, bank,
+                 np.random.default_rng(0))
+    note = sc['note']
+    assert 'does not depend' not in note
+    assert note.startswith('4 queries per point for beo (1 run each), the first 2 for icp (1 run)')
+    assert 'min(k=2, objects per class - 1) components' in note
+    assert "at the whole split the beo peer's bank" in note
+    assert f'({note})' in markdown({'scaling': sc})
