@@ -113,8 +113,27 @@ def yaw_error_deg(a, b):
     return math.degrees(float(yaw_error(a, b)))
 
 
+def has_object(grid):
+    """True when the view ``grid`` has an occupied voxel (a view of a few-voxel object can
+    lose it to the rotation)."""
+    return bool((np.asarray(grid) == 1).any())
+
+
+def answer_empty_views(predict):
+    """``predict(grid) -> (label index, yaw)`` of a peer that refuses a grid with no occupied
+    voxel (paper, icp: ValueError), answering such a view as beo does: no class (index -1,
+    a miss) and yaw 0 (not scored, see :func:`run_peer`)."""
+    def answer(grid):
+        return predict(grid)[:2] if has_object(grid) else (-1, 0.0)
+    return answer
+
+
 def run_peer(name, predict, queries, repeats, mem_queries=3):
-    """Run ``predict(grid) -> (label index, yaw)`` on all queries; metrics dict."""
+    """Run ``predict(grid) -> (label index, yaw)`` on all queries; metrics dict (with
+    ``empty_views``: the queries with no occupied voxel, each a miss)."""
+    empty = sum(not has_object(q['grid']) for q in queries)
+    if empty:
+        log(f'[{name}] {empty} of {len(queries)} views have no occupied voxel: each is a miss')
     lat, correct, yerr = [], [], []
     for qi, q in enumerate(queries):
         times = []
@@ -126,7 +145,7 @@ def run_peer(name, predict, queries, repeats, mem_queries=3):
         correct.append(int(c) == q['label'])
         # a view with no occupied voxel (the rotation lost an object of a few voxels) has no
         # pose: no yaw error (NaN, a miss), not the predictor's placeholder yaw scored
-        yerr.append(yaw_error_deg(yaw, q['yaw']) if (q['grid'] == 1).any() else float('nan'))
+        yerr.append(yaw_error_deg(yaw, q['yaw']) if has_object(q['grid']) else float('nan'))
     # memory: a separate pass so tracemalloc's overhead stays out of the timings
     gc.collect()
     peaks = []
@@ -136,7 +155,7 @@ def run_peer(name, predict, queries, repeats, mem_queries=3):
         predict(q['grid'])
         peaks.append(tracemalloc.get_traced_memory()[1])
         tracemalloc.stop()
-    return summarize(lat, correct, yerr, peaks)
+    return dict(summarize(lat, correct, yerr, peaks), empty_views=int(empty))
 
 
 def summarize(lat, correct, yerr, peaks):
@@ -225,9 +244,27 @@ def scaling(args, X, y, names, n, tr, queries, bank, rng):
         'grid': _scaling_grid(args, X, Xtr[sub], ytr[sub], names, n, sq),
         'yaw_step': _scaling_yaw_step(args, sq, bank),
         'classes': _scaling_classes(args, Xtr[sub], ytr[sub], names, n, sq, bank),
-        'note': (f'{len(sq)} queries per point; grid and class curves use class models fitted '
-                 f'on {args.scaling_per_class} objects per class (latency does not depend on '
-                 'the training set size for beo)')}
+        'note': _scaling_note(args, len(sq))}
+
+
+def _scaling_note(args, n_queries):
+    """The 'note' of the scaling section: what each curve measures (``n_queries`` queries)."""
+    # it said "latency does not depend on the training set size for beo": a class gets
+    # min(k, its objects - 1) components, so beo's model grows with the objects up to k + 1
+    whole = (", at the whole split the beo peer's bank" if args.model is None else '')
+    runs = f"{args.repeats} run{'s' if args.repeats != 1 else ''}"
+    return (f"{n_queries} quer{'y' if n_queries == 1 else 'ies'} per point for beo ({runs} "
+            'each), the first '
+            f'{_icp_scaling_queries(n_queries)} for icp (1 run); vs training objects: beo class '
+            f'models refitted on each class-stratified subset (min(k={args.k}, objects per '
+            f'class - 1) components per class){whole}; icp a database of all the subset\'s '
+            f'objects; grid and class curves: class models fitted on {args.scaling_per_class} '
+            f"objects per class; yaw-step curve: the beo peer's bank")
+
+
+def _icp_scaling_queries(n_queries):
+    """How many of the scaling queries the icp database answers (it is slow)."""
+    return max(1, n_queries // 2)
 
 
 def _scaling_train_objects(args, Xtr, ytr, names, n, sq, bank, rng):
@@ -247,7 +284,8 @@ def _scaling_train_objects(args, Xtr, ytr, names, n, sq, bank, rng):
         bl, bm = latency_point(beo_predict(b), sq, args.repeats)
         db = ICPDatabase(per_class=None, n_init_yaws=args.icp_init_yaws, seed=args.seed).fit(
             Xtr[sel], ytr[sel], names, n)
-        il, im = latency_point(lambda g: db.predict(g), sq[:max(1, len(sq) // 2)], 1)
+        il, im = latency_point(answer_empty_views(db.predict), sq[:_icp_scaling_queries(len(sq))],
+                               1)
         pts.append(dict(n_train=int(len(sel)), beo_ms=bl, beo_mb=bm, icp_ms=il, icp_mb=im,
                         icp_db_size=db.size))
     return pts
@@ -398,6 +436,9 @@ def _md_peers(res):
              f"{res['icp'].get('init_yaws')} initial yaws)"]
     extra += [f"{p} index {res[p]['index_mb']:.1f} MB, fit {res[p]['fit_s']:.0f} s"
               for p in ('beo', 'paper', 'icp')]
+    if res['beo'].get('empty_views'):   # the same queries for every peer
+        extra.append(f"{res['beo']['empty_views']} of the {res['beo']['queries']} views have no "
+                     'occupied voxel (the rotation lost the object): a miss for every peer')
     # n/a: a peer that classified no query right (null in bench.json)
     extra += [f"{p} yaw median on correctly classified "
               f"{_fmt(res[p]['yaw_median_deg_correct_class'])} deg"
@@ -734,7 +775,7 @@ def _bench_paper(args, X, y, tr, names, n, queries):
     t0 = time.perf_counter()
     paper = PaperPCA(k=args.k, n_yaws=args.paper_yaws).fit(X[tr], y[tr], names, n)
     fit_s = time.perf_counter() - t0
-    r = run_peer('paper', paper.predict, queries, args.slow_repeats)
+    r = run_peer('paper', answer_empty_views(paper.predict), queries, args.slow_repeats)
     r.update(fit_s=fit_s, index_mb=paper.nbytes / 2**20, yaw_candidates=args.paper_yaws)
     return r
 
@@ -747,7 +788,7 @@ def _bench_icp(args, X, y, tr, names, n, queries):
     icp = ICPDatabase(per_class=args.icp_db_per_class, n_init_yaws=args.icp_init_yaws,
                       seed=args.seed).fit(X[tr], y[tr], names, n)
     fit_s = time.perf_counter() - t0
-    r = run_peer('icp', icp.predict, queries, args.slow_repeats)
+    r = run_peer('icp', answer_empty_views(icp.predict), queries, args.slow_repeats)
     r.update(fit_s=fit_s, index_mb=icp.nbytes / 2**20, db_size=icp.size,
              db_per_class=args.icp_db_per_class, init_yaws=args.icp_init_yaws)
     return r
@@ -773,9 +814,15 @@ def _print_summary(res):
               f"vs paper: {res['speedup_vs_paper']:.1f}x")
     node = res['node']
     if 'objects_per_s' in node:
+        sus = node['sustained_rate_hz']
+        # no rate sustained: the figures are those of the lowest rate (it read 'sustains 0 Hz')
+        lowest = min((r['rate_hz'] for r in node.get('rates') or ()), default=None)
         print(f"node (workers={node['workers']}, "
-              f"worker_processes={node.get('worker_processes', 0)}): sustains "
-              f"{node['sustained_rate_hz'] or 0:g} Hz replay, {_fmt(node['objects_per_s'], '.2f')} "
+              f"worker_processes={node.get('worker_processes', 0)}): "
+              + (f"sustains {sus:g} Hz replay, " if sus is not None else
+                 'sustains none of the replay rates; at the lowest'
+                 + (f' ({lowest:g} Hz)' if lowest is not None else '') + ': ')
+              + f"{_fmt(node['objects_per_s'], '.2f')} "
               f"objects/s out ({node['dropped_stale']} dropped, {node['lost']} lost), "
               f"end-to-end p50 {_fmt(node['e2e_p50_ms'])} ms, p95 {_fmt(node['e2e_p95_ms'])} ms; "
               f"highest output {_fmt(node.get('max_objects_per_s'), '.2f')}/s")

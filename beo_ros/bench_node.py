@@ -62,6 +62,11 @@ def _pct(a, q):
     return float(np.percentile(a, q)) if len(a) else float('nan')
 
 
+def _ms(v):
+    """Milliseconds ``v`` for the log: 'n/a' for NaN (no or a single estimate)."""
+    return format(v, '.0f') if math.isfinite(v) else 'n/a'
+
+
 def _replay_probe(cfg_json=None):
     """Child process of :func:`node_bench`: a separate ROS process, like ``ros2 bag play``
     plus a consumer. Replays the bag at one rate until ``n`` clouds are sent and records, per
@@ -250,16 +255,20 @@ def _replay_rate(bench, rate, args, bag_path, domain):
     row = _rate_row(rate, probe, d, args.node_max_drop)
     log(f"[node] {rate:g} Hz: {row['estimates']}/{row['sent']} estimates, "
         f"{row['objects_per_s']:.2f} out/s, dropped {row['dropped_stale']}, "
-        f"lost {row['lost']}, e2e p50 {row['e2e_p50_ms']:.0f} ms "
-        f"p95 {row['e2e_p95_ms']:.0f} ms")
+        f"lost {row['lost']}, e2e p50 {_ms(row['e2e_p50_ms'])} ms "
+        f"p95 {_ms(row['e2e_p95_ms'])} ms")
     return row
 
 
 def _rate_row(rate, probe, d, max_drop):
-    """One rate's row from the player's ``probe`` and the node's counter increments ``d``."""
+    """One rate's row from the player's ``probe`` and the node's counter increments ``d``.
+
+    The latency percentiles (ms) are NaN (n/a) with fewer than 2 estimates: one sample has
+    no spread to summarize (``e2e_max_ms`` is the one measured)."""
     sent = {int(k): v for k, v in probe['sent'].items()}
     arrived = {int(k): v for k, v in probe['got'].items() if int(k) in sent}
     lat = np.array([arrived[k] - sent[k] for k in arrived]) * 1e3
+    pct = lat if len(lat) >= 2 else lat[:0]   # one estimate: p50 = p95 = it, not a spread
     # output rate: estimates per second from the first to the last estimate
     span = (max(arrived.values()) - min(arrived.values())) if arrived else 0.0
     stats_wall = probe['wall_s']
@@ -272,7 +281,7 @@ def _rate_row(rate, probe, d, max_drop):
         'missing_estimates': d['processed'] - len(arrived),
         'order_waits': d.get('order_waits', 0),
         'objects_per_s': (len(arrived) - 1) / span if span > 0 else 0.0,
-        'e2e_p50_ms': _pct(lat, 50), 'e2e_p95_ms': _pct(lat, 95),
+        'e2e_p50_ms': _pct(pct, 50), 'e2e_p95_ms': _pct(pct, 95),
         'e2e_max_ms': float(lat.max()) if len(lat) else float('nan'),
     }
     row['sustained'] = bool(row['dropped_stale'] <= max_drop * row['sent']

@@ -519,3 +519,101 @@ def test_bench_node_renders_its_clouds_at_a_metric_models_scale(monkeypatch):
         pytest.skip('the node phase needs ROS, rosbags and beo_interfaces')
     extent = max((c.max(axis=0) - c.min(axis=0)).max() for c in seen)
     assert 0.1 < extent <= N * 0.02 + 0.01
+
+
+def test_peers_answer_a_view_with_no_occupied_voxel_as_a_miss(shapes, capsys):
+    """The paper and icp peers refuse a grid with no occupied voxel (ValueError): such a
+    query (a view of a few-voxel object the rotation lost) ended the bench with 'beo-bench:
+    error: grid has no occupied voxel' after beo had run; it is a miss, as for beo."""
+    import types
+
+    from beo_ros.bench import _bench_icp, _bench_paper, _scaling_train_objects, markdown
+    pytest.importorskip('open3d')
+    X, y, names, views = shapes
+    queries = [dict(grid=np.zeros((N,) * 3, np.int8), yaw=1.0, label=0)] + [
+        dict(grid=g, yaw=float(yaw), label=label) for g, yaw, label in views[:2]]
+    args = types.SimpleNamespace(k=2, paper_yaws=4, slow_repeats=1, icp_db_per_class=1,
+                                 icp_init_yaws=1, seed=0, scaling_train=[4], model=None,
+                                 repeats=1)
+    tr = np.arange(len(X))
+    res = {'paper': _bench_paper(args, X, y, tr, names, N, queries),
+           'icp': _bench_icp(args, X, y, tr, names, N, queries)}
+    for r in res.values():
+        assert r['queries'] == 3 and r['empty_views'] == 1 and r['accuracy'] <= 2 / 3
+    assert '[paper] 1 of 3 views have no occupied voxel' in capsys.readouterr().err
+    # the scaling phase's icp database too (the empty view first: its warm-up query)
+    from beo_ros.bench import fit_class_bank
+    bank = fit_class_bank(X, y, names, N, 2)
+    pts = _scaling_train_objects(args, X, y, names, N, queries[:2], bank,
+                                 np.random.default_rng(0))
+    assert all(np.isfinite(p['icp_ms']) for p in pts)
+    res['beo'] = dict(res['paper'], fit_s=1.0, index_mb=0.5)
+    res.update(speedup_vs_icp=1.0, speedup_vs_paper=1.0, node={'skipped': '--no-node'})
+    assert '1 of the 3 views have no occupied voxel' in markdown(res)
+
+
+def _node_entry(sustained_hz, rates=(2.0, 4.0)):
+    """A bench.json 'node' entry as json_safe leaves it (NaN -> None)."""
+    rows = [{'rate_hz': r, 'sent': 4, 'estimates': 3, 'objects_per_s': 1.5, 'dropped_stale': 1,
+             'lost': 0, 'e2e_p50_ms': 40.0, 'e2e_p95_ms': 60.0} for r in rates]
+    return {'objects_per_s': 1.5, 'sustained_rate_hz': sustained_hz, 'dropped_stale': 1,
+            'lost': 0, 'e2e_p50_ms': 40.0, 'e2e_p95_ms': 60.0, 'max_objects_per_s': 1.5,
+            'mode': 'm', 'workers': 1, 'worker_processes': 0, 'rates': rows}
+
+
+def test_node_summary_line_says_when_no_rate_is_sustained(capsys):
+    # it read 'sustains 0 Hz replay, 1.50 objects/s out' (the figures of the lowest rate)
+    from beo_ros.bench import _print_summary
+    _print_summary({'node': _node_entry(None)})
+    out = capsys.readouterr().out
+    assert 'sustains none of the replay rates; at the lowest (2 Hz): 1.50 objects/s out' in out
+    assert '0 Hz' not in out
+    _print_summary({'node': _node_entry(4.0)})
+    assert 'sustains 4 Hz replay, 1.50 objects/s out' in capsys.readouterr().out
+
+
+def test_rate_row_of_a_single_estimate_has_no_latency_percentiles(capsys):
+    """One estimate gave p50 = p95 = its latency, a spread from one sample; they are n/a
+    (NaN, null in bench.json) and the one latency stays the row's maximum."""
+    from beo_ros.bench import _print_summary, json_safe, markdown
+    from beo_ros.bench_node import _rate_row
+    probe = {'sent': {'1': 0.0, '2': 0.1, '3': 0.2}, 'got': {'1': 0.05}, 'wall_s': 0.2}
+    d = {'received': 3, 'processed': 1, 'dropped_stale': 2, 'rejected': 0, 'errors': 0}
+    row = _rate_row(10.0, probe, d, 0.05)
+    assert row['estimates'] == 1 and row['e2e_max_ms'] == pytest.approx(50.0)
+    assert math.isnan(row['e2e_p50_ms']) and math.isnan(row['e2e_p95_ms'])
+    two = _rate_row(10.0, dict(probe, got={'1': 0.05, '2': 0.17}), dict(d, processed=2), 0.05)
+    assert two['e2e_p50_ms'] == pytest.approx(60.0) and two['e2e_p95_ms'] == pytest.approx(69.0)
+    # the headline's are the row's (here the lowest rate's: none sustained)
+    node = json_safe(dict(_node_entry(None), rates=[row], e2e_p50_ms=row['e2e_p50_ms'],
+                          e2e_p95_ms=row['e2e_p95_ms']))
+    assert '| 10 | 3 | 1 | 0.00 | 2 | 0 | n/a | n/a |' in markdown({'node': node})
+    _print_summary({'node': node})
+    assert 'end-to-end p50 n/a ms, p95 n/a ms' in capsys.readouterr().out
+
+
+def test_scaling_note_says_what_each_curve_measures(shapes):
+    """The note said every point had the scaling queries (icp's training-object points have
+    half of them, one run each) and that beo's latency 'does not depend on the training set
+    size' (a class gets min(k, objects - 1) components: fewer objects, a faster model; and
+    the whole split's point is the beo peer's own bank)."""
+    import types
+
+    from beo_ros.bench import fit_class_bank, markdown, scaling
+    pytest.importorskip('open3d')
+    X, y, names, views = shapes
+    queries = [dict(grid=g, yaw=float(yaw), label=label, index=i)
+               for i, (g, yaw, label) in enumerate(views[:4])]
+    args = types.SimpleNamespace(scaling_queries=4, scaling_per_class=3, scaling_train=[6],
+                                 scaling_grids=[16], scaling_yaw_steps=[10.0],
+                                 scaling_classes=[2], k=2, repeats=1, icp_init_yaws=1, seed=0,
+                                 model=None)
+    bank = fit_class_bank(X, y, names, N, 2)
+    sc = scaling(args, X, y, names, N, np.arange(len(X)), queries, bank,
+                 np.random.default_rng(0))
+    note = sc['note']
+    assert 'does not depend' not in note
+    assert note.startswith('4 queries per point for beo (1 run each), the first 2 for icp (1 run)')
+    assert 'min(k=2, objects per class - 1) components' in note
+    assert "at the whole split the beo peer's bank" in note
+    assert f'({note})' in markdown({'scaling': sc})

@@ -152,3 +152,44 @@ def test_bad_neighbourhood_parameters_are_refused_by_name(kwargs, msg):
     # max_query no query points at all
     with pytest.raises(ValueError, match=msg):
         point_normals(box_front(), SENSOR, **kwargs)
+
+
+_BOX = box_front()[:200]
+_NON_NUMERIC = [lambda a: a.astype(str), lambda a: a.astype('S24'), lambda a: a.astype(object),
+                lambda a: a + 0j, lambda a: a > 0, lambda a: a.astype('timedelta64[s]')]
+_DTYPE = 'of real numbers, got dtype'
+
+
+@pytest.mark.parametrize('bad', _NON_NUMERIC)
+@pytest.mark.parametrize('which', ['points', 'up', 'sensor_origin'])
+def test_non_numeric_input_is_refused_by_name(bad, which):
+    # strings were parsed as numbers ('0.5' -> 0.5), complex numbers lost their imaginary
+    # part (a warning only), bools and timedeltas passed as numbers
+    args = {'points': _BOX, 'up': UP, 'sensor_origin': SENSOR}
+    args[which] = bad(args[which])
+    with pytest.raises(ValueError, match=f'^{which} must be .* {_DTYPE}'):
+        side_normal_descriptors(**args)
+    if which != 'up':
+        with pytest.raises(ValueError, match=f'^{which} must be .* {_DTYPE}'):
+            point_normals(args['points'], args['sensor_origin'])
+
+
+def test_non_numeric_normals_radius_and_ragged_points_are_refused_by_name():
+    from beo_ros.core.normals import descriptors_from_normals
+    normals = np.tile([1.0, 0.0, 0.0], (20, 1))
+    for bad in _NON_NUMERIC:
+        with pytest.raises(ValueError, match=f'^normals must be .* {_DTYPE}'):
+            descriptors_from_normals(bad(normals), UP)
+        with pytest.raises(ValueError, match=f'^up must be .* {_DTYPE}'):
+            descriptors_from_normals(normals, bad(UP))
+    # a dict failed in float() with a TypeError, None rows became NaN and were dropped
+    with pytest.raises(ValueError, match=f'^points must be .* {_DTYPE} object'):
+        side_normal_descriptors({'x': 1}, UP, SENSOR)
+    with pytest.raises(ValueError, match=f'^normals must be .* {_DTYPE} object'):
+        descriptors_from_normals(np.r_[normals, [[None, 0, 0]]], UP)
+    with pytest.raises(ValueError, match='^points must be an .*rows of different lengths'):
+        point_normals([[0.0, 0.0, 0.0], [1.0, 0.0]], SENSOR)
+    # a numpy complex radius passed isinstance(np.number) and the k-d tree dropped its
+    # imaginary part (a warning only)
+    with pytest.raises(ValueError, match='^radius must be a finite number > 0'):
+        point_normals(_BOX, SENSOR, radius=np.complex128(0.02))

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from beo_ros.core.bank import ModelBank
-from beo_ros.core.outliers import outside_largest_cluster, statistical_outliers
+from beo_ros.core.outliers import clean_points, outside_largest_cluster, statistical_outliers
 from beo_ros.core.synthetic import make_tiny_bank, render_view_points
 
 
@@ -259,3 +259,33 @@ def test_estimate_points_names_a_bad_sensor_origin_or_up(tiny, name, value):
     kw = {'sensor_origin': origin, name: value}
     with pytest.raises(ValueError, match=name + ' must be'):
         tiny.estimate_points(pts, **kw)
+
+
+_PATCH = np.random.default_rng(0).normal(size=(30, 3))
+
+
+@pytest.mark.parametrize('pts', [
+    _PATCH.astype(str), _PATCH.astype('S24'), _PATCH.astype(object),
+    np.array([[None, 1.0, 2.0]] * 20, dtype=object), _PATCH + 0j, _PATCH.astype(complex) + 1j,
+    _PATCH > 0, np.ones((20, 3), dtype='timedelta64[s]'),
+    np.full((20, 3), '2020-01-01', dtype='datetime64[D]'), {'x': 1}, [[0.0, 1.0, 2.0], [3.0]],
+])
+@pytest.mark.parametrize('clean', [
+    statistical_outliers, lambda p: outside_largest_cluster(p, 0.5), clean_points])
+def test_non_numeric_points_are_refused_by_name(pts, clean):
+    # strings were parsed as numbers ('1.5' -> 1.5), complex numbers lost their imaginary
+    # part (a warning only), a dict failed in float() with a TypeError, None became NaN (and
+    # the message named the shape (20, 3))
+    with pytest.raises(ValueError, match=r'^points must be a finite \(n, 3\) array( of real '
+                                         r'numbers, got dtype|, got rows of different lengths)'):
+        clean(pts)
+
+
+def test_complex_scalar_arguments_are_refused_by_name():
+    # numpy's complex 8+0j passed as mads 8.0 (float() drops the imaginary part, a warning only)
+    with pytest.raises(ValueError, match='^mads must be'):
+        statistical_outliers(_PATCH, mads=np.complex128(8.0))
+    with pytest.raises(ValueError, match='^tolerance must be'):
+        outside_largest_cluster(_PATCH, np.complex64(0.5))
+    with pytest.raises(ValueError, match='^outlier_mads must be'):
+        clean_points(_PATCH, outlier_mads=np.complex128(8.0))

@@ -36,16 +36,30 @@ MAX_QUERY = 2000       # normals are computed at most at this many points (evenl
 DESCRIPTOR_NAMES = ('r4', 'frac10')
 
 
+def _real_array(value, name, what):
+    """float64 array of ``value``; ValueError '``name`` must be ``what``...' unless it holds
+    real numbers (integers or floats)."""
+    try:
+        a = np.asarray(value)
+    except ValueError:   # rows of different lengths
+        raise ValueError(f'{name} must be {what}, got rows of different lengths') from None
+    # strings were parsed as numbers, complex numbers lost their imaginary part, objects
+    # failed in float() or became NaN, dates and bools passed as numbers
+    if a.dtype.kind not in 'iuf':
+        raise ValueError(f'{name} must be {what} of real numbers, got dtype {a.dtype}')
+    return a.astype(np.float64, copy=False)
+
+
 def _check(points, up, sensor_origin):
-    pts = np.asarray(points, dtype=np.float64)
+    pts = _real_array(points, 'points', 'an (n, 3) array')
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f'points must be an (n, 3) array, got shape {pts.shape}')
     if not np.isfinite(pts).all():
         raise ValueError('points contain NaN or Inf (drop the non-finite rows first)')
-    up = np.asarray(up, dtype=np.float64)
+    up = _real_array(up, 'up', 'a finite non-zero (3,) vector')
     if up.shape != (3,) or not np.isfinite(up).all() or np.abs(up).max() < 1e-9:
         raise ValueError(f'up must be a finite non-zero (3,) vector, got {up!r}')
-    origin = np.asarray(sensor_origin, dtype=np.float64)
+    origin = _real_array(sensor_origin, 'sensor_origin', 'a finite (3,) vector')
     if origin.shape != (3,) or not np.isfinite(origin).all():
         raise ValueError(f'sensor_origin must be a finite (3,) vector, got {origin!r}')
     return pts, unit_vector(up), origin
@@ -80,7 +94,9 @@ def point_normals(points, sensor_origin=(0.0, 0.0, 0.0), radius=RADIUS, max_nn=M
     pts, _, origin = _check(points, (0.0, 0.0, 1.0), sensor_origin)
     # else numpy's 'zero-size array to reduction operation' (max_nn 0), an int() error, or
     # normals from any distance (a negative radius)
-    if isinstance(radius, (bool, np.bool_)) or not isinstance(radius, (int, float, np.number)) \
+    # (not np.number: that takes a numpy complex, which fails in 'radius > 0')
+    if isinstance(radius, (bool, np.bool_)) \
+            or not isinstance(radius, (int, float, np.integer, np.floating)) \
             or not (np.isfinite(radius) and radius > 0):
         raise ValueError(f'radius must be a finite number > 0 (metres), got {radius!r}')
     for name, value in (('max_nn', max_nn), ('max_query', max_query)):
@@ -125,9 +141,9 @@ def point_normals(points, sensor_origin=(0.0, 0.0, 0.0), radius=RADIUS, max_nn=M
 def descriptors_from_normals(normals, up):
     """(r4, frac10, n_side) from (q, 3) normals (NaN rows ignored) and the up vector (3,);
     r4 and frac10 are NaN when fewer than ``MIN_SIDE`` normals are side normals."""
-    normals = np.asarray(normals, dtype=np.float64)
+    normals = _real_array(normals, 'normals', 'a (q, 3) array')
     normals = normals[np.isfinite(normals).all(axis=1)]
-    up, e1, e2 = horizontal_basis(up)
+    up, e1, e2 = horizontal_basis(_real_array(up, 'up', 'a finite non-zero (3,) vector'))
     side = np.abs(normals @ up) < SIDE_COS
     ns = int(side.sum())
     if ns < MIN_SIDE:
@@ -157,7 +173,8 @@ def side_normal_descriptors(points, up, sensor_origin=(0.0, 0.0, 0.0), max_query
 
     Returns float64 (2,) = (r4, frac10), both in [0, 1]; NaN for clouds too small to say
     anything (fewer than ``MIN_POINTS`` distinct points or ``MIN_SIDE`` side normals). Raises ValueError
-    for a malformed or non-finite input.
+    for a malformed, non-finite or non-numeric (strings, objects, complex numbers, bools, dates)
+    input.
     """
     pts, up, origin = _check(points, up, sensor_origin)
     # copies of a point would fill its neighbourhood (max_nn rows) with one place

@@ -21,11 +21,15 @@ MIN_SCALE = 0.1         # the scale is at least this fraction of the median (MAD
 
 def _positive(value, name) -> float:
     """``value`` as a positive finite float; ValueError naming ``name`` otherwise."""
-    try:
-        x = float(value) if np.ndim(value) == 0 else np.nan
-    except (TypeError, ValueError):
+    # a numpy complex scalar: float() would drop its imaginary part (with a warning only)
+    if isinstance(value, (bool, np.bool_, str, bytes, complex, np.complexfloating)):
         x = np.nan
-    if isinstance(value, (bool, np.bool_, str, bytes)) or not (np.isfinite(x) and x > 0):
+    else:
+        try:
+            x = float(value) if np.ndim(value) == 0 else np.nan
+        except (TypeError, ValueError):
+            x = np.nan
+    if not (np.isfinite(x) and x > 0):
         raise ValueError(f'{name} must be a positive finite number, got {value!r}')
     return x
 
@@ -39,8 +43,19 @@ def _count(value, name) -> int:
 
 
 def _points(points) -> np.ndarray:
-    """float64 (n, 3) finite ``points``; ValueError otherwise."""
-    pts = np.asarray(points, dtype=np.float64)
+    """float64 (n, 3) finite ``points`` of real numbers (integers or floats); ValueError
+    otherwise."""
+    try:
+        pts = np.asarray(points)
+    except ValueError:   # rows of different lengths
+        raise ValueError('points must be a finite (n, 3) array, got rows of different '
+                         'lengths') from None
+    # strings were parsed as numbers, complex numbers lost their imaginary part, objects
+    # failed in float() or became NaN, dates and bools passed as numbers
+    if pts.dtype.kind not in 'iuf':
+        raise ValueError(f'points must be a finite (n, 3) array of real numbers, got dtype '
+                         f'{pts.dtype}')
+    pts = pts.astype(np.float64, copy=False)
     if pts.ndim != 2 or pts.shape[1] != 3 or not np.isfinite(pts).all():
         raise ValueError(f'points must be a finite (n, 3) array, got shape {pts.shape}')
     return pts
@@ -61,8 +76,9 @@ def statistical_outliers(points, neighbors: int = OUTLIER_NEIGHBORS,
     stays. With ``neighbors`` or fewer points (with d > 0) nothing is an outlier. About 12 ms
     for 10 000 points (k-d tree, one thread), 0.24 s for 100 000, 5 s for a million.
 
-    Raises ValueError for points that are not a finite (n, 3) array, ``neighbors`` that is
-    not a positive integer or ``mads`` that is not a positive finite number.
+    Raises ValueError for points that are not a finite (n, 3) array of real numbers (strings,
+    objects, complex numbers, bools and dates are refused), ``neighbors`` that is not a
+    positive integer or ``mads`` that is not a positive finite number.
     """
     _count(neighbors, 'neighbors')
     cut = _positive(mads, 'mads')
@@ -90,8 +106,8 @@ def outside_largest_cluster(points, tolerance: float) -> np.ndarray:
     one sort of the cells and a k-d tree over the occupied cells (about 10 ms per 10 000
     points).
 
-    Raises ValueError for points that are not a finite (n, 3) array or a ``tolerance`` that is
-    not a positive finite number.
+    Raises ValueError for points that are not a finite (n, 3) array of real numbers or a
+    ``tolerance`` that is not a positive finite number.
     """
     tol = _positive(tolerance, 'tolerance')
     pts = _points(points)
