@@ -39,6 +39,9 @@ from .cli import json_safe, out_dir_problem, output_dir
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = 'modelnet10/modelnet10_vox32_train.npz'
+# highest --node-rates (Hz): the bench bag holds max rate x --node-duration clouds, so 1e6 Hz
+# meant millions of clouds on disk; depth sensors run at 30-90 Hz
+MAX_NODE_RATE_HZ = 1000.0
 
 
 # ---------------------------------------------------------------------- data
@@ -603,14 +606,27 @@ def _add_scaling_options(ap):
     ap.add_argument('--scaling-queries', type=count(1), default=6)
 
 
+def _node_rate(text):
+    """argparse ``type`` of --node-rates: a rate in (0, MAX_NODE_RATE_HZ] Hz."""
+    value = number(0, None, lo_open=True)(text)
+    if value > MAX_NODE_RATE_HZ:
+        raise argparse.ArgumentTypeError(
+            f'must be at most {MAX_NODE_RATE_HZ:g} Hz, got {text} (the bench bag holds rate x '
+            '--node-duration clouds)')
+    return value
+
+
+_node_rate.__name__ = 'number'   # argparse names the type in its messages
+
+
 def _add_node_options(ap):
     """The node benchmark: the bag, the replay rates and the node's own parameters."""
     ap.add_argument('--node-objects', type=count(1), default=20,
                     help='rendered clouds in the node bench bag (cycled)')
     ap.add_argument('--node-rounds', type=count(1), default=1,
                     help='closed-loop passes over the clouds (latency without queueing)')
-    ap.add_argument('--node-rates', type=number(0, None, lo_open=True), nargs='+',
-                    default=[10, 15, 20, 25, 30], help='open-loop bag replay rates (Hz)')
+    ap.add_argument('--node-rates', type=_node_rate, nargs='+', default=[10, 15, 20, 25, 30],
+                    help=f'open-loop bag replay rates (Hz), at most {MAX_NODE_RATE_HZ:g}')
     ap.add_argument('--node-duration', type=number(0, 3600, lo_open=True), default=8.0,
                     help='seconds of replay per rate')
     ap.add_argument('--node-max-drop', type=number(0, 1), default=0.05,

@@ -123,6 +123,23 @@ def test_writer_refuses_existing_and_type_clash(tmp_path):
     assert [m.data for _, m, _ in bag.read_messages(tmp_path / 'd')] == ['a', 'b']
 
 
+def test_a_single_topic_string_is_one_topic_name(ros_env_context, tmp_path):
+    """Before: read_bag matched a str ``topics`` by substring (``'/beo/input_raw'`` read
+    /beo/input too, ``'/'`` read every topic) and replay took its characters for topic
+    names; a single string is now one topic name."""
+    p = tmp_path / 'b'
+    with bag.BagWriter(p, 'sqlite3') as w:
+        for i, topic in enumerate(('/beo/input', '/beo/input_raw', '/a')):
+            w.write(topic, String(data=topic), 10 + i)
+    assert [t for t, *_ in bag.read_bag(p, '/beo/input_raw')] == ['/beo/input_raw']
+    assert [t for t, *_ in bag.read_bag(p, ['/beo/input_raw'])] == ['/beo/input_raw']
+    assert list(bag.read_bag(p, '/')) == []
+    assert [m.data for _, m, _ in bag.read_messages(p, '/a')] == ['/a']
+    node = rclpy.create_node('replayer', context=ros_env_context)
+    stats = bag.replay(p, node, topics='/a', rate=0, qos='best_effort')
+    assert stats.messages == 1 and set(stats.topics) == {'/a'}
+
+
 def test_msgtype_names():
     assert bag.normalize_msgtype('sensor_msgs/PointCloud2') == 'sensor_msgs/msg/PointCloud2'
     assert bag.normalize_msgtype('std_msgs.msg.String') == 'std_msgs/msg/String'

@@ -1330,6 +1330,19 @@ def test_top_yaw_modes_separates_by_angle():
         top_modes(ll, 3, 20)
 
 
+def test_top_yaw_modes_refuses_no_modes():
+    # n_modes=0 never met the "enough modes" check and returned every separated mode
+    from beo_ros.core.inference import top_modes, top_yaw_modes
+    yaws = np.deg2rad([0, 90, 180])
+    scores = np.array([3.0, 2.0, 1.0])
+    for bad in (0, -1, True, 1.5):
+        with pytest.raises(ValueError, match='n_modes'):
+            top_yaw_modes(yaws, scores, bad)
+    with pytest.raises(ValueError, match='n_modes'):
+        top_modes(np.arange(36.0) % 7, 0, 2)
+    assert top_yaw_modes(yaws, scores, np.int64(1)) == [0]
+
+
 def test_top_modes_are_local_maxima():
     # a second mode 20 steps down the slope of the best one is no mode: the hypotheses listed
     # such yaws (a neighbour scoring higher) for 17 of 60 secondary modes on ModelNet views

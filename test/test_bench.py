@@ -391,6 +391,17 @@ def test_bench_node_rates_must_be_positive(rates, capsys):
     assert 'must be in (0, inf)' in err or 'must be a finite number' in err
 
 
+@pytest.mark.parametrize('rates', [['1e6'], ['10', '1000.5']])
+def test_bench_node_rates_are_bounded(rates, capsys):
+    # 1e6 Hz was taken: the bench bag holds rate x --node-duration clouds (8 million)
+    from beo_ros.bench import parse_args
+    with pytest.raises(SystemExit):
+        parse_args(['--node-rates', *rates])
+    assert f'argument --node-rates: must be at most 1000 Hz, got {rates[-1]}' in \
+        capsys.readouterr().err
+    assert parse_args(['--node-rates', '5', '1000']).node_rates == [5.0, 1000.0]
+
+
 def test_a_failing_node_phase_keeps_the_other_results(tmp_path, monkeypatch):
     import beo_ros.bench as bench
 

@@ -1,5 +1,6 @@
 """PCD reader/writer: round trips, LZF codec, malformed files, real OSD scans."""
 import os
+import re
 import struct
 from pathlib import Path
 
@@ -117,6 +118,26 @@ def test_malformed_files(tmp_path, content, match):
         read_pcd(path)
     # every message names the file (the LZF codec's did not: 'LZF: literal run past end ...')
     assert str(e.value).startswith(f'{path}: ')
+
+
+@pytest.mark.parametrize('data', ['ascii', 'binary', 'binary_compressed'])
+def test_data_after_the_points_is_refused_in_every_kind(tmp_path, data):
+    """Before: a line after the ascii points was refused but bytes after binary points
+    (POINTS too small, or a file appended) were read past without a word. Now every kind
+    refuses them, saying how much trails; padding (blank lines, zero bytes such as PCL's
+    binary_compressed writers leave, a line end) is still read past."""
+    path = tmp_path / 'a.pcd'
+    pts = np.arange(6, dtype=np.float32).reshape(2, 3)
+    write_pcd(path, {'x': pts[:, 0], 'y': pts[:, 1], 'z': pts[:, 2]}, data=data)
+    good = path.read_bytes()
+    for pad in ((b'\n\n', b'  \n') if data == 'ascii' else (b'\x00' * 3889, b'\n')):
+        path.write_bytes(good + pad)
+        np.testing.assert_array_equal(read_pcd(path).xyz(), pts)
+    extra = b'6 7 8\n9 10 11\n' if data == 'ascii' else np.ones(6, '<f4').tobytes()
+    path.write_bytes(good + extra)
+    what = '2 ascii data line(s)' if data == 'ascii' else '24 bytes of binary data'
+    with pytest.raises(PCDError, match=re.escape(f'{path}: {what} after the 2 points')):
+        read_pcd(path)
 
 
 def test_header_comments_do_not_count_and_may_hold_any_bytes(tmp_path):

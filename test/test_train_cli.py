@@ -207,7 +207,8 @@ def test_objects_without_occupied_voxels_are_dropped_with_a_warning(tmp_path, ca
     (['--grid', '0'], '--grid: must be in [4, 256]'),
     (['--grid', '-4'], '--grid: must be in [4, 256]'),
     (['--grid', '7'], 'even integer'),
-    (['--grid', '12', '--verifier-views', '1'], 'multiple of 8'),
+    (['--grid', '12', '--verifier-views', '1'], 'multiple of 8, got 12; train without an '
+                                                'orientation verifier (--verifier-views 0'),
     (['--max-iter', '0'], '--max-iter: must be in [1, inf)'),
     (['--max-iter', '5'], '--max-iter is for --scans --mirror only'),
     (['--voxel-size', '-5'], '--voxel-size: must be in (0, inf)'),
@@ -516,7 +517,9 @@ def test_oof_out_is_written_under_the_name_given(tmp_path):
 
 @pytest.mark.parametrize('extra, message', [
     (['--row-standardize', 'on'], 'row_standardize needs at least 3 classes'),
-    (['--grid12'], 'a grid of a multiple of 8 (got 12)'),   # the verifier, on a 12^3 npz
+    # the verifier (on by default), on a 12^3 npz; the way out named
+    (['--grid12'], 'a grid of a multiple of 8 (got 12); train without an orientation verifier '
+                   '(--verifier-views 0'),
 ])
 def test_fit_options_checked_before_congealing(tmp_path, capsys, monkeypatch, extra, message):
     # fit_bank's checks ran after the congealing (minutes on ModelNet)

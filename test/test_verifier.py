@@ -8,7 +8,7 @@ import pytest
 from beo_ros.core.bank import ModelBank, ModelError
 from beo_ros.core.grid import GridSpec, rotate_grid, yaw_error
 from beo_ros.core.synthetic import random_partial_view
-from beo_ros.core.training import fit_bank, verifier_training_set
+from beo_ros.core.training import check_grid_size, fit_bank, verifier_training_set
 from beo_ros.core.verifier import (OrientationVerifier, check_arrays, quarter_turned_features,
                                    turned_features, verifier_features)
 from _shapes import N, asymmetric_shapes
@@ -36,6 +36,9 @@ def test_features_are_pooled_label_fractions():
     for bad in (np.zeros((12, 12, 12)), np.zeros((16, 16, 8)), np.zeros((16, 16))):
         with pytest.raises(ValueError, match='multiple of 8'):
             verifier_features(bad)
+    # a grid size the verifier cannot pool: the error names the way out, training without one
+    with pytest.raises(ValueError, match=r'without an orientation verifier \(--verifier-views 0'):
+        verifier_features(np.zeros((12, 12, 12)))
 
 
 @pytest.fixture(scope='module')
@@ -261,5 +264,7 @@ def test_fit_bank_fits_a_verifier_when_asked():
     for bad, msg in ((-1, 'verifier_views'), (1.5, 'verifier_views')):
         with pytest.raises(ValueError, match=msg):
             fit_bank(X, y, ['ell', 'step'], GridSpec(size=N), k=3, verifier_views=bad)
-    with pytest.raises(ValueError, match='multiple of 8'):
+    with pytest.raises(ValueError, match=r'multiple of 8 \(got 12\).*--verifier-views 0'):
         fit_bank(X[:, :12 ** 3], y, ['ell', 'step'], GridSpec(size=12), k=3, verifier_views=1)
+    with pytest.raises(ValueError, match=r'multiple of 8, got 12.*--verifier-views 0'):
+        check_grid_size(12, verifier=True)

@@ -574,7 +574,11 @@ def observed_edt(grid):
 def top_yaw_modes(yaws, scores, n_modes, min_sep_deg=20.0):
     """Indices of the ``n_modes`` best ``scores`` (Y,) whose ``yaws`` (Y,) radians are at least
     ``min_sep_deg`` apart on the circle, best first (any set of yaws, e.g. the windows of a
-    coarse-to-fine search, not only a regular grid)."""
+    coarse-to-fine search, not only a regular grid). ValueError unless ``n_modes`` is an
+    integer >= 1 (0 used to return every separated mode)."""
+    if isinstance(n_modes, (bool, np.bool_)) or not isinstance(n_modes, (int, np.integer)) \
+            or n_modes < 1:
+        raise ValueError(f'n_modes must be an integer >= 1, got {n_modes!r}')
     yaws = np.asarray(yaws, dtype=np.float64)
     sep = np.deg2rad(min_sep_deg) - 1e-9
     alive = np.ones(len(yaws), dtype=bool)

@@ -3,7 +3,10 @@
 Supports ``DATA ascii``, ``binary`` and ``binary_compressed`` (LZF, decoded in pure Python) for
 any field layout (TYPE I/U/F, SIZE 1/2/4/8, COUNT >= 1). Organized clouds keep their
 ``width``/``height``; arrays are flat in row-major order (index = row * width + col). Padding
-fields named ``_`` (PCL's, possibly several) are read past but not returned.
+fields named ``_`` (PCL's, possibly several) are read past but not returned. Data after the
+points the header describes is refused in every kind (a wrong POINTS/WIDTH/HEIGHT would drop
+points without a word), except padding: blank lines after ascii data, zero bytes and ASCII
+whitespace after binary data (PCL's binary_compressed writers leave zero bytes there).
 
 Packed colours (``rgb``/``rgba``, SIZE 4) keep their 32 bits whatever the TYPE. In ascii files
 typed ``F`` they are read as float text ("4.2108e+06", the float whose bits are the colour) or,
@@ -283,6 +286,17 @@ def _ascii_packed_colour(cells) -> np.ndarray | None:
     return out
 
 
+def _refuse_trailing(path, n, what):
+    raise PCDError(f'{path}: {what} after the {n} points the header describes (POINTS, WIDTH '
+                   'or HEIGHT wrong, or another file appended?)')
+
+
+def _check_binary_tail(path, n, tail: bytes):
+    """PCDError for bytes after the binary points other than padding (zero bytes, whitespace)."""
+    if tail.strip(b'\0 \t\r\n'):
+        _refuse_trailing(path, n, f'{len(tail)} bytes of binary data')
+
+
 def read_pcd(path) -> PCDData:
     """Read a PCD file (ascii, binary or binary_compressed). Raises :class:`PCDError`."""
     path = os.fspath(path)
@@ -298,6 +312,8 @@ def read_pcd(path) -> PCDData:
     if kind == 'ascii':
         lines = [ln for ln in body.decode('ascii', errors='replace').splitlines() if ln.strip()]
         ncol = sum(counts)
+        if len(lines) > n:
+            _refuse_trailing(path, n, f'{len(lines) - n} ascii data line(s)')
         if len(lines) != n:
             raise PCDError(f'{path}: {len(lines)} ascii data lines, expected {n}')
         try:   # text cells: integer fields are parsed exactly, not through float64
@@ -326,6 +342,7 @@ def read_pcd(path) -> PCDData:
         need = rec.itemsize * n
         if len(body) < need:
             raise PCDError(f'{path}: binary data has {len(body)} bytes, expected {need}')
+        _check_binary_tail(path, n, body[need:])
         arr = np.frombuffer(body, dtype=rec, count=n)
         for i, (name, c) in enumerate(zip(names, counts)):
             if name != PADDING:
@@ -339,6 +356,7 @@ def read_pcd(path) -> PCDData:
             raise PCDError(f'{path}: uncompressed size {usize} != {need} expected from the header')
         if len(body) - 8 < csize:
             raise PCDError(f'{path}: compressed data truncated ({len(body) - 8} < {csize} bytes)')
+        _check_binary_tail(path, n, body[8 + csize:])
         try:
             raw = lzf_decompress(body[8:8 + csize], usize) if usize else b''
         except PCDError as e:   # the codec does not know the file: name it like the others

@@ -27,7 +27,7 @@ from .grid import yaw_error
 from .model_files import _settings_reason, check_class_names
 from .shape import shape_descriptors
 from .synthetic import random_partial_view
-from .verifier import TURNS, OrientationVerifier, turned_features
+from .verifier import NO_VERIFIER_HINT, TURNS, OrientationVerifier, turned_features
 from .vbpca import VBPCA
 
 __all__ = [
@@ -342,7 +342,7 @@ def check_grid_size(n, verifier=False):
                          f'search pools 2x2x2 voxels), got {n!r}')
     if verifier and n % 8:
         raise ValueError(f'the orientation verifier needs a grid size that is a multiple of 8, '
-                         f'got {n}')
+                         f'got {n}{NO_VERIFIER_HINT}')
 
 
 def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_views=1,
@@ -470,7 +470,8 @@ def _check_fit_options(names, spec, k, masks, classifier_views, folds, C, row_st
         raise ValueError(f'the out-of-fold classifier features need folds >= 2, got {folds!r}')
     if verifier_views and (masks is not None or spec.size % 8):
         raise ValueError('the orientation verifier needs whole objects in their canonical pose '
-                         f'(no masks) on a grid of a multiple of 8 (got {spec.size})')
+                         f'(no masks) on a grid of a multiple of 8 (got {spec.size})'
+                         + (NO_VERIFIER_HINT if spec.size % 8 else ''))
     if calibration_views == 'auto':
         calibration_views = int(classifier_views > 0 and masks is None and grids is None)
     if isinstance(calibration_views, (bool, np.bool_)) or not (

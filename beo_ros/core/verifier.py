@@ -28,6 +28,9 @@ N_FEATURES = 3 * CELLS
 # verifier fitted without fold 0) and checked on 794 others; 300 .. 10000 all gave +2.7 to
 # +3.4 points of yaw within 10°, 1000 the most on both
 DEFAULT_WEIGHT = 1000.0
+# the way out for a grid size the verifier cannot pool to 8^3 (the rest of the model can)
+NO_VERIFIER_HINT = ('; train without an orientation verifier (--verifier-views 0, '
+                    'verifier_views=0) for this grid size')
 ARRAY_KEYS = ('feature', 'threshold', 'left', 'right', 'is_leaf', 'value', 'roots',
               'baseline', 'depth', 'classes', 'weight', 'grid_size')
 
@@ -39,7 +42,8 @@ def verifier_features(canonical):
     n = g.shape[0]
     if g.ndim != 3 or len(set(g.shape)) != 1 or n % 8:
         raise ValueError(f'verifier features need an (N, N, N) grid with N a multiple of 8, '
-                         f'got shape {g.shape}')
+                         f'got shape {g.shape}'
+                         + (NO_VERIFIER_HINT if g.ndim == 3 and len(set(g.shape)) == 1 else ''))
     f = n // 8
     # one pass: every voxel counts in bin (channel, pooled cell); channel 0 occupied, 1 free,
     # 2 unknown (labels 1, 0, -1)

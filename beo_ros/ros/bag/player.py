@@ -12,7 +12,7 @@ from pathlib import Path
 from beo_ros.ros.bag.msgtypes import (CLOUD_TYPE, check_topic_name, import_msg_class,
                                       normalize_msgtype)
 from beo_ros.ros.bag.scenes import MAX_NS
-from beo_ros.ros.bag.storage import (_check_readable, _open_reader, cdr_payload,
+from beo_ros.ros.bag.storage import (_check_readable, _open_reader, _topic_set, cdr_payload,
                                      detect_storage, recorded_latched, storage_errors)
 
 
@@ -256,7 +256,7 @@ def _replay_connections(reader, bag_path, topics, all_topics: bool, remap: dict)
     (``all_topics``) or the PointCloud2 ones. ``KeyError`` for a topic in ``topics`` or a
     remapped topic that is not in the bag."""
     if topics:
-        wanted = set(topics)
+        wanted = _topic_set(topics)
         missing = wanted - {c.topic for c in reader.connections}
         if missing:
             raise KeyError(f'topics not in bag {bag_path}: {sorted(missing)}')
@@ -423,9 +423,10 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
         bag_path: rosbag2 directory (sqlite3 or mcap) or a single ``.db3``/``.mcap`` file.
         node: an rclpy Node; it need not be spun (publishing does not need an executor). Its
             publishers are created on first use and reused by later replays with that node.
-        topics: bag topics to play (any type; ``KeyError`` if one's type is not installed);
-            default: every PointCloud2 topic, or every topic with ``all_topics`` (topics of
-            types not installed are then skipped, listed in ``stats.skipped``).
+        topics: bag topics to play, one name or several (any type; ``KeyError`` if one's
+            type is not installed); default: every PointCloud2 topic, or every topic with
+            ``all_topics`` (topics of types not installed are then skipped, listed in
+            ``stats.skipped``).
         remap: ``{bag_topic: published_topic}`` or a list of ``'OLD:=NEW'`` strings.
         rate: timing factor: a message is sent at ``t0 + (stamp - first_stamp) / rate``; ``0``
             publishes as fast as possible.

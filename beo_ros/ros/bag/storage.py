@@ -303,9 +303,20 @@ def _open_reader(bag_path):
         yield reader
 
 
+def _topic_set(topics):
+    """``topics`` (None, one topic name, or an iterable of names) as a set of names, or None
+    (every topic). A single string is one name: ``c.topic in '/beo/input'`` matched by
+    substring (``/beo`` too), and ``set('/a')`` is its characters."""
+    if topics is None:
+        return None
+    return {topics} if isinstance(topics, str) else set(topics)
+
+
 def read_bag(bag_path, topics=None):
-    """Yield ``(topic, msgtype, timestamp_ns, raw_cdr_bytes)`` in timestamp order. ValueError
-    for a .db3 left in the middle of a write (see :func:`hot_journal`)."""
+    """Yield ``(topic, msgtype, timestamp_ns, raw_cdr_bytes)`` in timestamp order, of every
+    topic or of ``topics`` (one topic name or several). ValueError for a .db3 left in the
+    middle of a write (see :func:`hot_journal`)."""
+    topics = _topic_set(topics)
     _check_readable(bag_path)
     with _open_reader(bag_path) as reader:
         conns = [c for c in reader.connections if topics is None or c.topic in topics]
