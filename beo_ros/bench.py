@@ -42,6 +42,9 @@ DEFAULT_DATA = 'modelnet10/modelnet10_vox32_train.npz'
 # highest --node-rates (Hz): the bench bag holds max rate x --node-duration clouds, so 1e6 Hz
 # meant millions of clouds on disk; depth sensors run at 30-90 Hz
 MAX_NODE_RATE_HZ = 1000.0
+# highest max(--node-rates) x --node-duration: the clouds written into the bench bag (1000 Hz
+# for 3600 s would still be 3.6 million)
+MAX_NODE_MESSAGES = 20000
 
 
 # ---------------------------------------------------------------------- data
@@ -539,6 +542,10 @@ def parse_args(argv):
         ap.error('not used in this run (' + ', '.join(
             f"--{s.replace('_', '-')}" for s in switches) + '): '
             + ', '.join(f"--{n.replace('_', '-')}" for _, n in unused))
+    if not args.no_node and max(args.node_rates) * args.node_duration > MAX_NODE_MESSAGES:
+        ap.error(f'--node-rates x --node-duration: the highest rate for {args.node_duration:g} s '
+                 f'is {max(args.node_rates) * args.node_duration:.0f} clouds in the bench bag, '
+                 f'at most {MAX_NODE_MESSAGES} (a shorter --node-duration or a lower rate)')
     from beo_ros.core.training import check_grid_size
     for n in args.scaling_grids:   # the scaling phase fits class models at each size
         try:

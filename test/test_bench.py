@@ -402,6 +402,22 @@ def test_bench_node_rates_are_bounded(rates, capsys):
     assert parse_args(['--node-rates', '5', '1000']).node_rates == [5.0, 1000.0]
 
 
+def test_bench_node_bag_size_is_bounded(capsys):
+    # 1000 Hz for 3600 s passed each option's own bound: 3.6 million clouds in the bench bag
+    from beo_ros.bench import MAX_NODE_MESSAGES, parse_args
+    with pytest.raises(SystemExit):
+        parse_args(['--node-rates', '10', '1000', '--node-duration', '3600'])
+    err = capsys.readouterr().err
+    assert '--node-rates x --node-duration' in err and '3600000 clouds' in err
+    assert f'at most {MAX_NODE_MESSAGES}' in err
+    args = parse_args(['--node-rates', '1000', '--node-duration', str(MAX_NODE_MESSAGES / 1000)])
+    assert args.node_rates == [1000.0]
+    # without the node phase the options are not used (refused as such, not by the bound)
+    with pytest.raises(SystemExit):
+        parse_args(['--no-node', '--node-duration', '3600'])
+    assert 'not used in this run' in capsys.readouterr().err
+
+
 def test_a_failing_node_phase_keeps_the_other_results(tmp_path, monkeypatch):
     import beo_ros.bench as bench
 
