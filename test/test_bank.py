@@ -97,6 +97,19 @@ def test_save_writes_numpy_scalars_of_the_training_settings(tiny, tmp_path):
     assert not (tmp_path / 'n').exists()
 
 
+@pytest.mark.parametrize('name', ['a' * 255, 'a' + '\u00fc' * 127])
+def test_save_under_a_name_of_the_longest_length_the_file_system_takes(tmp_path, name):
+    # was OSError 'File name too long': the temporary directories beside the target were
+    # named '.<name>.tmp-<random>' and '.<name>.old-<random>' (255 bytes, 'ü' 2 of them: the
+    # cut is inside one)
+    bank = make_tiny_bank(n=8, k=2)
+    assert len(name.encode()) <= 255
+    path = bank.save(tmp_path / name)
+    assert bank.save(path) == tmp_path / name   # replacing a model: the second rename too
+    assert ModelBank.load(path).classes == bank.classes
+    assert sorted(p.name for p in tmp_path.iterdir()) == [name]
+
+
 @pytest.mark.parametrize('which', [0, 1])
 def test_estimate_contract(tiny, which):
     grid = views()[which]

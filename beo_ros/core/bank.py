@@ -236,13 +236,14 @@ class ModelBank:
             path = path.resolve()
         check_save_target(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = _new_directory(path.parent, f'.{path.name}.tmp-')
+        tmp = _new_directory(path.parent, _sibling_prefix(path, 'tmp'))
         try:
             self._write(tmp)
             if path.is_dir():
                 # two renames: a reader sees the old model or the new one, never a mix (for
                 # the instant between them, no directory)
-                old = Path(tempfile.mkdtemp(prefix=f'.{path.name}.old-', dir=path.parent))
+                old = Path(tempfile.mkdtemp(prefix=_sibling_prefix(path, 'old'),
+                                            dir=path.parent))
                 try:
                     os.replace(path, old)   # onto the empty directory mkdtemp made
                     try:
@@ -836,6 +837,23 @@ def _json_value(value):
     if isinstance(value, (np.generic, np.ndarray)):
         return value.tolist()
     raise TypeError(f'the manifest cannot hold {type(value).__name__} {value!r} (JSON)')
+
+
+# random characters that _new_directory (12) and mkdtemp (8) append to a prefix
+_RANDOM_CHARS = 12
+
+
+def _sibling_prefix(path: Path, kind: str) -> str:
+    """The name prefix ``.<name>.<kind>-`` of the temporary directories ``ModelBank.save``
+    makes beside directory ``path``, with ``<name>`` (the name of ``path``) cut short so that
+    the prefix and its random characters fit the file system's limit on a name (255 bytes
+    usually): a target name near the limit failed with 'File name too long'."""
+    try:
+        limit = os.pathconf(path.parent, 'PC_NAME_MAX')
+    except (OSError, ValueError):   # no such parent yet, or no limit known
+        limit = 255
+    name = os.fsencode(path.name)[:max(limit - len(f'..{kind}-') - _RANDOM_CHARS, 1)]
+    return f'.{os.fsdecode(name)}.{kind}-'   # a cut UTF-8 character: surrogate escapes
 
 
 def _new_directory(parent: Path, prefix: str) -> Path:
