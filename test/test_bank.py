@@ -2427,6 +2427,26 @@ def test_parse_class_prior_reads_a_class_name_with_an_equals_sign():
         parse_class_prior('w=1=1,cup=x')
 
 
+def test_parse_class_prior_reads_class_names_with_a_comma_in_double_quotes():
+    # a legal class name (it names a file); the text split at every comma: 'a' had no weight
+    from beo_ros.core.bank import format_class_prior, parse_class_prior
+    assert parse_class_prior('"chair, office"=0.3, table=0.7') == {'chair, office': 0.3,
+                                                                    'table': 0.7}
+    assert parse_class_prior(r' "a\"b,c" = 1 ,"\\"=2') == {'a"b,c': 1.0, '\\': 2.0}
+    # unquoted text reads as before, '"' in a name included
+    assert parse_class_prior('x"y=1,"z=2,w=1=3,"q"=1=4') == {'x"y': 1.0, '"z': 2.0,
+                                                              'w=1': 3.0, '"q"=1': 4.0}
+    for bad in ('chair, office=0.3,table=0.7', '"a,b=1', '""=1', '"a,b"=1=2'):
+        with pytest.raises(ValueError, match='each class once'):
+            parse_class_prior(bad)
+    with pytest.raises(ValueError, match="weight of 'a,b' is not a number: 'x'"):
+        parse_class_prior('"a,b"=x')
+    classes = ['chair, office', '"quoted"', 'w=1', 'table']
+    text = format_class_prior(classes, [0.125, 0.25, 0.5, 0.125])
+    assert text == '"chair, office"=0.125,"\\"quoted\\""=0.25,w=1=0.5,table=0.125'
+    assert parse_class_prior(text) == dict(zip(classes, [0.125, 0.25, 0.5, 0.125]))
+
+
 def test_save_gives_the_directory_the_umask_permissions_without_touching_the_umask(
         tmp_path, monkeypatch):
     """The model directory gets the permissions of the umask (not mkdtemp's 0o700), without

@@ -22,7 +22,8 @@ from .classifier import (CLASS_PRIORS, HIDDEN_CLASSIFIER_KEYS, MODES, OPTIONAL_C
                          POINT_CLASSIFIER_KEYS, POINTS_MODE, _softmax, apply_point_classifier,
                          check_classifier_arrays, check_grid_classifier, check_point_classifier,
                          classifier_input, classifier_probabilities, descriptor_count,
-                         parse_class_prior, prior_offset, resolve_class_prior, uses_descriptors)
+                         format_class_prior, parse_class_prior, prior_offset,
+                         resolve_class_prior, uses_descriptors)
 from .estimate import UNKNOWN_LABEL, Estimate, Hypothesis
 from .grid import (GridSpec, _real, symmetric_turns, unit_vector, wrap_yaw as _wrap, yaw_error,
                    yaw_grid, yaw_matrix)
@@ -48,7 +49,7 @@ __all__ = [
     'CLASS_PRIORS', 'HIDDEN_CLASSIFIER_KEYS', 'MODES', 'OPTIONAL_CLASSIFIER_KEYS',
     'POINT_CLASSIFIER_KEYS', 'POINTS_MODE', 'apply_point_classifier', 'check_classifier_arrays',
     'check_grid_classifier', 'check_point_classifier', 'classifier_input',
-    'classifier_probabilities', 'descriptor_count',
+    'classifier_probabilities', 'descriptor_count', 'format_class_prior',
     'parse_class_prior', 'prior_offset', 'resolve_class_prior', 'uses_descriptors',
     # model_files
     'CLASS_KEYS', 'FORMAT', 'OPTIONAL_CLASS_KEYS', 'OPTIONAL_FILES', 'UNREADABLE', 'VERSION',
