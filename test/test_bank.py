@@ -1085,6 +1085,53 @@ def test_load_that_finds_no_directory_between_the_renames_of_a_save_reads_it_aga
     assert len(calls) == 3
 
 
+def test_load_that_begins_between_the_renames_of_a_save_waits_for_it(tmp_path, monkeypatch):
+    # was 'model directory ... does not exist': the directory was already gone when the load
+    # began, and gone still when it looked again; now it waits in steps while the save's
+    # temporary directories are beside it (here: each step lets the save end)
+    import threading
+    import beo_ros.core.bank as bank_mod
+    old, new, path = _pair(tmp_path)
+    gap, go, sleeps = threading.Event(), threading.Event(), []
+    replace = os.replace
+
+    def paused_replace(src, dst):
+        replace(src, dst)
+        if Path(src) == path:   # the first rename: the old model is moved away
+            gap.set()
+            go.wait(60)
+    monkeypatch.setattr(bank_mod.os, 'replace', paused_replace)
+    saving = threading.Thread(target=new.save, args=(path,))
+    saving.start()
+    try:
+        assert gap.wait(60)
+
+        def sleep(seconds):
+            sleeps.append(seconds)
+            go.set()
+            saving.join(60)
+        monkeypatch.setattr(bank_mod.time, 'sleep', sleep)
+        assert ModelBank.load(path).training == {'which': 'new'}
+    finally:
+        go.set()
+        saving.join(60)
+    assert sleeps == [bank_mod.SAVE_WAIT_STEP_S]
+
+
+def test_load_waits_a_bounded_time_for_a_save_in_progress(tmp_path, monkeypatch):
+    import beo_ros.core.bank as bank_mod
+    sleeps = []
+    monkeypatch.setattr(bank_mod.time, 'sleep', sleeps.append)
+    (tmp_path / '.m.tmp-0123456789ab').mkdir()   # a save writing (or one that was killed)
+    with pytest.raises(ModelError, match=r'm does not exist \(a save into .*m was in progress '
+                                         r'for 1 s\)'):
+        ModelBank.load(tmp_path / 'm')
+    assert sleeps == [bank_mod.SAVE_WAIT_STEP_S] * bank_mod.SAVE_WAIT_STEPS
+    with pytest.raises(ModelError, match='n does not exist$'):   # no save of it: no wait
+        ModelBank.load(tmp_path / 'n')
+    assert len(sleeps) == bank_mod.SAVE_WAIT_STEPS
+
+
 def test_load_of_a_directory_saved_over_and_over_says_so(tmp_path, monkeypatch):
     from beo_ros.core.bank import LOAD_ATTEMPTS
     old, new, path = _pair(tmp_path)
