@@ -97,6 +97,19 @@ def test_save_writes_numpy_scalars_of_the_training_settings(tiny, tmp_path):
     assert not (tmp_path / 'n').exists()
 
 
+@pytest.mark.parametrize('name', ['a' * 255, 'a' + '\u00fc' * 127])
+def test_save_under_a_name_of_the_longest_length_the_file_system_takes(tmp_path, name):
+    # was OSError 'File name too long': the temporary directories beside the target were
+    # named '.<name>.tmp-<random>' and '.<name>.old-<random>' (255 bytes, 'ü' 2 of them: the
+    # cut is inside one)
+    bank = make_tiny_bank(n=8, k=2)
+    assert len(name.encode()) <= 255
+    path = bank.save(tmp_path / name)
+    assert bank.save(path) == tmp_path / name   # replacing a model: the second rename too
+    assert ModelBank.load(path).classes == bank.classes
+    assert sorted(p.name for p in tmp_path.iterdir()) == [name]
+
+
 @pytest.mark.parametrize('which', [0, 1])
 def test_estimate_contract(tiny, which):
     grid = views()[which]
@@ -1070,6 +1083,53 @@ def test_load_that_finds_no_directory_between_the_renames_of_a_save_reads_it_aga
     with pytest.raises(ModelError, match='does not exist'):   # no directory: no retry
         ModelBank.load(tmp_path / 'none')
     assert len(calls) == 3
+
+
+def test_load_that_begins_between_the_renames_of_a_save_waits_for_it(tmp_path, monkeypatch):
+    # was 'model directory ... does not exist': the directory was already gone when the load
+    # began, and gone still when it looked again; now it waits in steps while the save's
+    # temporary directories are beside it (here: each step lets the save end)
+    import threading
+    import beo_ros.core.bank as bank_mod
+    old, new, path = _pair(tmp_path)
+    gap, go, sleeps = threading.Event(), threading.Event(), []
+    replace = os.replace
+
+    def paused_replace(src, dst):
+        replace(src, dst)
+        if Path(src) == path:   # the first rename: the old model is moved away
+            gap.set()
+            go.wait(60)
+    monkeypatch.setattr(bank_mod.os, 'replace', paused_replace)
+    saving = threading.Thread(target=new.save, args=(path,))
+    saving.start()
+    try:
+        assert gap.wait(60)
+
+        def sleep(seconds):
+            sleeps.append(seconds)
+            go.set()
+            saving.join(60)
+        monkeypatch.setattr(bank_mod.time, 'sleep', sleep)
+        assert ModelBank.load(path).training == {'which': 'new'}
+    finally:
+        go.set()
+        saving.join(60)
+    assert sleeps == [bank_mod.SAVE_WAIT_STEP_S]
+
+
+def test_load_waits_a_bounded_time_for_a_save_in_progress(tmp_path, monkeypatch):
+    import beo_ros.core.bank as bank_mod
+    sleeps = []
+    monkeypatch.setattr(bank_mod.time, 'sleep', sleeps.append)
+    (tmp_path / '.m.tmp-0123456789ab').mkdir()   # a save writing (or one that was killed)
+    with pytest.raises(ModelError, match=r'm does not exist \(a save into .*m was in progress '
+                                         r'for 1 s\)'):
+        ModelBank.load(tmp_path / 'm')
+    assert sleeps == [bank_mod.SAVE_WAIT_STEP_S] * bank_mod.SAVE_WAIT_STEPS
+    with pytest.raises(ModelError, match='n does not exist$'):   # no save of it: no wait
+        ModelBank.load(tmp_path / 'n')
+    assert len(sleeps) == bank_mod.SAVE_WAIT_STEPS
 
 
 def test_load_of_a_directory_saved_over_and_over_says_so(tmp_path, monkeypatch):
@@ -2425,6 +2485,26 @@ def test_parse_class_prior_reads_a_class_name_with_an_equals_sign():
                                                    ['w=1', 'cup']), [0.25, 0.75])
     with pytest.raises(ValueError, match="weight of 'cup' is not a number"):
         parse_class_prior('w=1=1,cup=x')
+
+
+def test_parse_class_prior_reads_class_names_with_a_comma_in_double_quotes():
+    # a legal class name (it names a file); the text split at every comma: 'a' had no weight
+    from beo_ros.core.bank import format_class_prior, parse_class_prior
+    assert parse_class_prior('"chair, office"=0.3, table=0.7') == {'chair, office': 0.3,
+                                                                    'table': 0.7}
+    assert parse_class_prior(r' "a\"b,c" = 1 ,"\\"=2') == {'a"b,c': 1.0, '\\': 2.0}
+    # unquoted text reads as before, '"' in a name included
+    assert parse_class_prior('x"y=1,"z=2,w=1=3,"q"=1=4') == {'x"y': 1.0, '"z': 2.0,
+                                                              'w=1': 3.0, '"q"=1': 4.0}
+    for bad in ('chair, office=0.3,table=0.7', '"a,b=1', '""=1', '"a,b"=1=2'):
+        with pytest.raises(ValueError, match='each class once'):
+            parse_class_prior(bad)
+    with pytest.raises(ValueError, match="weight of 'a,b' is not a number: 'x'"):
+        parse_class_prior('"a,b"=x')
+    classes = ['chair, office', '"quoted"', 'w=1', 'table']
+    text = format_class_prior(classes, [0.125, 0.25, 0.5, 0.125])
+    assert text == '"chair, office"=0.125,"\\"quoted\\""=0.25,w=1=0.5,table=0.125'
+    assert parse_class_prior(text) == dict(zip(classes, [0.125, 0.25, 0.5, 0.125]))
 
 
 def test_save_gives_the_directory_the_umask_permissions_without_touching_the_umask(

@@ -672,6 +672,17 @@ def test_class_prior_parameter_is_checked_and_applied_to_the_estimates(harness):
     assert node._bank.models is node._base_bank.models  # a copy, no reload
 
 
+def test_prior_text_quotes_class_names_with_a_comma():
+    # 'chair, office=0.5,table=0.5' set as the class_prior parameter split at the comma in
+    # the name: the published prior could not be set back
+    from types import SimpleNamespace
+    from beo_ros.core.bank import parse_class_prior
+    from beo_ros.ros.node import prior_text
+    bank = SimpleNamespace(classes=['chair, office', 'table'], class_prior=[0.5, 0.5])
+    assert prior_text(bank) == '"chair, office"=0.5,table=0.5'
+    assert parse_class_prior(prior_text(bank)) == {'chair, office': 0.5, 'table': 0.5}
+
+
 class GatedBank:
     """Wraps a bank: estimates of clouds with ``len(points) in hold`` wait for ``gate``."""
 

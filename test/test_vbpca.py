@@ -355,6 +355,24 @@ def test_fit_names_values_beyond_float32_and_complex_data():
         VBPCA(3).fit(X.astype(str))
 
 
+@pytest.mark.parametrize('kind', ['complex', 'str', 'timedelta', 'datetime', 'object-str',
+                                  'object-timedelta'])
+def test_fit_and_queries_refuse_data_of_no_real_numbers(kind):
+    # fit took timedelta64 (numpy counts it as an integer); transform, posterior and
+    # score_samples cast complex (dropping the imaginary part), numeric strings and times to
+    # float64 without a word
+    X, _, _ = planted(n=30, d=8)
+    bad = {'complex': X + 1j, 'str': X.astype(str), 'timedelta': X.astype('m8[s]'),
+           'datetime': X.astype('M8[s]'), 'object-str': X.astype(str).astype(object),
+           'object-timedelta': X.astype('m8[s]').astype(object)}[kind]
+    est = fit_quiet(VBPCA(3), X)
+    for method in (VBPCA(3).fit, est.transform, est.posterior, est.score_samples):
+        with pytest.raises(ValueError, match='X must hold real numbers'):
+            method(bad)
+    # an object array of numbers is cast as before
+    np.testing.assert_allclose(est.transform(X.astype(object)), est.transform(X))
+
+
 def test_fit_refuses_no_features():
     with pytest.raises(ValueError, match='at least 1 feature'):
         VBPCA(2).fit(np.zeros((20, 0)))

@@ -106,6 +106,16 @@ def test_exported_trees_give_scikit_learns_probabilities(trained):
                                    ref.predict_proba(F[m][:30]), atol=1e-5)
 
 
+@pytest.mark.parametrize('shape', [(2, 1535), (2, 1537), (3000,), (1, 10), (2, 2, 1536)])
+def test_predict_refuses_rows_of_another_width(trained, shape):
+    # a narrower row read the next row's features (or raised numpy's IndexError), a wider one
+    # its first 1536 columns: probabilities without a word
+    *_, F, turn, obj, v = trained
+    with pytest.raises(ValueError, match=r'X must be \(m, 1536\) verifier features, got shape'):
+        v.predict_log_proba(0, np.zeros(shape))
+    np.testing.assert_array_equal(v.predict_log_proba(0, F[0]), v.predict_log_proba(0, F[:1]))
+
+
 def test_it_tells_the_turn_of_new_views(trained):
     *_, v = trained
     Xt, yt = asymmetric_shapes(4, np.random.default_rng(7))

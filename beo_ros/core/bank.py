@@ -22,7 +22,8 @@ from .classifier import (CLASS_PRIORS, HIDDEN_CLASSIFIER_KEYS, MODES, OPTIONAL_C
                          POINT_CLASSIFIER_KEYS, POINTS_MODE, _softmax, apply_point_classifier,
                          check_classifier_arrays, check_grid_classifier, check_point_classifier,
                          classifier_input, classifier_probabilities, descriptor_count,
-                         parse_class_prior, prior_offset, resolve_class_prior, uses_descriptors)
+                         format_class_prior, parse_class_prior, prior_offset,
+                         resolve_class_prior, uses_descriptors)
 from .estimate import UNKNOWN_LABEL, Estimate, Hypothesis
 from .grid import (GridSpec, _real, symmetric_turns, unit_vector, wrap_yaw as _wrap, yaw_error,
                    yaw_grid, yaw_matrix)
@@ -48,7 +49,7 @@ __all__ = [
     'CLASS_PRIORS', 'HIDDEN_CLASSIFIER_KEYS', 'MODES', 'OPTIONAL_CLASSIFIER_KEYS',
     'POINT_CLASSIFIER_KEYS', 'POINTS_MODE', 'apply_point_classifier', 'check_classifier_arrays',
     'check_grid_classifier', 'check_point_classifier', 'classifier_input',
-    'classifier_probabilities', 'descriptor_count',
+    'classifier_probabilities', 'descriptor_count', 'format_class_prior',
     'parse_class_prior', 'prior_offset', 'resolve_class_prior', 'uses_descriptors',
     # model_files
     'CLASS_KEYS', 'FORMAT', 'OPTIONAL_CLASS_KEYS', 'OPTIONAL_FILES', 'UNREADABLE', 'VERSION',
@@ -67,6 +68,10 @@ PROBE_DEG = (10.0, 20.0)
 STAGE2_MIN_STEP_DEG = 1.0
 # ModelBank.load reads a directory that a save replaced meanwhile again, at most this often
 LOAD_ATTEMPTS = 3
+# ModelBank.load waits for a save into the directory in progress (which leaves none between
+# its two renames) in steps of this many seconds, at most this many steps
+SAVE_WAIT_STEP_S = 0.01
+SAVE_WAIT_STEPS = 100
 # the yaw steps (degrees) that estimate takes (check_step); commands check theirs against it
 YAW_STEP_RANGE_DEG = (0.05, 90.0)
 
@@ -236,13 +241,14 @@ class ModelBank:
             path = path.resolve()
         check_save_target(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = _new_directory(path.parent, f'.{path.name}.tmp-')
+        tmp = _new_directory(path.parent, _sibling_prefix(path, 'tmp'))
         try:
             self._write(tmp)
             if path.is_dir():
                 # two renames: a reader sees the old model or the new one, never a mix (for
                 # the instant between them, no directory)
-                old = Path(tempfile.mkdtemp(prefix=f'.{path.name}.old-', dir=path.parent))
+                old = Path(tempfile.mkdtemp(prefix=_sibling_prefix(path, 'old'),
+                                            dir=path.parent))
                 try:
                     os.replace(path, old)   # onto the empty directory mkdtemp made
                     try:
@@ -302,9 +308,12 @@ class ModelBank:
         A save of the same directory (see :meth:`save`) while it is read is not a mix: every
         file is parsed from the bytes checked against the manifest read; when the check
         fails and the directory (or its manifest) has changed since, it is read again (up to
-        ``LOAD_ATTEMPTS`` times)."""
+        ``LOAD_ATTEMPTS`` times). When it fails while a save into the directory is in
+        progress (its temporary directories are there: e.g. none between its two renames), it
+        is read again every ``SAVE_WAIT_STEP_S`` seconds, at most ``SAVE_WAIT_STEPS`` times."""
         path = Path(path)
-        for attempt in range(1, LOAD_ATTEMPTS + 1):
+        attempt, waits = 1, 0
+        while True:
             before, text = _dir_identity(path), None
             try:
                 mf, manifest, text = _read_manifest(path)
@@ -320,11 +329,21 @@ class ModelBank:
                     except ModelError:
                         replaced = True
                 if not replaced:
+                    # unchanged meanwhile, but a save may be about to change it: a load that
+                    # began between its two renames failed with 'does not exist'
+                    if waits < SAVE_WAIT_STEPS and _save_in_progress(path):
+                        waits += 1
+                        time.sleep(SAVE_WAIT_STEP_S)
+                        continue
+                    if waits:
+                        raise ModelError(f'{e} (a save into {path} was in progress for '
+                                         f'{waits * SAVE_WAIT_STEP_S:g} s)') from None
                     raise
                 if attempt == LOAD_ATTEMPTS:
                     raise ModelError(f'{e} ({path} was replaced while it was read, '
                                      f'{attempt} times: is it being saved over and over?)') \
                         from None
+                attempt += 1
 
     @classmethod
     def _load(cls, path, mf, manifest, class_prior):
@@ -836,6 +855,37 @@ def _json_value(value):
     if isinstance(value, (np.generic, np.ndarray)):
         return value.tolist()
     raise TypeError(f'the manifest cannot hold {type(value).__name__} {value!r} (JSON)')
+
+
+# random characters that _new_directory (12) and mkdtemp (8) append to a prefix
+_RANDOM_CHARS = 12
+
+
+def _sibling_prefix(path: Path, kind: str) -> str:
+    """The name prefix ``.<name>.<kind>-`` of the temporary directories ``ModelBank.save``
+    makes beside directory ``path``, with ``<name>`` (the name of ``path``) cut short so that
+    the prefix and its random characters fit the file system's limit on a name (255 bytes
+    usually): a target name near the limit failed with 'File name too long'."""
+    try:
+        limit = os.pathconf(path.parent, 'PC_NAME_MAX')
+    except (OSError, ValueError):   # no such parent yet, or no limit known
+        limit = 255
+    name = os.fsencode(path.name)[:max(limit - len(f'..{kind}-') - _RANDOM_CHARS, 1)]
+    return f'.{os.fsdecode(name)}.{kind}-'   # a cut UTF-8 character: surrogate escapes
+
+
+def _save_in_progress(path) -> bool:
+    """True when the temporary directories of a ``ModelBank.save`` into directory ``path``
+    (see :func:`_sibling_prefix`) are beside it: the save is writing or renaming (or was
+    killed and left them)."""
+    try:
+        path = Path(path).resolve()   # save replaces the directory a link or '..' names
+        prefixes = tuple(_sibling_prefix(path, kind) for kind in ('tmp', 'old'))
+        with os.scandir(path.parent) as entries:
+            return any(e.name.startswith(prefixes) and e.is_dir(follow_symlinks=False)
+                       for e in entries)
+    except (OSError, RuntimeError, ValueError):   # no parent; a link loop; NUL in the name
+        return False
 
 
 def _new_directory(parent: Path, prefix: str) -> Path:

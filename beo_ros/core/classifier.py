@@ -8,6 +8,8 @@ regression arrays (optionally with one hidden layer) as ``ModelBank.classifier``
 """
 from __future__ import annotations
 
+import json
+
 import numpy as np
 
 from .class_model import ModelError
@@ -109,7 +111,10 @@ def resolve_class_prior(prior, classes):
 def parse_class_prior(text):
     """A class prior from text (a ROS parameter, a command-line flag): '' -> None (keep the
     model directory's), 'train', 'uniform', or 'name=weight,name=weight,...' -> dict (check it
-    with :func:`resolve_class_prior`). Raises ValueError for malformed text."""
+    with :func:`resolve_class_prior`). A name is everything before the item's last '=' (a name
+    may hold '='); a name with a ',' (or starting with '"') is written in double quotes, with
+    JSON's escapes (``\\"`` and ``\\\\`` inside): '"a,b"=0.3,c=0.7' (see
+    :func:`format_class_prior`). Raises ValueError for malformed text."""
     text = str(text).strip()
     if not text:
         return None
@@ -119,18 +124,60 @@ def parse_class_prior(text):
                              f'each class once, got {text!r}')
         return text
     prior = {}
-    for item in text.split(','):
-        name, sep, value = item.rpartition('=')   # the last '=': a class name may hold one
-        name = name.strip()
-        if not sep or not name or name in prior:
+    for name, value in _prior_items(text):
+        if not name or name in prior:
             raise ValueError(f"class_prior must be 'train', 'uniform' or 'name=weight,...' with "
-                             f'each class once, got {text!r}')
+                             f'each class once (a name with a comma in double quotes), got '
+                             f'{text!r}')
         try:
             prior[name] = float(value)
         except ValueError:
             raise ValueError(f'class_prior: weight of {name!r} is not a number: '
                              f'{value.strip()!r}') from None
     return prior
+
+
+_JSON = json.JSONDecoder()
+
+
+def _prior_items(text):
+    """(name, weight text) of every item of 'name=weight,...' text (see
+    :func:`parse_class_prior`); name '' for an item without '='."""
+    pos = 0
+    while True:
+        start = len(text) - len(text[pos:].lstrip())
+        name = None
+        if text.startswith('"', start):
+            # a quoted name followed by '=' and a weight; anything else is read unquoted, as
+            # before quoting (e.g. the name '"a' of '"a=1', '"a"=1' of '"a"=1=2')
+            try:
+                quoted, end = _JSON.raw_decode(text, start)
+            except ValueError:
+                quoted = None
+            rest = text[end:].lstrip() if quoted is not None else ''
+            if rest.startswith('='):
+                value_start = len(text) - len(rest) + 1
+                comma = text.find(',', value_start)
+                value = text[value_start:len(text) if comma < 0 else comma]
+                if '=' not in value:
+                    name = quoted
+        if name is None:
+            comma = text.find(',', pos)
+            item = text[pos:len(text) if comma < 0 else comma]
+            name, sep, value = item.rpartition('=')   # the last '=': a name may hold one
+            name = name.strip() if sep else ''
+        yield name, value
+        if comma < 0:
+            return
+        pos = comma + 1
+
+
+def format_class_prior(classes, weights):
+    """The text 'name=weight,...' of (C,) ``weights`` over ``classes`` that
+    :func:`parse_class_prior` reads back: a name with a ',' or starting with '"' is quoted."""
+    def name(c):
+        return json.dumps(c, ensure_ascii=False) if ',' in c or c.startswith('"') else c
+    return ','.join(f'{name(c)}={float(w):.4g}' for c, w in zip(classes, weights))
 
 
 def prior_offset(counts, prior):

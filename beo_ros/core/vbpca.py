@@ -17,6 +17,7 @@ Two paths:
 """
 from __future__ import annotations
 
+import datetime
 import warnings
 
 import numpy as np
@@ -93,10 +94,7 @@ class VBPCA(TransformerMixin, BaseEstimator):
             dt = None
         if dt is None or dt.type not in (np.float32, np.float64):
             raise ValueError(f'dtype must be np.float32 or np.float64, got {self.dtype!r}')
-        X = np.asarray(X)
-        if np.iscomplexobj(X) or not (np.issubdtype(X.dtype, np.number)
-                                      or X.dtype == np.bool_):
-            raise ValueError(f'X must hold real numbers, got dtype {X.dtype}')
+        X = _real_array(X, 'X', objects=False)
         if X.ndim != 2:
             raise ValueError(f'X must be 2-D (n_samples, n_features), got shape {X.shape}')
         n, d = X.shape
@@ -361,7 +359,7 @@ class VBPCA(TransformerMixin, BaseEstimator):
         Cheap on the hot path: one ``isfinite`` pass over X when X is all finite.
         """
         self._check_fitted()
-        X = np.asarray(X, dtype=np.float64)
+        X = np.asarray(_real_array(X, 'X'), dtype=np.float64)
         if X.ndim != 2:
             hint = '; use X.reshape(1, -1) for a single sample' if X.ndim == 1 else ''
             raise ValueError(f'X must be 2-D (n_samples, n_features), got shape {X.shape}{hint}')
@@ -433,6 +431,28 @@ class VBPCA(TransformerMixin, BaseEstimator):
         quad = (R ** 2).sum(axis=1) / v - np.einsum('na,na->n', m, R @ W) / v
         _, lds = np.linalg.slogdet(S)
         return -0.5 * (nobs * np.log(2 * np.pi * v) - lds + quad)
+
+
+def _real_array(X, name, objects=True):
+    """``X`` as an array of real numbers (bool, integer or float dtype; with ``objects`` also
+    an object array, cast to float64 as the query methods did); ValueError for complex
+    numbers, strings, bytes and times (numpy counts timedelta64 as an integer: its values
+    became numbers of its unit)."""
+    X = np.asarray(X)
+    if X.dtype.kind == 'O' and objects:
+        # the cast would parse strings such as '1.5' and take timedelta64 as numbers
+        bad = next((v for v in X.flat if isinstance(v, _NOT_REAL)), None)
+        if bad is not None:
+            raise ValueError(f'{name} must hold real numbers, got {type(bad).__name__} '
+                             f'{bad!r}')
+        return X.astype(np.float64)
+    if X.dtype.kind not in 'biuf':
+        raise ValueError(f'{name} must hold real numbers, got dtype {X.dtype}')
+    return X
+
+
+_NOT_REAL = (str, bytes, complex, np.complexfloating, np.timedelta64, np.datetime64,
+             datetime.timedelta, datetime.date)
 
 
 def _rotate_to_pca(W, Sw, Xm, Sx):

@@ -164,11 +164,16 @@ class OrientationVerifier:
 
     def predict_log_proba(self, c, X):
         """(m, 4) log-probabilities of the quarter turns for rows X (m, 1536) under class c's
-        verifier."""
+        verifier (one row may be given as (1536,)). ValueError for rows of another width."""
         a = self.arrays_
         feature, threshold, left, right = self._walk_arrays()
         j = self.classes_.index(int(c))
         X = np.atleast_2d(np.asarray(X, dtype=np.float32))
+        # the walk indexes the rows flattened: a narrower row read the next row's features
+        # (or raised numpy's IndexError), a wider one its own first columns, without a word
+        if X.ndim != 2 or X.shape[1] != self.n_features_in_:
+            raise ValueError(f'X must be (m, {self.n_features_in_}) verifier features, got '
+                             f'shape {X.shape}')
         roots = a['roots'][j]                           # (iterations, 4) node indices
         node = np.broadcast_to(roots.ravel(), (len(X), roots.size)).astype(np.intp)
         flat = X.ravel()

@@ -44,7 +44,8 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
 
-from beo_ros.core.bank import load_models, parse_class_prior, resolve_model_dir, shipped_models
+from beo_ros.core.bank import (format_class_prior, load_models, parse_class_prior,
+                               resolve_model_dir, shipped_models)
 from beo_ros.ros.conversions import (CloudFormatError, cloud_to_xyz, completed_cloud,
                                      estimate_to_msg, interfaces)
 from beo_ros.ros.env import check_domain_id
@@ -137,7 +138,7 @@ def prior_text(bank) -> str:
     prior = getattr(bank, 'class_prior', 'train')
     if isinstance(prior, str):
         return prior
-    return ','.join(f'{c}={float(w):.4g}' for c, w in zip(bank.classes, prior))
+    return format_class_prior(bank.classes, prior)   # names with a comma quoted
 
 
 def load_bank(model_dir: str):

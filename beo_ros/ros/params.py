@@ -120,7 +120,8 @@ def declare(declare_parameter) -> tuple:
     d('class_prior', '', ParameterDescriptor(
         description="Prior over the classes: '' = the model directory's, 'train' = the "
                     "training set's class frequencies, 'uniform', or 'name=weight,...' "
-                    'with every class (e.g. a kitchen: more chairs than beds)',
+                    'with every class (e.g. a kitchen: more chairs than beds; a name with a '
+                    'comma in double quotes: \'"a,b"=0.3,c=0.7\')',
         type=ParameterType.PARAMETER_STRING))
     d('diagnostics_period', 1.0, _fdesc('Seconds between /diagnostics messages', 0.1, 60.0))
     d('workers', 1, _idesc('Estimation worker threads (concurrent estimates, services '
