@@ -1139,3 +1139,32 @@ def test_replay_waits_for_a_clock_subscriber_with_its_data_subscribers(ros_env_c
     finally:
         spin.close()
     assert stats.waited_s < bag.CLOCK_GRACE_S - 0.1
+
+
+@pytest.mark.parametrize('storage', bag.STORAGES)
+@pytest.mark.parametrize('qos', ['- [not yaml', '- history: 1'])   # not YAML; no depth
+def test_offered_qos_profiles_that_do_not_parse_are_one_line_naming_bag_topic_and_field(
+        tmp_path, capsys, monkeypatch, keep_signal_handlers, storage, qos):
+    """Before: a TypeError or KeyError traceback (QoS stored in the .db3 / .mcap file), or a
+    message naming neither the topic nor the field (in metadata.yaml)."""
+    import rosbags.rosbag2.writer
+    p = tmp_path / 'b'
+    with monkeypatch.context() as m:   # what the bag stores as its topic's offered QoS
+        m.setattr(rosbags.rosbag2.writer, 'dump_qos_v9', lambda profiles: qos)
+        with bag.BagWriter(p, storage) as w:
+            w.write('/chatter', String(data='x'), 10)
+    file = bag._bag_file(p)
+    for target, named in ((p, p / 'metadata.yaml'), (file, file)):
+        want = f'{named}: topic /chatter: offered_qos_profiles is not a list of QoS profiles ('
+        for read in (lambda: list(bag.read_bag(target)), lambda: bag.bag_info(target)):
+            with pytest.raises(ValueError) as e:
+                read()
+            assert str(e.value).startswith(want) and '\n' not in str(e.value), e.value
+        assert bag.replay_main([str(target), '--all-topics', '--rate', '0']) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f'beo-replay: cannot read {target}: {want}') and \
+            err.count('\n') == 1, err
+    assert bag.recover_main([str(file), '-o', str(tmp_path / 'new')]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f'beo-bag-recover: {file}: topic /chatter: offered_qos_profiles') \
+        and err.count('\n') == 1 and not (tmp_path / 'new').exists(), err

@@ -9,8 +9,8 @@ from pathlib import Path
 
 from beo_ros.ros.bag.msgtypes import get_typestore, normalize_msgtype
 from beo_ros.ros.bag.recorder import BagWriteError
-from beo_ros.ros.bag.storage import (BagWriter, cdr_payload, hot_journal, recorded_latched,
-                                     recorded_reliable, storage_errors)
+from beo_ros.ros.bag.storage import (BagWriter, bad_qos, cdr_payload, hot_journal,
+                                     recorded_latched, recorded_reliable, storage_errors)
 
 
 MCAP_MAGIC = b'\x89MCAP0\r\n'
@@ -139,7 +139,7 @@ def recover_bag(src, dst, *, storage: str | None = None) -> dict:
                 try:
                     topics = _copy_messages(_rolled_back(path, tmp), dst, storage, False)
                 except _Damaged as e:
-                    raise ValueError(f'{path}: {e}') from None
+                    raise ValueError(bad_qos(path) or f'{path}: {e}') from None
             else:
                 topics = None
                 if closed:
@@ -170,6 +170,10 @@ def _longest_readable_prefix(path: Path, ends: list, dst: Path, storage: str, tm
             return None, None
 
     best, bag_dir = attempt(len(ends) - 1)
+    if best is None:   # QoS profiles that do not parse: no prefix with that channel reads
+        problem = bad_qos(path)
+        if problem:
+            raise ValueError(problem)
     lo = len(ends) - 1 if best is not None else -1   # ends[lo] reads (-1: none known)
     hi = lo if best is not None else len(ends) - 2   # none after hi does
     while lo < hi:

@@ -293,12 +293,114 @@ def _align_metadata_qos(reader) -> None:
             conns[i] = c._replace(ext=same[0].ext)
 
 
+def _mcap_channels(path):
+    """Yield ``(topic, metadata)`` of the channel records of an mcap file, those in its chunks
+    included; stops quietly where the file does not read (a diagnosis, not a reader)."""
+    import io
+
+    from rosbags.rosbag2.storage_mcap import decompress
+
+    def string(b):
+        n = int.from_bytes(b.read(4), 'little')
+        return b.read(n).decode(errors='replace')
+
+    def channels(b, end):
+        while b.tell() + 9 <= end:
+            op, length = b.read(1)[0], int.from_bytes(b.read(8), 'little')
+            body = b.read(length)
+            if len(body) != length:
+                return
+            if op == 0x04:   # channel: id, schema id, topic, message encoding, metadata
+                rec = io.BytesIO(body[4:])
+                topic, _ = string(rec), string(rec)
+                meta = rec.read(int.from_bytes(rec.read(4), 'little'))
+                pairs, mb = {}, io.BytesIO(meta)
+                while mb.tell() < len(meta):
+                    key = string(mb)
+                    pairs[key] = string(mb)
+                yield topic, pairs
+            elif op == 0x06:   # chunk: start, end, size, crc, compression, records
+                usize = int.from_bytes(body[16:24], 'little')
+                crc = int.from_bytes(body[24:28], 'little')
+                n = int.from_bytes(body[28:32], 'little')
+                data = decompress(body[40 + n:], body[32:32 + n].decode(), usize, crc)
+                yield from channels(io.BytesIO(data), len(data))
+
+    with contextlib.suppress(Exception), open(path, 'rb') as f:
+        size = f.seek(0, 2)
+        f.seek(8)   # past the magic
+        yield from channels(f, size)
+
+
+def _qos_texts(bag_path):
+    """Yield ``(file, topic, offered_qos_profiles)`` of what a bag stores: its metadata.yaml's
+    topics, its .db3 files' topics tables, its .mcap files' channels; what does not read is
+    left out."""
+    import sqlite3
+    p = Path(bag_path)
+    meta = p / 'metadata.yaml'
+    if meta.is_file():
+        from ruamel.yaml import YAML
+        topics = []
+        with contextlib.suppress(Exception):
+            info = YAML(typ='safe').load(meta.read_text())['rosbag2_bagfile_information']
+            topics = [t['topic_metadata'] for t in info['topics_with_message_count']]
+        for t in topics:
+            if isinstance(t, dict) and 'offered_qos_profiles' in t:
+                yield meta, t.get('name'), t['offered_qos_profiles']
+    files = [p] if p.is_file() else (sorted(p.iterdir()) if p.is_dir() else [])
+    for f in files:
+        if f.suffix == '.db3':
+            rows = []
+            with contextlib.suppress(sqlite3.Error), contextlib.closing(
+                    sqlite3.connect(f'file:{f}?immutable=1', uri=True)) as db:
+                rows = db.execute('SELECT name, offered_qos_profiles FROM topics').fetchall()
+            yield from ((f, topic, text) for topic, text in rows)
+        elif f.suffix == '.mcap':
+            for topic, pairs in _mcap_channels(f):
+                if 'offered_qos_profiles' in pairs:
+                    yield f, topic, pairs['offered_qos_profiles']
+
+
+def bad_qos(bag_path) -> str | None:
+    """One line naming the file, the topic and the field of offered QoS profiles that a bag
+    stores and that do not parse (not YAML, or not a list of profiles), or None. rosbags fails
+    on them with a TypeError, or a message that names neither topic nor bag."""
+    from rosbags.rosbag2.metadata import parse_qos
+    for f, topic, text in _qos_texts(bag_path):
+        try:
+            parse_qos(text)
+        except Exception as e:  # noqa: BLE001 - TypeError, KeyError, ReaderError, ...
+            why = ' '.join(str(e).split())
+            return (f'{f}: topic {topic}: offered_qos_profiles is not a list of QoS profiles '
+                    f'({type(e).__name__}{": " + why if why else ""})')
+    return None
+
+
+@contextlib.contextmanager
+def _reader(bag_path):
+    """A rosbags Reader of ``bag_path``, open; ValueError naming the file, topic and field when
+    it does not open because of offered QoS profiles that do not parse (:func:`bad_qos`)."""
+    from rosbags.rosbag2 import Reader
+    reader = Reader(Path(bag_path))
+    try:
+        reader.open()
+    except Exception:
+        problem = bad_qos(bag_path)
+        if problem:
+            raise ValueError(problem) from None
+        raise
+    try:
+        yield reader
+    finally:
+        reader.close()
+
+
 @contextlib.contextmanager
 def _open_reader(bag_path):
-    """A rosbags Reader of ``bag_path``, open, its metadata's QoS aligned with its storage's
-    (:func:`_align_metadata_qos`)."""
-    from rosbags.rosbag2 import Reader
-    with Reader(Path(bag_path)) as reader:
+    """A rosbags Reader of ``bag_path``, open (:func:`_reader`), its metadata's QoS aligned
+    with its storage's (:func:`_align_metadata_qos`)."""
+    with _reader(bag_path) as reader:
         _align_metadata_qos(reader)
         yield reader
 
@@ -327,9 +429,8 @@ def read_messages(bag_path, topics=None):
 
 def bag_info(bag_path) -> dict:
     """Storage, duration and ``{topic: {'type', 'count'}}`` of a bag."""
-    from rosbags.rosbag2 import Reader
     _check_readable(bag_path)
-    with Reader(Path(bag_path)) as reader:
+    with _reader(bag_path) as reader:
         topics = {}
         for c in reader.connections:
             d = topics.setdefault(c.topic, {'type': c.msgtype, 'count': 0})
