@@ -411,3 +411,40 @@ def test_a_bag_of_zstd_compressed_messages_is_read_and_recovered_as_cdr(ros_env_
                all_topics=True, rate=0, qos='best_effort',
                on_publish=lambda topic, raw, t: sent.append(raw[:2]))
     assert sent == [b'\x00\x01'] * 3   # CDR, little endian
+
+
+def test_a_sqlite3_bag_killed_in_wal_mode_recovers_what_its_wal_holds(tmp_path):
+    """A recording in WAL mode killed before a checkpoint: the committed messages are in the
+    -wal file. Before: recover (rosbags opens the database as immutable) left them out; now
+    they are copied, and the killed bag's files are left as they were."""
+    import hashlib
+    import shutil
+    import sqlite3
+    from std_msgs.msg import String
+    src = tmp_path / 'src'
+    with bag.BagWriter(src, 'sqlite3') as w:
+        for i in range(3):
+            w.write('/chatter', String(data=f'm{i}'), 10 + i)
+    killed = tmp_path / 'killed'
+    killed.mkdir()
+    conn = sqlite3.connect(src / 'src.db3')
+    try:
+        conn.execute('PRAGMA journal_mode=WAL')
+        conn.execute('PRAGMA wal_autocheckpoint=0')
+        conn.execute('INSERT INTO messages (topic_id, timestamp, data) '
+                     'SELECT topic_id, timestamp + 100, data FROM messages')
+        conn.commit()
+        for f in src.glob('src.db3*'):   # as a SIGKILL leaves them: no checkpoint
+            shutil.copyfile(f, killed / f.name)
+    finally:
+        conn.close()
+    assert (killed / 'src.db3-wal').stat().st_size > 0
+
+    def digests():
+        return {f.name: hashlib.sha256(f.read_bytes()).hexdigest() for f in killed.iterdir()}
+
+    before = digests()
+    summary = bag.recover_bag(killed, tmp_path / 'new')
+    assert summary['messages'] == 6
+    assert [t for _, _, t, _ in bag.read_bag(tmp_path / 'new')] == [10, 11, 12, 110, 111, 112]
+    assert digests() == before

@@ -193,16 +193,24 @@ def _longest_readable_prefix(path: Path, ends: list, dst: Path, storage: str, tm
 
 def _rolled_back(db: Path, tmp: Path) -> Path:
     """``db``, or a copy of it in ``tmp`` with its hot journal rolled back (see
-    :func:`hot_journal`)."""
+    :func:`hot_journal`), or with the transactions of its write-ahead log (``-wal``: a
+    recording in WAL mode that was killed before checkpointing them) moved into it: rosbags
+    opens a database as immutable, ignoring both. ``db`` and its files are left as they are."""
     journal = hot_journal(db)
-    if journal is None:
+    wal = db.with_name(db.name + '-wal')
+    has_wal = wal.is_file() and wal.stat().st_size > 0
+    if journal is None and not has_wal:
         return db
     import sqlite3
     copy = tmp / db.name
     shutil.copyfile(db, copy)
-    shutil.copyfile(journal, tmp / journal.name)
+    for f in (journal, wal if has_wal else None):
+        if f is not None:
+            shutil.copyfile(f, tmp / f.name)
     with contextlib.closing(sqlite3.connect(copy)) as conn:
         conn.execute('SELECT COUNT(*) FROM sqlite_master').fetchone()
+        if has_wal:
+            conn.execute('PRAGMA wal_checkpoint(TRUNCATE)').fetchone()
     return copy
 
 
