@@ -1168,3 +1168,28 @@ def test_offered_qos_profiles_that_do_not_parse_are_one_line_naming_bag_topic_an
     err = capsys.readouterr().err
     assert err.startswith(f'beo-bag-recover: {file}: topic /chatter: offered_qos_profiles') \
         and err.count('\n') == 1 and not (tmp_path / 'new').exists(), err
+
+
+def test_record_normalizes_a_type_given_as_pkg_type(ros_env_context, tmp_path, ros_domain_id):
+    """{'/chatter': 'std_msgs/String'} given to record(). Before: the type was kept as given,
+    so the topic's own publishers were warned about as of another type and the stats had a
+    type name that is not pkg/msg/Type; now it is std_msgs/msg/String throughout."""
+    ctx = rclpy.Context()   # another participant, as another process would be
+    rclpy.init(args=[], context=ctx, domain_id=ros_domain_id)
+    try:
+        pub_node = rclpy.create_node('talker', context=ctx)
+        rec_node = rclpy.create_node('recorder', context=ros_env_context)
+        pub_node.create_publisher(String, '/chatter', 10)
+        assert wait_for(lambda: rec_node.get_publishers_info_by_topic('/chatter'), 10)
+        warned = []
+        rec_node.get_logger().warning = lambda msg, **kw: warned.append(msg)
+        stats = bag.record(rec_node, tmp_path / 'r', {'/chatter': 'std_msgs/String'},
+                           duration=0.2)
+    finally:
+        rclpy.try_shutdown(context=ctx)
+    assert warned == []
+    assert stats.topics == {'/chatter': {'type': 'std_msgs/msg/String', 'count': 0}}
+    assert bag.bag_info(tmp_path / 'r')['topics'] == {
+        '/chatter': {'type': 'std_msgs/msg/String', 'count': 0}}
+    assert bag.resolve_topic_types(rec_node, {'x': 'std_msgs/String', '/x': None}) == {
+        '/x': 'std_msgs/msg/String'}
