@@ -448,3 +448,39 @@ def test_a_sqlite3_bag_killed_in_wal_mode_recovers_what_its_wal_holds(tmp_path):
     assert summary['messages'] == 6
     assert [t for _, _, t, _ in bag.read_bag(tmp_path / 'new')] == [10, 11, 12, 110, 111, 112]
     assert digests() == before
+
+
+@pytest.mark.parametrize('storage', bag.STORAGES)
+@pytest.mark.parametrize('metadata', ['none', 'stale', 'cut'])
+def test_a_split_bag_that_was_not_closed_names_its_files(tmp_path, storage, metadata, capsys,
+                                                         keep_signal_handlers):
+    """A split recording killed in its second file: no metadata.yaml, one that lists the
+    first file only, or one cut off. Before: messages that named no file (or the second file
+    silently left out, or 'expected one .db3 or .mcap file, found 2'); now the files are
+    named, with what to do."""
+    import shutil
+    from std_msgs.msg import String
+    ext = 'db3' if storage == 'sqlite3' else 'mcap'
+    split = tmp_path / 'split'
+    for i in range(2):
+        with bag.BagWriter(tmp_path / f'part{i}', storage) as w:
+            w.write('/chatter', String(data=str(i)), 10 + i)
+        split.mkdir(exist_ok=True)
+        shutil.copyfile(tmp_path / f'part{i}' / f'part{i}.{ext}', split / f'split_{i}.{ext}')
+    if metadata != 'none':
+        text = (tmp_path / 'part0' / 'metadata.yaml').read_text().replace('part0.', 'split_0.')
+        (split / 'metadata.yaml').write_text(text if metadata == 'stale'
+                                             else text[:len(text) // 2] + '\n  - [')
+    names = f'split_0.{ext}, split_1.{ext}'
+    for read in (lambda: list(bag.read_bag(split)), lambda: bag.bag_info(split)):
+        with pytest.raises(ValueError) as e:
+            read()
+        assert f'the files of the bag: {names}:' in str(e.value), e.value
+    assert bag.replay_main([str(split), '--all-topics', '--rate', '0']) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f'beo-replay: cannot read {split}: ') and names in err and \
+        err.count('\n') == 1, err
+    assert bag.recover_main([str(split), '-o', str(tmp_path / 'new')]) == 2
+    err = capsys.readouterr().err
+    assert err == (f'beo-bag-recover: {split}: expected one .db3 or .mcap file, found 2: '
+                   f'{names}: recover each file (beo-bag-recover FILE -o NEW)\n'), err

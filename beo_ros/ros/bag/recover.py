@@ -101,9 +101,12 @@ def _bag_file(src) -> Path:
     if not p.is_dir():
         raise ValueError(f'{src}: no such bag')
     files = sorted(f for f in p.iterdir() if f.suffix in ('.db3', '.mcap'))
-    if len(files) != 1:
-        raise ValueError(f'{src}: expected one .db3 or .mcap file, found '
-                         f'{len(files) or "none"}')
+    if not files:
+        raise ValueError(f'{src}: expected one .db3 or .mcap file, found none')
+    if len(files) > 1:   # a split recording
+        raise ValueError(f'{src}: expected one .db3 or .mcap file, found {len(files)}: '
+                         f'{", ".join(f.name for f in files)}: recover each file '
+                         '(beo-bag-recover FILE -o NEW)')
     return files[0]
 
 

@@ -245,17 +245,59 @@ def _check_no_hot_journal(bag_path):
                          'journal is there): read it through beo-bag-recover BAG -o NEW')
 
 
+def _listed_files(meta: Path):
+    """The file names a metadata.yaml lists (``relative_file_paths``), or the YAML error or
+    KeyError of one that does not read (cut off, ...)."""
+    from ruamel.yaml import YAML
+    try:
+        info = YAML(typ='safe').load(meta.read_text())['rosbag2_bagfile_information']
+        return {Path(str(x)).name for x in info['relative_file_paths']}
+    except Exception as e:  # noqa: BLE001 - ruamel's YAMLError, KeyError, TypeError
+        return e
+
+
+def _check_split_files(bag_path, files: list):
+    """ValueError naming the files of a bag directory of several .db3 / .mcap files (a split
+    recording) whose metadata.yaml does not read or does not list them all: rosbags would
+    fail without naming them, or read the listed ones only."""
+    p = Path(bag_path)
+    listed = _listed_files(p / 'metadata.yaml')
+    if isinstance(listed, Exception):
+        if len(files) < 2:
+            return   # rosbags' own error says it
+        what = f'does not read ({" ".join(str(listed).split()) or type(listed).__name__})'
+    else:
+        unlisted = [f.name for f in files if f.name not in listed]
+        if not unlisted:
+            return
+        what = f'does not list {", ".join(unlisted)}'
+    raise ValueError(f'{bag_path}: its metadata.yaml {what} (a recording that was not '
+                     f'closed?); the files of the bag: {", ".join(f.name for f in files)}: '
+                     'play or read each file itself, or make a closed bag of each with '
+                     'beo-bag-recover FILE -o NEW')
+
+
 def _check_readable(bag_path):
     """ValueError for a .db3 left in the middle of a write (:func:`hot_journal`), or a bag
-    directory without metadata.yaml (a recording that was not closed), saying what to do;
-    rosbags would call the directory itself the missing metadata file."""
+    directory without metadata.yaml (a recording that was not closed), or whose metadata.yaml
+    does not read or list all its files (:func:`_check_split_files`), saying what to do and
+    naming the files; rosbags would call the directory itself the missing metadata file."""
     _check_no_hot_journal(bag_path)
     p = Path(bag_path)
-    if p.is_dir() and not (p / 'metadata.yaml').exists():
-        files = sorted(f.name for f in p.iterdir() if f.suffix in ('.db3', '.mcap'))
-        how = f'play or read {p / files[0]} itself, or ' if len(files) == 1 else ''
-        raise ValueError(f'{bag_path}: no metadata.yaml (a recording that was not closed?): '
-                         f'{how}make a closed bag of it with beo-bag-recover {bag_path} -o NEW')
+    if not p.is_dir():
+        return
+    files = sorted(f for f in p.iterdir() if f.suffix in ('.db3', '.mcap'))
+    if (p / 'metadata.yaml').exists():
+        _check_split_files(p, files)
+        return
+    if len(files) > 1:
+        raise ValueError(f'{bag_path}: no metadata.yaml (a recording that was not closed?); '
+                         f'the files of the bag: {", ".join(f.name for f in files)}: play or '
+                         'read each file itself, or make a closed bag of each with '
+                         'beo-bag-recover FILE -o NEW')
+    how = f'play or read {files[0]} itself, or ' if files else ''
+    raise ValueError(f'{bag_path}: no metadata.yaml (a recording that was not closed?): '
+                     f'{how}make a closed bag of it with beo-bag-recover {bag_path} -o NEW')
 
 
 ZSTD_MAGIC = b'\x28\xb5\x2f\xfd'   # a zstd frame's first bytes; CDR's first byte is 0
