@@ -1193,3 +1193,21 @@ def test_record_normalizes_a_type_given_as_pkg_type(ros_env_context, tmp_path, r
         '/chatter': {'type': 'std_msgs/msg/String', 'count': 0}}
     assert bag.resolve_topic_types(rec_node, {'x': 'std_msgs/String', '/x': None}) == {
         '/x': 'std_msgs/msg/String'}
+
+
+def test_a_bag_topic_that_is_not_a_valid_topic_name_is_one_line_and_plays_remapped(
+        tmp_path, capsys, keep_signal_handlers):
+    """Before: rclpy's InvalidTopicNameException traceback (several lines, exit 1); now one
+    line naming the topic and the remap that plays it, and the remapped replay plays."""
+    p = tmp_path / 'b'
+    with bag.BagWriter(p, 'sqlite3') as w:
+        w.write('/bad topic!', String(data='x'), 10)
+    assert bag.replay_main([str(p), '--all-topics', '--rate', '0']) == 2
+    out, err = capsys.readouterr()
+    assert err.startswith(f"beo-replay: {p}: topic '/bad topic!' is not a valid ROS topic name (") \
+        and err.endswith('remap it to one (--remap OLD:=NEW) to play it\n') \
+        and err.count('\n') == 1 and out == '', err
+    assert bag.replay_main([str(p), '--all-topics', '--rate', '0', '--json',
+                            '--remap', '/bad topic!:=/good']) == 0
+    stats = json.loads(capsys.readouterr().out)
+    assert stats['messages'] == 1 and list(stats['topics']) == ['/good']

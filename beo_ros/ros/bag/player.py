@@ -242,6 +242,10 @@ class ClockRangeError(ValueError):
     that cannot be played with the clock."""
 
 
+class TopicNameError(ValueError):
+    """A bag topic to play is not a valid ROS topic name (and is not remapped to one)."""
+
+
 class BagReadError(ValueError):
     """A bag turned out unreadable (corrupt database, truncated file) during :func:`replay`;
     ``stats``: what was played before."""
@@ -254,7 +258,8 @@ class BagReadError(ValueError):
 def _replay_connections(reader, bag_path, topics, all_topics: bool, remap: dict) -> list:
     """The connections of the open bag ``reader`` to play: those of ``topics``, all of them
     (``all_topics``) or the PointCloud2 ones. ``KeyError`` for a topic in ``topics`` or a
-    remapped topic that is not in the bag."""
+    remapped topic that is not in the bag, :class:`TopicNameError` for a topic to play that
+    is not a valid ROS topic name and is not remapped."""
     if topics:
         wanted = set(topics)
         missing = wanted - {c.topic for c in reader.connections}
@@ -270,6 +275,15 @@ def _replay_connections(reader, bag_path, topics, all_topics: bool, remap: dict)
     unknown = set(remap) - {c.topic for c in reader.connections}
     if unknown:   # a typo would otherwise play on the old name
         raise KeyError(f'remapped topics not in bag {bag_path}: {sorted(unknown)}')
+    for c in conns:   # rclpy would refuse its publisher with a multi-line exception
+        if c.topic not in remap:
+            try:
+                check_topic_name(c.topic)
+            except ValueError as e:
+                why = str(e).removeprefix(f'bad topic name {c.topic!r}: ')
+                raise TopicNameError(f'{bag_path}: topic {c.topic!r} is not a valid ROS topic '
+                                     f'name ({why}): remap it to one (--remap OLD:=NEW) to '
+                                     'play it') from None
     return conns
 
 
