@@ -1211,3 +1211,20 @@ def test_a_bag_topic_that_is_not_a_valid_topic_name_is_one_line_and_plays_remapp
                             '--remap', '/bad topic!:=/good']) == 0
     stats = json.loads(capsys.readouterr().out)
     assert stats['messages'] == 1 and list(stats['topics']) == ['/good']
+
+
+def test_the_clock_range_of_a_bag_is_that_of_its_last_stamp(ros_env_context, tmp_path):
+    """rosbags' end_time is one past the last stamp. Before: a last stamp of 2**63 - 1 (the
+    int64 maximum) was reported as 9223372036854775808 ns, which no int64 holds, and a bag
+    whose last stamp is the last one /clock holds was refused."""
+    from beo_ros.ros.conversions import MAX_STAMP_NS
+    node = rclpy.create_node('replayer', context=ros_env_context)
+    for name, last in (('max', 2**63 - 1), ('edge', MAX_STAMP_NS)):
+        with bag.BagWriter(tmp_path / name, storage='sqlite3') as w:
+            w.write('/chatter', String(data='a'), 10)
+            w.write('/chatter', String(data='b'), last)
+    with pytest.raises(ValueError) as e:
+        bag.replay(tmp_path / 'max', node, all_topics=True, rate=0, clock_hz=10.0)
+    assert f'({2**63 - 1} ns)' in str(e.value), e.value
+    stats = bag.replay(tmp_path / 'edge', node, all_topics=True, rate=0, clock_hz=10.0)
+    assert stats.messages == 2 and stats.clock_messages == 2

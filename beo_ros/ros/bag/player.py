@@ -482,9 +482,12 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
                                                          strict=bool(topics))
             if not conns:
                 return stats
-            if clock_hz > 0 and reader.end_time > MAX_NS:
-                raise ClockRangeError(f'{bag_path}: its stamps go past 2038 ({reader.end_time} '
-                                      'ns), beyond what /clock (int32 seconds) holds: play it '
+            # rosbags' end_time is one past the last stamp: 2**63, beyond an int64, for a
+            # last stamp of 2**63 - 1
+            last_ns = reader.end_time - 1
+            if clock_hz > 0 and last_ns > MAX_NS:
+                raise ClockRangeError(f'{bag_path}: its stamps go past 2038 ({last_ns} ns), '
+                                      'beyond what /clock (int32 seconds) holds: play it '
                                       'without the clock')
             # made before the wait, so that discovery matches /clock with the data topics
             # best effort, depth 1, volatile: rclcpp's ClockQoS
