@@ -484,3 +484,35 @@ def test_a_split_bag_that_was_not_closed_names_its_files(tmp_path, storage, meta
     err = capsys.readouterr().err
     assert err == (f'beo-bag-recover: {split}: expected one .db3 or .mcap file, found 2: '
                    f'{names}: recover each file (beo-bag-recover FILE -o NEW)\n'), err
+
+
+def test_mcap_channels_not_encoded_as_cdr_are_refused(tmp_path, capsys, keep_signal_handlers):
+    """An mcap channel with message_encoding 'json'. Before: its JSON bytes were read,
+    played and copied as CDR (recover: 0 messages, the file counted as lost bytes); now
+    read_bag, bag_info, beo-replay and beo-bag-recover refuse it, naming the topic."""
+    import json
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    p = tmp_path / 'b'
+    w = Writer(p, version=Writer.VERSION_LATEST, storage_plugin=StoragePlugin.MCAP)
+    w.open()
+    c = w.add_connection('/chatter', 'std_msgs/msg/String', serialization_format='json',
+                         typestore=bag.get_typestore(['std_msgs/msg/String']))
+    w.write(c, 10, json.dumps({'data': 'hello'}).encode())
+    w.close()
+    meta = p / 'metadata.yaml'   # as if metadata.yaml had it right: only the file says json
+    meta.write_text(meta.read_text().replace('serialization_format: json',
+                                             'serialization_format: cdr'))
+    file = bag._bag_file(p)
+    why = "topic /chatter is encoded as 'json', not cdr: only CDR-encoded messages are supported"
+    for target in (p, file):
+        for read in (lambda: list(bag.read_bag(target)), lambda: bag.bag_info(target)):
+            with pytest.raises(ValueError) as e:
+                read()
+            assert str(e.value) == f'{target}: {why}'
+        assert bag.replay_main([str(target), '--all-topics', '--rate', '0']) == 2
+        err = capsys.readouterr().err   # (after warnings of modules imported for the first time)
+        assert err.endswith(f'\nbeo-replay: cannot read {target}: {target}: {why}\n') or \
+            err == f'beo-replay: cannot read {target}: {target}: {why}\n', err
+    assert bag.recover_main([str(file), '-o', str(tmp_path / 'new')]) == 2
+    assert capsys.readouterr().err == f'beo-bag-recover: {file}: {why}\n'
+    assert not (tmp_path / 'new').exists()

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from beo_ros.ros.bag.msgtypes import get_typestore, normalize_msgtype
 from beo_ros.ros.bag.recorder import BagWriteError
-from beo_ros.ros.bag.storage import (BagWriter, bad_qos, cdr_payload, hot_journal,
+from beo_ros.ros.bag.storage import (BagWriter, bad_qos, cdr_payload, hot_journal, not_cdr,
                                      recorded_latched, recorded_reliable, storage_errors)
 
 
@@ -114,6 +114,10 @@ class _Damaged(Exception):
     """rosbags could not read a (repaired) bag to its end."""
 
 
+class _NotCdr(ValueError):
+    """A bag of messages that are not CDR (:func:`not_cdr`): not damage, not to be copied."""
+
+
 def recover_bag(src, dst, *, storage: str | None = None) -> dict:
     """Copy every intact message of a bag that was never closed (a recording ended by SIGKILL,
     a crash or a full disk: no metadata.yaml, an mcap file without its footer) into a new,
@@ -152,6 +156,8 @@ def recover_bag(src, dst, *, storage: str | None = None) -> dict:
                         ends, _ = _mcap_record_ends(path, trust_footer=False)
                 if topics is None:
                     topics, end = _longest_readable_prefix(path, ends, dst, storage, tmp)
+    except _NotCdr as e:   # from a copy of path, maybe: named by path
+        raise ValueError(f'{path}: {e}') from None
     except storage_errors() as e:   # the source reads (above, or as _Damaged): a full disk, ...
         raise BagWriteError(f'cannot write {dst}: {e}') from e
     return {'messages': sum(topics.values()), 'topics': topics, 'storage': storage,
@@ -255,6 +261,10 @@ def _copy_messages(readable: Path, dst: Path, storage: str, unindexed: bool) -> 
         with contextlib.suppress(Exception):
             reader.close()
         raise _Damaged(_one_line(e)) from e
+    problem = not_cdr(conns)
+    if problem:
+        reader.close()
+        raise _NotCdr(problem)
     try:
         with _removed_on_error(BagWriter(dst, storage)) as writer:
             for c in conns:

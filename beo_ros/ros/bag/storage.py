@@ -419,10 +419,23 @@ def bad_qos(bag_path) -> str | None:
     return None
 
 
+def not_cdr(conns) -> str | None:
+    """What is wrong with bag connections of which one is not CDR-encoded (an mcap channel's
+    message encoding, such as 'json'), or None. rosbags reads their bytes as they are, and
+    they would be played or copied as CDR: mis-decoded."""
+    for c in conns:
+        fmt = getattr(getattr(c, 'ext', None), 'serialization_format', 'cdr')
+        if fmt != 'cdr':
+            return (f'topic {c.topic} is encoded as {fmt!r}, not cdr: only CDR-encoded '
+                    'messages are supported')
+    return None
+
+
 @contextlib.contextmanager
 def _reader(bag_path):
     """A rosbags Reader of ``bag_path``, open; ValueError naming the file, topic and field when
-    it does not open because of offered QoS profiles that do not parse (:func:`bad_qos`)."""
+    it does not open because of offered QoS profiles that do not parse (:func:`bad_qos`), or
+    naming the topic of messages that are not CDR (:func:`not_cdr`)."""
     from rosbags.rosbag2 import Reader
     reader = Reader(Path(bag_path))
     try:
@@ -433,6 +446,10 @@ def _reader(bag_path):
             raise ValueError(problem) from None
         raise
     try:
+        storages = getattr(reader.storage, 'storages', None) or [reader.storage]
+        problem = not_cdr([c for s in storages for c in s.connections])
+        if problem:
+            raise ValueError(f'{bag_path}: {problem}')
         yield reader
     finally:
         reader.close()
