@@ -221,10 +221,11 @@ def _clock_tick(pub, stats, t_start: float, bag_t0: int, rate: float, t_next: in
 def _check_output_types(node, conns, remap) -> None:
     """``KeyError`` if two bag topics of different types would be published on one topic (by
     remapping), or a published topic has another type in the graph already (rcl refuses the
-    publisher)."""
+    publisher). Topics are compared by their full names, as the publishers resolve them
+    (bag topic 'x' is played on /x)."""
     outs = {}
     for c in conns:
-        out = remap.get(c.topic, c.topic)
+        out = node.resolve_topic_name(remap.get(c.topic, c.topic))
         if outs.setdefault(out, (c.msgtype, c.topic))[0] != c.msgtype:
             typ, first = outs[out]
             raise KeyError(f'{first} ({typ}) and {c.topic} ({c.msgtype}) would both be played '
