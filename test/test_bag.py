@@ -1156,3 +1156,92 @@ def test_replay_waits_for_a_clock_subscriber_with_its_data_subscribers(ros_env_c
     finally:
         spin.close()
     assert stats.waited_s < bag.CLOCK_GRACE_S - 0.1
+
+
+@pytest.mark.parametrize('storage', bag.STORAGES)
+@pytest.mark.parametrize('qos', ['- [not yaml', '- history: 1'])   # not YAML; no depth
+def test_offered_qos_profiles_that_do_not_parse_are_one_line_naming_bag_topic_and_field(
+        tmp_path, capsys, monkeypatch, keep_signal_handlers, storage, qos):
+    """Before: a TypeError or KeyError traceback (QoS stored in the .db3 / .mcap file), or a
+    message naming neither the topic nor the field (in metadata.yaml)."""
+    import rosbags.rosbag2.writer
+    p = tmp_path / 'b'
+    with monkeypatch.context() as m:   # what the bag stores as its topic's offered QoS
+        m.setattr(rosbags.rosbag2.writer, 'dump_qos_v9', lambda profiles: qos)
+        with bag.BagWriter(p, storage) as w:
+            w.write('/chatter', String(data='x'), 10)
+    file = bag._bag_file(p)
+    for target, named in ((p, p / 'metadata.yaml'), (file, file)):
+        want = f'{named}: topic /chatter: offered_qos_profiles is not a list of QoS profiles ('
+        for read in (lambda: list(bag.read_bag(target)), lambda: bag.bag_info(target)):
+            with pytest.raises(ValueError) as e:
+                read()
+            assert str(e.value).startswith(want) and '\n' not in str(e.value), e.value
+        assert bag.replay_main([str(target), '--all-topics', '--rate', '0']) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f'beo-replay: cannot read {target}: {want}') and \
+            err.count('\n') == 1, err
+    assert bag.recover_main([str(file), '-o', str(tmp_path / 'new')]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f'beo-bag-recover: {file}: topic /chatter: offered_qos_profiles') \
+        and err.count('\n') == 1 and not (tmp_path / 'new').exists(), err
+
+
+def test_record_normalizes_a_type_given_as_pkg_type(ros_env_context, tmp_path, ros_domain_id):
+    """{'/chatter': 'std_msgs/String'} given to record(). Before: the type was kept as given,
+    so the topic's own publishers were warned about as of another type and the stats had a
+    type name that is not pkg/msg/Type; now it is std_msgs/msg/String throughout."""
+    ctx = rclpy.Context()   # another participant, as another process would be
+    rclpy.init(args=[], context=ctx, domain_id=ros_domain_id)
+    try:
+        pub_node = rclpy.create_node('talker', context=ctx)
+        rec_node = rclpy.create_node('recorder', context=ros_env_context)
+        pub_node.create_publisher(String, '/chatter', 10)
+        assert wait_for(lambda: rec_node.get_publishers_info_by_topic('/chatter'), 10)
+        warned = []
+        rec_node.get_logger().warning = lambda msg, **kw: warned.append(msg)
+        stats = bag.record(rec_node, tmp_path / 'r', {'/chatter': 'std_msgs/String'},
+                           duration=0.2)
+    finally:
+        rclpy.try_shutdown(context=ctx)
+    assert warned == []
+    assert stats.topics == {'/chatter': {'type': 'std_msgs/msg/String', 'count': 0}}
+    assert bag.bag_info(tmp_path / 'r')['topics'] == {
+        '/chatter': {'type': 'std_msgs/msg/String', 'count': 0}}
+    assert bag.resolve_topic_types(rec_node, {'x': 'std_msgs/String', '/x': None}) == {
+        '/x': 'std_msgs/msg/String'}
+
+
+def test_a_bag_topic_that_is_not_a_valid_topic_name_is_one_line_and_plays_remapped(
+        tmp_path, capsys, keep_signal_handlers):
+    """Before: rclpy's InvalidTopicNameException traceback (several lines, exit 1); now one
+    line naming the topic and the remap that plays it, and the remapped replay plays."""
+    p = tmp_path / 'b'
+    with bag.BagWriter(p, 'sqlite3') as w:
+        w.write('/bad topic!', String(data='x'), 10)
+    assert bag.replay_main([str(p), '--all-topics', '--rate', '0']) == 2
+    out, err = capsys.readouterr()
+    assert err.startswith(f"beo-replay: {p}: topic '/bad topic!' is not a valid ROS topic name (") \
+        and err.endswith('remap it to one (--remap OLD:=NEW) to play it\n') \
+        and err.count('\n') == 1 and out == '', err
+    assert bag.replay_main([str(p), '--all-topics', '--rate', '0', '--json',
+                            '--remap', '/bad topic!:=/good']) == 0
+    stats = json.loads(capsys.readouterr().out)
+    assert stats['messages'] == 1 and list(stats['topics']) == ['/good']
+
+
+def test_the_clock_range_of_a_bag_is_that_of_its_last_stamp(ros_env_context, tmp_path):
+    """rosbags' end_time is one past the last stamp. Before: a last stamp of 2**63 - 1 (the
+    int64 maximum) was reported as 9223372036854775808 ns, which no int64 holds, and a bag
+    whose last stamp is the last one /clock holds was refused."""
+    from beo_ros.ros.conversions import MAX_STAMP_NS
+    node = rclpy.create_node('replayer', context=ros_env_context)
+    for name, last in (('max', 2**63 - 1), ('edge', MAX_STAMP_NS)):
+        with bag.BagWriter(tmp_path / name, storage='sqlite3') as w:
+            w.write('/chatter', String(data='a'), 10)
+            w.write('/chatter', String(data='b'), last)
+    with pytest.raises(ValueError) as e:
+        bag.replay(tmp_path / 'max', node, all_topics=True, rate=0, clock_hz=10.0)
+    assert f'({2**63 - 1} ns)' in str(e.value), e.value
+    stats = bag.replay(tmp_path / 'edge', node, all_topics=True, rate=0, clock_hz=10.0)
+    assert stats.messages == 2 and stats.clock_messages == 2

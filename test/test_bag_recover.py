@@ -411,3 +411,108 @@ def test_a_bag_of_zstd_compressed_messages_is_read_and_recovered_as_cdr(ros_env_
                all_topics=True, rate=0, qos='best_effort',
                on_publish=lambda topic, raw, t: sent.append(raw[:2]))
     assert sent == [b'\x00\x01'] * 3   # CDR, little endian
+
+
+def test_a_sqlite3_bag_killed_in_wal_mode_recovers_what_its_wal_holds(tmp_path):
+    """A recording in WAL mode killed before a checkpoint: the committed messages are in the
+    -wal file. Before: recover (rosbags opens the database as immutable) left them out; now
+    they are copied, and the killed bag's files are left as they were."""
+    import hashlib
+    import shutil
+    import sqlite3
+    from std_msgs.msg import String
+    src = tmp_path / 'src'
+    with bag.BagWriter(src, 'sqlite3') as w:
+        for i in range(3):
+            w.write('/chatter', String(data=f'm{i}'), 10 + i)
+    killed = tmp_path / 'killed'
+    killed.mkdir()
+    conn = sqlite3.connect(src / 'src.db3')
+    try:
+        conn.execute('PRAGMA journal_mode=WAL')
+        conn.execute('PRAGMA wal_autocheckpoint=0')
+        conn.execute('INSERT INTO messages (topic_id, timestamp, data) '
+                     'SELECT topic_id, timestamp + 100, data FROM messages')
+        conn.commit()
+        for f in src.glob('src.db3*'):   # as a SIGKILL leaves them: no checkpoint
+            shutil.copyfile(f, killed / f.name)
+    finally:
+        conn.close()
+    assert (killed / 'src.db3-wal').stat().st_size > 0
+
+    def digests():
+        return {f.name: hashlib.sha256(f.read_bytes()).hexdigest() for f in killed.iterdir()}
+
+    before = digests()
+    summary = bag.recover_bag(killed, tmp_path / 'new')
+    assert summary['messages'] == 6
+    assert [t for _, _, t, _ in bag.read_bag(tmp_path / 'new')] == [10, 11, 12, 110, 111, 112]
+    assert digests() == before
+
+
+@pytest.mark.parametrize('storage', bag.STORAGES)
+@pytest.mark.parametrize('metadata', ['none', 'stale', 'cut'])
+def test_a_split_bag_that_was_not_closed_names_its_files(tmp_path, storage, metadata, capsys,
+                                                         keep_signal_handlers):
+    """A split recording killed in its second file: no metadata.yaml, one that lists the
+    first file only, or one cut off. Before: messages that named no file (or the second file
+    silently left out, or 'expected one .db3 or .mcap file, found 2'); now the files are
+    named, with what to do."""
+    import shutil
+    from std_msgs.msg import String
+    ext = 'db3' if storage == 'sqlite3' else 'mcap'
+    split = tmp_path / 'split'
+    for i in range(2):
+        with bag.BagWriter(tmp_path / f'part{i}', storage) as w:
+            w.write('/chatter', String(data=str(i)), 10 + i)
+        split.mkdir(exist_ok=True)
+        shutil.copyfile(tmp_path / f'part{i}' / f'part{i}.{ext}', split / f'split_{i}.{ext}')
+    if metadata != 'none':
+        text = (tmp_path / 'part0' / 'metadata.yaml').read_text().replace('part0.', 'split_0.')
+        (split / 'metadata.yaml').write_text(text if metadata == 'stale'
+                                             else text[:len(text) // 2] + '\n  - [')
+    names = f'split_0.{ext}, split_1.{ext}'
+    for read in (lambda: list(bag.read_bag(split)), lambda: bag.bag_info(split)):
+        with pytest.raises(ValueError) as e:
+            read()
+        assert f'the files of the bag: {names}:' in str(e.value), e.value
+    assert bag.replay_main([str(split), '--all-topics', '--rate', '0']) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f'beo-replay: cannot read {split}: ') and names in err and \
+        err.count('\n') == 1, err
+    assert bag.recover_main([str(split), '-o', str(tmp_path / 'new')]) == 2
+    err = capsys.readouterr().err
+    assert err == (f'beo-bag-recover: {split}: expected one .db3 or .mcap file, found 2: '
+                   f'{names}: recover each file (beo-bag-recover FILE -o NEW)\n'), err
+
+
+def test_mcap_channels_not_encoded_as_cdr_are_refused(tmp_path, capsys, keep_signal_handlers):
+    """An mcap channel with message_encoding 'json'. Before: its JSON bytes were read,
+    played and copied as CDR (recover: 0 messages, the file counted as lost bytes); now
+    read_bag, bag_info, beo-replay and beo-bag-recover refuse it, naming the topic."""
+    import json
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    p = tmp_path / 'b'
+    w = Writer(p, version=Writer.VERSION_LATEST, storage_plugin=StoragePlugin.MCAP)
+    w.open()
+    c = w.add_connection('/chatter', 'std_msgs/msg/String', serialization_format='json',
+                         typestore=bag.get_typestore(['std_msgs/msg/String']))
+    w.write(c, 10, json.dumps({'data': 'hello'}).encode())
+    w.close()
+    meta = p / 'metadata.yaml'   # as if metadata.yaml had it right: only the file says json
+    meta.write_text(meta.read_text().replace('serialization_format: json',
+                                             'serialization_format: cdr'))
+    file = bag._bag_file(p)
+    why = "topic /chatter is encoded as 'json', not cdr: only CDR-encoded messages are supported"
+    for target in (p, file):
+        for read in (lambda: list(bag.read_bag(target)), lambda: bag.bag_info(target)):
+            with pytest.raises(ValueError) as e:
+                read()
+            assert str(e.value) == f'{target}: {why}'
+        assert bag.replay_main([str(target), '--all-topics', '--rate', '0']) == 2
+        err = capsys.readouterr().err   # (after warnings of modules imported for the first time)
+        assert err.endswith(f'\nbeo-replay: cannot read {target}: {target}: {why}\n') or \
+            err == f'beo-replay: cannot read {target}: {target}: {why}\n', err
+    assert bag.recover_main([str(file), '-o', str(tmp_path / 'new')]) == 2
+    assert capsys.readouterr().err == f'beo-bag-recover: {file}: {why}\n'
+    assert not (tmp_path / 'new').exists()

@@ -64,7 +64,8 @@ def test_replay_waits_for_acknowledgements_before_the_history_wraps(tmp_path, mo
     def fake(node, msgtype, topic, qos, depth, latched=False):
         return pubs.setdefault(topic, FakePublisher(topic, depth, qos == 'reliable', acked))
     monkeypatch.setattr(bag.player, '_publisher', fake)
-    node = SimpleNamespace(get_topic_names_and_types=lambda: [])
+    node = SimpleNamespace(get_topic_names_and_types=lambda: [],
+                           resolve_topic_name=lambda t: t if t.startswith('/') else '/' + t)
     stats = bag.replay(tmp_path / 'b', node, rate=0, depth=3, ack_timeout=0)
     assert stats.messages == 7
     events = ''.join('P' if e == 'pub' else 'A' for e in pubs['/beo/input'].events)
@@ -595,3 +596,25 @@ def test_cli_pcd2bag_calls_a_directory_a_directory(tmp_path, capsys):
     with pytest.raises(SystemExit):
         bag.pcd2bag_main([str(tmp_path / 'x.pcd'), '-o', str(tmp_path / 'b')])
     assert f'error: no such file: {tmp_path / "x.pcd"}' in capsys.readouterr().err
+
+
+def test_a_relative_bag_topic_is_type_checked_by_its_full_name(ros_env_context, tmp_path):
+    """A bag topic 'relchat' (no leading '/') is published on /relchat. Before: the checks of
+    one type per topic looked up 'relchat', found nothing, and create_publisher failed with
+    an RCLError; now they use /relchat, as the graph and the other bag topics name it."""
+    from std_msgs.msg import Int32, String
+    p = tmp_path / 'b'
+    with bag.BagWriter(p, 'sqlite3') as w:
+        w.write('relchat', String(data='x'), 10)
+    other = rclpy.create_node('other', context=ros_env_context)
+    other.create_publisher(Int32, '/relchat', 10)
+    player = rclpy.create_node('player', context=ros_env_context)
+    with pytest.raises(KeyError, match='/relchat has type std_msgs/msg/Int32 in the ROS graph; '
+                                       'cannot play relchat'):
+        bag.replay(p, player, all_topics=True, rate=0)
+    q = tmp_path / 'q'
+    with bag.BagWriter(q, 'sqlite3') as w:
+        w.write('/both', Int32(data=1), 10)
+        w.write('both', String(data='x'), 11)
+    with pytest.raises(KeyError, match='would both be played on /both'):
+        bag.replay(q, player, all_topics=True, rate=0)

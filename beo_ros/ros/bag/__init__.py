@@ -57,8 +57,8 @@ from beo_ros.ros.bag.msgtypes import (CLOUD_TYPE, check_node_name, check_topic_n
                                       get_typestore, import_msg_class, msgtype_of,
                                       normalize_msgtype)
 from beo_ros.ros.bag.player import (ACK_TIMEOUT_S, CLOCK_GRACE_S, BagReadError, ReplayStats,
-                                    TopicStats, _clock_tick, _sleep_until, make_qos,
-                                    parse_remaps, replay)
+                                    TopicNameError, TopicStats, _clock_tick, _sleep_until,
+                                    make_qos, parse_remaps, replay)
 from beo_ros.ros.bag.recorder import (COMMIT_PERIOD_S, BagWriteError, RecordStats,
                                       parse_topic_specs, record, resolve_topic_types)
 from beo_ros.ros.bag.recover import MCAP_MAGIC, _bag_file, recover_bag
@@ -79,8 +79,8 @@ __all__ = [
     # recover
     'MCAP_MAGIC', 'recover_bag',
     # player
-    'ACK_TIMEOUT_S', 'CLOCK_GRACE_S', 'BagReadError', 'ReplayStats', 'TopicStats', 'make_qos',
-    'parse_remaps', 'replay',
+    'ACK_TIMEOUT_S', 'CLOCK_GRACE_S', 'BagReadError', 'ReplayStats', 'TopicNameError',
+    'TopicStats', 'make_qos', 'parse_remaps', 'replay',
     # recorder
     'COMMIT_PERIOD_S', 'BagWriteError', 'RecordStats', 'parse_topic_specs', 'record',
     'resolve_topic_types',

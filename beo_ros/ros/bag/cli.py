@@ -12,8 +12,8 @@ from pathlib import Path
 
 from beo_ros.cli import INTERRUPTED, TERMINATED, count, interruptible, number
 from beo_ros.ros.bag.msgtypes import CLOUD_TYPE, check_node_name
-from beo_ros.ros.bag.player import (ACK_TIMEOUT_S, BagReadError, ClockRangeError, parse_remaps,
-                                     replay)
+from beo_ros.ros.bag.player import (ACK_TIMEOUT_S, BagReadError, ClockRangeError,
+                                     TopicNameError, parse_remaps, replay)
 from beo_ros.ros.bag.recorder import BagWriteError, parse_topic_specs, record
 from beo_ros.ros.bag.recover import recover_bag
 from beo_ros.ros.bag.scenes import (DEFAULT_FRAME, DEFAULT_INPUT_TOPIC, PLANE_TOPIC, UP_TOPIC,
@@ -208,6 +208,9 @@ def replay_main(argv=None) -> int:
             print(f'beo-replay: {e.args[0]}', file=sys.stderr)
             code = 2
         except ClockRangeError as e:   # a readable bag, refused with --clock
+            print(f'beo-replay: {e}', file=sys.stderr)
+            code = 2
+        except TopicNameError as e:   # a readable bag, played once remapped
             print(f'beo-replay: {e}', file=sys.stderr)
             code = 2
         except BagReadError as e:   # corrupt part way: what was played before it

@@ -221,10 +221,11 @@ def _clock_tick(pub, stats, t_start: float, bag_t0: int, rate: float, t_next: in
 def _check_output_types(node, conns, remap) -> None:
     """``KeyError`` if two bag topics of different types would be published on one topic (by
     remapping), or a published topic has another type in the graph already (rcl refuses the
-    publisher)."""
+    publisher). Topics are compared by their full names, as the publishers resolve them
+    (bag topic 'x' is played on /x)."""
     outs = {}
     for c in conns:
-        out = remap.get(c.topic, c.topic)
+        out = node.resolve_topic_name(remap.get(c.topic, c.topic))
         if outs.setdefault(out, (c.msgtype, c.topic))[0] != c.msgtype:
             typ, first = outs[out]
             raise KeyError(f'{first} ({typ}) and {c.topic} ({c.msgtype}) would both be played '
@@ -242,6 +243,10 @@ class ClockRangeError(ValueError):
     that cannot be played with the clock."""
 
 
+class TopicNameError(ValueError):
+    """A bag topic to play is not a valid ROS topic name (and is not remapped to one)."""
+
+
 class BagReadError(ValueError):
     """A bag turned out unreadable (corrupt database, truncated file) during :func:`replay`;
     ``stats``: what was played before."""
@@ -254,7 +259,8 @@ class BagReadError(ValueError):
 def _replay_connections(reader, bag_path, topics, all_topics: bool, remap: dict) -> list:
     """The connections of the open bag ``reader`` to play: those of ``topics``, all of them
     (``all_topics``) or the PointCloud2 ones. ``KeyError`` for a topic in ``topics`` or a
-    remapped topic that is not in the bag."""
+    remapped topic that is not in the bag, :class:`TopicNameError` for a topic to play that
+    is not a valid ROS topic name and is not remapped."""
     if topics:
         wanted = _topic_set(topics)
         missing = wanted - {c.topic for c in reader.connections}
@@ -270,6 +276,15 @@ def _replay_connections(reader, bag_path, topics, all_topics: bool, remap: dict)
     unknown = set(remap) - {c.topic for c in reader.connections}
     if unknown:   # a typo would otherwise play on the old name
         raise KeyError(f'remapped topics not in bag {bag_path}: {sorted(unknown)}')
+    for c in conns:   # rclpy would refuse its publisher with a multi-line exception
+        if c.topic not in remap:
+            try:
+                check_topic_name(c.topic)
+            except ValueError as e:
+                why = str(e).removeprefix(f'bad topic name {c.topic!r}: ')
+                raise TopicNameError(f'{bag_path}: topic {c.topic!r} is not a valid ROS topic '
+                                     f'name ({why}): remap it to one (--remap OLD:=NEW) to '
+                                     'play it') from None
     return conns
 
 
@@ -469,9 +484,12 @@ def replay(bag_path, node, *, topics=None, all_topics: bool = False, remap=None,
                                                          strict=bool(topics))
             if not conns:
                 return stats
-            if clock_hz > 0 and reader.end_time > MAX_NS:
-                raise ClockRangeError(f'{bag_path}: its stamps go past 2038 ({reader.end_time} '
-                                      'ns), beyond what /clock (int32 seconds) holds: play it '
+            # rosbags' end_time is one past the last stamp: 2**63, beyond an int64, for a
+            # last stamp of 2**63 - 1
+            last_ns = reader.end_time - 1
+            if clock_hz > 0 and last_ns > MAX_NS:
+                raise ClockRangeError(f'{bag_path}: its stamps go past 2038 ({last_ns} ns), '
+                                      'beyond what /clock (int32 seconds) holds: play it '
                                       'without the clock')
             # made before the wait, so that discovery matches /clock with the data topics
             # best effort, depth 1, volatile: rclcpp's ClockQoS

@@ -90,12 +90,14 @@ def parse_topic_specs(specs) -> dict:
 
 def resolve_topic_types(node, topics: dict, wait: float = 10.0,
                         stop: threading.Event | None = None) -> dict:
-    """Fill in ``None`` types from the graph (waiting up to ``wait`` s); ``KeyError`` if not found,
-    ``KeyboardInterrupt`` if ``stop`` gets set first, ``ValueError`` if two names of one topic
+    """Fill in ``None`` types from the graph (waiting up to ``wait`` s); the given ones are
+    normalized ('pkg/Type' -> 'pkg/msg/Type'). ``KeyError`` if not found, ``KeyboardInterrupt``
+    if ``stop`` gets set first, ``ValueError`` for a bad type name or if two names of one topic
     ('x' and '/x') are given different types."""
     resolved = {}
     for t, typ in topics.items():
         name = node.resolve_topic_name(t)
+        typ = normalize_msgtype(typ) if typ else None
         old = resolved.get(name)
         if old and typ and old != typ:
             raise ValueError(f'{name} is given twice, as {old} and as {typ}')

@@ -9,8 +9,8 @@ from pathlib import Path
 
 from beo_ros.ros.bag.msgtypes import get_typestore, normalize_msgtype
 from beo_ros.ros.bag.recorder import BagWriteError
-from beo_ros.ros.bag.storage import (BagWriter, cdr_payload, hot_journal, recorded_latched,
-                                     recorded_reliable, storage_errors)
+from beo_ros.ros.bag.storage import (BagWriter, bad_qos, cdr_payload, hot_journal, not_cdr,
+                                     recorded_latched, recorded_reliable, storage_errors)
 
 
 MCAP_MAGIC = b'\x89MCAP0\r\n'
@@ -101,14 +101,21 @@ def _bag_file(src) -> Path:
     if not p.is_dir():
         raise ValueError(f'{src}: no such bag')
     files = sorted(f for f in p.iterdir() if f.suffix in ('.db3', '.mcap'))
-    if len(files) != 1:
-        raise ValueError(f'{src}: expected one .db3 or .mcap file, found '
-                         f'{len(files) or "none"}')
+    if not files:
+        raise ValueError(f'{src}: expected one .db3 or .mcap file, found none')
+    if len(files) > 1:   # a split recording
+        raise ValueError(f'{src}: expected one .db3 or .mcap file, found {len(files)}: '
+                         f'{", ".join(f.name for f in files)}: recover each file '
+                         '(beo-bag-recover FILE -o NEW)')
     return files[0]
 
 
 class _Damaged(Exception):
     """rosbags could not read a (repaired) bag to its end."""
+
+
+class _NotCdr(ValueError):
+    """A bag of messages that are not CDR (:func:`not_cdr`): not damage, not to be copied."""
 
 
 def recover_bag(src, dst, *, storage: str | None = None) -> dict:
@@ -139,7 +146,7 @@ def recover_bag(src, dst, *, storage: str | None = None) -> dict:
                 try:
                     topics = _copy_messages(_rolled_back(path, tmp), dst, storage, False)
                 except _Damaged as e:
-                    raise ValueError(f'{path}: {e}') from None
+                    raise ValueError(bad_qos(path) or f'{path}: {e}') from None
             else:
                 topics = None
                 if closed:
@@ -149,6 +156,8 @@ def recover_bag(src, dst, *, storage: str | None = None) -> dict:
                         ends, _ = _mcap_record_ends(path, trust_footer=False)
                 if topics is None:
                     topics, end = _longest_readable_prefix(path, ends, dst, storage, tmp)
+    except _NotCdr as e:   # from a copy of path, maybe: named by path
+        raise ValueError(f'{path}: {e}') from None
     except storage_errors() as e:   # the source reads (above, or as _Damaged): a full disk, ...
         raise BagWriteError(f'cannot write {dst}: {e}') from e
     return {'messages': sum(topics.values()), 'topics': topics, 'storage': storage,
@@ -170,6 +179,10 @@ def _longest_readable_prefix(path: Path, ends: list, dst: Path, storage: str, tm
             return None, None
 
     best, bag_dir = attempt(len(ends) - 1)
+    if best is None:   # QoS profiles that do not parse: no prefix with that channel reads
+        problem = bad_qos(path)
+        if problem:
+            raise ValueError(problem)
     lo = len(ends) - 1 if best is not None else -1   # ends[lo] reads (-1: none known)
     hi = lo if best is not None else len(ends) - 2   # none after hi does
     while lo < hi:
@@ -189,16 +202,24 @@ def _longest_readable_prefix(path: Path, ends: list, dst: Path, storage: str, tm
 
 def _rolled_back(db: Path, tmp: Path) -> Path:
     """``db``, or a copy of it in ``tmp`` with its hot journal rolled back (see
-    :func:`hot_journal`)."""
+    :func:`hot_journal`), or with the transactions of its write-ahead log (``-wal``: a
+    recording in WAL mode that was killed before checkpointing them) moved into it: rosbags
+    opens a database as immutable, ignoring both. ``db`` and its files are left as they are."""
     journal = hot_journal(db)
-    if journal is None:
+    wal = db.with_name(db.name + '-wal')
+    has_wal = wal.is_file() and wal.stat().st_size > 0
+    if journal is None and not has_wal:
         return db
     import sqlite3
     copy = tmp / db.name
     shutil.copyfile(db, copy)
-    shutil.copyfile(journal, tmp / journal.name)
+    for f in (journal, wal if has_wal else None):
+        if f is not None:
+            shutil.copyfile(f, tmp / f.name)
     with contextlib.closing(sqlite3.connect(copy)) as conn:
         conn.execute('SELECT COUNT(*) FROM sqlite_master').fetchone()
+        if has_wal:
+            conn.execute('PRAGMA wal_checkpoint(TRUNCATE)').fetchone()
     return copy
 
 
@@ -240,6 +261,10 @@ def _copy_messages(readable: Path, dst: Path, storage: str, unindexed: bool) -> 
         with contextlib.suppress(Exception):
             reader.close()
         raise _Damaged(_one_line(e)) from e
+    problem = not_cdr(conns)
+    if problem:
+        reader.close()
+        raise _NotCdr(problem)
     try:
         with _removed_on_error(BagWriter(dst, storage)) as writer:
             for c in conns:

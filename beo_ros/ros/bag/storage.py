@@ -245,17 +245,59 @@ def _check_no_hot_journal(bag_path):
                          'journal is there): read it through beo-bag-recover BAG -o NEW')
 
 
+def _listed_files(meta: Path):
+    """The file names a metadata.yaml lists (``relative_file_paths``), or the YAML error or
+    KeyError of one that does not read (cut off, ...)."""
+    from ruamel.yaml import YAML
+    try:
+        info = YAML(typ='safe').load(meta.read_text())['rosbag2_bagfile_information']
+        return {Path(str(x)).name for x in info['relative_file_paths']}
+    except Exception as e:  # noqa: BLE001 - ruamel's YAMLError, KeyError, TypeError
+        return e
+
+
+def _check_split_files(bag_path, files: list):
+    """ValueError naming the files of a bag directory of several .db3 / .mcap files (a split
+    recording) whose metadata.yaml does not read or does not list them all: rosbags would
+    fail without naming them, or read the listed ones only."""
+    p = Path(bag_path)
+    listed = _listed_files(p / 'metadata.yaml')
+    if isinstance(listed, Exception):
+        if len(files) < 2:
+            return   # rosbags' own error says it
+        what = f'does not read ({" ".join(str(listed).split()) or type(listed).__name__})'
+    else:
+        unlisted = [f.name for f in files if f.name not in listed]
+        if not unlisted:
+            return
+        what = f'does not list {", ".join(unlisted)}'
+    raise ValueError(f'{bag_path}: its metadata.yaml {what} (a recording that was not '
+                     f'closed?); the files of the bag: {", ".join(f.name for f in files)}: '
+                     'play or read each file itself, or make a closed bag of each with '
+                     'beo-bag-recover FILE -o NEW')
+
+
 def _check_readable(bag_path):
     """ValueError for a .db3 left in the middle of a write (:func:`hot_journal`), or a bag
-    directory without metadata.yaml (a recording that was not closed), saying what to do;
-    rosbags would call the directory itself the missing metadata file."""
+    directory without metadata.yaml (a recording that was not closed), or whose metadata.yaml
+    does not read or list all its files (:func:`_check_split_files`), saying what to do and
+    naming the files; rosbags would call the directory itself the missing metadata file."""
     _check_no_hot_journal(bag_path)
     p = Path(bag_path)
-    if p.is_dir() and not (p / 'metadata.yaml').exists():
-        files = sorted(f.name for f in p.iterdir() if f.suffix in ('.db3', '.mcap'))
-        how = f'play or read {p / files[0]} itself, or ' if len(files) == 1 else ''
-        raise ValueError(f'{bag_path}: no metadata.yaml (a recording that was not closed?): '
-                         f'{how}make a closed bag of it with beo-bag-recover {bag_path} -o NEW')
+    if not p.is_dir():
+        return
+    files = sorted(f for f in p.iterdir() if f.suffix in ('.db3', '.mcap'))
+    if (p / 'metadata.yaml').exists():
+        _check_split_files(p, files)
+        return
+    if len(files) > 1:
+        raise ValueError(f'{bag_path}: no metadata.yaml (a recording that was not closed?); '
+                         f'the files of the bag: {", ".join(f.name for f in files)}: play or '
+                         'read each file itself, or make a closed bag of each with '
+                         'beo-bag-recover FILE -o NEW')
+    how = f'play or read {files[0]} itself, or ' if files else ''
+    raise ValueError(f'{bag_path}: no metadata.yaml (a recording that was not closed?): '
+                     f'{how}make a closed bag of it with beo-bag-recover {bag_path} -o NEW')
 
 
 ZSTD_MAGIC = b'\x28\xb5\x2f\xfd'   # a zstd frame's first bytes; CDR's first byte is 0
@@ -293,12 +335,131 @@ def _align_metadata_qos(reader) -> None:
             conns[i] = c._replace(ext=same[0].ext)
 
 
+def _mcap_channels(path):
+    """Yield ``(topic, metadata)`` of the channel records of an mcap file, those in its chunks
+    included; stops quietly where the file does not read (a diagnosis, not a reader)."""
+    import io
+
+    from rosbags.rosbag2.storage_mcap import decompress
+
+    def string(b):
+        n = int.from_bytes(b.read(4), 'little')
+        return b.read(n).decode(errors='replace')
+
+    def channels(b, end):
+        while b.tell() + 9 <= end:
+            op, length = b.read(1)[0], int.from_bytes(b.read(8), 'little')
+            body = b.read(length)
+            if len(body) != length:
+                return
+            if op == 0x04:   # channel: id, schema id, topic, message encoding, metadata
+                rec = io.BytesIO(body[4:])
+                topic, _ = string(rec), string(rec)
+                meta = rec.read(int.from_bytes(rec.read(4), 'little'))
+                pairs, mb = {}, io.BytesIO(meta)
+                while mb.tell() < len(meta):
+                    key = string(mb)
+                    pairs[key] = string(mb)
+                yield topic, pairs
+            elif op == 0x06:   # chunk: start, end, size, crc, compression, records
+                usize = int.from_bytes(body[16:24], 'little')
+                crc = int.from_bytes(body[24:28], 'little')
+                n = int.from_bytes(body[28:32], 'little')
+                data = decompress(body[40 + n:], body[32:32 + n].decode(), usize, crc)
+                yield from channels(io.BytesIO(data), len(data))
+
+    with contextlib.suppress(Exception), open(path, 'rb') as f:
+        size = f.seek(0, 2)
+        f.seek(8)   # past the magic
+        yield from channels(f, size)
+
+
+def _qos_texts(bag_path):
+    """Yield ``(file, topic, offered_qos_profiles)`` of what a bag stores: its metadata.yaml's
+    topics, its .db3 files' topics tables, its .mcap files' channels; what does not read is
+    left out."""
+    import sqlite3
+    p = Path(bag_path)
+    meta = p / 'metadata.yaml'
+    if meta.is_file():
+        from ruamel.yaml import YAML
+        topics = []
+        with contextlib.suppress(Exception):
+            info = YAML(typ='safe').load(meta.read_text())['rosbag2_bagfile_information']
+            topics = [t['topic_metadata'] for t in info['topics_with_message_count']]
+        for t in topics:
+            if isinstance(t, dict) and 'offered_qos_profiles' in t:
+                yield meta, t.get('name'), t['offered_qos_profiles']
+    files = [p] if p.is_file() else (sorted(p.iterdir()) if p.is_dir() else [])
+    for f in files:
+        if f.suffix == '.db3':
+            rows = []
+            with contextlib.suppress(sqlite3.Error), contextlib.closing(
+                    sqlite3.connect(f'file:{f}?immutable=1', uri=True)) as db:
+                rows = db.execute('SELECT name, offered_qos_profiles FROM topics').fetchall()
+            yield from ((f, topic, text) for topic, text in rows)
+        elif f.suffix == '.mcap':
+            for topic, pairs in _mcap_channels(f):
+                if 'offered_qos_profiles' in pairs:
+                    yield f, topic, pairs['offered_qos_profiles']
+
+
+def bad_qos(bag_path) -> str | None:
+    """One line naming the file, the topic and the field of offered QoS profiles that a bag
+    stores and that do not parse (not YAML, or not a list of profiles), or None. rosbags fails
+    on them with a TypeError, or a message that names neither topic nor bag."""
+    from rosbags.rosbag2.metadata import parse_qos
+    for f, topic, text in _qos_texts(bag_path):
+        try:
+            parse_qos(text)
+        except Exception as e:  # noqa: BLE001 - TypeError, KeyError, ReaderError, ...
+            why = ' '.join(str(e).split())
+            return (f'{f}: topic {topic}: offered_qos_profiles is not a list of QoS profiles '
+                    f'({type(e).__name__}{": " + why if why else ""})')
+    return None
+
+
+def not_cdr(conns) -> str | None:
+    """What is wrong with bag connections of which one is not CDR-encoded (an mcap channel's
+    message encoding, such as 'json'), or None. rosbags reads their bytes as they are, and
+    they would be played or copied as CDR: mis-decoded."""
+    for c in conns:
+        fmt = getattr(getattr(c, 'ext', None), 'serialization_format', 'cdr')
+        if fmt != 'cdr':
+            return (f'topic {c.topic} is encoded as {fmt!r}, not cdr: only CDR-encoded '
+                    'messages are supported')
+    return None
+
+
+@contextlib.contextmanager
+def _reader(bag_path):
+    """A rosbags Reader of ``bag_path``, open; ValueError naming the file, topic and field when
+    it does not open because of offered QoS profiles that do not parse (:func:`bad_qos`), or
+    naming the topic of messages that are not CDR (:func:`not_cdr`)."""
+    from rosbags.rosbag2 import Reader
+    reader = Reader(Path(bag_path))
+    try:
+        reader.open()
+    except Exception:
+        problem = bad_qos(bag_path)
+        if problem:
+            raise ValueError(problem) from None
+        raise
+    try:
+        storages = getattr(reader.storage, 'storages', None) or [reader.storage]
+        problem = not_cdr([c for s in storages for c in s.connections])
+        if problem:
+            raise ValueError(f'{bag_path}: {problem}')
+        yield reader
+    finally:
+        reader.close()
+
+
 @contextlib.contextmanager
 def _open_reader(bag_path):
-    """A rosbags Reader of ``bag_path``, open, its metadata's QoS aligned with its storage's
-    (:func:`_align_metadata_qos`)."""
-    from rosbags.rosbag2 import Reader
-    with Reader(Path(bag_path)) as reader:
+    """A rosbags Reader of ``bag_path``, open (:func:`_reader`), its metadata's QoS aligned
+    with its storage's (:func:`_align_metadata_qos`)."""
+    with _reader(bag_path) as reader:
         _align_metadata_qos(reader)
         yield reader
 
@@ -338,9 +499,8 @@ def read_messages(bag_path, topics=None):
 
 def bag_info(bag_path) -> dict:
     """Storage, duration and ``{topic: {'type', 'count'}}`` of a bag."""
-    from rosbags.rosbag2 import Reader
     _check_readable(bag_path)
-    with Reader(Path(bag_path)) as reader:
+    with _reader(bag_path) as reader:
         topics = {}
         for c in reader.connections:
             d = topics.setdefault(c.topic, {'type': c.msgtype, 'count': 0})
