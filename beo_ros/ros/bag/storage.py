@@ -238,11 +238,30 @@ def hot_journal(bag_path) -> Path | None:
     return None
 
 
+def unmerged_wal(bag_path) -> Path | None:
+    """The non-empty write-ahead log (``-wal``) beside a bag's .db3 file, or None: a recording
+    in WAL mode that was not closed, its committed messages not yet checkpointed into the
+    database. rosbags opens the database as immutable and would not see them (a closed
+    connection checkpoints and deletes the log)."""
+    p = Path(bag_path)
+    dbs = [p] if p.suffix == '.db3' else (sorted(p.glob('*.db3')) if p.is_dir() else [])
+    for db in dbs:
+        wal = db.with_name(db.name + '-wal')
+        if wal.is_file() and wal.stat().st_size > 0:
+            return wal
+    return None
+
+
 def _check_no_hot_journal(bag_path):
     journal = hot_journal(bag_path)
     if journal is not None:
         raise ValueError(f'{journal}: the bag was left in the middle of a write (its rollback '
                          'journal is there): read it through beo-bag-recover BAG -o NEW')
+    wal = unmerged_wal(bag_path)
+    if wal is not None:   # reading on would leave out what the log holds, without a word
+        raise ValueError(f'{wal}: the bag holds messages in its write-ahead log that are not in '
+                         'its database (a recording that was not closed?): read it through '
+                         'beo-bag-recover BAG -o NEW')
 
 
 def _listed_files(meta: Path):
