@@ -30,7 +30,10 @@ from .core.calibration import calibration_sums, metrics_from_sums
 from .core.grid import GridSpec, symmetric_turns, yaw_error, yaw_error_up_to
 from .core.synthetic import random_partial_view
 from .core.datasets import drop_empty_objects, load_voxel_npz, select_classes
-from .core.training import fit_bank, progress_bar, stratified_folds
+from .core.training import check_class_counts, fit_bank, progress_bar, stratified_folds
+
+# folds of the out-of-fold classifier features of each --cv fold's bank (fit_bank's default)
+CLASSIFIER_FOLDS = 5
 
 
 def one_fold_parser(description, json_help):
@@ -439,6 +442,16 @@ def _cross_validate(args, X, y, names, n, class_prior, rng):
     if empty.any():
         print(f'beo-eval: warning: {int(empty.sum())} objects with no occupied voxel left out '
               'of the training folds', file=sys.stderr)
+    # every fold's training part checked before the first bank is trained (minutes each);
+    # with a classifier, --train-views 0 is the way out of a class with too few objects for
+    # its out-of-fold features
+    for f in range(args.folds or args.cv):
+        try:
+            check_class_counts(y[(fold != f) & ~empty], names,
+                               CLASSIFIER_FOLDS if args.train_views else 0, '--train-views 0')
+        except ValueError as e:
+            raise ValueError(f'--cv {args.cv}: the bank of fold {f} cannot be trained: {e}') \
+                from None
     recs, examples, info = [], [], []
     for f in range(args.folds or args.cv):
         tr, te = np.flatnonzero(fold != f), np.flatnonzero(fold == f)
@@ -448,7 +461,8 @@ def _cross_validate(args, X, y, names, n, class_prior, rng):
         t0 = time.time()
         bank = fit_bank(Xtr, ytr, names, GridSpec(size=n),
                         k=20 if args.k is None else args.k,
-                        classifier_views=args.train_views, seed=args.seed + f,
+                        classifier_views=args.train_views, folds=CLASSIFIER_FOLDS,
+                        seed=args.seed + f,
                         verbose=True, class_prior=class_prior or 'train',
                         verifier_views=args.verifier_views, processes=args.jobs)
         info.append(dict(fold=f, train=int(len(Xtr)), test=int(len(te)),

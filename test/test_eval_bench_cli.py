@@ -229,6 +229,25 @@ def test_eval_cv_refuses_folds_that_hold_no_object(tmp_path, capsys, monkeypatch
     assert not out.exists()
 
 
+@pytest.mark.parametrize('args, way_out', [(['--cv', '3'], True), (['--cv', '2'], False)])
+def test_eval_cv_too_few_objects_per_class_names_the_way_out(tmp_path, capsys, monkeypatch,
+                                                            args, way_out):
+    # 3 objects per class: --cv 3 trains each fold's bank on 2 of a class, too few for the
+    # out-of-fold classifier features (3 over 5 folds), which --train-views 0 leaves out;
+    # --cv 2 trains on 1, too few for a class model, whatever --train-views. The message
+    # named 'views 0', not beo-eval's option
+    data = write_npz(tmp_path / 'd.npz', count=3)
+    monkeypatch.setattr(evaluate, 'fit_bank', lambda *a, **k: pytest.fail('trained anyway'))
+    out = tmp_path / 'e'
+    assert call(evaluate.main, [*args, '--data', str(data), '--verifier-views', '0',
+                                '--out', str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f'beo-eval: error: --cv {args[1]}: the bank of fold 0 ')
+    assert ('--train-views 0' in err) == way_out
+    assert ('a class model needs >= 2' in err) != way_out
+    assert not out.exists()
+
+
 def test_eval_cv_trains_without_objects_that_have_no_occupied_voxel(tmp_path, capsys):
     # fit_bank refuses them (beo-train drops them): --cv used to end with "grid has no
     # occupied voxel"; they are left out of the training folds and still evaluated
