@@ -24,7 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .cli import complete_files, count, interruptible, json_safe, out_dir_problem, output_dir
+from .cli import (ArgumentParser, complete_files, count, interruptible, json_safe,
+                  out_dir_problem, output_dir)
 from .core.bank import load_models, parse_class_prior
 from .core.calibration import calibration_sums, metrics_from_sums
 from .core.grid import GridSpec, symmetric_turns, yaw_error, yaw_error_up_to
@@ -305,8 +306,8 @@ def main(argv=None):
 
 def _parser():
     """The ArgumentParser of beo-eval (--scans options of scan_eval pass through)."""
-    ap = argparse.ArgumentParser(prog='beo-eval', description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = ArgumentParser(prog='beo-eval', description=__doc__,
+                        formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('--data', help='labelled voxel npz (shared format)')
     ap.add_argument('--model', help='model directory (held-out mode; default: shipped model)')
     ap.add_argument('--cv', type=int, default=0,

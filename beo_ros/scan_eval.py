@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cli import complete_files, count, interruptible, number
+from .cli import ArgumentParser, complete_files, count, interruptible, number
 from .core.bank import YAW_STEP_RANGE_DEG
 from .core.training import check_grid_size
 
@@ -524,7 +524,7 @@ def print_table(s, file=None):
 
 @interruptible('beo-eval')
 def main(argv=None):
-    ap = add_arguments(argparse.ArgumentParser(
+    ap = add_arguments(ArgumentParser(
         prog='beo-eval --scans', description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter))
     args = ap.parse_args(argv)

@@ -14,7 +14,6 @@ Exit status 0 only if every input got an estimate. Needs neither /work/shared no
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -27,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from beo_ros.cli import count, interruptible, number
+from beo_ros.cli import ArgumentParser, count, interruptible, number
 
 FRAME = 'sensor'  # z up, sensor at the origin (see render_inputs)
 TOPIC = '/beo/input'
@@ -270,7 +269,7 @@ def plot(inputs, rows, completed_pts, path):
 
 @interruptible('beo-demo')
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(
+    p = ArgumentParser(
         prog='beo-demo', description='Render one partial view per class of the shipped model, '
         'replay them as a rosbag2 bag into an in-process beo node, print the estimates and plot '
         'them. Exit 0 only if every input got an estimate.')
