@@ -514,6 +514,22 @@ def test_demo_keep_bag_replaces_the_previous_bag(model, tmp_path, monkeypatch):
         assert bags == [suffix], bags
 
 
+def test_demo_results_name_the_kept_bag(model, tmp_path, monkeypatch):
+    # results.json did not say whether a bag was kept, nor which file (.mcap or .db3)
+    pytest.importorskip('rosbags')
+    from beo_ros.ros import demo
+    monkeypatch.setattr(demo, 'run_node_on_bag', lambda *a, **k: (
+        {}, {}, types.SimpleNamespace(to_dict=dict), {}))
+    out = tmp_path / 'd'
+    for keep, storage, bag in (([], 'mcap', None),
+                               (['--keep-bag'], 'sqlite3', out / 'demo_bag' / 'demo_bag.db3')):
+        assert call(demo.main, ['--model', str(model), '--out', str(out), *keep,
+                                '--storage', storage]) == 1
+        res = json.loads((out / 'results.json').read_text())
+        assert res['bag'] == (None if bag is None else str(bag))
+    assert (out / 'demo_bag' / 'demo_bag.db3').is_file()
+
+
 def test_figure_takes_class_names_with_dollar_signs(tmp_path):
     # class names are file names: '$' is legal, but matplotlib read '$...$' in the titles and
     # tick labels as mathtext ('p$$q' or 'a$_$': a ParseException from savefig, after
