@@ -20,7 +20,6 @@ Example::
 """
 from __future__ import annotations
 
-import argparse
 import gc
 import json
 import math
@@ -33,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from .bench_node import log, node_bench
-from .cli import count, interruptible, number
+from .cli import ArgumentParser, count, interruptible, number
 from .core.grid import yaw_error
 from .cli import json_safe, out_dir_problem, output_dir
 
@@ -528,7 +527,7 @@ UNUSED_WITH_ALL = {
 def parse_args(argv):
     """beo-bench's options (``argv``; None: sys.argv) -> argparse Namespace, --quick
     applied."""
-    ap = argparse.ArgumentParser(prog='beo-bench', description=__doc__.split('\n')[0])
+    ap = ArgumentParser(prog='beo-bench', description=__doc__.split('\n')[0])
     for add in (_add_data_options, _add_peer_options, _add_scaling_options, _add_node_options):
         add(ap)
     args = ap.parse_args(argv)

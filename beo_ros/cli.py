@@ -21,8 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ['BROKEN_PIPE', 'INTERRUPTED', 'TERMINATED', 'Terminated', 'count', 'existing_parent',
-           'interruptible', 'json_safe', 'number', 'out_dir_problem', 'output_dir', 'writable_dir']
+__all__ = ['ArgumentParser', 'BROKEN_PIPE', 'INTERRUPTED', 'TERMINATED', 'Terminated', 'count',
+           'existing_parent', 'interruptible', 'json_safe', 'number', 'out_dir_problem',
+           'output_dir', 'print_help', 'writable_dir']
 
 INTERRUPTED = 130   # the shell's code for a process ended by SIGINT
 TERMINATED = 143    # ... and by SIGTERM
@@ -32,6 +33,36 @@ BROKEN_PIPE = 141   # ... and by SIGPIPE
 class Terminated(KeyboardInterrupt):
     """SIGTERM (``kill``, ``docker stop``) raised as an exception in the main thread, so that
     a command cleans up (temporary files, an empty output directory) as for Ctrl-C."""
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse's parser for an :func:`interruptible` command: -h written to a stdout whose
+    reader has gone raises BrokenPipeError (argparse drops it: ``beo-eval -h | head -0``
+    ended in "Exception ignored ... BrokenPipeError", exit 120), so the command ends quietly
+    with 141."""
+
+    def print_help(self, file=None):
+        file = sys.stdout if file is None else file
+        if file is not None:   # None: no stdout at all (pythonw), as argparse
+            file.write(self.format_help())
+            file.flush()
+
+
+def print_help(text):
+    """Print a command's help ``text`` on stdout -> 0, or :data:`BROKEN_PIPE` when stdout's
+    reader has gone (``beo-node -h | head -0``), quietly, as :func:`interruptible` does."""
+    try:
+        print(text, flush=True)
+    except BrokenPipeError:
+        _stdout_to_devnull()
+        return BROKEN_PIPE
+    return 0
+
+
+def _stdout_to_devnull():
+    """stdout to /dev/null, or the flush at exit fails again on the closed pipe."""
+    with contextlib.suppress(OSError, ValueError, AttributeError):
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
 
 
 def number(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False,
@@ -107,9 +138,8 @@ def interruptible(prog: str):
                     raise
             except BrokenPipeError:
                 # stdout's reader went away (beo-eval ... | head -1): stop quietly, as a command
-                # that SIGPIPE ends; stdout to /dev/null, or the flush at exit fails again
-                with contextlib.suppress(OSError, ValueError, AttributeError):
-                    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+                # that SIGPIPE ends
+                _stdout_to_devnull()
                 return BROKEN_PIPE
             except Terminated:
                 print(f'{prog}: terminated', file=sys.stderr)

@@ -24,13 +24,17 @@ from pathlib import Path
 
 import numpy as np
 
-from .cli import complete_files, count, interruptible, json_safe, out_dir_problem, output_dir
+from .cli import (ArgumentParser, complete_files, count, interruptible, json_safe,
+                  out_dir_problem, output_dir)
 from .core.bank import load_models, parse_class_prior
 from .core.calibration import calibration_sums, metrics_from_sums
 from .core.grid import GridSpec, symmetric_turns, yaw_error, yaw_error_up_to
 from .core.synthetic import random_partial_view
 from .core.datasets import drop_empty_objects, load_voxel_npz, select_classes
-from .core.training import fit_bank, progress_bar, stratified_folds
+from .core.training import check_class_counts, fit_bank, progress_bar, stratified_folds
+
+# folds of the out-of-fold classifier features of each --cv fold's bank (fit_bank's default)
+CLASSIFIER_FOLDS = 5
 
 
 def one_fold_parser(description, json_help):
@@ -78,6 +82,15 @@ def stratified_subset(idx, y, m, rng):
     return np.sort(np.concatenate(pick))
 
 
+def warm_up_grid(n):
+    """A fixed partial view (n, n, n) int8 for a warm-up estimate, drawn from no RNG: free
+    voxels in front of a face of occupied voxels seen along +x, the rest unknown."""
+    grid = np.full((n, n, n), -1, dtype=np.int8)
+    grid[:n // 4] = 0
+    grid[n // 4, n // 4:3 * n // 4, :n // 2] = 1
+    return grid
+
+
 def evaluate_bank(bank, X, y, names, rng, views=1, examples=6, progress=True, index=None):
     """Evaluate ``bank`` on objects X (m, N^3) with labels y indexing ``names``.
 
@@ -88,6 +101,9 @@ def evaluate_bank(bank, X, y, names, rng, views=1, examples=6, progress=True, in
     """
     n = bank.spec.size
     index = np.arange(len(X)) if index is None else np.asarray(index)
+    # one untimed estimate first: the bank's one-off costs (rotation maps of the yaw search,
+    # lazy imports) made the first timed estimate several times slower than the others
+    bank.estimate(warm_up_grid(n))
     recs, ex = [], []
     for i in progress_bar(range(len(X)), 'evaluating', disable=not progress):
         occ = X[i].reshape(n, n, n) > 0.5
@@ -290,8 +306,8 @@ def main(argv=None):
 
 def _parser():
     """The ArgumentParser of beo-eval (--scans options of scan_eval pass through)."""
-    ap = argparse.ArgumentParser(prog='beo-eval', description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = ArgumentParser(prog='beo-eval', description=__doc__,
+                        formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('--data', help='labelled voxel npz (shared format)')
     ap.add_argument('--model', help='model directory (held-out mode; default: shipped model)')
     ap.add_argument('--cv', type=int, default=0,
@@ -427,6 +443,16 @@ def _cross_validate(args, X, y, names, n, class_prior, rng):
     if empty.any():
         print(f'beo-eval: warning: {int(empty.sum())} objects with no occupied voxel left out '
               'of the training folds', file=sys.stderr)
+    # every fold's training part checked before the first bank is trained (minutes each);
+    # with a classifier, --train-views 0 is the way out of a class with too few objects for
+    # its out-of-fold features
+    for f in range(args.folds or args.cv):
+        try:
+            check_class_counts(y[(fold != f) & ~empty], names,
+                               CLASSIFIER_FOLDS if args.train_views else 0, '--train-views 0')
+        except ValueError as e:
+            raise ValueError(f'--cv {args.cv}: the bank of fold {f} cannot be trained: {e}') \
+                from None
     recs, examples, info = [], [], []
     for f in range(args.folds or args.cv):
         tr, te = np.flatnonzero(fold != f), np.flatnonzero(fold == f)
@@ -436,7 +462,8 @@ def _cross_validate(args, X, y, names, n, class_prior, rng):
         t0 = time.time()
         bank = fit_bank(Xtr, ytr, names, GridSpec(size=n),
                         k=20 if args.k is None else args.k,
-                        classifier_views=args.train_views, seed=args.seed + f,
+                        classifier_views=args.train_views, folds=CLASSIFIER_FOLDS,
+                        seed=args.seed + f,
                         verbose=True, class_prior=class_prior or 'train',
                         verifier_views=args.verifier_views, processes=args.jobs)
         info.append(dict(fold=f, train=int(len(Xtr)), test=int(len(te)),

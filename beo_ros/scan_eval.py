@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cli import complete_files, count, interruptible, number
+from .cli import ArgumentParser, complete_files, count, interruptible, number
 from .core.bank import YAW_STEP_RANGE_DEG
 from .core.training import check_grid_size
 
@@ -169,14 +169,21 @@ def _logistic_predict(Z_train, y_train, Z_test, n_classes, C):
 def scene_cv_logistic(Z, y, groups, C=1.0):
     """Leave-one-group-out predictions (m,) of a standardised logistic regression on any input
     rows Z (m, n_in) (no 'unknown' check): every row's class from a regression fitted on the
-    other groups' rows only."""
+    other groups' rows only; when those hold a single class, that class (as
+    :func:`scene_cv_predictions`). ValueError for fewer than 2 groups."""
     Z = np.asarray(Z, dtype=np.float64).reshape(len(y), -1)
     y = np.asarray(y)
     groups = np.asarray(groups)
+    if len(np.unique(groups)) < 2:
+        raise ValueError(f'leave-one-group-out needs rows of at least 2 groups (scenes), got '
+                         f'{len(np.unique(groups))}')
     n_classes = int(y.max()) + 1
     pred = np.empty(len(y), dtype=int)
     for g in dict.fromkeys(groups.tolist()):
         te = groups == g
+        if len(np.unique(y[~te])) < 2:   # nothing to discriminate: the only class seen
+            pred[te] = y[~te][0]
+            continue
         pred[te] = _logistic_predict(Z[~te], y[~te], Z[te], n_classes, C)
     return pred
 
@@ -524,7 +531,7 @@ def print_table(s, file=None):
 
 @interruptible('beo-eval')
 def main(argv=None):
-    ap = add_arguments(argparse.ArgumentParser(
+    ap = add_arguments(ArgumentParser(
         prog='beo-eval --scans', description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter))
     args = ap.parse_args(argv)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cli import count, existing_parent, interruptible, number, writable_dir
+from .cli import ArgumentParser, count, existing_parent, interruptible, number, writable_dir
 from .core.classifier import parse_class_prior
 from .core.grid import GridSpec
 from .core.model_files import UNREADABLE, check_class_names, check_save_target, is_model_dir
@@ -63,8 +63,8 @@ def main(argv=None):
 
 def _parser():
     """The beo-train argument parser."""
-    ap = argparse.ArgumentParser(prog='beo-train', description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = ArgumentParser(prog='beo-train', description=__doc__,
+                        formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('inputs', nargs='+', help='voxel .npz files, mesh files, or PCD scans')
     ap.add_argument('-o', '--out', required=True,
                     help='model directory to write: new, empty, or holding a model, which is '

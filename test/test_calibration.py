@@ -62,6 +62,30 @@ def test_partial_fit_view_by_view_equals_one_fit():
     assert parts.fit(p[:10], t[:10]).counts_.shape == (100, 3)
 
 
+def test_fitted_state_shares_no_array_with_the_caller():
+    # partial_fit added to counts_ in place: it changed the caller's array given to
+    # from_arrays and an arrays_ taken before the call
+    p, t = overconfident(2_000, np.random.default_rng(2))
+    cal = OccupancyCalibration(bins=50).fit(p, t)
+    taken = cal.arrays_
+    given = {k: v.copy() for k, v in taken.items()}
+    kept = {k: v.copy() for k, v in taken.items()}
+    loaded = OccupancyCalibration.from_arrays(given)
+    cal.partial_fit(p, t)
+    loaded.partial_fit(p, t)
+    for arrays in (taken, given):
+        for k in kept:
+            np.testing.assert_array_equal(arrays[k], kept[k])
+    # and the caller's arrays changed later do not change the fitted state
+    again = OccupancyCalibration.from_arrays(given)
+    snapshot = again.arrays_
+    for arrays in (given, snapshot):
+        for v in arrays.values():
+            v[...] = 0
+    np.testing.assert_array_equal(again.counts_, kept['counts'])
+    np.testing.assert_array_equal(again.probability_, kept['probability'])
+
+
 @pytest.mark.parametrize('p, t, message', [
     ([0.2, np.nan], [0, 1], 'finite probabilities'),
     ([0.2, 1.5], [0, 1], 'finite probabilities'),

@@ -681,6 +681,48 @@ def test_eval_progress_in_a_log_is_lines(tmp_path, capsys):
     assert '\r' not in err and '\x1b' not in err and 'evaluating: 4/4 in ' in err
 
 
+class _GonePipe:
+    """A stdout whose reader has gone: every write and flush raises BrokenPipeError."""
+    def write(self, text):
+        raise BrokenPipeError(32, 'Broken pipe')
+
+    flush = write
+
+
+@pytest.mark.parametrize('module, main', [
+    ('beo_ros.evaluate', 'main'), ('beo_ros.train', 'main'), ('beo_ros.scan_eval', 'main'),
+    ('beo_ros.bench', 'main'), ('beo_ros.ros.demo', 'main'), ('beo_ros.ros.bag', 'record_main'),
+    ('beo_ros.ros.bag', 'replay_main'), ('beo_ros.ros.bag', 'pcd2bag_main'),
+    ('beo_ros.ros.bag', 'recover_main'), ('beo_ros.ros.node', 'main')])
+def test_help_into_a_closed_pipe_ends_quietly_with_141(module, main, monkeypatch):
+    # argparse drops the error of its help's write: into a closed pipe, -h exited 0 or, the
+    # help still buffered, with "Exception ignored ... BrokenPipeError" (120); beo-node's
+    # print ended in a traceback
+    import importlib
+    import sys
+    monkeypatch.setattr(sys, 'stdout', _GonePipe())
+    assert getattr(importlib.import_module(module), main)(['-h']) == 141
+
+
+@pytest.mark.parametrize('unbuffered', [False, True])
+def test_help_into_a_closed_pipe_subprocess(unbuffered):
+    """beo-node -h | head -0 and beo-eval -h | head -0, with stdout buffered or not."""
+    import subprocess
+    import sys
+    from pathlib import Path
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    env.pop('PYTHONUNBUFFERED', None)
+    if unbuffered:
+        env['PYTHONUNBUFFERED'] = '1'
+    for module in ('beo_ros.ros.node', 'beo_ros.evaluate'):
+        r, w = os.pipe()
+        os.close(r)
+        p = subprocess.run([sys.executable, '-m', module, '-h'], stdout=w, env=env,
+                           stderr=subprocess.PIPE, text=True, timeout=120)
+        os.close(w)
+        assert (p.returncode, p.stderr) == (141, ''), module
+
+
 def test_stdout_reader_gone_ends_quietly_with_141_and_keeps_the_results(tmp_path):
     """stdout a pipe whose reader has exited (beo-eval ... | head -1). Before: beo-eval said
     'error: [Errno 32] Broken pipe' (exit 2) and removed the --out it had made, its results

@@ -9,8 +9,8 @@ import pytest
 from beo_ros.core.inference import FEATURE_NAMES
 from beo_ros.core.pcd import write_pcd
 from beo_ros.scan_eval import (
-    classifier_comparison, classifier_design, main, scene_cv_point_predictions,
-    scene_cv_predictions)
+    classifier_comparison, classifier_design, main, scene_cv_logistic,
+    scene_cv_point_predictions, scene_cv_predictions)
 
 
 # a small, fast leave-one-scene-out run (grid 16, few iterations, no figures)
@@ -124,6 +124,21 @@ def test_scene_cv_is_grouped_and_learns():
     assert unknown[0] and not unknown[1:].any()
     rep = classifier_comparison(F3, y, groups, variants=(('all', 1.0),))['lr_all_C1']
     assert rep['n_unknown'] == 1 and 0 in rep['wrong']
+
+
+def test_scene_cv_logistic_when_the_other_scenes_hold_one_class():
+    # scene 'c' holds the only class-1 objects: its regression was fitted on class 0 alone,
+    # and scikit-learn refused ('needs samples of at least 2 classes')
+    rng = np.random.default_rng(0)
+    Z = rng.normal(size=(9, 3))
+    Z[6:, 0] += 5.0
+    y = np.array([0, 0, 0, 0, 0, 0, 1, 1, 1])
+    groups = np.array(['a', 'a', 'a', 'b', 'b', 'b', 'c', 'c', 'c'])
+    pred = scene_cv_logistic(Z, y, groups)
+    np.testing.assert_array_equal(pred[groups == 'c'], 0)   # the only class its fit saw
+    assert set(pred[groups != 'c']) <= {0, 1}
+    with pytest.raises(ValueError, match='at least 2 groups'):
+        scene_cv_logistic(Z, y, np.zeros(9))
 
 
 def test_loso_saves_out_of_fold_features(scan_files, tmp_path, monkeypatch):

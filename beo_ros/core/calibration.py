@@ -71,9 +71,11 @@ class OccupancyCalibration:
             raise ValueError(f'bins is {self.bins}, the voxels counted so far are in '
                              f'{len(counts)} bins: fit() starts again with the new bins')
         b = self._bin(p)
-        counts[:, 0] += np.bincount(b, weights=p, minlength=self.bins)
-        counts[:, 1] += np.bincount(b, weights=occupied, minlength=self.bins)
-        counts[:, 2] += np.bincount(b, minlength=self.bins)
+        # new counts, not added in place: the earlier counts_ may be an array the caller holds
+        # (from_arrays' input, an arrays_ taken before)
+        counts = counts + np.stack([np.bincount(b, weights=p, minlength=self.bins),
+                                    np.bincount(b, weights=occupied, minlength=self.bins),
+                                    np.bincount(b, minlength=self.bins)], axis=1)
         self.counts_ = counts
         seen = counts[:, 2] > 0
         if seen.sum() >= 2:
@@ -97,17 +99,19 @@ class OccupancyCalibration:
 
     @property
     def arrays_(self):
-        """The arrays a model directory stores (``calibration.npz``)."""
-        return dict(probability=self.probability_, frequency=self.frequency_,
-                    counts=self.counts_)
+        """The arrays a model directory stores (``calibration.npz``), copies of the fitted
+        state."""
+        return dict(probability=self.probability_.copy(), frequency=self.frequency_.copy(),
+                    counts=self.counts_.copy())
 
     @classmethod
     def from_arrays(cls, arrays):
-        """The calibration stored as ``arrays`` (checked with :func:`check_arrays` first)."""
+        """The calibration stored as ``arrays`` (checked with :func:`check_arrays` first), with
+        copies of them."""
         cal = cls(bins=len(arrays['counts']))
-        cal.counts_ = np.asarray(arrays['counts'], dtype=np.float64)
-        cal.probability_ = np.asarray(arrays['probability'], dtype=np.float64)
-        cal.frequency_ = np.asarray(arrays['frequency'], dtype=np.float64)
+        cal.counts_ = np.array(arrays['counts'], dtype=np.float64)
+        cal.probability_ = np.array(arrays['probability'], dtype=np.float64)
+        cal.frequency_ = np.array(arrays['frequency'], dtype=np.float64)
         return cal
 
 

@@ -14,7 +14,6 @@ Exit status 0 only if every input got an estimate. Needs neither /work/shared no
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -27,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from beo_ros.cli import count, interruptible, number
+from beo_ros.cli import ArgumentParser, count, interruptible, number
 
 FRAME = 'sensor'  # z up, sensor at the origin (see render_inputs)
 TOPIC = '/beo/input'
@@ -270,7 +269,7 @@ def plot(inputs, rows, completed_pts, path):
 
 @interruptible('beo-demo')
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(
+    p = ArgumentParser(
         prog='beo-demo', description='Render one partial view per class of the shipped model, '
         'replay them as a rosbag2 bag into an in-process beo node, print the estimates and plot '
         'them. Exit 0 only if every input got an estimate.')
@@ -334,6 +333,7 @@ def _demo(args, bank, model_dir, out, t_start) -> int:
         estimates, completed, stats, counters = run_node_on_bag(
             bag_path, model_dir, bank, up, origin, timeout=args.timeout)
         node_s = time.monotonic() - t_node
+        kept_bag = None
         if args.keep_bag:
             import shutil
             kept = out / 'demo_bag'
@@ -343,6 +343,8 @@ def _demo(args, bank, model_dir, out, t_start) -> int:
             elif kept.exists() or kept.is_symlink():
                 kept.unlink()
             shutil.copytree(bag_path, kept)
+            # its storage file (demo_bag.mcap or .db3), which beo-replay takes as well
+            kept_bag = next(f for f in sorted(kept.iterdir()) if f.suffix in ('.db3', '.mcap'))
 
     from beo_ros.ros.conversions import cloud_to_xyz, quaternion_to_rotation
     rows, completed_pts = [], {}
@@ -373,7 +375,8 @@ def _demo(args, bank, model_dir, out, t_start) -> int:
     png = out / 'beo_demo.png'
     plot(inputs, rows, completed_pts, png)
     total_s = time.monotonic() - t_start
-    summary = {'model': str(model_dir), 'inputs': len(rows), 'estimated': n_est,
+    summary = {'model': str(model_dir), 'bag': None if kept_bag is None else str(kept_bag),
+               'inputs': len(rows), 'estimated': n_est,
                'correct': n_ok, 'node_and_replay_s': round(node_s, 3),
                'total_s': round(total_s, 3), 'replay': stats.to_dict(), 'node_counters': counters,
                'results': rows}

@@ -1274,8 +1274,8 @@ def main(args=None):
     argv = sys.argv[1:] if args is None else list(args)
     own = argv[:argv.index('--ros-args')] if '--ros-args' in argv else argv
     if '-h' in own or '--help' in own:
-        print(USAGE + '\n' + __doc__)
-        return
+        from beo_ros.cli import print_help
+        return print_help(USAGE + '\n' + __doc__)   # 141, quietly, into a closed pipe
     if own:   # e.g. '-p model_dir:=...' without --ros-args would be ignored unseen
         print(f"{USAGE}\nbeo-node: error: unrecognized arguments: {' '.join(own)} (ROS "
               'arguments go after --ros-args)', file=sys.stderr)
@@ -1312,4 +1312,4 @@ def main(args=None):
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

@@ -1,7 +1,6 @@
 """The command-line tools: beo-replay, beo-record, beo-pcd2bag and beo-bag-recover."""
 from __future__ import annotations
 
-import argparse
 import contextlib
 import json
 import signal
@@ -10,7 +9,7 @@ import threading
 import time
 from pathlib import Path
 
-from beo_ros.cli import INTERRUPTED, TERMINATED, count, interruptible, number
+from beo_ros.cli import INTERRUPTED, TERMINATED, ArgumentParser, count, interruptible, number
 from beo_ros.ros.bag.msgtypes import CLOUD_TYPE, check_node_name
 from beo_ros.ros.bag.player import (ACK_TIMEOUT_S, BagReadError, ClockRangeError,
                                      TopicNameError, parse_remaps, replay)
@@ -128,7 +127,7 @@ def _nothing_to_play(args, stats) -> str:
 
 @interruptible('beo-replay')
 def replay_main(argv=None) -> int:
-    p = argparse.ArgumentParser(
+    p = ArgumentParser(
         prog='beo-replay', description='Play the PointCloud2 topics of a rosbag2 bag (sqlite3 or '
         'mcap) into the ROS 2 graph, timed by the bag timestamps.')
     p.add_argument('bag', help='bag directory (or a single .db3 / .mcap file)')
@@ -228,7 +227,7 @@ def replay_main(argv=None) -> int:
 
 @interruptible('beo-record')
 def record_main(argv=None) -> int:
-    p = argparse.ArgumentParser(
+    p = ArgumentParser(
         prog='beo-record', description='Record ROS 2 topics to a new rosbag2 bag (sqlite3 or '
         'mcap) until Ctrl-C, --duration or --count.')
     p.add_argument('topics', nargs='+', metavar='TOPIC[:TYPE]',
@@ -279,7 +278,7 @@ def record_main(argv=None) -> int:
 
 @interruptible('beo-pcd2bag')
 def pcd2bag_main(argv=None) -> int:
-    p = argparse.ArgumentParser(
+    p = ArgumentParser(
         prog='beo-pcd2bag', description='Labelled organized PCD scenes (OSD format) -> rosbag2 bag '
         f'with one PointCloud2 per segmented object, the table-implied up vector on {UP_TOPIC} '
         f'(geometry_msgs/Vector3Stamped) and the table plane a,b,c,d on {PLANE_TOPIC} '
@@ -339,7 +338,7 @@ def pcd2bag_main(argv=None) -> int:
 
 @interruptible('beo-bag-recover')
 def recover_main(argv=None) -> int:
-    p = argparse.ArgumentParser(
+    p = ArgumentParser(
         prog='beo-bag-recover', description='Copy the intact messages of a bag that was never '
         'closed (a recording ended by SIGKILL, a crash or a full disk: no metadata.yaml, or an '
         'mcap file without its footer) into a new, closed bag.')
