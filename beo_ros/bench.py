@@ -20,6 +20,7 @@ Example::
 """
 from __future__ import annotations
 
+import argparse
 import gc
 import json
 import math
