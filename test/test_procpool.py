@@ -361,3 +361,28 @@ def test_shutdown_and_a_kill_mid_send_do_not_wedge_the_executor(make_pool, tmp_p
     assert isinstance(out.get('error'), BrokenProcessPool), out
     manager.join(WAIT)
     assert not manager.is_alive(), 'the executor thread waits for the rest of the result'
+
+
+def test_shutdown_without_a_timeout_lets_the_processes_answer_what_they_were_sent():
+    """shutdown(timeout=None), as its docstring now says (it said queued estimates were
+    cancelled, which the code does only with a timeout): the estimate a process has is
+    answered after shutdown returned; the one waiting for a free process raises
+    BrokenProcessPool."""
+    pool = EstimatorPool(1, SlowBank(0.5), blas_threads=0, timeout=WAIT)
+    try:
+        answers = []
+        threads, errors = _callers(2, lambda: answers.append(_estimate(pool)))
+        threads[0].start()
+        end = time.monotonic() + WAIT   # the first has the process, the second waits for it
+        while not pool._pool._pending_work_items and time.monotonic() < end:
+            time.sleep(0.01)
+        threads[1].start()
+        while pool.waiting != 1 and time.monotonic() < end:
+            time.sleep(0.01)
+        assert pool.waiting == 1
+        pool.shutdown(timeout=None)
+        for t in threads:
+            t.join(WAIT)
+        assert answers == [(b'slow', ['a', 'b'])] and errors == [BrokenProcessPool], errors
+    finally:
+        pool.shutdown(timeout=5.0)

@@ -313,11 +313,15 @@ class EstimatorPool:
         return bool(getattr(self._pool, '_broken', False))
 
     def shutdown(self, timeout: float | None = 5.0):
-        """Stop the processes; estimates already running finish, queued ones are cancelled.
+        """Stop the processes. Estimates still waiting for a free process raise
+        BrokenProcessPool; those handed to the processes finish there.
 
-        ``timeout`` None returns at once (the pool winds down in the background); otherwise
-        processes still alive after ``timeout`` seconds are terminated, and killed if that
-        does not end them within 1 s (a stopped process keeps SIGTERM pending).
+        ``timeout`` None returns at once and cancels nothing: the pool winds down in the
+        background once the processes have answered what they were sent (a model reload's old
+        processes, say). Otherwise estimates not yet taken by a process are cancelled
+        (BrokenProcessPool), and processes still alive after ``timeout`` seconds are
+        terminated, and killed if that does not end them within 1 s (a stopped process keeps
+        SIGTERM pending); their estimates raise BrokenProcessPool.
         """
         self._closed = True
         procs = list((getattr(self._pool, '_processes', None) or {}).values())
