@@ -1166,6 +1166,43 @@ def test_bad_model_dir_refuses_to_start(ros_context, tmp_path):
                 parameter_overrides=[Parameter('model_dir', value=str(corrupt))])
 
 
+
+def _diagnostics(node):
+    """The key-values of one /diagnostics status the node publishes now."""
+    sent = []
+
+    class Pub:
+        def publish(self, msg):
+            sent.append(msg)
+    pub, node._pub_diag = node._pub_diag, Pub()
+    try:
+        node._publish_diagnostics()
+    finally:
+        node._pub_diag = pub
+    return {kv.key: kv.value for kv in sent[0].status[0].values}
+
+
+def test_a_bank_given_in_process_is_reported_as_such(ros_context, ros_tiny_model_dir, capfd):
+    """A node built with bank= says so (log, /diagnostics model_dir); before, it named the
+    model_dir parameter's directory as if it had loaded it, and setting model_dir to that
+    directory did not load it."""
+    from beo_ros.core.bank import load_models
+    from beo_ros.ros.node import BeoNode
+    bank = load_models(ros_tiny_model_dir)
+    node = BeoNode(context=ros_context, bank=bank, parameter_overrides=[
+        Parameter('model_dir', value=ros_tiny_model_dir)])
+    try:
+        err = capfd.readouterr().err
+        assert 'using the model bank given in-process' in err, err
+        assert 'loaded models from' not in err, err
+        assert _diagnostics(node)['model_dir'] == '<bank given in-process>'
+        assert node.set_parameters([Parameter('model_dir', value=ros_tiny_model_dir)])[0] \
+            .successful
+        assert node._base_bank is not bank and node._bank is not bank
+        assert _diagnostics(node)['model_dir'] == ros_tiny_model_dir
+    finally:
+        node.destroy_node()
+
 def test_model_dir_takes_a_shipped_models_name(ros_context, tmp_path, monkeypatch):
     from beo_ros.core.bank import default_model_dir
     from beo_ros.ros.node import BeoNode, StartupError

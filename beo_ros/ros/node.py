@@ -55,8 +55,9 @@ from beo_ros.ros.procpool import (BrokenProcessPool, EstimateTimeout, EstimatorP
                                   warm_up_points)
 
 # the public names (default_model_dir: re-exported from beo_ros.ros.params)
-__all__ = ['BeoNode', 'InputRejected', 'StartupError', 'default_model_dir', 'drain_executor',
-           'load_bank', 'main', 'make_executor', 'prior_text', 'with_class_prior']
+__all__ = ['IN_PROCESS_BANK', 'BeoNode', 'InputRejected', 'StartupError', 'default_model_dir',
+           'drain_executor', 'load_bank', 'main', 'make_executor', 'prior_text',
+           'with_class_prior']
 
 try:  # optional: TF gives the up vector when base_frame is set
     import tf2_ros
@@ -75,6 +76,9 @@ OUTCOMES = frozenset({'processed', 'rejected', 'rejected_format', 'rejected_too_
                       'errors', 'dropped_shutdown', 'service_failures'})
 BASE_FRAME_WITHOUT_TF = ('base_frame is set but tf2_ros is not installed; using the '
                          'sensor_origin and up_vector parameters')
+# what /diagnostics model_dir (and the logs) say of a bank passed to the constructor: no
+# directory it came from is known, and the model_dir parameter was not loaded
+IN_PROCESS_BANK = '<bank given in-process>'
 
 
 class _BlasCaps:
@@ -160,7 +164,8 @@ class BeoNode(Node):
     Args:
         node_name: ROS node name.
         bank: optional already-loaded model bank (skips ``model_dir`` loading; for embedding
-            and tests).
+            and tests). /diagnostics ``model_dir`` then reads IN_PROCESS_BANK, and setting
+            ``model_dir`` loads that directory.
         **kwargs: passed to :class:`rclpy.node.Node` (context, namespace, parameter_overrides...).
 
     Raises:
@@ -288,12 +293,17 @@ class BeoNode(Node):
         self._est_slots = threading.Semaphore(self._n_workers)
         self._svc_waiting = 0
         self._svc_lock = threading.Lock()
-        # the directory the models come from ('' or a shipped name resolved: diagnostics name it)
-        self._serving_dir = str(resolve_model_dir(self.get_parameter('model_dir').value))
+        # the directory the models come from ('' or a shipped name resolved: diagnostics name
+        # it), or IN_PROCESS_BANK (then any model_dir set loads that directory)
         if bank is None:
+            self._serving_dir = str(resolve_model_dir(self.get_parameter('model_dir').value))
             bank = load_bank(self._serving_dir)
             self.get_logger().info(f"loaded models from '{self._serving_dir}': "
                                    f'classes {bank.classes}')
+        else:
+            self._serving_dir = IN_PROCESS_BANK
+            self.get_logger().info(f'using the model bank given in-process (model_dir not '
+                                   f'loaded): classes {bank.classes}')
         self._base_bank = bank  # as loaded: the class_prior parameter is applied to a copy
         self._serving_base = bank   # the models the estimates use now (a reload may be pending)
         try:
