@@ -1203,6 +1203,32 @@ def test_a_bank_given_in_process_is_reported_as_such(ros_context, ros_tiny_model
     finally:
         node.destroy_node()
 
+
+@pytest.mark.parametrize('guarded', [True, False])
+def test_the_main_guard_hint_is_given_only_to_a_script_without_it(
+        ros_context, ros_tiny_model_dir, tmp_path, monkeypatch, guarded):
+    """Worker processes that cannot start: the hint about the if __name__ == '__main__':
+    guard only when the program's main script has none (before: also under beo-node, whose
+    script has it)."""
+    import sys
+    import types
+    from beo_ros.ros.node import BeoNode, BrokenProcessPool, StartupError
+    script = tmp_path / 'run.py'
+    script.write_text('from beo_ros.ros.node import main\n'
+                      + ("if __name__ == '__main__':\n    main()\n" if guarded else 'main()\n'))
+    main = types.ModuleType('__main__')
+    main.__file__ = str(script)
+    monkeypatch.setitem(sys.modules, '__main__', main)
+
+    def cannot_start(self, bank):
+        raise BrokenProcessPool('A child process terminated abruptly')
+    monkeypatch.setattr(BeoNode, '_new_pool', cannot_start)
+    with pytest.raises(StartupError, match='cannot start 1 worker process') as info:
+        BeoNode(context=ros_context, parameter_overrides=[
+            Parameter('model_dir', value=ros_tiny_model_dir),
+            Parameter('worker_processes', value=1)])
+    assert ('__main__' in str(info.value)) is not guarded, str(info.value)
+
 def test_model_dir_takes_a_shipped_models_name(ros_context, tmp_path, monkeypatch):
     from beo_ros.core.bank import default_model_dir
     from beo_ros.ros.node import BeoNode, StartupError

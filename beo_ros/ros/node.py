@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import re
 import sys
 import threading
 import time
@@ -79,6 +80,21 @@ BASE_FRAME_WITHOUT_TF = ('base_frame is set but tf2_ros is not installed; using 
 # what /diagnostics model_dir (and the logs) say of a bank passed to the constructor: no
 # directory it came from is known, and the model_dir parameter was not loaded
 IN_PROCESS_BANK = '<bank given in-process>'
+
+
+def _main_lacks_guard() -> bool:
+    """True when the program's ``__main__`` is a file without an ``if __name__ ==
+    '__main__':`` test (or one that cannot be read): spawned worker processes run it again,
+    so a script that creates the node unguarded breaks them. beo-node's script has the guard."""
+    path = getattr(sys.modules.get('__main__'), '__file__', None)
+    if not path:   # interactive: nothing to run again
+        return False
+    try:
+        with open(path, encoding='utf-8', errors='replace') as f:
+            source = f.read()
+    except OSError:
+        return True
+    return re.search(r'''__name__\s*==\s*['"]__main__['"]''', source) is None
 
 
 class _BlasCaps:
@@ -326,9 +342,10 @@ class BeoNode(Node):
         except Exception as e:
             if not self.context.ok():   # e.g. a SIGTERM to the group ended the processes
                 raise ExternalShutdownException() from None
+            hint = ("; a script that creates the node needs the if __name__ == '__main__': "
+                    'guard' if _main_lacks_guard() else '')
             raise StartupError(f'cannot start {self._n_procs} worker process(es) '
-                               f'({type(e).__name__}: {e}); a script that creates the '
-                               "node needs the if __name__ == '__main__': guard") from e
+                               f'({type(e).__name__}: {e}){hint}') from e
         if not self.context.ok():   # shut down by a signal during the seconds that took
             raise ExternalShutdownException()
         self.get_logger().info(f'{self._n_procs} worker process(es) ready in '
