@@ -1968,6 +1968,49 @@ def test_a_class_prior_set_as_a_reload_takes_over_is_applied(ros_context, ros_ti
         node.destroy_node()
 
 
+
+def test_a_failed_reload_leaves_the_class_prior_consistent(ros_context, ros_tiny_model_dir,
+                                                          tmp_path, capfd):
+    """worker_processes: a class_prior set with a model_dir whose processes then fail to
+    start. One that fits the models answering is applied to them (before, the parameter and
+    the next reload said 'uniform' while they kept 'train'); one for the failed models'
+    classes is logged, and the models answering keep their prior as the value in force."""
+    import shutil
+    from beo_ros.ros.node import BeoNode, prior_text
+    node = BeoNode(context=ros_context, parameter_overrides=[
+        Parameter('model_dir', value=ros_tiny_model_dir),
+        Parameter('worker_processes', value=1), Parameter('workers', value=1)])
+    try:
+        def cannot_start(bank):
+            raise RuntimeError('no processes today')
+        node._new_pool = cannot_start
+        old = node._bank.classes
+        assert prior_text(node._bank) == 'train'
+        shutil.copytree(ros_tiny_model_dir, tmp_path / 'copy')
+        assert node.set_parameters_atomically([
+            Parameter('model_dir', value=str(tmp_path / 'copy')),
+            Parameter('class_prior', value='uniform')]).successful
+        assert _wait(lambda: node.counters()['reload_failures'] == 1 and not _reloading())
+        assert node._bank.class_prior == 'uniform' and node._prior == 'uniform'
+        assert _diagnostics(node)['class_prior'] == 'uniform'
+        # a prior for other classes than those answering
+        other = 'tabletop_32' if set(old) != {'box', 'cylinder'} else 'modelnet10_32'
+        from beo_ros.core.bank import load_models
+        classes = load_models(other).classes
+        assert set(classes) != set(old)
+        weights = ','.join(f'{c}={i + 1}' for i, c in enumerate(classes))
+        capfd.readouterr()
+        assert node.set_parameters_atomically([
+            Parameter('model_dir', value=other),
+            Parameter('class_prior', value=weights)]).successful
+        assert _wait(lambda: node.counters()['reload_failures'] == 2 and not _reloading())
+        err = capfd.readouterr().err
+        assert 'class_prior does not fit the models answering' in err, err
+        assert node._bank.classes == old and node._bank.class_prior == 'uniform'
+        assert node._prior == 'uniform'
+    finally:
+        node.destroy_node()
+
 def test_blas_threads_of_two_nodes_in_one_process(ros_context, ros_tiny_model_dir):
     """Two nodes in one process: the cap holds while either lives, and the original limits
     come back once both are destroyed. Before, each node restored what it had found:

@@ -872,6 +872,7 @@ class BeoNode(Node):
                 if gen == self._reload_gen and not self._pool_closed:
                     # class_prior is checked against _base_bank: the models answering again
                     self._base_bank = self._serving_base
+                    self._prior_after_failed_reload(model_dir)
             return
         with self._pool_lock:
             closed = self._pool_closed
@@ -890,6 +891,32 @@ class BeoNode(Node):
             self.get_logger().info(f"reloaded models from '{model_dir}' "
                                    f'({self._n_procs} new worker process(es) in '
                                    f'{time.monotonic() - t0:.1f} s)')
+
+    def _prior_after_failed_reload(self, model_dir):
+        """Under _bank_lock, after the reload of ``model_dir`` failed: the class_prior value in
+        force was checked against those models, and only applied when they take over (set
+        with model_dir, or while they started). It is applied to the models answering if it
+        fits them; if it names the failed models' classes, they keep the prior they have and
+        that becomes the value in force. Logged either way (before, the prior answering and
+        the value a later reload applies could differ from each other and the parameter,
+        unseen)."""
+        with self._pool_lock:
+            before = prior_text(self._bank)
+            try:
+                self._bank = with_class_prior(self._serving_base, self._prior)
+                unfit = None
+            except ValueError as e:
+                unfit = e
+                self._prior = before
+            after = prior_text(self._bank)
+        if unfit is not None:
+            self.get_logger().warning(
+                f"class_prior does not fit the models answering ({unfit}): it was set for "
+                f"those of '{model_dir}', which failed to load; the class prior stays {after} "
+                '(set class_prior for the models answering)')
+        elif after != before:
+            self.get_logger().info(f'class prior: {after} (set with the failed reload of '
+                                   f"'{model_dir}', now applied to the models answering)")
 
     def _record(self, stage, seconds):
         with self._stats_lock:
