@@ -179,6 +179,42 @@ def test_stream_publishes_estimate_completed_pose_markers(harness):
     assert values['worker_timeouts'] == '0' and values['dropped_shutdown'] == '0'
 
 
+
+def _seconds(duration):
+    return duration.sec + duration.nanosec * 1e-9
+
+
+def test_markers_have_a_lifetime_and_go_with_their_object(harness):
+    """~/markers: a lifetime (automatic, or marker_lifetime); a rejected cloud deletes its
+    topic's markers (those only, once), and destroy_node deletes all of them. Before, they had
+    no lifetime and were never deleted: RViz showed the last object of a topic whose clouds
+    had stopped, or were rejected, for ever."""
+    from visualization_msgs.msg import Marker
+    from beo_ros.ros.markers import auto_lifetime
+    assert auto_lifetime(None) == 1.0 and auto_lifetime(0.1) == 1.0
+    assert auto_lifetime(2.0) == pytest.approx(6.0)
+    node = harness.node
+    msg = cloud(box_view())
+    first = harness.wait('markers', republish=msg)[0].markers
+    assert sorted(m.id for m in first) == [0, 1]
+    assert all(m.action == Marker.ADD and _seconds(m.lifetime) >= 1.0 for m in first)
+    harness.wait('markers', republish=cloud(box_view(), 'cam2'), pub=harness.pub2,
+                 pred=lambda a: a.markers[0].id == 2)
+    assert node.set_parameters([Parameter('marker_lifetime', value=2.5)])[0].successful
+    harness.wait('markers', republish=msg, pred=lambda a: all(
+        (m.lifetime.sec, m.lifetime.nanosec) == (2, 500_000_000) for m in a.markers))
+
+    def deletes(action):
+        return lambda a: any(m.action == action for m in a.markers)
+    deleted = harness.wait('markers', republish=cloud(box_view()[:5]),
+                           pred=deletes(Marker.DELETE))
+    assert sorted((m.ns, m.id, m.action) for m in deleted[0].markers) == [
+        ('beo', 0, Marker.DELETE), ('beo', 1, Marker.DELETE)]
+    node.destroy_node()   # while the executor spins: the client gets what it sends
+    harness.wait('markers', pred=deletes(Marker.DELETEALL))
+    with harness.cond:
+        assert len([a for a in harness.received['markers'] if deletes(Marker.DELETE)(a)]) == 1
+
 def test_services_classify_and_complete(harness):
     r = harness.call(harness.classify, harness.good_request())
     assert r.success, r.message
@@ -990,9 +1026,9 @@ def test_each_diagnostics_message_keeps_the_counter_identity(harness2):
     node, gated, msg = _gated_node(harness, 2)
     published, end_turn, turn_ended = [], node._end_turn, threading.Event()
 
-    def ending_turn(topic, ticket):
+    def ending_turn(topic, ticket, *args):
         turn_ended.set()
-        return end_turn(topic, ticket)
+        return end_turn(topic, ticket, *args)
 
     node._end_turn = ending_turn
     pub, node._pub_diag = node._pub_diag, type('Pub', (), {'publish': published.append})()

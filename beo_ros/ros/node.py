@@ -7,7 +7,8 @@ reliable with ``input_reliability``) and publishes, in the input cloud's frame:
 - ``~/completed`` sensor_msgs/PointCloud2 (x y z probability) of the completed object,
 - ``~/pose`` geometry_msgs/PoseStamped (object centre; orientation = the object frame, z up,
   x along the heading: a turn about up only in a frame whose z is up),
-- ``~/markers`` visualization_msgs/MarkerArray (label text + box) for RViz,
+- ``~/markers`` visualization_msgs/MarkerArray (label text + box) for RViz, with a lifetime
+  (``marker_lifetime``), deleted when the topic's cloud is rejected or fails,
 - ``/diagnostics`` diagnostic_msgs/DiagnosticArray (rates, stage latencies, counters).
 
 Services ``~/classify`` and ``~/complete`` take one cloud each. Each input topic keeps only its
@@ -49,7 +50,7 @@ from beo_ros.core.bank import load_models, parse_class_prior, resolve_model_dir,
 from beo_ros.ros.conversions import (CloudFormatError, cloud_to_xyz, completed_cloud,
                                      estimate_to_msg, interfaces)
 from beo_ros.ros.env import check_domain_id
-from beo_ros.ros.markers import object_markers
+from beo_ros.ros.markers import auto_lifetime, delete_all_markers, delete_markers, object_markers
 from beo_ros.ros.params import (CHECKED_AT_START, declare, default_model_dir, refusal,
                                 vector_reason)
 from beo_ros.ros.procpool import (BrokenProcessPool, EstimateTimeout, EstimatorPool, PoolRetired,
@@ -397,6 +398,10 @@ class BeoNode(Node):
         self._turn = collections.Counter()      # topic -> ticket allowed to publish now
         self._turn_cond = threading.Condition()
         self._in_flight = 0
+        # per topic, in its publish order: when its last markers went out (monotonic s), for
+        # the automatic lifetime; topics whose markers may still be up
+        self._marker_sent = {}
+        self._marked = set()
         self._outcome = threading.local()   # .counts: the OUTCOMES counted so far, not yet added
 
     def _subscribe(self, topics, reliability, group):
@@ -668,14 +673,19 @@ class BeoNode(Node):
         self._record('order_wait', waited)
         return waited
 
-    def _end_turn(self, topic, ticket):
-        """Hand the publishing turn of ``topic`` to the next ticket (after our own turn came)."""
-        if ticket is None:
-            return
-        with self._turn_cond:
-            self._turn_cond.wait_for(lambda: self._turn[topic] == ticket)
-            self._turn[topic] = ticket + 1
-            self._turn_cond.notify_all()
+    def _end_turn(self, topic, ticket, unpublished=None):
+        """Hand the publishing turn of ``topic`` to the next ticket (after our own turn came).
+        ``unpublished``: the header of a cloud that was not published: the topic's markers
+        are deleted in its turn first."""
+        if ticket is not None:
+            with self._turn_cond:
+                self._turn_cond.wait_for(lambda: self._turn[topic] == ticket)
+        if unpublished is not None:   # our turn: no other cloud of the topic publishes now
+            self._unmark(topic, unpublished)
+        if ticket is not None:
+            with self._turn_cond:
+                self._turn[topic] = ticket + 1
+                self._turn_cond.notify_all()
 
     def _reject(self, where, err: InputRejected):
         self._count('rejected')
@@ -930,7 +940,9 @@ class BeoNode(Node):
 
     def _process(self, topic, msg, t_recv, ticket=None):
         """Estimate one cloud and publish the results; with a ``ticket`` the publishing waits
-        until the earlier clouds of ``topic`` are published (or rejected)."""
+        until the earlier clouds of ``topic`` are published (or rejected). A cloud not
+        published deletes the topic's markers (in the same order): its object is gone."""
+        published = False
         try:
             t0 = time.monotonic()
             self._record('queue_wait', t0 - t_recv)
@@ -962,18 +974,38 @@ class BeoNode(Node):
             self._pub_pose.publish(PoseStamped(header=header, pose=out.pose))
             if completed is not None:
                 self._pub_completed.publish(completed)
-            self._pub_markers.publish(self._markers(est, out, header, topic, up))
+            self._pub_markers.publish(self._markers(est, out, header, topic, up,
+                                                    p['marker_lifetime']))
+            published = True
             t4 = time.monotonic()
             self._record('publish', t4 - t2 - waited)
             self._record('end_to_end', t4 - t_recv)
             self._count('processed')
         finally:
-            self._end_turn(topic, ticket)
+            self._end_turn(topic, ticket, None if published else msg.header)
 
-    def _markers(self, est, out, header, topic, up) -> MarkerArray:
-        """Label text above the object and its box, ids unique per input topic."""
+    def _markers(self, est, out, header, topic, up, lifetime) -> MarkerArray:
+        """Label text above the object and its box, ids unique per input topic, living
+        ``lifetime`` s (0: automatic, see ``auto_lifetime``)."""
         idx = self._topic_index.get(topic, len(self._topic_index))
-        return object_markers(est, out, header, idx, up)
+        now = time.monotonic()
+        last = self._marker_sent.get(topic)
+        self._marker_sent[topic] = now
+        self._marked.add(topic)
+        if not lifetime:
+            lifetime = auto_lifetime(None if last is None else now - last)
+        return object_markers(est, out, header, idx, up, lifetime)
+
+    def _unmark(self, topic, header):
+        """Delete ``topic``'s markers, if up (a cloud of it was not published)."""
+        if topic not in self._marked or not self.context.ok():
+            return
+        self._marked.discard(topic)
+        try:
+            self._pub_markers.publish(
+                delete_markers(header, self._topic_index.get(topic, len(self._topic_index))))
+        except Exception as e:  # noqa: BLE001 - never hide what became of the cloud
+            self.get_logger().debug(f'markers of {topic} not deleted: {type(e).__name__}: {e}')
 
     # ------------------------------------------------------------------ services
     async def _on_classify(self, request, response):
@@ -1218,6 +1250,17 @@ class BeoNode(Node):
             except KeyboardInterrupt:   # another Ctrl-C: do not wait for the processes to end
                 pool.kill()
 
+    def _delete_all_markers(self, log):
+        """DELETEALL on ~/markers once the worker threads are done, if any are up: no object
+        is published any more (not when a signal shut the context down: nothing to send on)."""
+        if not getattr(self, '_marked', None) or not self.context.ok():
+            return
+        self._marked.clear()
+        try:
+            self._pub_markers.publish(delete_all_markers(self._diag_header()))
+        except Exception as e:  # noqa: BLE001 - best effort: they expire anyway
+            log.debug(f'markers not deleted: {type(e).__name__}: {e}')
+
     def _shutdown_logger(self):
         """A logger for shutdown messages: not the node's, whose /rosout publisher may be gone
         with the context. Named after the node's logger ('r1.beo.shutdown' in /r1)."""
@@ -1240,6 +1283,7 @@ class BeoNode(Node):
             self._shutdown_worker()
         except KeyboardInterrupt:   # a second Ctrl-C: do not wait for the estimates in flight
             log.warning('interrupted again: not waiting for the estimates in flight')
+        self._delete_all_markers(log)
         self._shutdown_pool()
         with self._svc_threads_lock:
             reloads = list(self._reload_threads)
