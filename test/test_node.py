@@ -179,6 +179,42 @@ def test_stream_publishes_estimate_completed_pose_markers(harness):
     assert values['worker_timeouts'] == '0' and values['dropped_shutdown'] == '0'
 
 
+
+def _seconds(duration):
+    return duration.sec + duration.nanosec * 1e-9
+
+
+def test_markers_have_a_lifetime_and_go_with_their_object(harness):
+    """~/markers: a lifetime (automatic, or marker_lifetime); a rejected cloud deletes its
+    topic's markers (those only, once), and destroy_node deletes all of them. Before, they had
+    no lifetime and were never deleted: RViz showed the last object of a topic whose clouds
+    had stopped, or were rejected, for ever."""
+    from visualization_msgs.msg import Marker
+    from beo_ros.ros.markers import auto_lifetime
+    assert auto_lifetime(None) == 1.0 and auto_lifetime(0.1) == 1.0
+    assert auto_lifetime(2.0) == pytest.approx(6.0)
+    node = harness.node
+    msg = cloud(box_view())
+    first = harness.wait('markers', republish=msg)[0].markers
+    assert sorted(m.id for m in first) == [0, 1]
+    assert all(m.action == Marker.ADD and _seconds(m.lifetime) >= 1.0 for m in first)
+    harness.wait('markers', republish=cloud(box_view(), 'cam2'), pub=harness.pub2,
+                 pred=lambda a: a.markers[0].id == 2)
+    assert node.set_parameters([Parameter('marker_lifetime', value=2.5)])[0].successful
+    harness.wait('markers', republish=msg, pred=lambda a: all(
+        (m.lifetime.sec, m.lifetime.nanosec) == (2, 500_000_000) for m in a.markers))
+
+    def deletes(action):
+        return lambda a: any(m.action == action for m in a.markers)
+    deleted = harness.wait('markers', republish=cloud(box_view()[:5]),
+                           pred=deletes(Marker.DELETE))
+    assert sorted((m.ns, m.id, m.action) for m in deleted[0].markers) == [
+        ('beo', 0, Marker.DELETE), ('beo', 1, Marker.DELETE)]
+    node.destroy_node()   # while the executor spins: the client gets what it sends
+    harness.wait('markers', pred=deletes(Marker.DELETEALL))
+    with harness.cond:
+        assert len([a for a in harness.received['markers'] if deletes(Marker.DELETE)(a)]) == 1
+
 def test_services_classify_and_complete(harness):
     r = harness.call(harness.classify, harness.good_request())
     assert r.success, r.message
@@ -1001,9 +1037,9 @@ def test_each_diagnostics_message_keeps_the_counter_identity(harness2):
     node, gated, msg = _gated_node(harness, 2)
     published, end_turn, turn_ended = [], node._end_turn, threading.Event()
 
-    def ending_turn(topic, ticket):
+    def ending_turn(topic, ticket, *args):
         turn_ended.set()
-        return end_turn(topic, ticket)
+        return end_turn(topic, ticket, *args)
 
     node._end_turn = ending_turn
     pub, node._pub_diag = node._pub_diag, type('Pub', (), {'publish': published.append})()
@@ -1176,6 +1212,69 @@ def test_bad_model_dir_refuses_to_start(ros_context, tmp_path):
         BeoNode(context=ros_context,
                 parameter_overrides=[Parameter('model_dir', value=str(corrupt))])
 
+
+
+def _diagnostics(node):
+    """The key-values of one /diagnostics status the node publishes now."""
+    sent = []
+
+    class Pub:
+        def publish(self, msg):
+            sent.append(msg)
+    pub, node._pub_diag = node._pub_diag, Pub()
+    try:
+        node._publish_diagnostics()
+    finally:
+        node._pub_diag = pub
+    return {kv.key: kv.value for kv in sent[0].status[0].values}
+
+
+def test_a_bank_given_in_process_is_reported_as_such(ros_context, ros_tiny_model_dir, capfd):
+    """A node built with bank= says so (log, /diagnostics model_dir); before, it named the
+    model_dir parameter's directory as if it had loaded it, and setting model_dir to that
+    directory did not load it."""
+    from beo_ros.core.bank import load_models
+    from beo_ros.ros.node import BeoNode
+    bank = load_models(ros_tiny_model_dir)
+    node = BeoNode(context=ros_context, bank=bank, parameter_overrides=[
+        Parameter('model_dir', value=ros_tiny_model_dir)])
+    try:
+        err = capfd.readouterr().err
+        assert 'using the model bank given in-process' in err, err
+        assert 'loaded models from' not in err, err
+        assert _diagnostics(node)['model_dir'] == '<bank given in-process>'
+        assert node.set_parameters([Parameter('model_dir', value=ros_tiny_model_dir)])[0] \
+            .successful
+        assert node._base_bank is not bank and node._bank is not bank
+        assert _diagnostics(node)['model_dir'] == ros_tiny_model_dir
+    finally:
+        node.destroy_node()
+
+
+@pytest.mark.parametrize('guarded', [True, False])
+def test_the_main_guard_hint_is_given_only_to_a_script_without_it(
+        ros_context, ros_tiny_model_dir, tmp_path, monkeypatch, guarded):
+    """Worker processes that cannot start: the hint about the if __name__ == '__main__':
+    guard only when the program's main script has none (before: also under beo-node, whose
+    script has it)."""
+    import sys
+    import types
+    from beo_ros.ros.node import BeoNode, BrokenProcessPool, StartupError
+    script = tmp_path / 'run.py'
+    script.write_text('from beo_ros.ros.node import main\n'
+                      + ("if __name__ == '__main__':\n    main()\n" if guarded else 'main()\n'))
+    main = types.ModuleType('__main__')
+    main.__file__ = str(script)
+    monkeypatch.setitem(sys.modules, '__main__', main)
+
+    def cannot_start(self, bank):
+        raise BrokenProcessPool('A child process terminated abruptly')
+    monkeypatch.setattr(BeoNode, '_new_pool', cannot_start)
+    with pytest.raises(StartupError, match='cannot start 1 worker process') as info:
+        BeoNode(context=ros_context, parameter_overrides=[
+            Parameter('model_dir', value=ros_tiny_model_dir),
+            Parameter('worker_processes', value=1)])
+    assert ('__main__' in str(info.value)) is not guarded, str(info.value)
 
 def test_model_dir_takes_a_shipped_models_name(ros_context, tmp_path, monkeypatch):
     from beo_ros.core.bank import default_model_dir
@@ -1915,6 +2014,49 @@ def test_a_class_prior_set_as_a_reload_takes_over_is_applied(ros_context, ros_ti
     finally:
         node.destroy_node()
 
+
+
+def test_a_failed_reload_leaves_the_class_prior_consistent(ros_context, ros_tiny_model_dir,
+                                                          tmp_path, capfd):
+    """worker_processes: a class_prior set with a model_dir whose processes then fail to
+    start. One that fits the models answering is applied to them (before, the parameter and
+    the next reload said 'uniform' while they kept 'train'); one for the failed models'
+    classes is logged, and the models answering keep their prior as the value in force."""
+    import shutil
+    from beo_ros.ros.node import BeoNode, prior_text
+    node = BeoNode(context=ros_context, parameter_overrides=[
+        Parameter('model_dir', value=ros_tiny_model_dir),
+        Parameter('worker_processes', value=1), Parameter('workers', value=1)])
+    try:
+        def cannot_start(bank):
+            raise RuntimeError('no processes today')
+        node._new_pool = cannot_start
+        old = node._bank.classes
+        assert prior_text(node._bank) == 'train'
+        shutil.copytree(ros_tiny_model_dir, tmp_path / 'copy')
+        assert node.set_parameters_atomically([
+            Parameter('model_dir', value=str(tmp_path / 'copy')),
+            Parameter('class_prior', value='uniform')]).successful
+        assert _wait(lambda: node.counters()['reload_failures'] == 1 and not _reloading())
+        assert node._bank.class_prior == 'uniform' and node._prior == 'uniform'
+        assert _diagnostics(node)['class_prior'] == 'uniform'
+        # a prior for other classes than those answering
+        other = 'tabletop_32' if set(old) != {'box', 'cylinder'} else 'modelnet10_32'
+        from beo_ros.core.bank import load_models
+        classes = load_models(other).classes
+        assert set(classes) != set(old)
+        weights = ','.join(f'{c}={i + 1}' for i, c in enumerate(classes))
+        capfd.readouterr()
+        assert node.set_parameters_atomically([
+            Parameter('model_dir', value=other),
+            Parameter('class_prior', value=weights)]).successful
+        assert _wait(lambda: node.counters()['reload_failures'] == 2 and not _reloading())
+        err = capfd.readouterr().err
+        assert 'class_prior does not fit the models answering' in err, err
+        assert node._bank.classes == old and node._bank.class_prior == 'uniform'
+        assert node._prior == 'uniform'
+    finally:
+        node.destroy_node()
 
 def test_blas_threads_of_two_nodes_in_one_process(ros_context, ros_tiny_model_dir):
     """Two nodes in one process: the cap holds while either lives, and the original limits

@@ -318,3 +318,71 @@ def test_the_timeout_does_not_count_the_wait_for_a_free_process():
         assert not pool.timed_out and not pool.broken and pool.waiting == 0
     finally:
         pool.shutdown(timeout=5.0)
+
+
+def test_shutdown_and_a_kill_mid_send_do_not_wedge_the_executor(make_pool, tmp_path):
+    """The pool shut down (timeout 5 s, as the node does) and then the process that is
+    sending a result killed: the estimate ends and so does the executor's thread. Before, the
+    watchdog looked up the result pipe's write end only once every process was gone, after
+    ProcessPoolExecutor.shutdown had dropped the queue: it was never closed, and the thread
+    waited for the rest of the result for ever (the interpreter hung at exit)."""
+    flag = tmp_path / 'sending'
+    pool = make_pool(flag=str(flag), size=400_000_000)
+    manager = _manager(pool)
+    out = {}
+
+    def run():
+        try:
+            out['result'] = _estimate(pool, n=BIG)
+        except BaseException as e:  # noqa: BLE001 - the test looks at it
+            out['error'] = e
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    end = time.monotonic() + WAIT
+    while not flag.exists() and time.monotonic() < end:
+        time.sleep(0.01)
+    pid = int(flag.read_text())
+    end, sending = time.monotonic() + WAIT, False
+    while not sending and thread.is_alive() and time.monotonic() < end:
+        sending = _in_big_write(pid)
+        if not sending:
+            time.sleep(0.002)
+    if not sending:
+        pytest.skip('the result was sent whole before a poll saw the write')
+    closing = threading.Thread(target=pool.shutdown, kwargs={'timeout': 5.0}, daemon=True)
+    closing.start()
+    end = time.monotonic() + WAIT   # the executor has dropped its result queue
+    while pool._pool._result_queue is not None and time.monotonic() < end:
+        time.sleep(0.001)
+    os.kill(pid, signal.SIGKILL)
+    closing.join(WAIT)
+    thread.join(WAIT)
+    assert not thread.is_alive(), 'the estimate never ended'
+    assert isinstance(out.get('error'), BrokenProcessPool), out
+    manager.join(WAIT)
+    assert not manager.is_alive(), 'the executor thread waits for the rest of the result'
+
+
+def test_shutdown_without_a_timeout_lets_the_processes_answer_what_they_were_sent():
+    """shutdown(timeout=None), as its docstring now says (it said queued estimates were
+    cancelled, which the code does only with a timeout): the estimate a process has is
+    answered after shutdown returned; the one waiting for a free process raises
+    BrokenProcessPool."""
+    pool = EstimatorPool(1, SlowBank(0.5), blas_threads=0, timeout=WAIT)
+    try:
+        answers = []
+        threads, errors = _callers(2, lambda: answers.append(_estimate(pool)))
+        threads[0].start()
+        end = time.monotonic() + WAIT   # the first has the process, the second waits for it
+        while not pool._pool._pending_work_items and time.monotonic() < end:
+            time.sleep(0.01)
+        threads[1].start()
+        while pool.waiting != 1 and time.monotonic() < end:
+            time.sleep(0.01)
+        assert pool.waiting == 1
+        pool.shutdown(timeout=None)
+        for t in threads:
+            t.join(WAIT)
+        assert answers == [(b'slow', ['a', 'b'])] and errors == [BrokenProcessPool], errors
+    finally:
+        pool.shutdown(timeout=5.0)

@@ -7,7 +7,8 @@ reliable with ``input_reliability``) and publishes, in the input cloud's frame:
 - ``~/completed`` sensor_msgs/PointCloud2 (x y z probability) of the completed object,
 - ``~/pose`` geometry_msgs/PoseStamped (object centre; orientation = the object frame, z up,
   x along the heading: a turn about up only in a frame whose z is up),
-- ``~/markers`` visualization_msgs/MarkerArray (label text + box) for RViz,
+- ``~/markers`` visualization_msgs/MarkerArray (label text + box) for RViz, with a lifetime
+  (``marker_lifetime``), deleted when the topic's cloud is rejected or fails,
 - ``/diagnostics`` diagnostic_msgs/DiagnosticArray (rates, stage latencies, counters).
 
 Services ``~/classify`` and ``~/complete`` take one cloud each. Each input topic keeps only its
@@ -22,6 +23,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import re
 import sys
 import threading
 import time
@@ -49,15 +51,16 @@ from beo_ros.core.bank import (format_class_prior, load_models, parse_class_prio
 from beo_ros.ros.conversions import (CloudFormatError, cloud_to_xyz, completed_cloud,
                                      estimate_to_msg, interfaces)
 from beo_ros.ros.env import check_domain_id
-from beo_ros.ros.markers import object_markers
+from beo_ros.ros.markers import auto_lifetime, delete_all_markers, delete_markers, object_markers
 from beo_ros.ros.params import (CHECKED_AT_START, declare, default_model_dir, refusal,
                                 vector_reason)
 from beo_ros.ros.procpool import (BrokenProcessPool, EstimateTimeout, EstimatorPool, PoolRetired,
                                   warm_up_points)
 
 # the public names (default_model_dir: re-exported from beo_ros.ros.params)
-__all__ = ['BeoNode', 'InputRejected', 'StartupError', 'default_model_dir', 'drain_executor',
-           'load_bank', 'main', 'make_executor', 'prior_text', 'with_class_prior']
+__all__ = ['IN_PROCESS_BANK', 'BeoNode', 'InputRejected', 'StartupError', 'default_model_dir',
+           'drain_executor', 'load_bank', 'main', 'make_executor', 'prior_text',
+           'with_class_prior']
 
 try:  # optional: TF gives the up vector when base_frame is set
     import tf2_ros
@@ -76,6 +79,24 @@ OUTCOMES = frozenset({'processed', 'rejected', 'rejected_format', 'rejected_too_
                       'errors', 'dropped_shutdown', 'service_failures'})
 BASE_FRAME_WITHOUT_TF = ('base_frame is set but tf2_ros is not installed; using the '
                          'sensor_origin and up_vector parameters')
+# what /diagnostics model_dir (and the logs) say of a bank passed to the constructor: no
+# directory it came from is known, and the model_dir parameter was not loaded
+IN_PROCESS_BANK = '<bank given in-process>'
+
+
+def _main_lacks_guard() -> bool:
+    """True when the program's ``__main__`` is a file without an ``if __name__ ==
+    '__main__':`` test (or one that cannot be read): spawned worker processes run it again,
+    so a script that creates the node unguarded breaks them. beo-node's script has the guard."""
+    path = getattr(sys.modules.get('__main__'), '__file__', None)
+    if not path:   # interactive: nothing to run again
+        return False
+    try:
+        with open(path, encoding='utf-8', errors='replace') as f:
+            source = f.read()
+    except OSError:
+        return True
+    return re.search(r'''__name__\s*==\s*['"]__main__['"]''', source) is None
 
 
 class _BlasCaps:
@@ -161,7 +182,8 @@ class BeoNode(Node):
     Args:
         node_name: ROS node name.
         bank: optional already-loaded model bank (skips ``model_dir`` loading; for embedding
-            and tests).
+            and tests). /diagnostics ``model_dir`` then reads IN_PROCESS_BANK, and setting
+            ``model_dir`` loads that directory.
         **kwargs: passed to :class:`rclpy.node.Node` (context, namespace, parameter_overrides...).
 
     Raises:
@@ -289,12 +311,17 @@ class BeoNode(Node):
         self._est_slots = threading.Semaphore(self._n_workers)
         self._svc_waiting = 0
         self._svc_lock = threading.Lock()
-        # the directory the models come from ('' or a shipped name resolved: diagnostics name it)
-        self._serving_dir = str(resolve_model_dir(self.get_parameter('model_dir').value))
+        # the directory the models come from ('' or a shipped name resolved: diagnostics name
+        # it), or IN_PROCESS_BANK (then any model_dir set loads that directory)
         if bank is None:
+            self._serving_dir = str(resolve_model_dir(self.get_parameter('model_dir').value))
             bank = load_bank(self._serving_dir)
             self.get_logger().info(f"loaded models from '{self._serving_dir}': "
                                    f'classes {bank.classes}')
+        else:
+            self._serving_dir = IN_PROCESS_BANK
+            self.get_logger().info(f'using the model bank given in-process (model_dir not '
+                                   f'loaded): classes {bank.classes}')
         self._base_bank = bank  # as loaded: the class_prior parameter is applied to a copy
         self._serving_base = bank   # the models the estimates use now (a reload may be pending)
         try:
@@ -317,9 +344,10 @@ class BeoNode(Node):
         except Exception as e:
             if not self.context.ok():   # e.g. a SIGTERM to the group ended the processes
                 raise ExternalShutdownException() from None
+            hint = ("; a script that creates the node needs the if __name__ == '__main__': "
+                    'guard' if _main_lacks_guard() else '')
             raise StartupError(f'cannot start {self._n_procs} worker process(es) '
-                               f'({type(e).__name__}: {e}); a script that creates the '
-                               "node needs the if __name__ == '__main__': guard") from e
+                               f'({type(e).__name__}: {e}){hint}') from e
         if not self.context.ok():   # shut down by a signal during the seconds that took
             raise ExternalShutdownException()
         self.get_logger().info(f'{self._n_procs} worker process(es) ready in '
@@ -371,6 +399,10 @@ class BeoNode(Node):
         self._turn = collections.Counter()      # topic -> ticket allowed to publish now
         self._turn_cond = threading.Condition()
         self._in_flight = 0
+        # per topic, in its publish order: when its last markers went out (monotonic s), for
+        # the automatic lifetime; topics whose markers may still be up
+        self._marker_sent = {}
+        self._marked = set()
         self._outcome = threading.local()   # .counts: the OUTCOMES counted so far, not yet added
 
     def _subscribe(self, topics, reliability, group):
@@ -642,14 +674,19 @@ class BeoNode(Node):
         self._record('order_wait', waited)
         return waited
 
-    def _end_turn(self, topic, ticket):
-        """Hand the publishing turn of ``topic`` to the next ticket (after our own turn came)."""
-        if ticket is None:
-            return
-        with self._turn_cond:
-            self._turn_cond.wait_for(lambda: self._turn[topic] == ticket)
-            self._turn[topic] = ticket + 1
-            self._turn_cond.notify_all()
+    def _end_turn(self, topic, ticket, unpublished=None):
+        """Hand the publishing turn of ``topic`` to the next ticket (after our own turn came).
+        ``unpublished``: the header of a cloud that was not published: the topic's markers
+        are deleted in its turn first."""
+        if ticket is not None:
+            with self._turn_cond:
+                self._turn_cond.wait_for(lambda: self._turn[topic] == ticket)
+        if unpublished is not None:   # our turn: no other cloud of the topic publishes now
+            self._unmark(topic, unpublished)
+        if ticket is not None:
+            with self._turn_cond:
+                self._turn[topic] = ticket + 1
+                self._turn_cond.notify_all()
 
     def _reject(self, where, err: InputRejected):
         self._count('rejected')
@@ -846,6 +883,7 @@ class BeoNode(Node):
                 if gen == self._reload_gen and not self._pool_closed:
                     # class_prior is checked against _base_bank: the models answering again
                     self._base_bank = self._serving_base
+                    self._prior_after_failed_reload(model_dir)
             return
         with self._pool_lock:
             closed = self._pool_closed
@@ -865,6 +903,32 @@ class BeoNode(Node):
                                    f'({self._n_procs} new worker process(es) in '
                                    f'{time.monotonic() - t0:.1f} s)')
 
+    def _prior_after_failed_reload(self, model_dir):
+        """Under _bank_lock, after the reload of ``model_dir`` failed: the class_prior value in
+        force was checked against those models, and only applied when they take over (set
+        with model_dir, or while they started). It is applied to the models answering if it
+        fits them; if it names the failed models' classes, they keep the prior they have and
+        that becomes the value in force. Logged either way (before, the prior answering and
+        the value a later reload applies could differ from each other and the parameter,
+        unseen)."""
+        with self._pool_lock:
+            before = prior_text(self._bank)
+            try:
+                self._bank = with_class_prior(self._serving_base, self._prior)
+                unfit = None
+            except ValueError as e:
+                unfit = e
+                self._prior = before
+            after = prior_text(self._bank)
+        if unfit is not None:
+            self.get_logger().warning(
+                f"class_prior does not fit the models answering ({unfit}): it was set for "
+                f"those of '{model_dir}', which failed to load; the class prior stays {after} "
+                '(set class_prior for the models answering)')
+        elif after != before:
+            self.get_logger().info(f'class prior: {after} (set with the failed reload of '
+                                   f"'{model_dir}', now applied to the models answering)")
+
     def _record(self, stage, seconds):
         with self._stats_lock:
             self._latency[stage].append(float(seconds))
@@ -877,7 +941,9 @@ class BeoNode(Node):
 
     def _process(self, topic, msg, t_recv, ticket=None):
         """Estimate one cloud and publish the results; with a ``ticket`` the publishing waits
-        until the earlier clouds of ``topic`` are published (or rejected)."""
+        until the earlier clouds of ``topic`` are published (or rejected). A cloud not
+        published deletes the topic's markers (in the same order): its object is gone."""
+        published = False
         try:
             t0 = time.monotonic()
             self._record('queue_wait', t0 - t_recv)
@@ -909,18 +975,38 @@ class BeoNode(Node):
             self._pub_pose.publish(PoseStamped(header=header, pose=out.pose))
             if completed is not None:
                 self._pub_completed.publish(completed)
-            self._pub_markers.publish(self._markers(est, out, header, topic, up))
+            self._pub_markers.publish(self._markers(est, out, header, topic, up,
+                                                    p['marker_lifetime']))
+            published = True
             t4 = time.monotonic()
             self._record('publish', t4 - t2 - waited)
             self._record('end_to_end', t4 - t_recv)
             self._count('processed')
         finally:
-            self._end_turn(topic, ticket)
+            self._end_turn(topic, ticket, None if published else msg.header)
 
-    def _markers(self, est, out, header, topic, up) -> MarkerArray:
-        """Label text above the object and its box, ids unique per input topic."""
+    def _markers(self, est, out, header, topic, up, lifetime) -> MarkerArray:
+        """Label text above the object and its box, ids unique per input topic, living
+        ``lifetime`` s (0: automatic, see ``auto_lifetime``)."""
         idx = self._topic_index.get(topic, len(self._topic_index))
-        return object_markers(est, out, header, idx, up)
+        now = time.monotonic()
+        last = self._marker_sent.get(topic)
+        self._marker_sent[topic] = now
+        self._marked.add(topic)
+        if not lifetime:
+            lifetime = auto_lifetime(None if last is None else now - last)
+        return object_markers(est, out, header, idx, up, lifetime)
+
+    def _unmark(self, topic, header):
+        """Delete ``topic``'s markers, if up (a cloud of it was not published)."""
+        if topic not in self._marked or not self.context.ok():
+            return
+        self._marked.discard(topic)
+        try:
+            self._pub_markers.publish(
+                delete_markers(header, self._topic_index.get(topic, len(self._topic_index))))
+        except Exception as e:  # noqa: BLE001 - never hide what became of the cloud
+            self.get_logger().debug(f'markers of {topic} not deleted: {type(e).__name__}: {e}')
 
     # ------------------------------------------------------------------ services
     async def _on_classify(self, request, response):
@@ -1165,6 +1251,17 @@ class BeoNode(Node):
             except KeyboardInterrupt:   # another Ctrl-C: do not wait for the processes to end
                 pool.kill()
 
+    def _delete_all_markers(self, log):
+        """DELETEALL on ~/markers once the worker threads are done, if any are up: no object
+        is published any more (not when a signal shut the context down: nothing to send on)."""
+        if not getattr(self, '_marked', None) or not self.context.ok():
+            return
+        self._marked.clear()
+        try:
+            self._pub_markers.publish(delete_all_markers(self._diag_header()))
+        except Exception as e:  # noqa: BLE001 - best effort: they expire anyway
+            log.debug(f'markers not deleted: {type(e).__name__}: {e}')
+
     def _shutdown_logger(self):
         """A logger for shutdown messages: not the node's, whose /rosout publisher may be gone
         with the context. Named after the node's logger ('r1.beo.shutdown' in /r1)."""
@@ -1187,6 +1284,7 @@ class BeoNode(Node):
             self._shutdown_worker()
         except KeyboardInterrupt:   # a second Ctrl-C: do not wait for the estimates in flight
             log.warning('interrupted again: not waiting for the estimates in flight')
+        self._delete_all_markers(log)
         self._shutdown_pool()
         with self._svc_threads_lock:
             reloads = list(self._reload_threads)

@@ -13,6 +13,7 @@ from beo_ros.core.bank import YAW_STEP_RANGE_DEG
 from beo_ros.core.bank import default_model_dir as shipped_model_dir
 from beo_ros.core.outliers import OUTLIER_MADS, OUTLIER_NEIGHBORS
 from beo_ros.core.voxelize import MAX_COORDINATE, MIN_DIRECTION, MIN_POINTS
+from beo_ros.ros.markers import AUTO_LIFETIME_INTERVALS, MIN_AUTO_LIFETIME
 
 DEFAULT_MODEL = 'modelnet10_32'
 MIN_ESTIMATE_TIMEOUT = 1.0  # s; an estimate takes 0.03-0.1 s
@@ -117,6 +118,12 @@ def declare(declare_parameter) -> tuple:
     d('publish_completed', True, ParameterDescriptor(
         description='Publish ~/completed (x y z probability)',
         type=ParameterType.PARAMETER_BOOL))
+    d('marker_lifetime', 0.0, _fdesc(
+        'Seconds the ~/markers of an estimate stay up in RViz unless the next estimate of '
+        f'their input topic replaces them; 0: automatic, {AUTO_LIFETIME_INTERVALS:g}x the '
+        f"interval since the topic's previous estimate, at least {MIN_AUTO_LIFETIME:g} s "
+        '(a topic that stops sends no more updates: its markers go). A cloud that is rejected '
+        "or fails deletes its topic's markers", 0.0, 3600.0))
     d('class_prior', '', ParameterDescriptor(
         description="Prior over the classes: '' = the model directory's, 'train' = the "
                     "training set's class frequencies, 'uniform', or 'name=weight,...' "

@@ -182,13 +182,17 @@ class EstimatorPool:
             self.shutdown(timeout=1.0)
             raise
         procs = list(self._pool._processes.values())
-        self._watchdog = threading.Thread(target=self._watch, args=(procs,), daemon=True,
+        # taken now: ProcessPoolExecutor.shutdown drops its result queue, and a pool shut down
+        # right after a process died mid-send left the watchdog nothing to close
+        writer = getattr(getattr(self._pool, '_result_queue', None), '_writer', None)
+        self._watchdog = threading.Thread(target=self._watch, args=(procs, writer), daemon=True,
                                           name='beo_pool_watchdog')
         self._watchdog.start()
 
-    def _watch(self, procs):
+    def _watch(self, procs, writer):
         """Thread: a process that dies on its own (not shut down) takes its siblings with it;
-        once all are gone, the parent's copy of the result pipe's write end is closed.
+        once all are gone, the parent's copy of the result pipe's write end (``writer``, taken
+        when the pool started) is closed.
 
         Why: ProcessPoolExecutor (CPython 3.11) reads a result to its end before it looks at
         the processes again, and the parent keeps a write end of that pipe open. A process
@@ -205,7 +209,6 @@ class EstimatorPool:
             pending = [s for s in pending if s not in ready]
             if pending and not self._closed:
                 self.kill()   # the pool is broken anyway
-        writer = getattr(getattr(self._pool, '_result_queue', None), '_writer', None)
         if writer is not None:
             try:
                 writer.close()
@@ -310,11 +313,15 @@ class EstimatorPool:
         return bool(getattr(self._pool, '_broken', False))
 
     def shutdown(self, timeout: float | None = 5.0):
-        """Stop the processes; estimates already running finish, queued ones are cancelled.
+        """Stop the processes. Estimates still waiting for a free process raise
+        BrokenProcessPool; those handed to the processes finish there.
 
-        ``timeout`` None returns at once (the pool winds down in the background); otherwise
-        processes still alive after ``timeout`` seconds are terminated, and killed if that
-        does not end them within 1 s (a stopped process keeps SIGTERM pending).
+        ``timeout`` None returns at once and cancels nothing: the pool winds down in the
+        background once the processes have answered what they were sent (a model reload's old
+        processes, say). Otherwise estimates not yet taken by a process are cancelled
+        (BrokenProcessPool), and processes still alive after ``timeout`` seconds are
+        terminated, and killed if that does not end them within 1 s (a stopped process keeps
+        SIGTERM pending); their estimates raise BrokenProcessPool.
         """
         self._closed = True
         procs = list((getattr(self._pool, '_processes', None) or {}).values())
