@@ -18,6 +18,8 @@ IMPORT_KEYS = {
     'trimesh': 'python3-trimesh-pip',
     'rosbags': 'python3-rosbags-pip',
     'apsw': 'python3-rosbags-pip',    # rosbags' sqlite3 reader; bag/storage.py catches its errors
+    # rosbags' metadata.yaml parser; bag/storage.py reads the same file with it to name a fault
+    'ruamel': 'python3-rosbags-pip',
     'matplotlib': 'python3-matplotlib',
     'tqdm': 'python3-tqdm',
     # optional (blas_threads); not a confirmed rosdep key: it comes with python3-sklearn
