@@ -330,11 +330,11 @@ def test_record_in_process_then_read_back(ros_env_context, tmp_path):
     assert planes == [[0.0, 0.0, 1.0, float(i)] for i in range(4)]
 
 
-def test_record_warns_of_publishers_of_another_type_than_recorded(ros_env_context, tmp_path,
-                                                                   ros_domain_id):
-    """/chatter:std_msgs/msg/Int32 while /chatter's publisher sends String: nothing can be
-    recorded. Before: 0 messages and not a word; now a warning names the type left out."""
-    ctx = rclpy.Context()   # another participant, as another process would be
+def _record_beside_a_string_talker(ros_env_context, ros_domain_id, path, topics):
+    """``bag.record`` of ``topics`` for 0.2 s into ``path`` by a node of ``ros_env_context``
+    while a node of another context (as another process would be) publishes String on
+    /chatter -> (stats, recorder node, the warnings it logged)."""
+    ctx = rclpy.Context()
     rclpy.init(args=[], context=ctx, domain_id=ros_domain_id)
     try:
         pub_node = rclpy.create_node('talker', context=ctx)
@@ -343,10 +343,18 @@ def test_record_warns_of_publishers_of_another_type_than_recorded(ros_env_contex
         assert wait_for(lambda: rec_node.get_publishers_info_by_topic('/chatter'), 10)
         warned = []
         rec_node.get_logger().warning = lambda msg, **kw: warned.append(msg)
-        stats = bag.record(rec_node, tmp_path / 'r', ['/chatter:std_msgs/msg/Int32'],
-                           duration=0.2)
+        stats = bag.record(rec_node, path, topics, duration=0.2)
     finally:
         rclpy.try_shutdown(context=ctx)
+    return stats, rec_node, warned
+
+
+def test_record_warns_of_publishers_of_another_type_than_recorded(ros_env_context, tmp_path,
+                                                                   ros_domain_id):
+    """/chatter:std_msgs/msg/Int32 while /chatter's publisher sends String: nothing can be
+    recorded. Before: 0 messages and not a word; now a warning names the type left out."""
+    stats, _, warned = _record_beside_a_string_talker(
+        ros_env_context, ros_domain_id, tmp_path / 'r', ['/chatter:std_msgs/msg/Int32'])
     assert stats.messages == 0
     assert warned == ['/chatter has publishers of std_msgs/msg/String: their messages are not '
                       'recorded (the topic is recorded as std_msgs/msg/Int32)']
@@ -1191,19 +1199,8 @@ def test_record_normalizes_a_type_given_as_pkg_type(ros_env_context, tmp_path, r
     """{'/chatter': 'std_msgs/String'} given to record(). Before: the type was kept as given,
     so the topic's own publishers were warned about as of another type and the stats had a
     type name that is not pkg/msg/Type; now it is std_msgs/msg/String throughout."""
-    ctx = rclpy.Context()   # another participant, as another process would be
-    rclpy.init(args=[], context=ctx, domain_id=ros_domain_id)
-    try:
-        pub_node = rclpy.create_node('talker', context=ctx)
-        rec_node = rclpy.create_node('recorder', context=ros_env_context)
-        pub_node.create_publisher(String, '/chatter', 10)
-        assert wait_for(lambda: rec_node.get_publishers_info_by_topic('/chatter'), 10)
-        warned = []
-        rec_node.get_logger().warning = lambda msg, **kw: warned.append(msg)
-        stats = bag.record(rec_node, tmp_path / 'r', {'/chatter': 'std_msgs/String'},
-                           duration=0.2)
-    finally:
-        rclpy.try_shutdown(context=ctx)
+    stats, rec_node, warned = _record_beside_a_string_talker(
+        ros_env_context, ros_domain_id, tmp_path / 'r', {'/chatter': 'std_msgs/String'})
     assert warned == []
     assert stats.topics == {'/chatter': {'type': 'std_msgs/msg/String', 'count': 0}}
     assert bag.bag_info(tmp_path / 'r')['topics'] == {

@@ -177,6 +177,38 @@ def test_idle_process_killed_breaks_pool(make_pool):
     assert not manager.is_alive()
 
 
+def _big_send(pool, flag):
+    """Start an estimate of ``pool`` (made with ``flag`` and a 400 MB result) in a thread and
+    poll its process until it is inside the write of the result -> (thread, out, pid,
+    sending): ``out`` gets 'result' or 'error'; ``sending`` False when no poll saw the write
+    (the result may have been sent whole)."""
+    flag.unlink(missing_ok=True)
+    out = {}
+
+    def run():
+        try:
+            out['result'] = _estimate(pool, n=BIG)
+        except BaseException as e:  # noqa: BLE001 - the test looks at it
+            out['error'] = e
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    end = time.monotonic() + WAIT
+    while not flag.exists() and time.monotonic() < end:
+        time.sleep(0.01)
+    pid = int(flag.read_text())
+    # pickling 400 MB takes well under a second; sending it through the pipe takes
+    # seconds (measured: 2 GB in 18 s with the executor reading). The process's current
+    # system call tells when it is inside that write (polling the pipe does not: the
+    # executor's thread may just have read what was there).
+    # (checked once per poll: a second look may find the write just ended)
+    end, sending = time.monotonic() + WAIT, False
+    while not sending and thread.is_alive() and time.monotonic() < end:
+        sending = _in_big_write(pid)
+        if not sending:
+            time.sleep(0.002)
+    return thread, out, pid, sending
+
+
 def test_process_killed_while_sending_result(make_pool, tmp_path):
     """Killed half-way through sending 400 MB: BrokenProcessPool, not an estimate that never
     ends and an executor thread that hangs the interpreter at exit (CPython 3.11, CI
@@ -185,30 +217,7 @@ def test_process_killed_while_sending_result(make_pool, tmp_path):
     pool = make_pool(flag=str(flag), size=400_000_000)
     manager = _manager(pool)
     for attempt in range(5):   # the send can be missed (the process only shows the write
-        flag.unlink(missing_ok=True)   # while blocked in it): then the result arrives; again
-        out = {}
-
-        def run():
-            try:
-                out['result'] = _estimate(pool, n=BIG)
-            except BaseException as e:  # noqa: BLE001 - the test looks at it
-                out['error'] = e
-        thread = threading.Thread(target=run, daemon=True)
-        thread.start()
-        end = time.monotonic() + WAIT
-        while not flag.exists() and time.monotonic() < end:
-            time.sleep(0.01)
-        pid = int(flag.read_text())
-        # pickling 400 MB takes well under a second; sending it through the pipe takes
-        # seconds (measured: 2 GB in 18 s with the executor reading). The process's current
-        # system call tells when it is inside that write (polling the pipe does not: the
-        # executor's thread may just have read what was there).
-        # (checked once per poll: a second look may find the write just ended)
-        end, sending = time.monotonic() + WAIT, False
-        while not sending and thread.is_alive() and time.monotonic() < end:
-            sending = _in_big_write(pid)
-            if not sending:
-                time.sleep(0.002)
+        thread, out, pid, sending = _big_send(pool, flag)   # while blocked in it): again
         if sending:
             break
         thread.join(WAIT)
@@ -329,24 +338,7 @@ def test_shutdown_and_a_kill_mid_send_do_not_wedge_the_executor(make_pool, tmp_p
     flag = tmp_path / 'sending'
     pool = make_pool(flag=str(flag), size=400_000_000)
     manager = _manager(pool)
-    out = {}
-
-    def run():
-        try:
-            out['result'] = _estimate(pool, n=BIG)
-        except BaseException as e:  # noqa: BLE001 - the test looks at it
-            out['error'] = e
-    thread = threading.Thread(target=run, daemon=True)
-    thread.start()
-    end = time.monotonic() + WAIT
-    while not flag.exists() and time.monotonic() < end:
-        time.sleep(0.01)
-    pid = int(flag.read_text())
-    end, sending = time.monotonic() + WAIT, False
-    while not sending and thread.is_alive() and time.monotonic() < end:
-        sending = _in_big_write(pid)
-        if not sending:
-            time.sleep(0.002)
+    thread, out, pid, sending = _big_send(pool, flag)
     if not sending:
         pytest.skip('the result was sent whole before a poll saw the write')
     closing = threading.Thread(target=pool.shutdown, kwargs={'timeout': 5.0}, daemon=True)
