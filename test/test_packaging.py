@@ -438,3 +438,57 @@ def test_setup_failure_is_reported_once_and_names_the_pip_command(tmp_path):
     assert r.returncode == 1 and 'not reached' not in r.stdout
     assert 'No matching distribution' in r.stdout + r.stderr
     assert 'ERROR: pip install -r requirements.txt failed' in r.stderr, r.stderr
+
+
+def _section(start):
+    """Lines of scripts/setup from the one starting with ``start`` up to the next '# ---'
+    separator (excluded)."""
+    lines = SETUP.read_text().splitlines()
+    i = next(n for n, ln in enumerate(lines) if ln.startswith(start))
+    j = next((n for n in range(i + 1, len(lines)) if lines[n].startswith('# ---')), len(lines))
+    return '\n'.join(lines[i:j]) + '\n'
+
+
+def test_setup_activate_deactivate_restores_ament_prefix_path(tmp_path):
+    # `source .venv/bin/activate` put the venv into AMENT_PREFIX_PATH and `deactivate` left
+    # it there (and did not give back a previous value)
+    import subprocess
+    venv = tmp_path / 'venv'
+    subprocess.run([sys.executable, '-m', 'venv', '--without-pip', str(venv)], check=True)
+    act = venv / 'bin' / 'activate'
+    # an activate patched by an older scripts/setup: its block is replaced, not doubled
+    with act.open('a') as f:
+        f.write('# >>> beo_ros >>> (added by scripts/setup)\n'
+                'export AMENT_PREFIX_PATH="$VIRTUAL_ENV${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}"\n'
+                '# <<< beo_ros <<<\n')
+    patch = f'VENV={venv}\n' + _section('step "runtime environment in .venv/bin/activate"')
+    r = _bash(patch)
+    assert r.returncode == 0, r.stderr
+    once = act.read_text()
+    r = _bash(patch)   # idempotent
+    assert r.returncode == 0, r.stderr
+    assert act.read_text() == once
+    assert once.count('# >>> beo_ros >>>') == 2   # the restore in deactivate, the export
+
+    show = ('printf "%s|%s\\n" "${AMENT_PREFIX_PATH-<unset>}" '
+            '"$(printenv AMENT_PREFIX_PATH || echo "<unexported>")"\n')
+    script = (f'source {act}\n' + show + 'deactivate\n' + show
+              + f'source {act}\nsource {act}\n' + show + 'deactivate\n' + show
+              + 'set | grep -c "^_BEO_OLD" || true\n')
+    venv_s = str(venv)
+    for before, env in (('<unset>', {}),
+                        ('/opt/ros/jazzy', {'AMENT_PREFIX_PATH': '/opt/ros/jazzy'}),
+                        ('', {'AMENT_PREFIX_PATH': ''}),
+                        (f'{venv_s}:/opt/ros/jazzy',
+                         {'AMENT_PREFIX_PATH': f'{venv_s}:/opt/ros/jazzy'})):
+        r = _bash(script, **env)
+        assert r.returncode == 0, r.stderr
+        out = r.stdout.splitlines()
+        active = venv_s if before in ('<unset>', '') else (
+            before if before.startswith(venv_s) else f'{venv_s}:{before}')
+        restored = '<unset>|<unexported>' if before == '<unset>' else f'{before}|{before}'
+        assert out[0] == f'{active}|{active}', (before, out)
+        assert out[1] == restored, (before, out)
+        assert out[2] == f'{active}|{active}', (before, out)   # activated twice
+        assert out[3] == restored, (before, out)
+        assert out[4] == '0', (before, out)   # no helper variables left behind
