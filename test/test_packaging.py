@@ -18,6 +18,7 @@ IMPORT_KEYS = {
     'trimesh': 'python3-trimesh-pip',
     'rosbags': 'python3-rosbags-pip',
     'apsw': 'python3-rosbags-pip',    # rosbags' sqlite3 reader; bag/storage.py catches its errors
+    'ruamel': 'python3-ruamel.yaml',  # bag/storage.py reads metadata.yaml with it
     'matplotlib': 'python3-matplotlib',
     'tqdm': 'python3-tqdm',
     # optional (blas_threads); not a confirmed rosdep key: it comes with python3-sklearn
