@@ -493,3 +493,48 @@ def test_setup_activate_deactivate_restores_ament_prefix_path(tmp_path):
         assert out[2] == f'{active}|{active}', (before, out)   # activated twice
         assert out[3] == restored, (before, out)
         assert out[4] == '0', (before, out)   # no helper variables left behind
+
+
+# --- scripts/test: its arguments reach pytest (run in a scratch clone, fake python) --------
+
+def _scripts_test(tmp_path, cwd, *args):
+    """The pytest arguments scripts/test passes, run in ``cwd`` of a scratch clone (its
+    .venv/bin/python records its working directory and arguments)."""
+    import shutil
+    import subprocess
+    bash = shutil.which('bash')
+    if bash is None:
+        pytest.skip('no bash')
+    root = tmp_path / 'clone'
+    (root / 'scripts').mkdir(parents=True, exist_ok=True)
+    (root / 'test').mkdir(exist_ok=True)
+    (root / 'test' / 'test_a.py').write_text('')
+    (root / '.venv' / 'bin').mkdir(parents=True, exist_ok=True)
+    shutil.copy(ROOT / 'scripts' / 'test', root / 'scripts' / 'test')
+    py = root / '.venv' / 'bin' / 'python'
+    py.write_text('#!/bin/sh\npwd\nfor a in "$@"; do echo "$a"; done\n')
+    py.chmod(0o755)
+    r = subprocess.run([bash, str(root / 'scripts' / 'test'), *args], cwd=root / cwd,
+                       capture_output=True, text=True, timeout=60,
+                       env={'PATH': os.environ.get('PATH', '/usr/bin:/bin')})
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    assert lines[0] == str(root) and lines[1:4] == ['-m', 'pytest', '-q'], lines
+    return root, lines[4:]
+
+
+def test_scripts_test_paths_relative_to_the_caller(tmp_path):
+    # from inside test/, `../scripts/test test_a.py` ran pytest in the clone with
+    # 'test test_a.py': file or directory not found
+    root, args = _scripts_test(tmp_path, 'test', 'test_a.py', '-x')
+    assert args == [f'{root}/test/test_a.py', '-x']
+    root, args = _scripts_test(tmp_path, 'test', 'test_a.py::test_b')
+    assert args == [f'{root}/test/test_a.py::test_b']
+    # from the clone and with paths relative to it: as before
+    root, args = _scripts_test(tmp_path, '.', 'test/test_a.py', '-k', 'b')
+    assert args == [f'{root}/test/test_a.py', '-k', 'b']
+    root, args = _scripts_test(tmp_path, '.')
+    assert args == ['test']
+    # a -k expression that names an existing directory is no path
+    root, args = _scripts_test(tmp_path, '.', '-k', 'test')
+    assert args == ['test', '-k', 'test']
