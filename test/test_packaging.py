@@ -538,3 +538,32 @@ def test_scripts_test_paths_relative_to_the_caller(tmp_path):
     # a -k expression that names an existing directory is no path
     root, args = _scripts_test(tmp_path, '.', '-k', 'test')
     assert args == ['test', '-k', 'test']
+
+
+def test_ci_run_resolves_a_relative_data_dir_from_the_callers_directory(tmp_path):
+    # .ci/run changed into the clone first: BEO_DATA_DIR=data from the directory holding
+    # data/ was called 'no directory' and ../shared/data was used instead
+    import shutil
+    import subprocess
+    bash = shutil.which('bash')
+    if bash is None:
+        pytest.skip('no bash')
+    root = tmp_path / 'clone'
+    for d in (root / '.ci', root / 'scripts', tmp_path / 'data', tmp_path / 'shared' / 'data'):
+        d.mkdir(parents=True)
+    shutil.copy(ROOT / '.ci' / 'run', root / '.ci' / 'run')
+    for name in ('setup', 'test'):   # stand-ins that report what they were given
+        (root / 'scripts' / name).write_text(f'#!/bin/sh\necho "{name}: $BEO_DATA_DIR"\n')
+        (root / 'scripts' / name).chmod(0o755)
+
+    def run(data_dir, cwd):
+        env = {'PATH': os.environ.get('PATH', '/usr/bin:/bin'), 'BEO_DATA_DIR': data_dir}
+        r = subprocess.run([bash, str(root / '.ci' / 'run')], cwd=cwd, env=env,
+                           capture_output=True, text=True, timeout=60)
+        assert r.returncode == 0, r.stderr
+        return r.stdout
+
+    out = run('data', tmp_path)
+    assert f'setup: {tmp_path}/data\n' in out and f'test: {tmp_path}/data\n' in out, out
+    out = run('missing', tmp_path)   # no such directory: the one next to the clone
+    assert 'is no directory' in out and f'test: {tmp_path}/shared/data\n' in out, out
