@@ -18,8 +18,7 @@ IMPORT_KEYS = {
     'trimesh': 'python3-trimesh-pip',
     'rosbags': 'python3-rosbags-pip',
     'apsw': 'python3-rosbags-pip',    # rosbags' sqlite3 reader; bag/storage.py catches its errors
-    # rosbags' metadata.yaml parser; bag/storage.py reads the same file with it to name a fault
-    'ruamel': 'python3-rosbags-pip',
+    'ruamel': 'python3-ruamel.yaml',  # bag/storage.py reads metadata.yaml with it
     'matplotlib': 'python3-matplotlib',
     'tqdm': 'python3-tqdm',
     # optional (blas_threads); not a confirmed rosdep key: it comes with python3-sklearn
@@ -440,3 +439,131 @@ def test_setup_failure_is_reported_once_and_names_the_pip_command(tmp_path):
     assert r.returncode == 1 and 'not reached' not in r.stdout
     assert 'No matching distribution' in r.stdout + r.stderr
     assert 'ERROR: pip install -r requirements.txt failed' in r.stderr, r.stderr
+
+
+def _section(start):
+    """Lines of scripts/setup from the one starting with ``start`` up to the next '# ---'
+    separator (excluded)."""
+    lines = SETUP.read_text().splitlines()
+    i = next(n for n, ln in enumerate(lines) if ln.startswith(start))
+    j = next((n for n in range(i + 1, len(lines)) if lines[n].startswith('# ---')), len(lines))
+    return '\n'.join(lines[i:j]) + '\n'
+
+
+def test_setup_activate_deactivate_restores_ament_prefix_path(tmp_path):
+    # `source .venv/bin/activate` put the venv into AMENT_PREFIX_PATH and `deactivate` left
+    # it there (and did not give back a previous value)
+    import subprocess
+    venv = tmp_path / 'venv'
+    subprocess.run([sys.executable, '-m', 'venv', '--without-pip', str(venv)], check=True)
+    act = venv / 'bin' / 'activate'
+    # an activate patched by an older scripts/setup: its block is replaced, not doubled
+    with act.open('a') as f:
+        f.write('# >>> beo_ros >>> (added by scripts/setup)\n'
+                'export AMENT_PREFIX_PATH="$VIRTUAL_ENV${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}"\n'
+                '# <<< beo_ros <<<\n')
+    patch = f'VENV={venv}\n' + _section('step "runtime environment in .venv/bin/activate"')
+    r = _bash(patch)
+    assert r.returncode == 0, r.stderr
+    once = act.read_text()
+    r = _bash(patch)   # idempotent
+    assert r.returncode == 0, r.stderr
+    assert act.read_text() == once
+    assert once.count('# >>> beo_ros >>>') == 2   # the restore in deactivate, the export
+
+    show = ('printf "%s|%s\\n" "${AMENT_PREFIX_PATH-<unset>}" '
+            '"$(printenv AMENT_PREFIX_PATH || echo "<unexported>")"\n')
+    script = (f'source {act}\n' + show + 'deactivate\n' + show
+              + f'source {act}\nsource {act}\n' + show + 'deactivate\n' + show
+              + 'set | grep -c "^_BEO_OLD" || true\n')
+    venv_s = str(venv)
+    for before, env in (('<unset>', {}),
+                        ('/opt/ros/jazzy', {'AMENT_PREFIX_PATH': '/opt/ros/jazzy'}),
+                        ('', {'AMENT_PREFIX_PATH': ''}),
+                        (f'{venv_s}:/opt/ros/jazzy',
+                         {'AMENT_PREFIX_PATH': f'{venv_s}:/opt/ros/jazzy'})):
+        r = _bash(script, **env)
+        assert r.returncode == 0, r.stderr
+        out = r.stdout.splitlines()
+        active = venv_s if before in ('<unset>', '') else (
+            before if before.startswith(venv_s) else f'{venv_s}:{before}')
+        restored = '<unset>|<unexported>' if before == '<unset>' else f'{before}|{before}'
+        assert out[0] == f'{active}|{active}', (before, out)
+        assert out[1] == restored, (before, out)
+        assert out[2] == f'{active}|{active}', (before, out)   # activated twice
+        assert out[3] == restored, (before, out)
+        assert out[4] == '0', (before, out)   # no helper variables left behind
+
+
+# --- scripts/test: its arguments reach pytest (run in a scratch clone, fake python) --------
+
+def _scripts_test(tmp_path, cwd, *args):
+    """The pytest arguments scripts/test passes, run in ``cwd`` of a scratch clone (its
+    .venv/bin/python records its working directory and arguments)."""
+    import shutil
+    import subprocess
+    bash = shutil.which('bash')
+    if bash is None:
+        pytest.skip('no bash')
+    root = tmp_path / 'clone'
+    (root / 'scripts').mkdir(parents=True, exist_ok=True)
+    (root / 'test').mkdir(exist_ok=True)
+    (root / 'test' / 'test_a.py').write_text('')
+    (root / '.venv' / 'bin').mkdir(parents=True, exist_ok=True)
+    shutil.copy(ROOT / 'scripts' / 'test', root / 'scripts' / 'test')
+    py = root / '.venv' / 'bin' / 'python'
+    py.write_text('#!/bin/sh\npwd\nfor a in "$@"; do echo "$a"; done\n')
+    py.chmod(0o755)
+    r = subprocess.run([bash, str(root / 'scripts' / 'test'), *args], cwd=root / cwd,
+                       capture_output=True, text=True, timeout=60,
+                       env={'PATH': os.environ.get('PATH', '/usr/bin:/bin')})
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    assert lines[0] == str(root) and lines[1:4] == ['-m', 'pytest', '-q'], lines
+    return root, lines[4:]
+
+
+def test_scripts_test_paths_relative_to_the_caller(tmp_path):
+    # from inside test/, `../scripts/test test_a.py` ran pytest in the clone with
+    # 'test test_a.py': file or directory not found
+    root, args = _scripts_test(tmp_path, 'test', 'test_a.py', '-x')
+    assert args == [f'{root}/test/test_a.py', '-x']
+    root, args = _scripts_test(tmp_path, 'test', 'test_a.py::test_b')
+    assert args == [f'{root}/test/test_a.py::test_b']
+    # from the clone and with paths relative to it: as before
+    root, args = _scripts_test(tmp_path, '.', 'test/test_a.py', '-k', 'b')
+    assert args == [f'{root}/test/test_a.py', '-k', 'b']
+    root, args = _scripts_test(tmp_path, '.')
+    assert args == ['test']
+    # a -k expression that names an existing directory is no path
+    root, args = _scripts_test(tmp_path, '.', '-k', 'test')
+    assert args == ['test', '-k', 'test']
+
+
+def test_ci_run_resolves_a_relative_data_dir_from_the_callers_directory(tmp_path):
+    # .ci/run changed into the clone first: BEO_DATA_DIR=data from the directory holding
+    # data/ was called 'no directory' and ../shared/data was used instead
+    import shutil
+    import subprocess
+    bash = shutil.which('bash')
+    if bash is None:
+        pytest.skip('no bash')
+    root = tmp_path / 'clone'
+    for d in (root / '.ci', root / 'scripts', tmp_path / 'data', tmp_path / 'shared' / 'data'):
+        d.mkdir(parents=True)
+    shutil.copy(ROOT / '.ci' / 'run', root / '.ci' / 'run')
+    for name in ('setup', 'test'):   # stand-ins that report what they were given
+        (root / 'scripts' / name).write_text(f'#!/bin/sh\necho "{name}: $BEO_DATA_DIR"\n')
+        (root / 'scripts' / name).chmod(0o755)
+
+    def run(data_dir, cwd):
+        env = {'PATH': os.environ.get('PATH', '/usr/bin:/bin'), 'BEO_DATA_DIR': data_dir}
+        r = subprocess.run([bash, str(root / '.ci' / 'run')], cwd=cwd, env=env,
+                           capture_output=True, text=True, timeout=60)
+        assert r.returncode == 0, r.stderr
+        return r.stdout
+
+    out = run('data', tmp_path)
+    assert f'setup: {tmp_path}/data\n' in out and f'test: {tmp_path}/data\n' in out, out
+    out = run('missing', tmp_path)   # no such directory: the one next to the clone
+    assert 'is no directory' in out and f'test: {tmp_path}/shared/data\n' in out, out
