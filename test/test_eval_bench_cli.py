@@ -456,11 +456,45 @@ def test_bench_json_sections_in_order_and_skipped_phases_named(tmp_path, capsys)
     assert call(bench.main, QUICK + ['--data', str(write_npz(tmp_path / 'd.npz')),
                                      '--out', str(out)]) == 0
     res = json.loads((out / 'bench.json').read_text())
-    assert list(res) == ['setup', 'beo', 'scaling', 'node']
+    assert list(res) == ['setup', 'beo', 'paper', 'icp', 'scaling', 'node']
     assert list(res['setup'])[-3:] == ['load_average_1min', 'beo_model', 'wall_s']
+    assert res['paper'] == {'skipped': '--no-paper'} and res['icp'] == {'skipped': '--no-icp'}
     assert res['scaling'] == {'skipped': '--no-scaling'} and res['node'] == {'skipped': '--no-node'}
-    assert capsys.readouterr().out.splitlines() == ['node: skipped (--no-node)',
-                                                    f'wrote {out / "bench.json"}']
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[:2] == bench.table(res).splitlines()[:2] and lines[2].startswith('| beo | ')
+    assert lines[3:] == ['| paper | not run (--no-paper) | | | | | | |',
+                         '| icp | not run (--no-icp) | | | | | | |',
+                         'speedup vs icp (p50): n/a (not run (--no-icp)), '
+                         'vs paper: n/a (not run (--no-paper))',
+                         'node: skipped (--no-node)', f'wrote {out / "bench.json"}']
+
+
+@pytest.mark.parametrize('off, ran', [('--no-icp', 'paper'), ('--no-paper', 'icp')])
+def test_bench_one_peer_off_keeps_the_others_results(tmp_path, capsys, off, ran):
+    # bench.md, the summary and the PNGs held the peers only when all three ran: --no-icp
+    # measured beo and paper and reported neither
+    pytest.importorskip('open3d')
+    out = tmp_path / 'b'
+    argv = [a for a in QUICK if a not in (f'--no-{ran}', '--no-plots')]
+    assert call(bench.main, argv + ['--data', str(write_npz(tmp_path / 'd.npz')),
+                                    '--out', str(out)]) == 0
+    res = json.loads((out / 'bench.json').read_text())
+    gone = off[len('--no-'):]
+    assert res[gone] == {'skipped': off} and res[ran]['queries'] == res['beo']['queries']
+    assert f'speedup_vs_{gone}' not in res and res[f'speedup_vs_{ran}'] > 0
+    speedup = {p: (f"{res[f'speedup_vs_{p}']:.1f}x" if p == ran else f'n/a (not run ({off}))')
+               for p in ('icp', 'paper')}
+    row = f"| {ran} | {res[ran]['accuracy']:.3f} | "
+    stdout = capsys.readouterr().out
+    md = (out / 'bench.md').read_text()
+    for text in (stdout, md):
+        assert f'| {gone} | not run ({off}) |' in text and row in text and '| beo | ' in text
+    assert (f"speedup vs icp (p50): {speedup['icp']}, vs paper: {speedup['paper']}"
+            in stdout)
+    assert f"- speedup vs icp (p50) {speedup['icp']}\n- vs paper {speedup['paper']}\n" in md
+    assert f'{ran} index ' in md and f'{gone} index' not in md
+    for png in ('latency.png', 'accuracy.png', 'scaling.png'):
+        assert (out / png).stat().st_size > 1000
 
 
 def test_bench_ctrl_c_one_line_130_and_no_empty_out(tmp_path, capsys, monkeypatch):
