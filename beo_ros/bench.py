@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from .bench_node import log, node_bench
-from .cli import ArgumentParser, count, interruptible, number
+from .cli import ArgumentParser, count, given_options, interruptible, number
 from .core.grid import yaw_error
 from .cli import json_safe, out_dir_problem, output_dir
 
@@ -563,11 +563,11 @@ def parse_args(argv):
     for add in (_add_data_options, _add_peer_options, _add_scaling_options, _add_node_options):
         add(ap)
     args = ap.parse_args(argv)
+    given = given_options(ap, argv)   # also those given at their default value
     groups = [((switch,), names) for switch, names in UNUSED_WITH.items()] + \
         list(UNUSED_WITH_ALL.items())
     unused = [(switches, n) for switches, names in groups
-              if all(getattr(args, s) for s in switches) for n in names
-              if getattr(args, n) != ap.get_default(n)]
+              if all(getattr(args, s) for s in switches) for n in names if n in given]
     if unused:   # an option the run does not use is refused rather than silently ignored
         switches = [s for s in UNUSED_WITH if any(s in sw for sw, _ in unused)]
         ap.error('not used in this run (' + ', '.join(

@@ -83,6 +83,9 @@ def test_eval_zero_objects_refused(model, tmp_path, capsys):
     (['--jobs', '3'], '--jobs'),
     (['--folds', '3'], '--folds'),
     (['--k', '3', '--jobs', '2'], '--k, --jobs'),
+    # given at the default value: the check compared values with defaults and let them pass
+    (['--verifier-views', '6'], '--verifier-views'),
+    (['--train-views', '1', '--folds', '0'], '--folds, --train-views'),
 ])
 def test_eval_options_of_the_other_mode_refused(model, tmp_path, capsys, extra, named):
     extra = [str(model) if a == 'MODEL' else a for a in extra]
@@ -94,11 +97,12 @@ def test_eval_options_of_the_other_mode_refused(model, tmp_path, capsys, extra, 
     assert not out.exists()
 
 
-def test_eval_cv_jobs_without_verifier_views_refused(tmp_path, capsys):
+@pytest.mark.parametrize('jobs', ['2', '1'])   # 1: the default, given
+def test_eval_cv_jobs_without_verifier_views_refused(tmp_path, capsys, jobs):
     # before: --cv 2 --verifier-views 0 --jobs 2 ran, --jobs ignored (it makes verifier views)
     out = tmp_path / 'e'
     assert call(evaluate.main, ['--data', str(write_npz(tmp_path / 'd.npz')), '--out', str(out),
-                                '--cv', '2', '--verifier-views', '0', '--jobs', '2']) == 2
+                                '--cv', '2', '--verifier-views', '0', '--jobs', jobs]) == 2
     assert ("--jobs makes the orientation verifier's views: not used with --verifier-views 0"
             in capsys.readouterr().err)
     assert not out.exists()
@@ -397,6 +401,12 @@ def test_bench_numbers_checked_by_the_parser(tmp_path, capsys, extra):
     (['--no-paper', '--paper-yaws', '12'], '--paper-yaws'),
     (['--no-icp', '--icp-db-per-class', '3'], '--icp-db-per-class'),
     (['--model', 'm', '--beo-verifier-views', '2'], '--beo-verifier-views'),
+    # given at the default value: the check compared values with defaults and let them pass
+    (['--no-paper', '--paper-yaws', '36'], '--paper-yaws'),
+    (['--no-icp', '--icp-db-per-class', '10'], '--icp-db-per-class'),
+    (['--no-node', '--node-worker-processes', '2'], '--node-worker-processes'),
+    (['--no-scaling', '--scaling-classes', '2', '5', '10'], '--scaling-classes'),
+    (['--model', 'm', '--beo-verifier-views', '6'], '--beo-verifier-views'),
 ])
 def test_bench_options_of_a_phase_not_run_refused(tmp_path, capsys, extra, named):
     # they were silently ignored (README: options the mode does not use are refused)
@@ -413,6 +423,7 @@ def test_bench_options_of_a_phase_not_run_refused(tmp_path, capsys, extra, named
     (['--no-paper', '--no-icp', '--slow-repeats', '3'], '(--no-paper, --no-icp): --slow-repeats'),
     (['--model', 'm', '--no-paper', '--no-scaling', '--k', '5'],
      '(--model, --no-paper, --no-scaling): --k'),
+    (['--no-paper', '--no-icp', '--slow-repeats', '1'], '(--no-paper, --no-icp): --slow-repeats'),
 ])
 def test_bench_options_of_several_phases_none_run_refused(tmp_path, capsys, extra, named):
     # before: silently ignored (--no-icp --no-scaling --icp-init-yaws 2 ran the whole bench)
