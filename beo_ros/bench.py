@@ -596,8 +596,9 @@ def _add_data_options(ap):
                     "missing); 'none' = generated boxes/cylinders")
     ap.add_argument('--classes', nargs='+', default=None, help='class subset')
     ap.add_argument('--quick', action='store_true',
-                    help='tiny run (< ~60 s): overrides the sizes (classes, objects per class, '
-                         'repeats, k, scaling points, node rates and objects) with small ones')
+                    help='tiny run (< ~60 s): overrides the sizes (classes unless --classes or '
+                         '--model, objects per class, repeats, k, scaling points, node rates and '
+                         'objects) with small ones')
     ap.add_argument('--seed', type=count(0), default=0)
     ap.add_argument('--test-frac', type=number(0, 1, lo_open=True, hi_open=True), default=0.2,
                     help='held-out fraction per class, in (0, 1) (default 0.2)')
@@ -683,10 +684,11 @@ def _add_node_options(ap):
 
 def _quick_sizes(args):
     """--quick: small sizes in ``args`` (in place); two classes of the data file unless
-    --classes names them (chair and monitor when it has both)."""
+    --classes names them or --model is given (chair and monitor when it has both)."""
     from beo_ros.core.datasets import npz_class_names
     p = data_path(args.data)
-    if p is not None and not args.classes:
+    # --model: the data's classes must be the bank's (two picked here never were)
+    if p is not None and not args.classes and not args.model:
         try:
             with np.load(p) as z:
                 have = npz_class_names(z['classes'], p)

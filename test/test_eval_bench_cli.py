@@ -508,6 +508,20 @@ def test_bench_one_peer_off_keeps_the_others_results(tmp_path, capsys, off, ran)
         assert (out / png).stat().st_size > 1000
 
 
+def test_bench_quick_with_a_model_keeps_the_models_classes(tmp_path, capsys):
+    # --quick picked two of the file's classes, which a --model of more classes never has:
+    # 'beo-bench --quick --model models/modelnet10_32' ended in '--model classes ... differ'
+    X, y, names = primitive_shapes(N, 6, np.random.default_rng(0))
+    names = [*names, 'tube']
+    y = np.where((y == 1) & (np.cumsum(y == 1) % 2 == 0), 2, y)   # half the cylinders: tubes
+    data = save_npz(tmp_path / 'd.npz', X, y, names)
+    bench.fit_class_bank(X, y, names, N, 2).save(tmp_path / 'm')
+    out = tmp_path / 'b'
+    assert call(bench.main, QUICK + ['--data', str(data), '--model', str(tmp_path / 'm'),
+                                     '--out', str(out)]) == 0, capsys.readouterr().err
+    assert json.loads((out / 'bench.json').read_text())['setup']['classes'] == names
+
+
 def test_bench_ctrl_c_one_line_130_and_no_empty_out(tmp_path, capsys, monkeypatch):
     def interrupted(*a, **k):
         raise KeyboardInterrupt
