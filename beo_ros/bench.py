@@ -553,6 +553,8 @@ UNUSED_WITH_ALL = {
     ('no_icp', 'no_scaling'): ('icp_init_yaws',),
     ('no_paper', 'no_icp'): ('slow_repeats',),
     ('model', 'no_paper', 'no_scaling'): ('k',),
+    # the training split: beo's fit, the paper and icp peers and the scaling curves
+    ('model', 'no_paper', 'no_icp', 'no_scaling'): ('train_per_class',),
 }
 
 

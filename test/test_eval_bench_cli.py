@@ -424,6 +424,9 @@ def test_bench_options_of_a_phase_not_run_refused(tmp_path, capsys, extra, named
     (['--model', 'm', '--no-paper', '--no-scaling', '--k', '5'],
      '(--model, --no-paper, --no-scaling): --k'),
     (['--no-paper', '--no-icp', '--slow-repeats', '1'], '(--no-paper, --no-icp): --slow-repeats'),
+    # nothing is trained on the split (before: accepted, and only setup.train_objects changed)
+    (['--model', 'm', '--no-paper', '--no-icp', '--no-scaling', '--train-per-class', '5'],
+     '(--model, --no-paper, --no-icp, --no-scaling): --train-per-class'),
 ])
 def test_bench_options_of_several_phases_none_run_refused(tmp_path, capsys, extra, named):
     # before: silently ignored (--no-icp --no-scaling --icp-init-yaws 2 ran the whole bench)
@@ -436,7 +439,9 @@ def test_bench_options_of_several_phases_none_run_refused(tmp_path, capsys, extr
 def test_bench_options_of_several_phases_used_by_one_still_accepted(tmp_path):
     for extra in (['--no-icp', '--icp-init-yaws', '2'], ['--no-scaling', '--icp-init-yaws', '2'],
                   ['--no-paper', '--slow-repeats', '3'], ['--model', 'm', '--k', '5'],
-                  ['--model', 'm', '--no-paper', '--k', '5']):
+                  ['--model', 'm', '--no-paper', '--k', '5'],
+                  ['--model', 'm', '--no-paper', '--no-icp', '--train-per-class', '5'],
+                  ['--no-paper', '--no-icp', '--no-scaling', '--train-per-class', '5']):
         bench.parse_args(['--out', str(tmp_path / 'b'), *extra])
 
 
