@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ['ArgumentParser', 'BROKEN_PIPE', 'INTERRUPTED', 'TERMINATED', 'Terminated', 'count',
-           'existing_parent', 'given_options', 'interruptible', 'json_safe', 'number', 'out_dir_problem',
-           'output_dir', 'print_help', 'writable_dir']
+           'existing_parent', 'given_options', 'interruptible', 'json_safe', 'number',
+           'out_dir_problem', 'output_dir', 'print_help', 'writable_dir']
 
 INTERRUPTED = 130   # the shell's code for a process ended by SIGINT
 TERMINATED = 143    # ... and by SIGTERM
