@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from .bench_node import log, node_bench
-from .cli import ArgumentParser, count, interruptible, number
+from .cli import ArgumentParser, count, given_options, interruptible, number
 from .core.grid import yaw_error
 from .cli import json_safe, out_dir_problem, output_dir
 
@@ -45,6 +45,8 @@ MAX_NODE_RATE_HZ = 1000.0
 # highest max(--node-rates) x --node-duration: the clouds written into the bench bag (1000 Hz
 # for 3600 s would still be 3.6 million)
 MAX_NODE_MESSAGES = 20000
+# the peers of bench.json; one switched off (--no-paper, --no-icp) is {'skipped': '--no-...'}
+PEERS = ('beo', 'paper', 'icp')
 
 
 # ---------------------------------------------------------------------- data
@@ -351,7 +353,7 @@ def plots(res, out):
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
-    peers = [p for p in ('beo', 'paper', 'icp') if p in res]
+    peers = [p for p in PEERS if _measured(res, p)]
     fig, ax = plt.subplots(figsize=(5, 3.5))
     x = np.arange(len(peers))
     ax.bar(x - 0.2, [res[p]['p50_ms'] for p in peers], 0.4, label='p50')
@@ -401,9 +403,13 @@ def plots(res, out):
 
 
 def table(res):
+    """The peers' table (markdown): a row per peer, 'not run' for one switched off."""
     rows = ['| peer | accuracy | yaw median (deg) | yaw <=10 | yaw <=10 (flip) | p50 ms | p95 ms '
             '| peak MB |', '|---|---|---|---|---|---|---|---|']
-    for p in ('beo', 'paper', 'icp'):
+    for p in PEERS:
+        if not _measured(res, p):
+            rows.append(f'| {p} | {_not_run(res, p)} |' + ' |' * 6)
+            continue
         r = res[p]
         rows.append(f"| {p} | {r['accuracy']:.3f} | {r['yaw_median_deg']:.1f} | "
                     f"{r['yaw_within_10deg']:.3f} | {r['yaw_within_10deg_flip']:.3f} | "
@@ -411,10 +417,32 @@ def table(res):
     return '\n'.join(rows)
 
 
+def _measured(res, peer):
+    """True when bench.json dict ``res`` holds ``peer``'s results (not its 'skipped')."""
+    return isinstance(res.get(peer), dict) and 'skipped' not in res[peer]
+
+
+def _not_run(res, peer):
+    """'not run (--no-PEER)' for a peer switched off."""
+    why = (res.get(peer) or {}).get('skipped')
+    return f'not run ({why})' if why else 'not run'
+
+
+def speedups(res, sep=''):
+    """['vs icp (p50) 3.1x', 'vs paper 1.2x']: beo's speedups over the peers (``sep`` after
+    the peer), 'n/a (not run ...)' for one switched off."""
+    def one(p):
+        if not _measured(res, p):
+            return f'n/a ({_not_run(res, p)})'
+        v = res.get(f'speedup_vs_{p}')
+        return 'n/a' if v is None else f'{v:.1f}x'
+    return [f"vs {p}{' (p50)' if p == 'icp' else ''}{sep} {one(p)}" for p in ('icp', 'paper')]
+
+
 def markdown(res):
     """Markdown tables of a bench.json dict (peers, scaling, node)."""
     lines = _md_setup(res.get('setup', {}))
-    if all(p in res for p in ('beo', 'paper', 'icp')):
+    if _measured(res, 'beo'):
         lines += _md_peers(res)
     sc = res.get('scaling') or {}
     if 'train_objects' in sc:
@@ -434,21 +462,24 @@ def _md_setup(st):
 
 
 def _md_peers(res):
-    """The peers' table and a list of speedups, index sizes and fit times."""
-    extra = [f"speedup vs icp (p50) {res['speedup_vs_icp']:.1f}x",
-             f"vs paper {res.get('speedup_vs_paper', float('nan')):.1f}x",
-             f"icp database {res['icp'].get('db_size')} objects "
-             f"({res['icp'].get('db_per_class')} per class, "
-             f"{res['icp'].get('init_yaws')} initial yaws)"]
+    """The peers' table and a list of speedups, index sizes and fit times (of the peers that
+    ran)."""
+    ran = [p for p in PEERS if _measured(res, p)]
+    icp, paper = speedups(res)
+    extra = [f'speedup {icp}', paper]
+    if 'icp' in ran:
+        extra.append(f"icp database {res['icp'].get('db_size')} objects "
+                     f"({res['icp'].get('db_per_class')} per class, "
+                     f"{res['icp'].get('init_yaws')} initial yaws)")
     extra += [f"{p} index {res[p]['index_mb']:.1f} MB, fit {res[p]['fit_s']:.0f} s"
-              for p in ('beo', 'paper', 'icp')]
+              for p in ran]
     if res['beo'].get('empty_views'):   # the same queries for every peer
         extra.append(f"{res['beo']['empty_views']} of the {res['beo']['queries']} views have no "
                      'occupied voxel (the rotation lost the object): a miss for every peer')
     # n/a: a peer that classified no query right (null in bench.json)
     extra += [f"{p} yaw median on correctly classified "
               f"{_fmt(res[p]['yaw_median_deg_correct_class'])} deg"
-              for p in ('beo', 'paper', 'icp')]
+              for p in ran]
     return [table(res), ''] + ['- ' + e for e in extra] + ['']
 
 
@@ -522,6 +553,8 @@ UNUSED_WITH_ALL = {
     ('no_icp', 'no_scaling'): ('icp_init_yaws',),
     ('no_paper', 'no_icp'): ('slow_repeats',),
     ('model', 'no_paper', 'no_scaling'): ('k',),
+    # the training split: beo's fit, the paper and icp peers and the scaling curves
+    ('model', 'no_paper', 'no_icp', 'no_scaling'): ('train_per_class',),
 }
 
 
@@ -532,11 +565,11 @@ def parse_args(argv):
     for add in (_add_data_options, _add_peer_options, _add_scaling_options, _add_node_options):
         add(ap)
     args = ap.parse_args(argv)
+    given = given_options(ap, argv)   # also those given at their default value
     groups = [((switch,), names) for switch, names in UNUSED_WITH.items()] + \
         list(UNUSED_WITH_ALL.items())
     unused = [(switches, n) for switches, names in groups
-              if all(getattr(args, s) for s in switches) for n in names
-              if getattr(args, n) != ap.get_default(n)]
+              if all(getattr(args, s) for s in switches) for n in names if n in given]
     if unused:   # an option the run does not use is refused rather than silently ignored
         switches = [s for s in UNUSED_WITH if any(s in sw for sw, _ in unused)]
         ap.error('not used in this run (' + ', '.join(
@@ -565,8 +598,9 @@ def _add_data_options(ap):
                     "missing); 'none' = generated boxes/cylinders")
     ap.add_argument('--classes', nargs='+', default=None, help='class subset')
     ap.add_argument('--quick', action='store_true',
-                    help='tiny run (< ~60 s): overrides the sizes (classes, objects per class, '
-                         'repeats, k, scaling points, node rates and objects) with small ones')
+                    help='tiny run (< ~60 s): overrides the sizes (classes unless --classes or '
+                         '--model, objects per class, repeats, k, scaling points, node rates and '
+                         'objects) with small ones')
     ap.add_argument('--seed', type=count(0), default=0)
     ap.add_argument('--test-frac', type=number(0, 1, lo_open=True, hi_open=True), default=0.2,
                     help='held-out fraction per class, in (0, 1) (default 0.2)')
@@ -652,10 +686,11 @@ def _add_node_options(ap):
 
 def _quick_sizes(args):
     """--quick: small sizes in ``args`` (in place); two classes of the data file unless
-    --classes names them (chair and monitor when it has both)."""
+    --classes names them or --model is given (chair and monitor when it has both)."""
     from beo_ros.core.datasets import npz_class_names
     p = data_path(args.data)
-    if p is not None and not args.classes:
+    # --model: the data's classes must be the bank's (two picked here never were)
+    if p is not None and not args.classes and not args.model:
         try:
             with np.load(p) as z:
                 have = npz_class_names(z['classes'], p)
@@ -727,14 +762,14 @@ def _bench(args, out, X, y, names, n, source, tr, te, bank, t_all):
         f'{len(queries)} queries')
     res = {'setup': _setup(args, source, names, n, tr, queries)}
     bank = _bench_beo(args, res, X, y, tr, names, n, queries, bank)
-    if not args.no_paper:
-        res['paper'] = _bench_paper(args, X, y, tr, names, n, queries)
-    if not args.no_icp:
-        res['icp'] = _bench_icp(args, X, y, tr, names, n, queries)
-    if 'icp' in res:
-        res['speedup_vs_icp'] = res['icp']['p50_ms'] / res['beo']['p50_ms']
-    if 'paper' in res:
-        res['speedup_vs_paper'] = res['paper']['p50_ms'] / res['beo']['p50_ms']
+    # a peer switched off is named so (the summary and bench.md say 'not run', not nothing)
+    res['paper'] = ({'skipped': '--no-paper'} if args.no_paper else
+                    _bench_paper(args, X, y, tr, names, n, queries))
+    res['icp'] = ({'skipped': '--no-icp'} if args.no_icp else
+                  _bench_icp(args, X, y, tr, names, n, queries))
+    for p in ('icp', 'paper'):
+        if _measured(res, p):
+            res[f'speedup_vs_{p}'] = res[p]['p50_ms'] / res['beo']['p50_ms']
 
     res['scaling'] = ({'skipped': '--no-scaling'} if args.no_scaling else
                       scaling(args, X, y, names, n, tr, queries, bank,
@@ -745,7 +780,7 @@ def _bench(args, out, X, y, names, n, source, tr, te, bank, t_all):
     res = json_safe(res)
     (out / 'bench.json').write_text(json.dumps(res, indent=2) + '\n')
     (out / 'bench.md').write_text(markdown(res))
-    if not args.no_plots and all(p in res for p in ('beo', 'paper', 'icp')):
+    if not args.no_plots:
         plots(res, out)
     _print_summary(res)
     print(f'wrote {out / "bench.json"}')
@@ -830,11 +865,11 @@ def _bench_node(args, bank, X, n, te):
 
 
 def _print_summary(res):
-    """The peers' table and speedups (when all three ran) and the node line, to stdout."""
-    if all(p in res for p in ('beo', 'paper', 'icp')):
+    """The peers' table and speedups ('not run' for a peer switched off) and the node line,
+    to stdout."""
+    if _measured(res, 'beo'):
         print(table(res))
-        print(f"speedup vs icp (p50): {res['speedup_vs_icp']:.1f}x, "
-              f"vs paper: {res['speedup_vs_paper']:.1f}x")
+        print('speedup ' + ', '.join(speedups(res, ':')))
     node = res['node']
     if 'objects_per_s' in node:
         sus = node['sustained_rate_hz']

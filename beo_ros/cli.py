@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ['ArgumentParser', 'BROKEN_PIPE', 'INTERRUPTED', 'TERMINATED', 'Terminated', 'count',
-           'existing_parent', 'interruptible', 'json_safe', 'number', 'out_dir_problem',
-           'output_dir', 'print_help', 'writable_dir']
+           'existing_parent', 'given_options', 'interruptible', 'json_safe', 'number',
+           'out_dir_problem', 'output_dir', 'print_help', 'writable_dir']
 
 INTERRUPTED = 130   # the shell's code for a process ended by SIGINT
 TERMINATED = 143    # ... and by SIGTERM
@@ -46,6 +46,21 @@ class ArgumentParser(argparse.ArgumentParser):
         if file is not None:   # None: no stdout at all (pythonw), as argparse
             file.write(self.format_help())
             file.flush()
+
+
+_NOT_GIVEN = object()
+
+
+def given_options(ap, argv=None):
+    """The ``dest`` names of the options written in ``argv`` (None: ``sys.argv[1:]``) for
+    parser ``ap``, given at their default value or not (a check that compares a value with
+    its default cannot tell ``--paper-yaws 36`` from no ``--paper-yaws``). For store-type
+    options (not append / count)."""
+    # argparse fills in a default only for an attribute the namespace lacks
+    ns = argparse.Namespace(**{a.dest: _NOT_GIVEN for a in ap._actions
+                               if a.dest is not argparse.SUPPRESS})
+    args, _ = ap.parse_known_args(argv, namespace=ns)
+    return {name for name, value in vars(args).items() if value is not _NOT_GIVEN}
 
 
 def print_help(text):

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cli import (ArgumentParser, complete_files, count, interruptible, json_safe,
+from .cli import (ArgumentParser, complete_files, count, given_options, interruptible, json_safe,
                   out_dir_problem, output_dir)
 from .core.bank import load_models, parse_class_prior
 from .core.calibration import calibration_sums, metrics_from_sums
@@ -273,18 +273,20 @@ CV_ONLY = ('folds', 'k', 'train_views', 'verifier_views', 'jobs')
 HELD_OUT_ONLY = ('model',)
 
 
-def _given(ap, args, names):
-    """The options of ``names`` set to other than their defaults, as --flags."""
-    return [f"--{n.replace('_', '-')}" for n in names if getattr(args, n) != ap.get_default(n)]
+def _given(given, names):
+    """The options of ``names`` on the command line (``given``: :func:`given_options`), as
+    --flags (one given at its default value too)."""
+    return [f"--{n.replace('_', '-')}" for n in names if n in given]
 
 
 @interruptible('beo-eval')
 def main(argv=None):
     ap = _parser()
     args, rest = ap.parse_known_args(argv)
+    given = given_options(ap, argv)
     if args.scans:
-        return _forward_to_scan_eval(ap, args, rest)
-    class_prior, out = _checked_args(ap, args, rest)
+        return _forward_to_scan_eval(ap, args, rest, given)
+    class_prior, out = _checked_args(ap, args, rest, given)
     rng = np.random.default_rng(args.seed)
     try:
         X, y, names, n, bank = _load_inputs(args, class_prior)
@@ -338,11 +340,12 @@ def _parser():
     return ap
 
 
-def _forward_to_scan_eval(ap, args, rest):
-    """--scans: refuse the voxel modes' options, hand the rest to scan_eval; its exit code."""
+def _forward_to_scan_eval(ap, args, rest, given):
+    """--scans: refuse the voxel modes' options (``given``: those on the command line), hand
+    the rest to scan_eval; its exit code."""
     if args.class_prior:
         ap.error('--class-prior is not used with --scans')
-    unused = _given(ap, args, ('data', 'model', 'cv', 'folds', 'train_views', 'max_objects',
+    unused = _given(given, ('data', 'model', 'cv', 'folds', 'train_views', 'max_objects',
                                'views', 'seed', 'verifier_views', 'jobs'))
     if unused:
         ap.error('not used with --scans: ' + ', '.join(unused))
@@ -351,8 +354,9 @@ def _forward_to_scan_eval(ap, args, rest):
     return scan_eval.main(['--scans', *args.scans, '--out', args.out, *k, *rest])
 
 
-def _checked_args(ap, args, rest):
-    """Refuse (``ap.error``) what the voxel modes cannot run -> (class prior, --out Path)."""
+def _checked_args(ap, args, rest, given):
+    """Refuse (``ap.error``) what the voxel modes cannot run (``given``: the options on the
+    command line) -> (class prior, --out Path)."""
     if rest:
         ap.error(f'unrecognized arguments: {" ".join(rest)}')
     if not args.data:
@@ -362,11 +366,11 @@ def _checked_args(ap, args, rest):
     if args.cv and not 0 <= args.folds <= args.cv:
         ap.error(f'--folds must be in [0, --cv] (0: all {args.cv} folds), got {args.folds}')
     # an option the mode does not use is refused rather than silently ignored
-    unused = _given(ap, args, HELD_OUT_ONLY if args.cv else CV_ONLY)
+    unused = _given(given, HELD_OUT_ONLY if args.cv else CV_ONLY)
     if unused:
         ap.error(('not used with --cv (each fold trains its own bank): ' if args.cv else
                   'used only with --cv, not in held-out mode: ') + ', '.join(unused))
-    if args.cv and args.verifier_views == 0 and args.jobs != ap.get_default('jobs'):
+    if args.cv and args.verifier_views == 0 and 'jobs' in given:
         ap.error("--jobs makes the orientation verifier's views: not used with "
                  '--verifier-views 0')
     if args.model and Path(args.model).exists() and not Path(args.model).is_dir():

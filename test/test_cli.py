@@ -1,4 +1,5 @@
 """beo-train and beo-eval command lines on a small generated voxel npz."""
+import argparse
 import json
 import os
 
@@ -555,7 +556,9 @@ def test_eval_scans_forwards_k_and_refuses_what_it_does_not_use(monkeypatch, cap
     assert seen[-1] == ['--scans', 'a.pcd', '--out', 'o', '--k', '4', '--max-iter', '30']
     assert evaluate.main(['--scans', 'a.pcd', '--out', 'o']) == 0
     assert '--k' not in seen[-1]          # scan_eval's own default applies
-    for extra in (['--seed', '3'], ['--views', '2'], ['--cv', '5']):
+    # also at the default value (--seed 0 was accepted and not used)
+    for extra in (['--seed', '3'], ['--views', '2'], ['--cv', '5'], ['--seed', '0'],
+                  ['--cv', '0']):
         with pytest.raises(SystemExit):
             evaluate.main(['--scans', 'a.pcd', *extra])
         assert 'not used with --scans: ' + extra[0] in capsys.readouterr().err
@@ -750,3 +753,17 @@ def test_stdout_reader_gone_ends_quietly_with_141_and_keeps_the_results(tmp_path
         assert sorted(f.name for f in (tmp_path / out).iterdir()), module
     assert sorted(f.name for f in (tmp_path / 'e').iterdir()) == ['eval.json', 'eval.png',
                                                                   'records.jsonl']
+
+
+def test_given_options_tells_a_default_value_given_from_none():
+    from beo_ros.cli import given_options, number
+    ap = argparse.ArgumentParser()
+    ap.add_argument('--yaws', type=int, default=36)
+    ap.add_argument('--rates', type=number(0), nargs='+', default=[1.0])
+    ap.add_argument('--off', action='store_true')
+    ap.add_argument('--name', default='x')
+    assert given_options(ap, []) == set()
+    assert given_options(ap, ['--yaws', '36', '--off', '--name=x', 'rest']) == {
+        'yaws', 'off', 'name'}
+    assert ap.parse_args([]).yaws == 36   # the parser's defaults are left as they were
+
