@@ -279,6 +279,20 @@ def _given(given, names):
     return [f"--{n.replace('_', '-')}" for n in names if n in given]
 
 
+def _refuse_unused(ap, args, given, names, why):
+    """``ap.error(why + flags)`` for the options of ``names`` on the command line that the run
+    does not use; when every one of them is at its default value (it would have run the
+    same without them) a warning on stderr instead: a script that spells the defaults out
+    keeps working, and the user still hears that they do nothing."""
+    unused = _given(given, names)
+    if not unused:
+        return
+    if any(getattr(args, n) != ap.get_default(n) for n in names if n in given):
+        ap.error(why + ', '.join(unused))
+    print(f'{ap.prog}: warning: {why}{", ".join(unused)} (given at the default value: '
+          'ignored)', file=sys.stderr)
+
+
 @interruptible('beo-eval')
 def main(argv=None):
     ap = _parser()
@@ -345,10 +359,9 @@ def _forward_to_scan_eval(ap, args, rest, given):
     the rest to scan_eval; its exit code."""
     if args.class_prior:
         ap.error('--class-prior is not used with --scans')
-    unused = _given(given, ('data', 'model', 'cv', 'folds', 'train_views', 'max_objects',
-                               'views', 'seed', 'verifier_views', 'jobs'))
-    if unused:
-        ap.error('not used with --scans: ' + ', '.join(unused))
+    _refuse_unused(ap, args, given, ('data', 'model', 'cv', 'folds', 'train_views',
+                                     'max_objects', 'views', 'seed', 'verifier_views', 'jobs'),
+                   'not used with --scans: ')
     from . import scan_eval
     k = [] if args.k is None else ['--k', str(args.k)]
     return scan_eval.main(['--scans', *args.scans, '--out', args.out, *k, *rest])
@@ -366,13 +379,12 @@ def _checked_args(ap, args, rest, given):
     if args.cv and not 0 <= args.folds <= args.cv:
         ap.error(f'--folds must be in [0, --cv] (0: all {args.cv} folds), got {args.folds}')
     # an option the mode does not use is refused rather than silently ignored
-    unused = _given(given, HELD_OUT_ONLY if args.cv else CV_ONLY)
-    if unused:
-        ap.error(('not used with --cv (each fold trains its own bank): ' if args.cv else
-                  'used only with --cv, not in held-out mode: ') + ', '.join(unused))
-    if args.cv and args.verifier_views == 0 and 'jobs' in given:
-        ap.error("--jobs makes the orientation verifier's views: not used with "
-                 '--verifier-views 0')
+    _refuse_unused(ap, args, given, HELD_OUT_ONLY if args.cv else CV_ONLY,
+                   'not used with --cv (each fold trains its own bank): ' if args.cv else
+                   'used only with --cv, not in held-out mode: ')
+    if args.cv and args.verifier_views == 0:
+        _refuse_unused(ap, args, given, ('jobs',), "--jobs makes the orientation verifier's "
+                       'views: not used with --verifier-views 0: ')
     if args.model and Path(args.model).exists() and not Path(args.model).is_dir():
         ap.error(f'--model {args.model}: is not a directory')
     try:

@@ -83,9 +83,8 @@ def test_eval_zero_objects_refused(model, tmp_path, capsys):
     (['--jobs', '3'], '--jobs'),
     (['--folds', '3'], '--folds'),
     (['--k', '3', '--jobs', '2'], '--k, --jobs'),
-    # given at the default value: the check compared values with defaults and let them pass
-    (['--verifier-views', '6'], '--verifier-views'),
-    (['--train-views', '1', '--folds', '0'], '--folds, --train-views'),
+    # one at its default value among them: still refused, naming both
+    (['--train-views', '1', '--folds', '2'], '--folds, --train-views'),
 ])
 def test_eval_options_of_the_other_mode_refused(model, tmp_path, capsys, extra, named):
     extra = [str(model) if a == 'MODEL' else a for a in extra]
@@ -97,12 +96,29 @@ def test_eval_options_of_the_other_mode_refused(model, tmp_path, capsys, extra, 
     assert not out.exists()
 
 
-@pytest.mark.parametrize('jobs', ['2', '1'])   # 1: the default, given
-def test_eval_cv_jobs_without_verifier_views_refused(tmp_path, capsys, jobs):
+@pytest.mark.parametrize('extra, named', [
+    (['--verifier-views', '6'], '--verifier-views'),
+    (['--train-views', '1', '--folds', '0'], '--folds, --train-views'),
+])
+def test_eval_options_of_the_other_mode_at_their_defaults_are_named_and_run(
+        model, tmp_path, capsys, extra, named):
+    # the check compared values with defaults: they passed without a word; refusing them
+    # would break a script that spells the defaults out, so they are named in a warning
+    out = tmp_path / 'e'
+    assert call(evaluate.main, ['--model', str(model), '--data',
+                                str(write_npz(tmp_path / 'd.npz')), '--out', str(out),
+                                '--max-objects', '2', *extra]) == 0
+    err = capsys.readouterr().err
+    assert (f'beo-eval: warning: used only with --cv, not in held-out mode: {named} (given at '
+            'the default value: ignored)') in err
+    assert (out / 'eval.json').exists()
+
+
+def test_eval_cv_jobs_without_verifier_views_refused(tmp_path, capsys):
     # before: --cv 2 --verifier-views 0 --jobs 2 ran, --jobs ignored (it makes verifier views)
     out = tmp_path / 'e'
     assert call(evaluate.main, ['--data', str(write_npz(tmp_path / 'd.npz')), '--out', str(out),
-                                '--cv', '2', '--verifier-views', '0', '--jobs', jobs]) == 2
+                                '--cv', '2', '--verifier-views', '0', '--jobs', '2']) == 2
     assert ("--jobs makes the orientation verifier's views: not used with --verifier-views 0"
             in capsys.readouterr().err)
     assert not out.exists()
