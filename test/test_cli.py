@@ -556,12 +556,16 @@ def test_eval_scans_forwards_k_and_refuses_what_it_does_not_use(monkeypatch, cap
     assert seen[-1] == ['--scans', 'a.pcd', '--out', 'o', '--k', '4', '--max-iter', '30']
     assert evaluate.main(['--scans', 'a.pcd', '--out', 'o']) == 0
     assert '--k' not in seen[-1]          # scan_eval's own default applies
-    # also at the default value (--seed 0 was accepted and not used)
-    for extra in (['--seed', '3'], ['--views', '2'], ['--cv', '5'], ['--seed', '0'],
-                  ['--cv', '0']):
+    for extra in (['--seed', '3'], ['--views', '2'], ['--cv', '5']):
         with pytest.raises(SystemExit):
             evaluate.main(['--scans', 'a.pcd', *extra])
         assert 'not used with --scans: ' + extra[0] in capsys.readouterr().err
+    # at the default value (--seed 0 was accepted without a word): named, and the run goes on
+    for extra in (['--seed', '0'], ['--cv', '0']):
+        assert evaluate.main(['--scans', 'a.pcd', '--out', 'o', *extra]) == 0
+        assert seen[-1] == ['--scans', 'a.pcd', '--out', 'o']
+        assert (f'beo-eval: warning: not used with --scans: {extra[0]} (given at the default '
+                'value: ignored)') in capsys.readouterr().err
 
 
 # ---------------------------------------------------------------------- beo-demo: arguments
