@@ -4,7 +4,7 @@ import pytest
 
 from beo_ros.core.grid import rotate_grid
 from beo_ros.core.synthetic import (partial_view, primitive_shapes, random_partial_view,
-                                    render_view_points, view_direction)
+                                    render_surface_points, render_view_points, view_direction)
 
 N = 16
 
@@ -110,6 +110,48 @@ def test_render_view_points_lie_on_the_visible_surface():
     assert np.all(np.abs(pts[:, 0] - xc) <= 0.5 * scale + 1e-6)
     lo, hi = (5 - 7.5 - 0.5) * scale, (10 - 7.5 + 0.5) * scale
     assert pts[:, 1:].min() >= lo - 1e-6 and pts[:, 1:].max() <= hi + 1e-6
+
+
+def assert_on_cube(pts, half=3.0 / N):
+    """Points (m, 3) on the cube of half side ``half`` about the origin: on its faces where
+    they are half a voxel or more from an edge, else on the rounded edge within half a voxel;
+    to 0.05 voxel (the crossing is interpolated linearly between samples along the ray)."""
+    a = np.sort(np.abs(pts), axis=1)
+    tol = 0.05 / N
+    assert (a[:, 2] <= half + tol).all() and (a[:, 2] >= half - 0.5 / N - tol).all()
+    face = a[:, 1] < half - 0.5 / N
+    assert face.mean() > 0.5
+    np.testing.assert_allclose(a[face, 2], half, atol=tol)
+
+
+def test_render_surface_points_lie_on_the_visible_face():
+    occ = cube()   # voxels 5-10: the faces at 4.5 and 10.5 voxels, 3 voxels from the centre 7.5
+    pts, origin = render_surface_points(occ, 0.5, 0.0, 0.0, 0.0, distance=2.0, size=1.0)
+    assert pts.dtype == np.float32 and pts.shape[1] == 3 and len(pts) > 50
+    np.testing.assert_allclose(origin, [2.0, 0, 0], atol=1e-12)
+    # a plane, not voxel centres jittered over whole voxels (trilinear interpolation rounds
+    # the edges within half a voxel)
+    assert_on_cube(pts)
+    assert (pts[:, 0] > 2.5 / N - 1e-5).all()
+
+
+def test_render_surface_points_turns_the_object_exactly():
+    # rotate_grid's nearest-neighbour turn made staircases of the faces of a turned box
+    occ = cube()
+    yaw = np.deg2rad(30.0)
+    pts, _ = render_surface_points(occ, 0.5, yaw, 0.3, 0.4, distance=2.0, size=1.0,
+                                   noise=0.0)
+    c, s = np.cos(yaw), np.sin(yaw)
+    assert_on_cube(pts.astype(np.float64) @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]))
+    assert render_surface_points(occ, 0.5, yaw, 0.3, 0.4, distance=2.0,
+                                 noise=0.01, rng=np.random.default_rng(0))[0].shape == pts.shape
+
+
+def test_render_surface_points_refuses_a_sensor_inside_and_renders_nothing_of_nothing():
+    with pytest.raises(ValueError, match='inside the grid'):
+        render_surface_points(cube(), 0.5, 0.0, 0.0, 0.0, distance=0.5, size=1.0)
+    pts, _ = render_surface_points(np.zeros((N,) * 3), 0.5, 0.0, 0.0, 0.0)
+    assert pts.shape == (0, 3)
 
 
 def test_primitive_shapes():

@@ -1,9 +1,9 @@
 """beo-demo: the whole pipeline end to end on data the package ships, no arguments needed.
 
-1. Renders one partial view per class of the shipped model (the class mean shape, thresholded,
-   at a random yaw, seen from a random azimuth and a slightly raised elevation) with
-   ``beo_ros.core.synthetic.render_view_points`` and writes the views as PointCloud2 messages
-   into a rosbag2 bag in a temporary directory.
+1. Renders one partial view per class of the shipped model (the class mean shape at a random
+   yaw, seen from a slightly raised elevation and from a random azimuth, or for a model learned
+   from partial views from the side its training views saw; see ``render_inputs``) and writes
+   the views as PointCloud2 messages into a rosbag2 bag in a temporary directory.
 2. Starts the beo node in-process (its own rclpy context, discovery off) with that model.
 3. Replays the bag into the node (``beo_ros.ros.bag.replay``), one cloud at a time, and collects
    ``~/estimates`` and ``~/completed``.
@@ -48,37 +48,96 @@ def _default_model_dir() -> str:
     return str(d)
 
 
-def class_shapes(bank) -> dict:
-    """Class name -> bool (N, N, N) occupancy: each class's mean shape cut at the level that
-    keeps its expected number of occupied voxels (sum of the mean), so thin classes (chairs,
-    tables) keep their legs instead of vanishing under a 0.5 threshold."""
+def class_fields(bank) -> dict:
+    """Class name -> (mean occupancy field float32 (N, N, N), level): the level keeps the
+    mean's expected number of occupied voxels (its sum, clipped to [0, 1]) above it, so thin
+    classes (chairs, tables) keep their legs instead of vanishing under a 0.5 threshold."""
     n = bank.spec.size
-    shapes = {}
+    fields = {}
     for m in bank.models:
         mean = np.asarray(m.mean, dtype=np.float32)
         keep = int(np.clip(round(float(mean.clip(0, 1).sum())), 1, mean.size))
-        level = np.partition(mean, mean.size - keep)[mean.size - keep]
-        shapes[m.name] = (mean >= level).reshape(n, n, n)
-    return shapes
+        level = float(np.partition(mean, mean.size - keep)[mean.size - keep])
+        fields[m.name] = (mean.reshape(n, n, n), level)
+    return fields
+
+
+def class_shapes(bank) -> dict:
+    """Class name -> bool (N, N, N) occupancy: each class's mean field at its level
+    (:func:`class_fields`)."""
+    return {name: f >= level for name, (f, level) in class_fields(bank).items()}
+
+
+def seen_from(bank, step_deg: float = 15.0, elevation_deg: float = 25.0) -> dict:
+    """Class name -> azimuth (radians, grid frame) from which the class's training views saw
+    it, or None for a class seen from every side.
+
+    A model learned from partial views in the viewer's frame (``beo-train --scans``: x from
+    the camera toward the object) never saw the back of its objects: there the posterior
+    variance of its mean (``mean_variance``) stays at the prior's, elsewhere the data shrank
+    it. The azimuth is the one (every ``step_deg``) whose view of the class shape
+    (:func:`class_shapes`) hides the voxels of the highest mean variance. A model of complete
+    shapes has the same variance everywhere: None.
+    """
+    from beo_ros.core.synthetic import partial_view
+    n = bank.spec.size
+    shapes = class_shapes(bank)
+    out = {}
+    for m in bank.models:
+        var = np.asarray(m.mean_variance, dtype=np.float64).reshape(n, n, n)
+        if var.max() - var.min() <= 1e-3 * var.max():
+            out[m.name] = None
+            continue
+        azimuths = np.deg2rad(np.arange(0.0, 360.0, step_deg))
+        hidden = []
+        for az in azimuths:
+            behind = partial_view(shapes[m.name], az, np.deg2rad(elevation_deg),
+                                  ray_spacing=1.0) < 0
+            hidden.append(var[behind].mean() if behind.any() else -np.inf)
+        out[m.name] = float(azimuths[int(np.argmax(hidden))])
+    return out
 
 
 def render_inputs(bank, seed: int = 0, views_per_class: int = 1, size: float = 1.0) -> list:
-    """One rendered partial view per class (and view): list of dicts with 'name', 'true_class',
-    'true_yaw', 'azimuth', 'elevation' and 'points' (n, 3) in the sensor frame.
+    """One rendered partial view per class (and view) of the class's mean shape: list of dicts
+    with 'name', 'true_class', 'true_yaw', 'azimuth', 'elevation', 'points' (n, 3) in the
+    sensor frame and 'centre' (3,) (the grid centre).
+
+    The shape is turned by a random yaw and seen from an elevation of 15-35 deg, from a random
+    azimuth for a class seen from every side, else from within 10 deg of the side its training
+    views saw (:func:`seen_from`; ``tabletop_32``'s mean box seen from elsewhere is no view it
+    was taught, and was labelled a cylinder). A metric model is rendered as a depth sensor sees
+    real objects: the smooth level surface of the mean field (:func:`class_fields`,
+    ``render_surface_points``) from twice the grid's span ``size`` (1 m for ``tabletop_32``);
+    its 'points' classifier reads surface normals, which the voxels of ``render_view_points``
+    (jittered over whole voxels) do not have. A normalized model is rendered as before: the
+    visible voxels of the class shape (:func:`class_shapes`), which they reproduce exactly
+    (a smooth surface loses one-voxel chair legs in the voxelization). Depth noise: 0.2 % of
+    ``size``.
 
     The sensor frame is the renderer's z-up world frame shifted so that the sensor sits at the
     origin: up is +z and the sensor origin is (0, 0, 0) for every view.
     """
-    from beo_ros.core.synthetic import render_view_points
+    from beo_ros.core.synthetic import render_surface_points, render_view_points
     rng = np.random.default_rng(seed)
+    sides = seen_from(bank)
+    metric = bank.spec.units == 'metric'
+    fields = class_fields(bank)
     inputs = []
     for cls, occ in class_shapes(bank).items():
         for v in range(views_per_class):
             yaw = float(rng.uniform(0, 2 * math.pi))
             az = float(rng.uniform(0, 2 * math.pi))
             el = float(np.deg2rad(rng.uniform(15, 35)))
-            pts, origin = render_view_points(occ, yaw, az, el, distance=max(2.0, 2.0 * size),
-                                             size=size, noise=0.002 * size, rng=rng)
+            if sides[cls] is not None:   # the side its training views saw, turned by the yaw
+                az = float((yaw + sides[cls] + np.deg2rad(rng.uniform(-10, 10))) % (2 * math.pi))
+            if metric:
+                field, level = fields[cls]
+                pts, origin = render_surface_points(field, level, yaw, az, el, distance=2.0 * size,
+                                                    size=size, noise=0.002 * size, rng=rng)
+            else:
+                pts, origin = render_view_points(occ, yaw, az, el, distance=max(2.0, 2.0 * size),
+                                                 size=size, noise=0.002 * size, rng=rng)
             pts = np.asarray(pts, dtype=np.float64) - np.asarray(origin, dtype=np.float64)
             pts = pts[np.isfinite(pts).all(axis=1)]
             inputs.append({'name': f'{cls}_{v}', 'true_class': cls, 'true_yaw': yaw,
