@@ -657,6 +657,34 @@ def test_cluster_tolerance_keeps_the_largest_cluster_and_counts_the_rest(harness
     assert node.set_parameters([Parameter('cluster_tolerance', value=0.0)])[0].successful
 
 
+
+def _too_few_after_cleaning(harness):
+    """Five blobs of 8 points 1 m apart (40 >= min_points 30) under cluster_tolerance 0.1:
+    the largest cluster keeps 8, fewer than an estimate needs. Before: counted in
+    'rejected' only, unlike a cloud with too few points as it came."""
+    node = harness.node
+    pts = np.concatenate([np.random.default_rng(i).normal([1.0 + i, 0.5, 0.3], 0.005, (8, 3))
+                          for i in range(5)])
+    assert node.set_parameters([Parameter('cluster_tolerance', value=0.1)])[0].successful
+    before = node.counters()
+    req = harness.good_request()
+    req.cloud = cloud(pts)
+    r = harness.call(harness.classify, req)
+    assert not r.success and 'after removing' in r.message, r.message
+    harness.pub.publish(req.cloud)
+    c = harness.wait_counter(lambda c: c['rejected'] == before['rejected'] + 2)
+    assert c['rejected_too_few_points'] == before['rejected_too_few_points'] + 2, c
+    assert node.set_parameters([Parameter('cluster_tolerance', value=0.0)])[0].successful
+
+
+def test_too_few_points_after_the_cleaning_count_as_too_few_points(harness):
+    _too_few_after_cleaning(harness)
+
+
+def test_too_few_points_after_the_cleaning_in_a_worker_process_count_too(harness_procs):
+    _too_few_after_cleaning(harness_procs)
+
+
 def test_points_outside_a_metric_grid_are_counted(harness):
     # box_view is 0.8 m tall: in the 0.5 m tabletop grid its top was dropped without a count
     from beo_ros.core.bank import default_model_dir

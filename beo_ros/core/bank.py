@@ -40,7 +40,7 @@ from .verifier import TURNS, OrientationVerifier, check_arrays, quarter_turned_f
 
 # the bank's names, and those of the modules split from it (importable from here as before)
 __all__ = [
-    'ModelBank', 'load_models', 'default_model_dir', 'resolve_model_dir', 'shipped_models',
+    'ModelBank', 'TooFewPoints', 'load_models', 'default_model_dir', 'resolve_model_dir', 'shipped_models',
     'object_centre', 'object_extent', 'heading_offset', 'check_yaw', 'check_step', 'check_count',
     'SEARCH_STEP_DEG', 'PROBE_DEG', 'STAGE2_MIN_STEP_DEG', 'YAW_STEP_RANGE_DEG',
     # class_model
@@ -74,6 +74,11 @@ SAVE_WAIT_STEP_S = 0.01
 SAVE_WAIT_STEPS = 100
 # the yaw steps (degrees) that estimate takes (check_step); commands check theirs against it
 YAW_STEP_RANGE_DEG = (0.05, 90.0)
+
+
+class TooFewPoints(ValueError):
+    """``estimate_points``: fewer points than an estimate needs are left after the outlier
+    and cluster removal (a ValueError, so callers that catch those see no change)."""
 
 
 class ModelBank:
@@ -789,7 +794,7 @@ class ModelBank:
         pts_in, n_outliers, n_off_cluster = clean_points(
             finite, outlier_mads, outlier_neighbors, cluster_tolerance)
         if len(pts_in) < MIN_POINTS:   # voxelize_view would say "finite points": name why
-            raise ValueError(f'need at least {MIN_POINTS} points, got {len(pts_in)} of the '
+            raise TooFewPoints(f'need at least {MIN_POINTS} points, got {len(pts_in)} of the '
                              f'{len(finite)} finite ones after removing {n_outliers} outliers '
                              f'(outlier_mads {outlier_mads}) and {n_off_cluster} outside the '
                              f'largest cluster (cluster_tolerance {cluster_tolerance})')

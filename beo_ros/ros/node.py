@@ -46,8 +46,8 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
 
-from beo_ros.core.bank import (format_class_prior, load_models, parse_class_prior,
-                               resolve_model_dir, shipped_models)
+from beo_ros.core.bank import (TooFewPoints, format_class_prior, load_models,
+                               parse_class_prior, resolve_model_dir, shipped_models)
 from beo_ros.ros.conversions import (CloudFormatError, cloud_to_xyz, completed_cloud,
                                      estimate_to_msg, interfaces)
 from beo_ros.ros.env import check_domain_id
@@ -145,6 +145,14 @@ class InputRejected(ValueError):
     def __init__(self, message: str, kind: str = 'rejected'):
         super().__init__(message)
         self.kind = kind
+
+
+def _estimator_rejected(e: ValueError) -> InputRejected:
+    """The InputRejected of the estimator's ValueError ``e``: too few points left after the
+    outlier and cluster removal counts in ``rejected_too_few_points`` as well (it counted in
+    ``rejected`` only, unlike a cloud with too few points as it came)."""
+    kind = 'rejected_too_few_points' if isinstance(e, TooFewPoints) else 'rejected'
+    return InputRejected(f'estimator rejected the cloud: {e}', kind)
 
 
 def with_class_prior(bank, text: str):
@@ -774,7 +782,7 @@ class BeoNode(Node):
                         pts, origin, up, p['yaw_step_deg'], threshold, cleaning,
                         timeout=p['estimate_timeout'] or None)
                 except ValueError as e:
-                    raise InputRejected(f'estimator rejected the cloud: {e}') from e
+                    raise _estimator_rejected(e) from e
                 return est, classes
             bank = self._bank  # one bank per estimate, even if model_dir is reloaded meanwhile
             try:
@@ -782,7 +790,7 @@ class BeoNode(Node):
                                            yaw_step_deg=p['yaw_step_deg'], threshold=threshold,
                                            **cleaning)
             except ValueError as e:
-                raise InputRejected(f'estimator rejected the cloud: {e}') from e
+                raise _estimator_rejected(e) from e
             return est, list(bank.classes)
         finally:
             self._est_slots.release()
