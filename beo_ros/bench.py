@@ -350,6 +350,8 @@ def _scaling_classes(args, Xs, ys, names, n, sq, bank):
 
 # ---------------------------------------------------------------------- output
 def plots(res, out):
+    """latency.png and accuracy.png of the peers measured, and scaling.png unless the scaling
+    phase was skipped, into ``out``."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
@@ -379,6 +381,15 @@ def plots(res, out):
     plt.close(fig)
 
     sc = res.get('scaling') or {}
+    if 'skipped' in sc:
+        # eight empty panels were written; and a scaling.png of an earlier run into the same
+        # --out would pass for this run's
+        stale = out / 'scaling.png'
+        if stale.is_file():
+            stale.unlink()
+            log(f'[plots] removed {stale} of an earlier run (the scaling phase was skipped: '
+                f"{sc['skipped']})")
+        return
     fig, axes = plt.subplots(2, 4, figsize=(14, 6))
     panels = [('train_objects', 'n_train', 'training objects', [('beo', 'beo'), ('icp', 'icp')]),
               ('grid', 'grid', 'grid size N', [('beo', 'beo')]),

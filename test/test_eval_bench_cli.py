@@ -526,8 +526,22 @@ def test_bench_one_peer_off_keeps_the_others_results(tmp_path, capsys, off, ran)
             in stdout)
     assert f"- speedup vs icp (p50) {speedup['icp']}\n- vs paper {speedup['paper']}\n" in md
     assert f'{ran} index ' in md and f'{gone} index' not in md
-    for png in ('latency.png', 'accuracy.png', 'scaling.png'):
+    for png in ('latency.png', 'accuracy.png'):
         assert (out / png).stat().st_size > 1000
+    # --no-scaling: no scaling.png (it was eight empty panels)
+    assert not (out / 'scaling.png').exists()
+
+
+def test_bench_without_the_scaling_phase_leaves_no_scaling_png(tmp_path, capsys):
+    # an earlier run's scaling.png in the same --out would pass for this run's
+    out = tmp_path / 'b'
+    out.mkdir()
+    (out / 'scaling.png').write_bytes(b'an earlier run')
+    argv = [a for a in QUICK if a != '--no-plots']
+    assert call(bench.main, argv + ['--data', str(write_npz(tmp_path / 'd.npz')),
+                                    '--out', str(out)]) == 0
+    assert (out / 'latency.png').is_file() and not (out / 'scaling.png').exists()
+    assert f'removed {out / "scaling.png"} of an earlier run' in capsys.readouterr().err
 
 
 def test_bench_quick_with_a_model_keeps_the_models_classes(tmp_path, capsys):
