@@ -10,7 +10,8 @@ from pathlib import Path
 from beo_ros.ros.bag.msgtypes import get_typestore, normalize_msgtype
 from beo_ros.ros.bag.recorder import BagWriteError
 from beo_ros.ros.bag.storage import (BagWriter, bad_qos, cdr_payload, hot_journal, not_cdr,
-                                     recorded_latched, recorded_reliable, storage_errors)
+                                     recorded_latched, recorded_reliable, storage_errors,
+                                     unmerged_wal)
 
 
 MCAP_MAGIC = b'\x89MCAP0\r\n'
@@ -205,20 +206,18 @@ def _rolled_back(db: Path, tmp: Path) -> Path:
     :func:`hot_journal`), or with the transactions of its write-ahead log (``-wal``: a
     recording in WAL mode that was killed before checkpointing them) moved into it: rosbags
     opens a database as immutable, ignoring both. ``db`` and its files are left as they are."""
-    journal = hot_journal(db)
-    wal = db.with_name(db.name + '-wal')
-    has_wal = wal.is_file() and wal.stat().st_size > 0
-    if journal is None and not has_wal:
+    journal, wal = hot_journal(db), unmerged_wal(db)
+    if journal is None and wal is None:
         return db
     import sqlite3
     copy = tmp / db.name
     shutil.copyfile(db, copy)
-    for f in (journal, wal if has_wal else None):
+    for f in (journal, wal):
         if f is not None:
             shutil.copyfile(f, tmp / f.name)
     with contextlib.closing(sqlite3.connect(copy)) as conn:
         conn.execute('SELECT COUNT(*) FROM sqlite_master').fetchone()
-        if has_wal:
+        if wal is not None:
             conn.execute('PRAGMA wal_checkpoint(TRUNCATE)').fetchone()
     return copy
 

@@ -220,6 +220,12 @@ class BagWriter:
         self.counts[topic] += 1
 
 
+def _db_files(bag_path) -> list:
+    """The .db3 files of a bag: the file itself, or those in the bag directory."""
+    p = Path(bag_path)
+    return [p] if p.suffix == '.db3' else (sorted(p.glob('*.db3')) if p.is_dir() else [])
+
+
 def hot_journal(bag_path) -> Path | None:
     """The hot rollback journal beside a bag's .db3 file (a recording killed in the middle of
     a transaction that had begun to change the database), or None. rosbags opens the database
@@ -227,9 +233,7 @@ def hot_journal(bag_path) -> Path | None:
     malformed database. As sqlite decides it, a journal is hot when its first byte is not 0:
     one killed before its header was written (the usual kill -9 of a recording, a few
     messages uncommitted) changed nothing in the database."""
-    p = Path(bag_path)
-    dbs = [p] if p.suffix == '.db3' else (sorted(p.glob('*.db3')) if p.is_dir() else [])
-    for db in dbs:
+    for db in _db_files(bag_path):
         journal = db.with_name(db.name + '-journal')
         if journal.is_file():
             with open(journal, 'rb') as f:
@@ -243,9 +247,7 @@ def unmerged_wal(bag_path) -> Path | None:
     in WAL mode that was not closed, its committed messages not yet checkpointed into the
     database. rosbags opens the database as immutable and would not see them (a closed
     connection checkpoints and deletes the log)."""
-    p = Path(bag_path)
-    dbs = [p] if p.suffix == '.db3' else (sorted(p.glob('*.db3')) if p.is_dir() else [])
-    for db in dbs:
+    for db in _db_files(bag_path):
         wal = db.with_name(db.name + '-wal')
         if wal.is_file() and wal.stat().st_size > 0:
             return wal
@@ -264,13 +266,18 @@ def _check_no_hot_journal(bag_path):
                          'beo-bag-recover BAG -o NEW')
 
 
+def _metadata_info(meta: Path):
+    """The ``rosbag2_bagfile_information`` mapping of a metadata.yaml, parsed as rosbags
+    parses it; ruamel's YAMLError, KeyError, TypeError, OSError for one that does not read."""
+    from ruamel.yaml import YAML
+    return YAML(typ='safe').load(meta.read_text())['rosbag2_bagfile_information']
+
+
 def _listed_files(meta: Path):
     """The file names a metadata.yaml lists (``relative_file_paths``), or the YAML error or
     KeyError of one that does not read (cut off, ...)."""
-    from ruamel.yaml import YAML
     try:
-        info = YAML(typ='safe').load(meta.read_text())['rosbag2_bagfile_information']
-        return {Path(str(x)).name for x in info['relative_file_paths']}
+        return {Path(str(x)).name for x in _metadata_info(meta)['relative_file_paths']}
     except Exception as e:  # noqa: BLE001 - ruamel's YAMLError, KeyError, TypeError
         return e
 
@@ -401,11 +408,10 @@ def _qos_texts(bag_path):
     p = Path(bag_path)
     meta = p / 'metadata.yaml'
     if meta.is_file():
-        from ruamel.yaml import YAML
         topics = []
         with contextlib.suppress(Exception):
-            info = YAML(typ='safe').load(meta.read_text())['rosbag2_bagfile_information']
-            topics = [t['topic_metadata'] for t in info['topics_with_message_count']]
+            topics = [t['topic_metadata']
+                      for t in _metadata_info(meta)['topics_with_message_count']]
         for t in topics:
             if isinstance(t, dict) and 'offered_qos_profiles' in t:
                 yield meta, t.get('name'), t['offered_qos_profiles']
