@@ -80,6 +80,20 @@ def _real(value) -> float:
         return np.nan
 
 
+def real_array(value, name, what):
+    """float64 array of ``value``; ValueError '``name`` must be ``what``...' unless it holds
+    real numbers (integers or floats)."""
+    try:
+        a = np.asarray(value)
+    except ValueError:   # rows of different lengths
+        raise ValueError(f'{name} must be {what}, got rows of different lengths') from None
+    # strings were parsed as numbers, complex numbers lost their imaginary part, objects
+    # failed in float() or became NaN, dates and bools passed as numbers
+    if a.dtype.kind not in 'iuf':
+        raise ValueError(f'{name} must be {what} of real numbers, got dtype {a.dtype}')
+    return a.astype(np.float64, copy=False)
+
+
 def unit_vector(v) -> np.ndarray:
     """float64 ``v`` / |v| for a finite non-zero vector, without overflow for huge components
     (divided by the largest component first)."""

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .grid import unit_vector
+from .grid import real_array, unit_vector
 
 RADIUS = 0.02          # metres: neighbourhood radius of a normal
 MAX_NN = 30            # at most this many nearest neighbours per normal
@@ -36,30 +36,16 @@ MAX_QUERY = 2000       # normals are computed at most at this many points (evenl
 DESCRIPTOR_NAMES = ('r4', 'frac10')
 
 
-def _real_array(value, name, what):
-    """float64 array of ``value``; ValueError '``name`` must be ``what``...' unless it holds
-    real numbers (integers or floats)."""
-    try:
-        a = np.asarray(value)
-    except ValueError:   # rows of different lengths
-        raise ValueError(f'{name} must be {what}, got rows of different lengths') from None
-    # strings were parsed as numbers, complex numbers lost their imaginary part, objects
-    # failed in float() or became NaN, dates and bools passed as numbers
-    if a.dtype.kind not in 'iuf':
-        raise ValueError(f'{name} must be {what} of real numbers, got dtype {a.dtype}')
-    return a.astype(np.float64, copy=False)
-
-
 def _check(points, up, sensor_origin):
-    pts = _real_array(points, 'points', 'an (n, 3) array')
+    pts = real_array(points, 'points', 'an (n, 3) array')
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f'points must be an (n, 3) array, got shape {pts.shape}')
     if not np.isfinite(pts).all():
         raise ValueError('points contain NaN or Inf (drop the non-finite rows first)')
-    up = _real_array(up, 'up', 'a finite non-zero (3,) vector')
+    up = real_array(up, 'up', 'a finite non-zero (3,) vector')
     if up.shape != (3,) or not np.isfinite(up).all() or np.abs(up).max() < 1e-9:
         raise ValueError(f'up must be a finite non-zero (3,) vector, got {up!r}')
-    origin = _real_array(sensor_origin, 'sensor_origin', 'a finite (3,) vector')
+    origin = real_array(sensor_origin, 'sensor_origin', 'a finite (3,) vector')
     if origin.shape != (3,) or not np.isfinite(origin).all():
         raise ValueError(f'sensor_origin must be a finite (3,) vector, got {origin!r}')
     return pts, unit_vector(up), origin
@@ -141,9 +127,9 @@ def point_normals(points, sensor_origin=(0.0, 0.0, 0.0), radius=RADIUS, max_nn=M
 def descriptors_from_normals(normals, up):
     """(r4, frac10, n_side) from (q, 3) normals (NaN rows ignored) and the up vector (3,);
     r4 and frac10 are NaN when fewer than ``MIN_SIDE`` normals are side normals."""
-    normals = _real_array(normals, 'normals', 'a (q, 3) array')
+    normals = real_array(normals, 'normals', 'a (q, 3) array')
     normals = normals[np.isfinite(normals).all(axis=1)]
-    up, e1, e2 = horizontal_basis(_real_array(up, 'up', 'a finite non-zero (3,) vector'))
+    up, e1, e2 = horizontal_basis(real_array(up, 'up', 'a finite non-zero (3,) vector'))
     side = np.abs(normals @ up) < SIDE_COS
     ns = int(side.sum())
     if ns < MIN_SIDE:

@@ -14,6 +14,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from .grid import real_array
+
 OUTLIER_NEIGHBORS = 8   # neighbours per point
 OUTLIER_MADS = 8.0      # the cut: this many scaled MADs above the median neighbour distance
 MIN_SCALE = 0.1         # the scale is at least this fraction of the median (MAD 0 on a lattice)
@@ -45,17 +47,7 @@ def _count(value, name) -> int:
 def _points(points) -> np.ndarray:
     """float64 (n, 3) finite ``points`` of real numbers (integers or floats); ValueError
     otherwise."""
-    try:
-        pts = np.asarray(points)
-    except ValueError:   # rows of different lengths
-        raise ValueError('points must be a finite (n, 3) array, got rows of different '
-                         'lengths') from None
-    # strings were parsed as numbers, complex numbers lost their imaginary part, objects
-    # failed in float() or became NaN, dates and bools passed as numbers
-    if pts.dtype.kind not in 'iuf':
-        raise ValueError(f'points must be a finite (n, 3) array of real numbers, got dtype '
-                         f'{pts.dtype}')
-    pts = pts.astype(np.float64, copy=False)
+    pts = real_array(points, 'points', 'a finite (n, 3) array')
     if pts.ndim != 2 or pts.shape[1] != 3 or not np.isfinite(pts).all():
         raise ValueError(f'points must be a finite (n, 3) array, got shape {pts.shape}')
     return pts
