@@ -62,26 +62,28 @@ def class_fields(bank) -> dict:
     return fields
 
 
-def class_shapes(bank) -> dict:
+def class_shapes(bank, fields: dict | None = None) -> dict:
     """Class name -> bool (N, N, N) occupancy: each class's mean field at its level
-    (:func:`class_fields`)."""
-    return {name: f >= level for name, (f, level) in class_fields(bank).items()}
+    (``fields``, default :func:`class_fields` of ``bank``)."""
+    fields = class_fields(bank) if fields is None else fields
+    return {name: f >= level for name, (f, level) in fields.items()}
 
 
-def seen_from(bank, step_deg: float = 15.0, elevation_deg: float = 25.0) -> dict:
+def seen_from(bank, step_deg: float = 15.0, elevation_deg: float = 25.0,
+              shapes: dict | None = None) -> dict:
     """Class name -> azimuth (radians, grid frame) from which the class's training views saw
     it, or None for a class seen from every side.
 
     A model learned from partial views in the viewer's frame (``beo-train --scans``: x from
     the camera toward the object) never saw the back of its objects: there the posterior
     variance of its mean (``mean_variance``) stays at the prior's, elsewhere the data shrank
-    it. The azimuth is the one (every ``step_deg``) whose view of the class shape
-    (:func:`class_shapes`) hides the voxels of the highest mean variance. A model of complete
-    shapes has the same variance everywhere: None.
+    it. The azimuth is the one (every ``step_deg``) whose view of the class shape (``shapes``,
+    default :func:`class_shapes`) hides the voxels of the highest mean variance. A model of
+    complete shapes has the same variance everywhere: None.
     """
     from beo_ros.core.synthetic import partial_view
     n = bank.spec.size
-    shapes = class_shapes(bank)
+    shapes = class_shapes(bank) if shapes is None else shapes
     out = {}
     for m in bank.models:
         var = np.asarray(m.mean_variance, dtype=np.float64).reshape(n, n, n)
@@ -120,11 +122,12 @@ def render_inputs(bank, seed: int = 0, views_per_class: int = 1, size: float = 1
     """
     from beo_ros.core.synthetic import render_surface_points, render_view_points
     rng = np.random.default_rng(seed)
-    sides = seen_from(bank)
-    metric = bank.spec.units == 'metric'
     fields = class_fields(bank)
+    shapes = class_shapes(bank, fields)
+    sides = seen_from(bank, shapes=shapes)
+    metric = bank.spec.units == 'metric'
     inputs = []
-    for cls, occ in class_shapes(bank).items():
+    for cls, occ in shapes.items():
         for v in range(views_per_class):
             yaw = float(rng.uniform(0, 2 * math.pi))
             az = float(rng.uniform(0, 2 * math.pi))
