@@ -619,6 +619,20 @@ def test_fit_bank_refuses_a_seed_that_is_no_integer_at_once(monkeypatch):
             training.fit_bank(X, y, names, GridSpec(size=N), k=2, seed=bad)
 
 
+
+def _fit_bank_refuses_before_fitting(monkeypatch, message, **kw):
+    """fit_bank(**kw) on 3 primitive shapes per class raises ValueError matching ``message``
+    before any class model is fitted."""
+    from beo_ros.core import training
+    from beo_ros.core.grid import GridSpec
+    X, y, names = primitive_shapes(N, 3, np.random.default_rng(0))
+
+    def no_fit(*a, **k):
+        raise AssertionError('fitted before checking the options')
+    monkeypatch.setattr(training, 'fit_class_models', no_fit)
+    with pytest.raises(ValueError, match=message):
+        training.fit_bank(X, y, names, GridSpec(size=N), k=2, verifier_views=0, **kw)
+
 @pytest.mark.parametrize('kw, message', [
     (dict(classifier_views=1, folds=1), 'the out-of-fold classifier features need folds >= 2'),
     (dict(classifier_views=1, folds=0), 'the out-of-fold classifier features need folds >= 2'),
@@ -630,16 +644,7 @@ def test_fit_bank_refuses_classifier_views_and_folds_it_cannot_use(monkeypatch, 
     # folds 1 was "class 'box' has 0 training objects", folds 0 a bank without the
     # classifier asked for (no word), 2.5 and 1.5 TypeErrors after the class models were
     # fitted, -1 no classifier
-    from beo_ros.core import training
-    from beo_ros.core.grid import GridSpec
-    X, y, names = primitive_shapes(N, 3, np.random.default_rng(0))
-
-    def no_fit(*a, **k):
-        raise AssertionError('fitted before checking the options')
-    monkeypatch.setattr(training, 'fit_class_models', no_fit)
-    with pytest.raises(ValueError, match=message):
-        training.fit_bank(X, y, names, GridSpec(size=N), k=2, calibration_views=0,
-                          verifier_views=0, **kw)
+    _fit_bank_refuses_before_fitting(monkeypatch, message, calibration_views=0, **kw)
 
 
 @pytest.mark.parametrize('kw, message', [
@@ -649,16 +654,7 @@ def test_fit_bank_refuses_classifier_views_and_folds_it_cannot_use(monkeypatch, 
 def test_fit_bank_refuses_bank_settings_before_the_fits(monkeypatch, kw, message):
     # the bank's ModelError (or dict()'s error of a list) came after the class models were
     # fitted (minutes on ModelNet)
-    from beo_ros.core import training
-    from beo_ros.core.grid import GridSpec
-    X, y, names = primitive_shapes(N, 3, np.random.default_rng(0))
-
-    def no_fit(*a, **k):
-        raise AssertionError('fitted before checking the options')
-    monkeypatch.setattr(training, 'fit_class_models', no_fit)
-    with pytest.raises(ValueError, match=message):
-        training.fit_bank(X, y, names, GridSpec(size=N), k=2, classifier_views=0,
-                          verifier_views=0, **kw)
+    _fit_bank_refuses_before_fitting(monkeypatch, message, classifier_views=0, **kw)
 
 
 def test_progress_in_a_file_or_pipe_is_whole_lines(capsys, monkeypatch):
