@@ -273,18 +273,13 @@ CV_ONLY = ('folds', 'k', 'train_views', 'verifier_views', 'jobs')
 HELD_OUT_ONLY = ('model',)
 
 
-def _given(given, names):
-    """The options of ``names`` on the command line (``given``: :func:`given_options`), as
-    --flags (one given at its default value too)."""
-    return [f"--{n.replace('_', '-')}" for n in names if n in given]
-
-
 def _refuse_unused(ap, args, given, names, why):
-    """``ap.error(why + flags)`` for the options of ``names`` on the command line that the run
-    does not use; when every one of them is at its default value (it would have run the
-    same without them) a warning on stderr instead: a script that spells the defaults out
-    keeps working, and the user still hears that they do nothing."""
-    unused = _given(given, names)
+    """``ap.error(why + flags)`` for the options of ``names`` on the command line (``given``:
+    :func:`given_options`, one given at its default value too) that the run does not use;
+    when every one of them is at its default value (it would have run the same without them)
+    a warning on stderr instead: a script that spells the defaults out keeps working, and the
+    user still hears that they do nothing."""
+    unused = [f"--{n.replace('_', '-')}" for n in names if n in given]
     if not unused:
         return
     if any(getattr(args, n) != ap.get_default(n) for n in names if n in given):
