@@ -318,3 +318,56 @@ def test_setup_patches_activate_csh(tmp_path):
         assert r.returncode == 0, r.stderr
         want = _expected(str(venv), before.format(venv=venv)) + ['leftover: 0']
         assert r.stdout.splitlines() == want, (before, r.stderr)
+
+
+# --- scripts/test and .ci/run in a scratch clone --------------------------------------------
+
+def _scratch_clone(tmp_path):
+    """A clone with scripts/test, .ci/run, test/test_a.py and a .venv/bin/python that prints
+    its working directory and arguments (one a line)."""
+    import shutil
+    root = tmp_path / 'clone'
+    for d in ('scripts', 'test', '.ci', '.venv/bin'):
+        (root / d).mkdir(parents=True, exist_ok=True)
+    shutil.copy(ROOT / 'scripts' / 'test', root / 'scripts' / 'test')
+    shutil.copy(ROOT / '.ci' / 'run', root / '.ci' / 'run')
+    (root / 'test' / 'test_a.py').write_text('')
+    py = root / '.venv' / 'bin' / 'python'
+    py.write_text('#!/bin/sh\npwd\nfor a in "$@"; do echo "$a"; done\n')
+    py.chmod(0o755)
+    return root
+
+
+def _pytest_args(root, cwd, *args):
+    """The arguments scripts/test of the scratch clone ``root``, run in ``cwd``, gives pytest."""
+    import shutil
+    import subprocess
+    bash = shutil.which('bash')
+    if bash is None:
+        pytest.skip('no bash')
+    r = subprocess.run([bash, str(root / 'scripts' / 'test'), *args], cwd=cwd,
+                       capture_output=True, text=True, timeout=60,
+                       env={'PATH': os.environ.get('PATH', '/usr/bin:/bin')})
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    assert lines[:4] == [str(root), '-m', 'pytest', '-q'], lines
+    return lines[4:]
+
+
+def test_scripts_test_option_values_are_no_test_targets(tmp_path):
+    # `scripts/test --deselect test/test_a.py::test_b` passed the node id as an absolute path,
+    # which pytest matches against no id (the test ran anyway), and dropped the default target
+    # test/ (pytest then collected the whole clone); so did the path after --ignore
+    root = _scratch_clone(tmp_path)
+    assert _pytest_args(root, root, '--deselect', 'test/test_a.py::test_b') == [
+        'test', '--deselect', 'test/test_a.py::test_b']
+    # from inside test/: the id relative to the caller's directory, made relative to the clone
+    assert _pytest_args(root, root / 'test', '--deselect', 'test_a.py::test_b', '-x') == [
+        'test', '--deselect', 'test/test_a.py::test_b', '-x']
+    assert _pytest_args(root, root, '--deselect', f'{root}/test/test_a.py::test_b') == [
+        'test', '--deselect', 'test/test_a.py::test_b']
+    assert _pytest_args(root, root / 'test', '--ignore', 'test_a.py') == [
+        'test', '--ignore', f'{root}/test/test_a.py']
+    # a test path given as well: that is the target, as before
+    assert _pytest_args(root, root, 'test/test_a.py', '--deselect', 'test/test_a.py::test_b') == [
+        f'{root}/test/test_a.py', '--deselect', 'test/test_a.py::test_b']
