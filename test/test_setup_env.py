@@ -371,3 +371,29 @@ def test_scripts_test_option_values_are_no_test_targets(tmp_path):
     # a test path given as well: that is the target, as before
     assert _pytest_args(root, root, 'test/test_a.py', '--deselect', 'test/test_a.py::test_b') == [
         f'{root}/test/test_a.py', '--deselect', 'test/test_a.py::test_b']
+
+
+def test_ci_run_passes_no_unusable_data_dir(tmp_path):
+    # with BEO_DATA_DIR naming no directory and no ../shared/data, .ci/run said 'no data
+    # directory' but passed the value on; run in the clone, the tests then read a relative
+    # one from there (clone/data below), a directory .ci/run had not checked
+    import shutil
+    import subprocess
+    bash = shutil.which('bash')
+    if bash is None:
+        pytest.skip('no bash')
+    root = _scratch_clone(tmp_path)
+    (root / 'data').mkdir()
+    for name in ('setup', 'test'):   # stand-ins that report what they were given
+        (root / 'scripts' / name).write_text(
+            f'#!/bin/sh\necho "{name}: ${{BEO_DATA_DIR-<unset>}}"\n')
+        (root / 'scripts' / name).chmod(0o755)
+    caller = tmp_path / 'elsewhere'
+    caller.mkdir()
+    r = subprocess.run([bash, str(root / '.ci' / 'run')], cwd=caller, capture_output=True,
+                       text=True, timeout=60,
+                       env={'PATH': os.environ.get('PATH', '/usr/bin:/bin'),
+                            'BEO_DATA_DIR': 'data'})
+    assert r.returncode == 0, r.stderr
+    assert 'setup: <unset>\n' in r.stdout and 'test: <unset>\n' in r.stdout, r.stdout
+    assert 'BEO_DATA_DIR=data is no directory: not used' in r.stdout
