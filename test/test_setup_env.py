@@ -397,3 +397,23 @@ def test_ci_run_passes_no_unusable_data_dir(tmp_path):
     assert r.returncode == 0, r.stderr
     assert 'setup: <unset>\n' in r.stdout and 'test: <unset>\n' in r.stdout, r.stdout
     assert 'BEO_DATA_DIR=data is no directory: not used' in r.stdout
+
+
+def test_setup_keeps_the_cmake_cache_of_a_path_with_brackets(tmp_path):
+    # the prefix check read the venv path as a regex: in a clone under e.g. 'beo[2]' the cache
+    # never matched, was called stale and wiped, and every re-run rebuilt beo_interfaces
+    lines = SETUP.read_text().splitlines()
+    i = next(n for n, ln in enumerate(lines) if ln.startswith('# a cache from another location'))
+    j = lines.index('fi', i)
+    snippet = '\n'.join(lines[i:j + 1]) + '\n'
+    venv, build = tmp_path / 'beo[2] x' / '.venv', tmp_path / 'build'
+    build.mkdir()
+    cache = build / 'CMakeCache.txt'
+    cache.write_text(f'CMAKE_BUILD_TYPE:STRING=Release\nCMAKE_INSTALL_PREFIX:PATH={venv}\n')
+    r = _bash(f'VENV="{venv}"\nBUILD="{build}"\n' + snippet)
+    assert r.returncode == 0, r.stderr
+    assert 'stale' not in r.stdout and cache.exists()
+    cache.write_text('CMAKE_INSTALL_PREFIX:PATH=/elsewhere/.venv\n')   # another prefix: wiped
+    r = _bash(f'VENV="{venv}"\nBUILD="{build}"\n' + snippet)
+    assert r.returncode == 0, r.stderr
+    assert 'stale' in r.stdout and not cache.exists() and build.is_dir()
