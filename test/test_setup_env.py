@@ -200,3 +200,220 @@ def test_version_pins_match_installed():
         except PackageNotFoundError:  # pragma: no cover - env not made by scripts/setup
             pytest.fail(f'{name} not installed: run scripts/setup')
         assert have == want, f'{name}: installed {have}, requirements.txt pins {want}'
+
+
+# --- scripts/setup's steps, run on scratch copies -------------------------------------------
+
+SETUP = ROOT / 'scripts' / 'setup'
+
+
+def _setup_step(title):
+    """Bash text of the scripts/setup step ``step "title"``, up to the next '# ---' line, after
+    stand-ins for die and step."""
+    lines = SETUP.read_text().splitlines()
+    i = lines.index(f'step "{title}"')
+    j = next((n for n in range(i + 1, len(lines)) if lines[n].startswith('# ---')), len(lines))
+    return ('set -Eeuo pipefail\n'
+            'die() { printf "[setup] ERROR: %s\\n" "$*" >&2; exit 1; }\nstep() { :; }\n'
+            + '\n'.join(lines[i:j]) + '\n')
+
+
+def _run(argv, **env):
+    import subprocess
+    return subprocess.run(argv, capture_output=True, text=True, timeout=60,
+                          env={'PATH': os.environ.get('PATH', '/usr/bin:/bin'), **env})
+
+
+def _bash(script, **env):
+    import shutil
+    bash = shutil.which('bash')
+    if bash is None:
+        pytest.skip('no bash')
+    return _run([bash, '-c', script], **env)
+
+
+def _patched_venv(tmp_path):
+    """A venv (no pip) whose activate scripts went through setup's activate step twice."""
+    import subprocess
+    venv = tmp_path / 'venv'
+    subprocess.run([sys.executable, '-m', 'venv', '--without-pip', str(venv)], check=True)
+    patch = f'VENV={venv}\n' + _setup_step('runtime environment in .venv/bin/activate')
+    r = _bash(patch)
+    assert r.returncode == 0, r.stderr
+    once = {n: (venv / 'bin' / n).read_text() for n in ('activate.fish', 'activate.csh')}
+    r = _bash(patch)   # idempotent
+    assert r.returncode == 0, r.stderr
+    assert 'already up to date' in r.stdout
+    for name, text in once.items():
+        assert (venv / 'bin' / name).read_text() == text, name
+    return venv
+
+
+# the AMENT_PREFIX_PATH a shell sees (before: the value it had, '<unset>' for none) after
+# activate, deactivate, activate twice, deactivate
+def _expected(venv, before):
+    active = venv if before in ('<unset>', '') else (
+        before if before.startswith(venv + ':') else f'{venv}:{before}')
+    return [active, before, active, before]
+
+
+BEFORE = ('<unset>', '/opt/ros/jazzy', '', '{venv}:/opt/ros/jazzy')
+
+
+def _shell_env(before, venv):
+    env = {'VIRTUAL_ENV_DISABLE_PROMPT': '1'}
+    if before != '<unset>':
+        env['AMENT_PREFIX_PATH'] = before.format(venv=venv)
+    return env
+
+
+def test_setup_patches_activate_fish(tmp_path):
+    # activate.fish was not patched: fish users got no AMENT_PREFIX_PATH, and ament_index
+    # lookups of beo_interfaces and beo_ros failed
+    import shutil
+    venv = _patched_venv(tmp_path)
+    act = venv / 'bin' / 'activate.fish'
+    text = act.read_text()
+    assert text.count('# >>> beo_ros >>>') == 2   # the restore in deactivate, the export
+    lines = text.splitlines()
+    start = next(n for n, ln in enumerate(lines) if ln.startswith('function deactivate'))
+    assert 'restore AMENT_PREFIX_PATH' in lines[start + 1]
+    assert 'set -gx AMENT_PREFIX_PATH "$VIRTUAL_ENV" $AMENT_PREFIX_PATH' in text
+    fish = shutil.which('fish')
+    if fish is None:
+        return   # the text is checked; fish itself is not installed
+    assert _run([fish, '--no-execute', str(act)]).returncode == 0
+    show = "printenv AMENT_PREFIX_PATH; or echo '<unset>'\n"
+    script = (f'source {act}\n' + show + 'deactivate\n' + show
+              + f'source {act}\nsource {act}\n' + show + 'deactivate\n' + show
+              + "echo leftover: (set -n | string match '_BEO*' | count)\n")
+    for before in BEFORE:
+        r = _run([fish, '--no-config', '-c', script], **_shell_env(before, venv))
+        assert r.returncode == 0, r.stderr
+        want = _expected(str(venv), before.format(venv=venv)) + ['leftover: 0']
+        assert r.stdout.splitlines() == want, before
+
+
+def test_setup_patches_activate_csh(tmp_path):
+    # activate.csh was not patched (as activate.fish)
+    import shutil
+    venv = _patched_venv(tmp_path)
+    act = venv / 'bin' / 'activate.csh'
+    text = act.read_text()
+    assert text.count('# >>> beo_ros >>>') == 1   # the export; the restore is in the alias
+    alias = [ln for ln in text.splitlines() if ln.startswith('alias deactivate ')]
+    assert len(alias) == 1 and alias[0].count('_BEO_OLD_AMENT_PREFIX_PATH"') == 1, alias
+    assert alias[0].startswith("alias deactivate 'test $?_BEO_OLD_AMENT_PREFIX_PATH != 0 && ")
+    assert alias[0].endswith("&& unalias deactivate'")   # the venv's own part is kept
+    csh = shutil.which('tcsh') or shutil.which('csh')
+    if csh is None:
+        return   # the text is checked; no csh installed
+    show = 'printenv AMENT_PREFIX_PATH || echo "<unset>"\n'
+    script = ('set prompt="> "\n'   # a non-interactive csh has none; activate.csh reads it
+              f'source {act}\n' + show + 'deactivate\n' + show
+              + f'source {act}\nsource {act}\n' + show + 'deactivate\n' + show
+              + "echo leftover: `set | grep '^_BEO' | wc -l`\n")
+    for before in BEFORE:
+        r = _run([csh, '-f', '-c', script], **_shell_env(before, venv))
+        assert r.returncode == 0, r.stderr
+        want = _expected(str(venv), before.format(venv=venv)) + ['leftover: 0']
+        assert r.stdout.splitlines() == want, (before, r.stderr)
+
+
+# --- scripts/test and .ci/run in a scratch clone --------------------------------------------
+
+def _scratch_clone(tmp_path):
+    """A clone with scripts/test, .ci/run, test/test_a.py and a .venv/bin/python that prints
+    its working directory and arguments (one a line)."""
+    import shutil
+    root = tmp_path / 'clone'
+    for d in ('scripts', 'test', '.ci', '.venv/bin'):
+        (root / d).mkdir(parents=True, exist_ok=True)
+    shutil.copy(ROOT / 'scripts' / 'test', root / 'scripts' / 'test')
+    shutil.copy(ROOT / '.ci' / 'run', root / '.ci' / 'run')
+    (root / 'test' / 'test_a.py').write_text('')
+    py = root / '.venv' / 'bin' / 'python'
+    py.write_text('#!/bin/sh\npwd\nfor a in "$@"; do echo "$a"; done\n')
+    py.chmod(0o755)
+    return root
+
+
+def _pytest_args(root, cwd, *args):
+    """The arguments scripts/test of the scratch clone ``root``, run in ``cwd``, gives pytest."""
+    import shutil
+    import subprocess
+    bash = shutil.which('bash')
+    if bash is None:
+        pytest.skip('no bash')
+    r = subprocess.run([bash, str(root / 'scripts' / 'test'), *args], cwd=cwd,
+                       capture_output=True, text=True, timeout=60,
+                       env={'PATH': os.environ.get('PATH', '/usr/bin:/bin')})
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    assert lines[:4] == [str(root), '-m', 'pytest', '-q'], lines
+    return lines[4:]
+
+
+def test_scripts_test_option_values_are_no_test_targets(tmp_path):
+    # `scripts/test --deselect test/test_a.py::test_b` passed the node id as an absolute path,
+    # which pytest matches against no id (the test ran anyway), and dropped the default target
+    # test/ (pytest then collected the whole clone); so did the path after --ignore
+    root = _scratch_clone(tmp_path)
+    assert _pytest_args(root, root, '--deselect', 'test/test_a.py::test_b') == [
+        'test', '--deselect', 'test/test_a.py::test_b']
+    # from inside test/: the id relative to the caller's directory, made relative to the clone
+    assert _pytest_args(root, root / 'test', '--deselect', 'test_a.py::test_b', '-x') == [
+        'test', '--deselect', 'test/test_a.py::test_b', '-x']
+    assert _pytest_args(root, root, '--deselect', f'{root}/test/test_a.py::test_b') == [
+        'test', '--deselect', 'test/test_a.py::test_b']
+    assert _pytest_args(root, root / 'test', '--ignore', 'test_a.py') == [
+        'test', '--ignore', f'{root}/test/test_a.py']
+    # a test path given as well: that is the target, as before
+    assert _pytest_args(root, root, 'test/test_a.py', '--deselect', 'test/test_a.py::test_b') == [
+        f'{root}/test/test_a.py', '--deselect', 'test/test_a.py::test_b']
+
+
+def test_ci_run_passes_no_unusable_data_dir(tmp_path):
+    # with BEO_DATA_DIR naming no directory and no ../shared/data, .ci/run said 'no data
+    # directory' but passed the value on; run in the clone, the tests then read a relative
+    # one from there (clone/data below), a directory .ci/run had not checked
+    import shutil
+    import subprocess
+    bash = shutil.which('bash')
+    if bash is None:
+        pytest.skip('no bash')
+    root = _scratch_clone(tmp_path)
+    (root / 'data').mkdir()
+    for name in ('setup', 'test'):   # stand-ins that report what they were given
+        (root / 'scripts' / name).write_text(
+            f'#!/bin/sh\necho "{name}: ${{BEO_DATA_DIR-<unset>}}"\n')
+        (root / 'scripts' / name).chmod(0o755)
+    caller = tmp_path / 'elsewhere'
+    caller.mkdir()
+    r = subprocess.run([bash, str(root / '.ci' / 'run')], cwd=caller, capture_output=True,
+                       text=True, timeout=60,
+                       env={'PATH': os.environ.get('PATH', '/usr/bin:/bin'),
+                            'BEO_DATA_DIR': 'data'})
+    assert r.returncode == 0, r.stderr
+    assert 'setup: <unset>\n' in r.stdout and 'test: <unset>\n' in r.stdout, r.stdout
+    assert 'BEO_DATA_DIR=data is no directory: not used' in r.stdout
+
+
+def test_setup_keeps_the_cmake_cache_of_a_path_with_brackets(tmp_path):
+    # the prefix check read the venv path as a regex: in a clone under e.g. 'beo[2]' the cache
+    # never matched, was called stale and wiped, and every re-run rebuilt beo_interfaces
+    lines = SETUP.read_text().splitlines()
+    i = next(n for n, ln in enumerate(lines) if ln.startswith('# a cache from another location'))
+    j = lines.index('fi', i)
+    snippet = '\n'.join(lines[i:j + 1]) + '\n'
+    venv, build = tmp_path / 'beo[2] x' / '.venv', tmp_path / 'build'
+    build.mkdir()
+    cache = build / 'CMakeCache.txt'
+    cache.write_text(f'CMAKE_BUILD_TYPE:STRING=Release\nCMAKE_INSTALL_PREFIX:PATH={venv}\n')
+    r = _bash(f'VENV="{venv}"\nBUILD="{build}"\n' + snippet)
+    assert r.returncode == 0, r.stderr
+    assert 'stale' not in r.stdout and cache.exists()
+    cache.write_text('CMAKE_INSTALL_PREFIX:PATH=/elsewhere/.venv\n')   # another prefix: wiped
+    r = _bash(f'VENV="{venv}"\nBUILD="{build}"\n' + snippet)
+    assert r.returncode == 0, r.stderr
+    assert 'stale' in r.stdout and not cache.exists() and build.is_dir()
