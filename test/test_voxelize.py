@@ -411,6 +411,34 @@ def test_sensor_on_the_face_of_an_occupied_voxel_still_sees_free_space():
         assert g[3, 8, 8] == OCCUPIED
 
 
+def test_sensor_on_the_near_face_of_an_occupied_voxel_does_not_see_through_it():
+    # floor(o + 0.5) puts a sensor on a face into the voxel on its + side; that voxel, occupied
+    # with free space on the - side where the sensor is, was unblocked as the sensor's own
+    # voxel and what it hides read free
+    occ = np.zeros((16, 16, 16), bool)
+    occ[12, 4:12, 4:12] = True         # a wall behind the voxel
+    occ[3, 8, 8] = True                # the sensor sits on its -x face
+    shadow = (slice(4, 12), slice(7, 10), slice(7, 10))   # behind it (toward the wall)
+    for sensor in ((2.5, 8.0, 8.0), (2.5, 7.5, 8.0), (2.5, 8.5, 8.5)):
+        # a micron off the face, on the free side, the sensor sees the voxel's shadow
+        ref = label_free_unknown(occ, np.subtract(sensor, (1e-6, 0, 0)))
+        assert (ref[shadow] == UNKNOWN).sum() >= 24
+        g = label_free_unknown(occ, sensor)
+        np.testing.assert_array_equal(g[shadow], ref[shadow])
+        assert (g[:2, 6:10, 6:10] == FREE).all()   # in front of the sensor's free side
+    ref = label_free_unknown(occ, (2.5 - 1e-6, 8.0, 8.0))
+    # the same voxel as another object's (an occluder voxel) hides as much
+    wall = np.zeros_like(occ)
+    wall[12, 4:12, 4:12] = True
+    g = label_free_unknown(wall, (2.5, 8.0, 8.0), occluder_voxels=np.array([[3, 8, 8]]))
+    np.testing.assert_array_equal(g[shadow], ref[shadow])
+    # occupied on both sides (inside the object): the + side voxel is still its own, unblocked
+    solid = np.zeros_like(occ)
+    solid[2:4, 6:11, 6:11] = True
+    g = label_free_unknown(solid, (2.5, 8.0, 8.0))
+    assert (g[4:, 8, 8] == FREE).all() and (g[:2, 8, 8] == UNKNOWN).all()
+
+
 def test_a_self_return_does_not_blind_the_splats():
     # a sparse wall blocks rays as squares facing the sensor; a point in the sensor's own voxel
     # made a square right at the sensor that hid the whole view (0.1 voxel off), or, exactly at

@@ -11,6 +11,7 @@ Frames:
 """
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -244,6 +245,26 @@ def _relevant_occluders(occ_pts_grid: np.ndarray, origin_grid: np.ndarray, n: in
     return np.stack(np.unravel_index(key, span), axis=1) + lo
 
 
+def _own_voxel(o: np.ndarray, blocked: np.ndarray, occluder_voxels) -> np.ndarray | None:
+    """The voxel whose blocking :func:`label_free_unknown` ignores for a sensor at grid coords
+    ``o`` (3,): int (3,) the voxel holding it, ``floor(o + 0.5)``; None when the sensor lies
+    exactly on a face, edge or corner of a voxel that blocks nothing (it is in free space).
+
+    (``floor`` rounds a sensor on a face into the voxel on its + side: unblocking that one, when
+    it is occupied and the - side is free, let rays through it and read what it hides free.)"""
+    own = np.floor(o + 0.5).astype(int)
+    on_face = o + 0.5 == own
+    if not on_face.any():
+        return own
+    n = blocked.shape[0]
+    occ_set = set() if occluder_voxels is None else set(map(tuple, occluder_voxels.tolist()))
+    for v in itertools.product(*[(a - 1, a) if f else (a,) for a, f in zip(own, on_face)]):
+        inside = all(0 <= a < n for a in v)
+        if not (inside and blocked[v]) and v not in occ_set:
+            return None
+    return own
+
+
 def label_free_unknown(occupied: np.ndarray, origin_grid, close_holes: bool = True,
                        occluder_voxels=None, splats=None, splat_half: float = 0.0) -> np.ndarray:
     """Label a grid from its occupied voxels and the sensor position by ray casting.
@@ -278,14 +299,17 @@ def label_free_unknown(occupied: np.ndarray, origin_grid, close_holes: bool = Tr
         closed = ndimage.binary_closing(np.pad(occupied[box], 2), np.ones((3, 3, 3), bool))
         blocked[box] |= closed[2:-2, 2:-2, 2:-2]
     sensor_voxel = np.floor(o + 0.5).astype(int)
-    if np.all((sensor_voxel >= 0) & (sensor_voxel < n)):
-        blocked[tuple(sensor_voxel)] = False  # never block the sensor's own voxel
+    ov = None if occluder_voxels is None else np.asarray(occluder_voxels).reshape(-1, 3)
+    own = _own_voxel(o, blocked, ov)
+    if own is not None and np.all((own >= 0) & (own < n)):
+        blocked[tuple(own)] = False  # never block the sensor's own voxel
     out = np.full(occupied.shape, FREE, dtype=np.int8)
     verts, tris = cube_surface(blocked)
-    if occluder_voxels is not None and len(occluder_voxels):
+    if ov is not None and len(ov):
         # nor an occluder's (a cube around the sensor would hide the whole grid)
-        ov = np.asarray(occluder_voxels)
-        ov, ot = cube_soup(ov[np.any(ov != sensor_voxel, axis=1)])
+        if own is not None:
+            ov = ov[np.any(ov != own, axis=1)]
+        ov, ot = cube_soup(ov)
         verts, tris = np.concatenate([verts, ov]), np.concatenate([tris, ot + len(verts)])
     if splats is not None and len(splats) and splat_half > 0:
         # nor do points in it (a self-return would otherwise hide the whole view behind it)
