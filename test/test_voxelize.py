@@ -349,6 +349,19 @@ def test_label_free_unknown_integer_occupancy_is_a_mask():
         label_free_unknown(np.zeros((8, 8)), [0, 0, 0])
 
 
+@pytest.mark.parametrize('origin', [
+    (np.nan, 8.0, 8.0), (np.inf, 8.0, 8.0),   # every voxel read free
+    [[-10.0, 3.5, 3.5]],                       # broadcast as if (3,)
+    (-10.0, 3.5),                              # numpy's broadcast error
+    ('-10', '3.5', '3.5'),                     # strings parsed as numbers
+])
+def test_label_free_unknown_refuses_an_origin_that_is_no_point(origin):
+    occ = np.zeros((8, 8, 8), bool)
+    occ[4, 3:5, 3:5] = True
+    with pytest.raises(ValueError, match='origin_grid must be a finite 3-vector'):
+        label_free_unknown(occ, origin)
+
+
 def test_points_outside_a_metric_grid_are_refused():
     # millimetres for metres: every point fell outside the grid, which came back empty
     spec = GridSpec(16, units='metric', voxel_size=0.05)

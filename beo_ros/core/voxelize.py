@@ -18,7 +18,7 @@ import numpy as np
 import open3d as o3d
 from scipy import ndimage
 
-from .grid import FREE, OCCUPIED, UNKNOWN, GridSpec, unit_vector
+from .grid import FREE, OCCUPIED, UNKNOWN, GridSpec, real_array, unit_vector
 
 MIN_POINTS = 10
 MIN_EXTENT = 1e-6  # input units (m): points spanning no more than this are refused
@@ -290,7 +290,11 @@ def label_free_unknown(occupied: np.ndarray, origin_grid, close_holes: bool = Tr
         raise ValueError(f'occupied must be an (N, N, N) array, got shape {occupied.shape}')
     occupied = occupied.astype(bool)   # a 0/1 integer array would index, not mask, below
     n = occupied.shape[0]
-    o = np.asarray(origin_grid, dtype=np.float64)
+    o = real_array(origin_grid, 'origin_grid', 'a finite 3-vector')
+    if o.shape != (3,) or not np.isfinite(o).all():
+        # (NaN read every voxel free; (1, 3) broadcast, (2,) failed in a broadcast)
+        raise ValueError(f'origin_grid must be a finite 3-vector (grid index coordinates), got '
+                         f'{np.asarray(origin_grid).tolist()!r}')
     blocked = occupied.copy()
     if close_holes and occupied.any():
         nz = np.argwhere(occupied)  # close within the occupied bounding box only (faster)
