@@ -40,12 +40,15 @@ class ViewGrid:
         grid_to_input: float64 (4, 4), homogeneous grid index coords (i, j, k, 1) -> input frame.
         voxel_size_m: edge of one voxel in metres.
         n_points: number of finite input points that fell inside the grid.
+        n_below_table: points :func:`~beo_ros.core.scans.object_view` dropped for lying below
+            the table plane (0 from :func:`voxelize_view`).
     """
 
     grid: np.ndarray
     grid_to_input: np.ndarray
     voxel_size_m: float
     n_points: int
+    n_below_table: int = 0
 
     @property
     def input_to_grid(self) -> np.ndarray:
