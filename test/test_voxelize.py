@@ -324,6 +324,26 @@ def test_validation(kwargs, match):
         voxelize_view(**args)
 
 
+@pytest.mark.parametrize('kwargs, match', [
+    # parsed as numbers, taken as 0/1, or the imaginary part dropped with a warning only
+    (dict(points=box_front(100).astype(str)), 'points must be an'),
+    (dict(points=box_front(100) > 0.1), r'points must be an \(n, 3\) array of numbers, got bool'),
+    (dict(points=box_front(100) + 1j), 'points must be an'),
+    (dict(sensor_origin=['0', '0', '0']), 'sensor_origin must be a finite 3-vector'),
+    (dict(up=[False, False, True]), 'up must be a finite 3-vector'),
+    (dict(center=np.array([0.9, 0.0, 0.2]) + 0j), 'center must be a finite 3-vector'),
+])
+def test_values_that_are_no_real_numbers_are_refused(kwargs, match):
+    args = dict(points=box_front(100), sensor_origin=np.zeros(3), up=[0, 0, 1], spec=GridSpec(8))
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        voxelize_view(**args)
+    # integer and half-precision points are numbers
+    pts = np.round(box_front(100) * 1000).astype(np.int32)
+    assert voxelize_view(pts, np.zeros(3), [0, 0, 1], GridSpec(8)).n_points == 100
+    assert voxelize_view(pts.astype(np.float16), np.zeros(3), [0, 0, 1], GridSpec(8)).n_points
+
+
 def test_finite_points_of_none_with_min_points_0():
     from beo_ros.core.voxelize import finite_points
     for pts in (np.zeros((0, 3)), np.full((5, 3), np.nan)):
