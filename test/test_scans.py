@@ -267,6 +267,21 @@ def test_object_view_drops_points_below_the_table_and_keeps_the_floor_on_it():
             object_view(box, up, d, below_tol=bad)
 
 
+@pytest.mark.parametrize('kw, match', [
+    (dict(plane_d=np.nan), 'plane_d must be a finite number'),   # blamed 'floor'
+    (dict(plane_d=None), 'plane_d must be a finite number'),     # TypeError in float()
+    (dict(plane_d=np.array([0.5])), 'plane_d must be a finite number'),
+    (dict(stacked_tol=np.nan), 'stacked_tol must be a finite number'),   # never stacked
+    (dict(stacked_tol=-0.01), 'stacked_tol must be a finite number'),    # always stacked
+])
+def test_object_view_names_a_bad_plane_or_tolerance(kw, match):
+    scene, up, d = synthetic_scene()
+    args = dict(points=segment_objects(scene)[2], up=up, plane_d=d)
+    args.update(kw)
+    with pytest.raises(ValueError, match=match):
+        object_view(**args)
+
+
 @pytest.fixture(scope='module')
 def osd_scenes():
     files = sorted(OSD.glob('learn*.pcd')) if OSD.is_dir() else []

@@ -306,6 +306,14 @@ def object_view(points, up, plane_d: float, spec: GridSpec = TABLETOP_SPEC,
         raise ValueError(f'up must be a finite non-zero 3-vector, got {up!r}')
     if not 0 <= _real(below_tol) < np.inf:   # NaN for what is no real number
         raise ValueError(f'below_tol must be a finite number of metres >= 0, got {below_tol!r}')
+    # (NaN stacked_tol called no object stacked; a NaN plane_d was blamed on 'floor', an array
+    # or None failed in float())
+    if not 0 <= _real(stacked_tol) < np.inf:
+        raise ValueError(f'stacked_tol must be a finite number of metres >= 0, got '
+                         f'{stacked_tol!r}')
+    if not np.isfinite(_real(plane_d)):
+        raise ValueError(f'plane_d must be a finite number (the table plane up . p + plane_d '
+                         f'= 0), got {plane_d!r}')
     floor = -float(plane_d) / norm  # height of the plane along the unit up vector
     min_points = max(kw.get('min_points', MIN_POINTS), 1)
     pts = finite_points(points, min_points)
