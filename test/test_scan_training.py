@@ -184,6 +184,28 @@ def test_load_scan_objects_errors_name_the_scan_and_object(tmp_path):
         load_scan_objects([path])
 
 
+def test_points_below_the_table_are_dropped_counted_and_said(tmp_path):
+    # a segmentation leak under the table moved the object's grid floor down with it silently
+    from test_scans import synthetic_scene
+    from beo_ros.core.pcd import write_pcd
+    scene, up, d = synthetic_scene()
+    box = scene.labels == 20
+    leak = scene.points[box][:30].astype(np.float64)
+    leak -= np.outer(leak @ up + d + 0.04, up)   # 4 cm below the table
+    pts = np.r_[scene.points, leak.astype(np.float32)]
+    labels = np.r_[scene.labels, np.full(30, 20, np.uint32)]
+    ok = np.isfinite(pts).all(axis=1)
+    write_pcd(tmp_path / 'learn0.pcd', {'x': pts[ok, 0], 'y': pts[ok, 1], 'z': pts[ok, 2],
+                                        'label': labels[ok]})
+    with pytest.warns(UserWarning, match=r'learn0\.pcd: points more than 0\.01 m below the '
+                      r'table plane, dropped \(object id: points dropped/all 2: 30/3030\)'):
+        s = load_scan_objects([tmp_path / 'learn0.pcd'], 'box:0')
+    assert s.n_outside.tolist() == [0, 0]   # not counted as outside the grid too
+    c = (s.spec.size - 1) / 2
+    floor = s.grid_to_input[0] @ [c, c, -0.5, 1]
+    assert floor[:3] @ s.ups[0] + s.plane_d[0] == pytest.approx(0, abs=2e-3)
+
+
 def test_load_scan_objects_says_when_a_scene_has_no_objects(tmp_path, capsys):
     """A labelled scene with only table labels is skipped with a line, never silently."""
     from beo_ros.core.pcd import write_pcd

@@ -8,7 +8,7 @@ import pytest
 from beo_ros.core.grid import OCCUPIED, UNKNOWN, GridSpec
 from beo_ros.core.pcd import PCDError, write_pcd
 from beo_ros.core.scans import (
-    TABLETOP_SPEC, Scene, fit_table_plane, load_scene, object_view, scene_occluders,
+    TABLETOP_SPEC, Scene, ScanWarning, fit_table_plane, load_scene, object_view, scene_occluders,
     segment_objects)
 
 DATA = Path(os.environ.get('BEO_DATA_DIR')
@@ -232,6 +232,54 @@ def test_object_view_on_table_and_stacked():
     assert len(scene_occluders(scene, 3)) == 3000
     with pytest.raises(ValueError):
         object_view(objs[2], [0, 0, 0], d)
+
+
+def test_object_view_drops_points_below_the_table_and_keeps_the_floor_on_it():
+    # a segmentation leak 4 cm under the table moved the grid floor (and the object) down with
+    # it, voxelized under the object, without a word
+    scene, up, d = synthetic_scene()
+    box = segment_objects(scene)[2]
+    c = (TABLETOP_SPEC.size - 1) / 2
+    ref = object_view(box, up, d)
+    leak = box[:30] - np.outer(box[:30] @ up + d + 0.04, up)   # 4 cm below the table
+    with pytest.warns(ScanWarning, match=r'dropped 30 of 3030 object points lying more than '
+                      r'0\.01 m below the table plane \(down to 0\.04 m'):
+        v = object_view(np.r_[box, leak], up, d)
+    assert v.n_below_table == 30 and v.n_points == len(box)
+    assert (v.grid_to_input @ [c, c, -0.5, 1])[:3] @ up + d == pytest.approx(0, abs=1e-9)
+    np.testing.assert_array_equal(v.grid, ref.grid)
+    assert ref.n_below_table == 0
+    # within below_tol (the plane fit's noise) points stay and lower the floor, as before
+    near = box[:30] - np.outer(box[:30] @ up + d + 0.005, up)
+    w = object_view(np.r_[box, near], up, d)
+    assert w.n_below_table == 0 and w.n_points == len(box) + 30
+    assert (w.grid_to_input @ [c, c, -0.5, 1])[:3] @ up + d == pytest.approx(-0.005, abs=1e-9)
+    # below_tol 0 keeps the floor on the table
+    with pytest.warns(ScanWarning, match='dropped 30 of 3030'):
+        w = object_view(np.r_[box, near], up, d, below_tol=0)
+    np.testing.assert_array_equal(w.grid, ref.grid)
+    # nothing (or too little) left above the table: refused, not an object under it
+    with pytest.raises(ValueError, match=r'30 of the 30 points lie more than 0\.01 m below the '
+                       'table plane'):
+        object_view(leak, up, d)
+    for bad in (-0.01, np.nan, 'a', None):
+        with pytest.raises(ValueError, match='below_tol must be a finite number'):
+            object_view(box, up, d, below_tol=bad)
+
+
+@pytest.mark.parametrize('kw, match', [
+    (dict(plane_d=np.nan), 'plane_d must be a finite number'),   # blamed 'floor'
+    (dict(plane_d=None), 'plane_d must be a finite number'),     # TypeError in float()
+    (dict(plane_d=np.array([0.5])), 'plane_d must be a finite number'),
+    (dict(stacked_tol=np.nan), 'stacked_tol must be a finite number'),   # never stacked
+    (dict(stacked_tol=-0.01), 'stacked_tol must be a finite number'),    # always stacked
+])
+def test_object_view_names_a_bad_plane_or_tolerance(kw, match):
+    scene, up, d = synthetic_scene()
+    args = dict(points=segment_objects(scene)[2], up=up, plane_d=d)
+    args.update(kw)
+    with pytest.raises(ValueError, match=match):
+        object_view(**args)
 
 
 @pytest.fixture(scope='module')

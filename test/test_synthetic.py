@@ -162,3 +162,20 @@ def test_primitive_shapes():
     assert (X.sum(axis=1) > 50).all()
     X2, _, _ = primitive_shapes(N, 3)
     np.testing.assert_array_equal(X, X2)       # deterministic by default
+
+
+@pytest.mark.parametrize('call, match', [
+    (lambda occ: partial_view(occ[:, :, :4], 0.1, 0.3), r'occ must be \(N, N, N\)'),   # IndexError
+    (lambda occ: partial_view(occ, np.nan, 0.3), 'view angles must be finite'),   # garbage
+    (lambda occ: partial_view(occ, 0.1, 0.3, step=-1.0), 'step must be a positive'),
+    (lambda occ: render_view_points(occ, 0.0, 0.1, np.nan), 'view angles must be finite'),
+    (lambda occ: render_surface_points(occ.astype(float), 0.5, np.nan, 0.1, 0.3),
+     'view angles must be finite'),                                     # 'arange: cannot ...'
+    (lambda occ: render_surface_points(occ.astype(float), 0.5, 0.0, 0.1, 0.3, ray_spacing=0),
+     'ray_spacing must be a positive'),                                 # divide by zero
+])
+def test_views_refuse_what_is_no_view(call, match):
+    occ = np.zeros((8, 8, 8), bool)
+    occ[3:5, 3:5, 3:5] = True
+    with pytest.raises(ValueError, match=match):
+        call(occ)

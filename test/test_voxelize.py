@@ -324,6 +324,26 @@ def test_validation(kwargs, match):
         voxelize_view(**args)
 
 
+@pytest.mark.parametrize('kwargs, match', [
+    # parsed as numbers, taken as 0/1, or the imaginary part dropped with a warning only
+    (dict(points=box_front(100).astype(str)), 'points must be an'),
+    (dict(points=box_front(100) > 0.1), r'points must be an \(n, 3\) array of numbers, got bool'),
+    (dict(points=box_front(100) + 1j), 'points must be an'),
+    (dict(sensor_origin=['0', '0', '0']), 'sensor_origin must be a finite 3-vector'),
+    (dict(up=[False, False, True]), 'up must be a finite 3-vector'),
+    (dict(center=np.array([0.9, 0.0, 0.2]) + 0j), 'center must be a finite 3-vector'),
+])
+def test_values_that_are_no_real_numbers_are_refused(kwargs, match):
+    args = dict(points=box_front(100), sensor_origin=np.zeros(3), up=[0, 0, 1], spec=GridSpec(8))
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        voxelize_view(**args)
+    # integer and half-precision points are numbers
+    pts = np.round(box_front(100) * 1000).astype(np.int32)
+    assert voxelize_view(pts, np.zeros(3), [0, 0, 1], GridSpec(8)).n_points == 100
+    assert voxelize_view(pts.astype(np.float16), np.zeros(3), [0, 0, 1], GridSpec(8)).n_points
+
+
 def test_finite_points_of_none_with_min_points_0():
     from beo_ros.core.voxelize import finite_points
     for pts in (np.zeros((0, 3)), np.full((5, 3), np.nan)):
@@ -347,6 +367,19 @@ def test_label_free_unknown_integer_occupancy_is_a_mask():
     np.testing.assert_array_equal(a, b)
     with pytest.raises(ValueError, match=r'occupied must be an \(N, N, N\)'):
         label_free_unknown(np.zeros((8, 8)), [0, 0, 0])
+
+
+@pytest.mark.parametrize('origin', [
+    (np.nan, 8.0, 8.0), (np.inf, 8.0, 8.0),   # every voxel read free
+    [[-10.0, 3.5, 3.5]],                       # broadcast as if (3,)
+    (-10.0, 3.5),                              # numpy's broadcast error
+    ('-10', '3.5', '3.5'),                     # strings parsed as numbers
+])
+def test_label_free_unknown_refuses_an_origin_that_is_no_point(origin):
+    occ = np.zeros((8, 8, 8), bool)
+    occ[4, 3:5, 3:5] = True
+    with pytest.raises(ValueError, match='origin_grid must be a finite 3-vector'):
+        label_free_unknown(occ, origin)
 
 
 def test_points_outside_a_metric_grid_are_refused():
@@ -409,6 +442,34 @@ def test_sensor_on_the_face_of_an_occupied_voxel_still_sees_free_space():
         assert (g[13:, 6:10, 6:10] == UNKNOWN).all()
         assert (g[:3, 7:10, 7:10] == UNKNOWN).all()   # behind the voxel it sits on
         assert g[3, 8, 8] == OCCUPIED
+
+
+def test_sensor_on_the_near_face_of_an_occupied_voxel_does_not_see_through_it():
+    # floor(o + 0.5) puts a sensor on a face into the voxel on its + side; that voxel, occupied
+    # with free space on the - side where the sensor is, was unblocked as the sensor's own
+    # voxel and what it hides read free
+    occ = np.zeros((16, 16, 16), bool)
+    occ[12, 4:12, 4:12] = True         # a wall behind the voxel
+    occ[3, 8, 8] = True                # the sensor sits on its -x face
+    shadow = (slice(4, 12), slice(7, 10), slice(7, 10))   # behind it (toward the wall)
+    for sensor in ((2.5, 8.0, 8.0), (2.5, 7.5, 8.0), (2.5, 8.5, 8.5)):
+        # a micron off the face, on the free side, the sensor sees the voxel's shadow
+        ref = label_free_unknown(occ, np.subtract(sensor, (1e-6, 0, 0)))
+        assert (ref[shadow] == UNKNOWN).sum() >= 24
+        g = label_free_unknown(occ, sensor)
+        np.testing.assert_array_equal(g[shadow], ref[shadow])
+        assert (g[:2, 6:10, 6:10] == FREE).all()   # in front of the sensor's free side
+    ref = label_free_unknown(occ, (2.5 - 1e-6, 8.0, 8.0))
+    # the same voxel as another object's (an occluder voxel) hides as much
+    wall = np.zeros_like(occ)
+    wall[12, 4:12, 4:12] = True
+    g = label_free_unknown(wall, (2.5, 8.0, 8.0), occluder_voxels=np.array([[3, 8, 8]]))
+    np.testing.assert_array_equal(g[shadow], ref[shadow])
+    # occupied on both sides (inside the object): the + side voxel is still its own, unblocked
+    solid = np.zeros_like(occ)
+    solid[2:4, 6:11, 6:11] = True
+    g = label_free_unknown(solid, (2.5, 8.0, 8.0))
+    assert (g[4:, 8, 8] == FREE).all() and (g[:2, 8, 8] == UNKNOWN).all()
 
 
 def test_a_self_return_does_not_blind_the_splats():

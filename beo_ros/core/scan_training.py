@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from .grid import GridSpec
-from .scans import (ScanWarning, fit_table_plane, label_summary, load_scene, object_view,
-                    scene_occluders, segment_objects)
+from .scans import (BELOW_TABLE_TOL, ScanWarning, fit_table_plane, label_summary, load_scene,
+                    object_view, scene_occluders, segment_objects)
 
 DEFAULT_SCAN_CLASSES = 'box:0-16,cylinder:33-44'
 
@@ -83,7 +83,8 @@ class ScanObjects:
         ups: float64 (m, 3) table normal (camera frame) of each object's scene.
         plane_d: float64 (m,) table offsets (up . p + d = 0).
         grid_to_input: float64 (m, 4, 4) grid index coords -> camera frame.
-        n_outside: int (m,) points of each object outside its grid (not voxelized).
+        n_outside: int (m,) points of each object outside its grid (not voxelized; those
+            dropped below the table plane, see :func:`~beo_ros.core.scans.object_view`, apart).
         scene_notes: scene name -> :func:`~beo_ros.core.scans.label_summary`
             (objects too small to use, points with labels 10-19, table points) of each scene
             of the classes.
@@ -169,9 +170,12 @@ def load_scan_objects(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32, voxel_s
             up, d = fit_table_plane(scene)
         except ValueError as exc:   # name the scan: the message alone does not
             raise ValueError(f'{p}: {exc}') from exc
+        below = {}
         for oid, pts in objs.items():
             try:
-                view = object_view(pts, up, d, spec, occluders=scene_occluders(scene, oid))
+                with warnings.catch_warnings():   # said below, per scene, naming the scan
+                    warnings.simplefilter('ignore', ScanWarning)
+                    view = object_view(pts, up, d, spec, occluders=scene_occluders(scene, oid))
             except ValueError as exc:
                 raise ValueError(f'{p}: object {oid}: {exc}') from exc
             g = view.grid
@@ -184,8 +188,15 @@ def load_scan_objects(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32, voxel_s
             ups.append(up)
             ds.append(d)
             T.append(view.grid_to_input)
-            outside.append(len(pts) - view.n_points)
+            outside.append(len(pts) - view.n_points - view.n_below_table)
+            below[oid] = view.n_below_table
         cut = {oid: n for oid, n in zip(oids[-len(objs):], outside[-len(objs):]) if n}
+        below = {oid: n for oid, n in below.items() if n}
+        if below:   # segmentation leaks under the table: they would have moved the grid floor
+            warnings.warn(f'{p}: points more than {BELOW_TABLE_TOL:g} m below the table plane, '
+                          'dropped (object id: points dropped/all ' + ', '.join(
+                              f'{k}: {n}/{len(objs[k])}' for k, n in below.items()) + ')',
+                          ScanWarning, stacklevel=2)
         if cut:   # a grid too small for the objects (e.g. --grid 16 at the default voxel size)
             warnings.warn(f'{p}: points outside the {spec.size}^3 grid of '
                           f'{spec.voxel_size:g} m voxels, not voxelized (object id: points '

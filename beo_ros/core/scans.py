@@ -15,9 +15,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import open3d as o3d
 
-from .grid import GridSpec, quaternion_matrix
+from .grid import GridSpec, _real, quaternion_matrix
 from .pcd import PCDError, read_pcd
-from .voxelize import MIN_POINTS, ViewGrid, voxelize_view
+from .voxelize import MIN_POINTS, ViewGrid, finite_points, voxelize_view
 
 TABLE_LABELS = (1, 9)  # inclusive range
 MIN_VIEW_ANGLE_DEG = 5.0  # a support plane seen at a shallower angle is refused
@@ -25,6 +25,8 @@ MIN_VIEW_ANGLE_DEG = 5.0  # a support plane seen at a shallower angle is refused
 # rows or columns) leave the plane's tilt about the strip free: refused
 MIN_WIDTH_THRESHOLDS = 3.0
 FIRST_OBJECT_LABEL = 20
+# metres: object points lower than this below the table plane are dropped (object_view)
+BELOW_TABLE_TOL = 0.01
 TABLETOP_SPEC = GridSpec(size=32, units='metric', voxel_size=0.5 / 32, anchor='bottom')
 IDENTITY_VIEWPOINT = np.array([0, 0, 0, 1, 0, 0, 0], dtype=np.float64)
 
@@ -276,7 +278,7 @@ def fit_table_plane(scene_or_points, labels=None, distance_threshold: float = 0.
 
 def object_view(points, up, plane_d: float, spec: GridSpec = TABLETOP_SPEC,
                 sensor_origin=(0.0, 0.0, 0.0), occluders=None, stacked_tol: float = 0.03,
-                **kw) -> ViewGrid:
+                below_tol: float = BELOW_TABLE_TOL, **kw) -> ViewGrid:
     """Voxelize one tabletop object standing on the table plane ``up . p + plane_d = 0``.
 
     Args:
@@ -287,6 +289,11 @@ def object_view(points, up, plane_d: float, spec: GridSpec = TABLETOP_SPEC,
             voxels they hide from the camera become unknown.
         stacked_tol: metres; when the object's lowest point is higher than this above the table
             (it stands on another object), its own lowest point is the grid floor instead.
+        below_tol: metres (>= 0); object points lower than this below the table plane
+            (segmentation leaks, noise) are dropped, with a :class:`ScanWarning`, and counted in
+            ``ViewGrid.n_below_table``; points less low are kept and the grid floor goes down to
+            the lowest of them (the plane fit's noise: 1 cm is ``fit_table_plane``'s band).
+            0 keeps the floor on the table.
         kw: passed to :func:`~beo_ros.core.voxelize.voxelize_view`.
 
     The grid floor is the table plane (for anchor 'bottom'); x, y follow the
@@ -297,13 +304,39 @@ def object_view(points, up, plane_d: float, spec: GridSpec = TABLETOP_SPEC,
     norm = np.linalg.norm(up)
     if up.shape != (3,) or not np.isfinite(up).all() or norm < 1e-9:
         raise ValueError(f'up must be a finite non-zero 3-vector, got {up!r}')
+    if not 0 <= _real(below_tol) < np.inf:   # NaN for what is no real number
+        raise ValueError(f'below_tol must be a finite number of metres >= 0, got {below_tol!r}')
+    # (NaN stacked_tol called no object stacked; a NaN plane_d was blamed on 'floor', an array
+    # or None failed in float())
+    if not 0 <= _real(stacked_tol) < np.inf:
+        raise ValueError(f'stacked_tol must be a finite number of metres >= 0, got '
+                         f'{stacked_tol!r}')
+    if not np.isfinite(_real(plane_d)):
+        raise ValueError(f'plane_d must be a finite number (the table plane up . p + plane_d '
+                         f'= 0), got {plane_d!r}')
     floor = -float(plane_d) / norm  # height of the plane along the unit up vector
-    pts = np.asarray(points, dtype=np.float64)
-    if pts.ndim == 2 and pts.shape[1] == 3:
-        h = pts[np.isfinite(pts).all(axis=1)] @ (up / norm)
-        if len(h) and h.min() - floor > stacked_tol:
-            floor = None
-    return voxelize_view(points, sensor_origin, up, spec, floor=floor, occluders=occluders, **kw)
+    min_points = max(kw.get('min_points', MIN_POINTS), 1)
+    pts = finite_points(points, min_points)
+    h = pts @ (up / norm)
+    # a point further below the table than its noise is no part of an object standing on it:
+    # it would move the grid floor (and the object) down with it
+    low = h < floor - below_tol
+    n_below = int(low.sum())
+    if n_below:
+        depth = floor - float(h.min())
+        if len(pts) - n_below < min_points:
+            raise ValueError(f'{n_below} of the {len(pts)} points lie more than {below_tol:g} m '
+                             f'below the table plane (down to {depth:.3g} m), leaving fewer '
+                             f'than {min_points}: not an object on this table (the wrong plane?)')
+        warnings.warn(f'dropped {n_below} of {len(pts)} object points lying more than '
+                      f'{below_tol:g} m below the table plane (down to {depth:.3g} m; '
+                      'segmentation leaks or noise)', ScanWarning, stacklevel=2)
+        pts, h = pts[~low], h[~low]
+    if h.min() - floor > stacked_tol:
+        floor = None
+    view = voxelize_view(pts, sensor_origin, up, spec, floor=floor, occluders=occluders, **kw)
+    view.n_below_table = n_below
+    return view
 
 
 def scene_occluders(scene: Scene, object_id: int) -> np.ndarray:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .grid import rotate_grid
+from .grid import _real, rotate_grid
 
 RAY_SAMPLES = 1 << 20   # ray samples of partial_view held at a time
 
@@ -20,12 +20,27 @@ def view_direction(azimuth, elevation):
     return np.array([ce * np.cos(azimuth), ce * np.sin(azimuth), np.sin(elevation)])
 
 
+def _check_view(*angles, **spacings):
+    """ValueError unless the ``angles`` (radians) are finite and the ``spacings`` (voxels)
+    positive and finite (NaN angles made NaN rays cast to garbage voxels, a zero spacing an
+    endless arange, a negative step a division by zero)."""
+    for a in angles:
+        if not np.isfinite(_real(a)):
+            raise ValueError(f'view angles must be finite numbers (radians), got {a!r}')
+    for name, v in spacings.items():
+        if not 0 < _real(v) < np.inf:
+            raise ValueError(f'{name} must be a positive number of voxels, got {v!r}')
+
+
 def partial_view(occ, azimuth, elevation, ray_spacing=0.5, step=0.5):
     """Label an (N, N, N) bool occupancy as seen orthographically from (azimuth, elevation).
 
     Returns int8 (N, N, N): 1 first hit, 0 free, -1 unknown (behind a hit).
     """
     occ = np.asarray(occ, dtype=bool)
+    if occ.ndim != 3 or len(set(occ.shape)) != 1:   # an IndexError deep in the rays before
+        raise ValueError(f'occ must be (N, N, N), got shape {occ.shape}')
+    _check_view(azimuth, elevation, ray_spacing=ray_spacing, step=step)
     n = occ.shape[0]
     c = (n - 1) / 2.0
     to_viewer = view_direction(azimuth, elevation)
@@ -116,6 +131,7 @@ def render_surface_points(field, level, yaw, azimuth, elevation, distance=2.0, s
     f = np.asarray(field, dtype=np.float32)
     if f.ndim != 3 or len(set(f.shape)) != 1:
         raise ValueError(f'field must be (N, N, N), got shape {f.shape}')
+    _check_view(yaw, azimuth, elevation, ray_spacing=ray_spacing, step=step)
     n = f.shape[0]
     scale = size / n
     c = (n - 1) / 2.0

@@ -11,13 +11,14 @@ Frames:
 """
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
 import open3d as o3d
 from scipy import ndimage
 
-from .grid import FREE, OCCUPIED, UNKNOWN, GridSpec, unit_vector
+from .grid import FREE, OCCUPIED, UNKNOWN, GridSpec, real_array, unit_vector
 
 MIN_POINTS = 10
 MIN_EXTENT = 1e-6  # input units (m): points spanning no more than this are refused
@@ -39,12 +40,15 @@ class ViewGrid:
         grid_to_input: float64 (4, 4), homogeneous grid index coords (i, j, k, 1) -> input frame.
         voxel_size_m: edge of one voxel in metres.
         n_points: number of finite input points that fell inside the grid.
+        n_below_table: points :func:`~beo_ros.core.scans.object_view` dropped for lying below
+            the table plane (0 from :func:`voxelize_view`).
     """
 
     grid: np.ndarray
     grid_to_input: np.ndarray
     voxel_size_m: float
     n_points: int
+    n_below_table: int = 0
 
     @property
     def input_to_grid(self) -> np.ndarray:
@@ -54,12 +58,22 @@ class ViewGrid:
 
 # ----------------------------------------------------------------------------------- validation
 
-def _check_points(points, min_points: int) -> np.ndarray:
+def _numbers(value):
+    """``value`` as an array if it holds real numbers (integers or floats), else None: a cast to
+    float parsed strings as numbers, took bools, dropped an imaginary part with a warning only."""
     try:
-        pts = np.asarray(points, dtype=np.float64)
-    except (TypeError, ValueError, OverflowError):   # a structured array, text, a dict, ...
+        a = np.asarray(value)
+    except ValueError:   # rows of different lengths
+        return None
+    return a if a.dtype.kind in 'iuf' else None
+
+
+def _check_points(points, min_points: int) -> np.ndarray:
+    a = _numbers(points)
+    if a is None:   # a structured array, text, bools, complex numbers, a dict, ragged rows, ...
         dtype = getattr(points, 'dtype', type(points).__name__)
-        raise ValueError(f'points must be an (n, 3) array of numbers, got {dtype}') from None
+        raise ValueError(f'points must be an (n, 3) array of numbers, got {dtype}')
+    pts = a.astype(np.float64, copy=False)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f'points must be an (n, 3) array, got shape {pts.shape}')
     pts = pts[np.isfinite(pts).all(axis=1)]
@@ -84,10 +98,10 @@ def unit_direction(v, name: str = 'up') -> np.ndarray:
 
 
 def _check_vec(v, name: str, unit: bool = False) -> np.ndarray:
-    try:
-        v = np.asarray(v, dtype=np.float64)
-    except (TypeError, ValueError, OverflowError):   # e.g. 'abc', [1, 'x', 2], None
-        raise ValueError(f'{name} must be a finite 3-vector, got {v!r}') from None
+    a = _numbers(v)
+    if a is None:   # e.g. 'abc', ['0', '0', '1'], [1, 'x', 2], None, bools
+        raise ValueError(f'{name} must be a finite 3-vector of numbers, got {v!r}')
+    v = a.astype(np.float64, copy=False)
     if v.shape != (3,) or not np.isfinite(v).all():
         raise ValueError(f'{name} must be a finite 3-vector, got {np.asarray(v)!r}')
     if unit:
@@ -244,6 +258,26 @@ def _relevant_occluders(occ_pts_grid: np.ndarray, origin_grid: np.ndarray, n: in
     return np.stack(np.unravel_index(key, span), axis=1) + lo
 
 
+def _own_voxel(o: np.ndarray, blocked: np.ndarray, occluder_voxels) -> np.ndarray | None:
+    """The voxel whose blocking :func:`label_free_unknown` ignores for a sensor at grid coords
+    ``o`` (3,): int (3,) the voxel holding it, ``floor(o + 0.5)``; None when the sensor lies
+    exactly on a face, edge or corner of a voxel that blocks nothing (it is in free space).
+
+    (``floor`` rounds a sensor on a face into the voxel on its + side: unblocking that one, when
+    it is occupied and the - side is free, let rays through it and read what it hides free.)"""
+    own = np.floor(o + 0.5).astype(int)
+    on_face = o + 0.5 == own
+    if not on_face.any():
+        return own
+    n = blocked.shape[0]
+    occ_set = set() if occluder_voxels is None else set(map(tuple, occluder_voxels.tolist()))
+    for v in itertools.product(*[(a - 1, a) if f else (a,) for a, f in zip(own, on_face)]):
+        inside = all(0 <= a < n for a in v)
+        if not (inside and blocked[v]) and v not in occ_set:
+            return None
+    return own
+
+
 def label_free_unknown(occupied: np.ndarray, origin_grid, close_holes: bool = True,
                        occluder_voxels=None, splats=None, splat_half: float = 0.0) -> np.ndarray:
     """Label a grid from its occupied voxels and the sensor position by ray casting.
@@ -269,7 +303,11 @@ def label_free_unknown(occupied: np.ndarray, origin_grid, close_holes: bool = Tr
         raise ValueError(f'occupied must be an (N, N, N) array, got shape {occupied.shape}')
     occupied = occupied.astype(bool)   # a 0/1 integer array would index, not mask, below
     n = occupied.shape[0]
-    o = np.asarray(origin_grid, dtype=np.float64)
+    o = real_array(origin_grid, 'origin_grid', 'a finite 3-vector')
+    if o.shape != (3,) or not np.isfinite(o).all():
+        # (NaN read every voxel free; (1, 3) broadcast, (2,) failed in a broadcast)
+        raise ValueError(f'origin_grid must be a finite 3-vector (grid index coordinates), got '
+                         f'{np.asarray(origin_grid).tolist()!r}')
     blocked = occupied.copy()
     if close_holes and occupied.any():
         nz = np.argwhere(occupied)  # close within the occupied bounding box only (faster)
@@ -278,14 +316,17 @@ def label_free_unknown(occupied: np.ndarray, origin_grid, close_holes: bool = Tr
         closed = ndimage.binary_closing(np.pad(occupied[box], 2), np.ones((3, 3, 3), bool))
         blocked[box] |= closed[2:-2, 2:-2, 2:-2]
     sensor_voxel = np.floor(o + 0.5).astype(int)
-    if np.all((sensor_voxel >= 0) & (sensor_voxel < n)):
-        blocked[tuple(sensor_voxel)] = False  # never block the sensor's own voxel
+    ov = None if occluder_voxels is None else np.asarray(occluder_voxels).reshape(-1, 3)
+    own = _own_voxel(o, blocked, ov)
+    if own is not None and np.all((own >= 0) & (own < n)):
+        blocked[tuple(own)] = False  # never block the sensor's own voxel
     out = np.full(occupied.shape, FREE, dtype=np.int8)
     verts, tris = cube_surface(blocked)
-    if occluder_voxels is not None and len(occluder_voxels):
+    if ov is not None and len(ov):
         # nor an occluder's (a cube around the sensor would hide the whole grid)
-        ov = np.asarray(occluder_voxels)
-        ov, ot = cube_soup(ov[np.any(ov != sensor_voxel, axis=1)])
+        if own is not None:
+            ov = ov[np.any(ov != own, axis=1)]
+        ov, ot = cube_soup(ov)
         verts, tris = np.concatenate([verts, ov]), np.concatenate([tris, ot + len(verts)])
     if splats is not None and len(splats) and splat_half > 0:
         # nor do points in it (a self-return would otherwise hide the whole view behind it)
