@@ -8,7 +8,7 @@ import shutil
 from pathlib import Path
 
 from beo_ros.ros.bag.msgtypes import (get_typestore, import_msg_class, msgtype_of,
-                                      normalize_msgtype)
+                                      normalize_msgtype, service_definition)
 
 STORAGES = ('sqlite3', 'mcap')
 
@@ -185,6 +185,8 @@ class BagWriter:
             if self._conns[topic].msgtype != msgtype:
                 raise ValueError(f'{topic}: already has type {self._conns[topic].msgtype}')
             return self._conns[topic]
+        if not (msgdef and rihs01) and msgtype.split('/')[1] == 'srv':
+            msgdef, rihs01 = service_definition(msgtype)   # rosbags has msg types only
         store = None if msgdef and rihs01 else get_typestore([msgtype])
         try:
             conn = self._writer.add_connection(
