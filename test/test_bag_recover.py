@@ -520,3 +520,35 @@ def test_mcap_channels_not_encoded_as_cdr_are_refused(tmp_path, capsys, keep_sig
     assert bag.recover_main([str(file), '-o', str(tmp_path / 'new')]) == 2
     assert capsys.readouterr().err == f'beo-bag-recover: {file}: {why}\n'
     assert not (tmp_path / 'new').exists()
+
+
+@pytest.mark.parametrize('storage', bag.STORAGES)
+@pytest.mark.parametrize('closed', [True, False])
+def test_an_mcap_topic_recorded_in_two_types_keeps_both(tmp_path, storage, closed):
+    """One topic, two mcap channels of different types (String and Int32 on /x). Before:
+    recover_bag failed with '/x: already has type std_msgs/msg/String' and made no bag; now
+    the new bag has a connection per type, and every message reads back as its own type."""
+    from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+    from rclpy.serialization import serialize_message
+    from std_msgs.msg import Int32, String
+    p = tmp_path / 'b'
+    w = Writer(p, version=Writer.VERSION_LATEST, storage_plugin=StoragePlugin.MCAP)
+    w.open()
+    store = bag.get_typestore(['std_msgs/msg/String', 'std_msgs/msg/Int32'])
+    a = w.add_connection('/x', 'std_msgs/msg/String', typestore=store)
+    b = w.add_connection('/x', 'std_msgs/msg/Int32', typestore=store)
+    for i in range(3):
+        w.write(a, 10 + 2 * i, serialize_message(String(data=str(i))))
+        w.write(b, 11 + 2 * i, serialize_message(Int32(data=i)))
+    w.close()
+    src = bag._bag_file(p)
+    if not closed:   # as a killed recording leaves it: no footer, no metadata.yaml
+        src.write_bytes(src.read_bytes()[:-37])
+        (p / 'metadata.yaml').unlink()
+    summary = bag.recover_bag(src, tmp_path / 'new', storage=storage)
+    assert summary['topics'] == {'/x': 6}
+    with Reader(tmp_path / 'new') as r:
+        assert sorted((c.topic, c.msgtype, c.msgcount) for c in r.connections) == [
+            ('/x', 'std_msgs/msg/Int32', 3), ('/x', 'std_msgs/msg/String', 3)]
+    assert [m for _, m, _ in bag.read_messages(tmp_path / 'new')] == [
+        m for i in range(3) for m in (String(data=str(i)), Int32(data=i))]

@@ -272,8 +272,10 @@ def _copy_messages(readable: Path, dst: Path, storage: str, unindexed: bool) -> 
                     definition = _own_definition(c)
                 except KeyError:   # none in the bag: the installed one
                     definition = {}
+                # a topic of two types (two mcap channels): both are kept
                 writer.add_topic(c.topic, c.msgtype, reliable=recorded_reliable(c),
-                                 transient_local=recorded_latched(c), **definition)
+                                 transient_local=recorded_latched(c), another_type=True,
+                                 **definition)
                 topics.setdefault(c.topic, 0)
                 if readable.suffix == '.mcap':   # no crc to tell a damaged message
                     checks[c.id] = _cdr_check(c, definition)

@@ -105,8 +105,9 @@ class BagWriter:
         self.storage = storage
         self._writer = Writer(self.path, version=Writer.VERSION_LATEST,
                               storage_plugin=_storage_plugin(storage))
-        self._conns = {}
-        self.counts = {}
+        self._conns = {}   # (topic, msgtype) -> connection
+        self._types = {}   # topic -> its (first) msgtype
+        self.counts = {}   # topic -> messages written, of all its types
         self.failed = False
         self._opened = False
         self.committed = 0   # messages made durable by the last commit()
@@ -176,15 +177,16 @@ class BagWriter:
 
     def add_topic(self, topic: str, msgtype: str, *, reliable: bool = True,
                   transient_local: bool = False, msgdef: str | None = None,
-                  rihs01: str | None = None):
-        """Add ``topic`` (once; another type for it is a ValueError). Its definition comes from
-        the typestore (KeyError for an unknown type), or is ``msgdef`` + ``rihs01`` as given
-        (copied from another bag)."""
+                  rihs01: str | None = None, another_type: bool = False):
+        """Add ``topic`` (once; another type for it is a ValueError, unless ``another_type``:
+        a topic recorded in two types, such as two channels of an mcap file, gets a connection
+        per type). Its definition comes from the typestore (KeyError for an unknown type), or
+        is ``msgdef`` + ``rihs01`` as given (copied from another bag)."""
         msgtype = normalize_msgtype(msgtype)
-        if topic in self._conns:
-            if self._conns[topic].msgtype != msgtype:
-                raise ValueError(f'{topic}: already has type {self._conns[topic].msgtype}')
-            return self._conns[topic]
+        if (topic, msgtype) in self._conns:
+            return self._conns[topic, msgtype]
+        if topic in self._types and not another_type:
+            raise ValueError(f'{topic}: already has type {self._types[topic]}')
         if not (msgdef and rihs01) and msgtype.split('/')[1] == 'srv':
             msgdef, rihs01 = service_definition(msgtype)   # rosbags has msg types only
         store = None if msgdef and rihs01 else get_typestore([msgtype])
@@ -196,23 +198,27 @@ class BagWriter:
         except storage_errors():
             self.failed = True
             raise
-        self._conns[topic] = conn
-        self.counts[topic] = 0
+        self._conns[topic, msgtype] = conn
+        self._types.setdefault(topic, msgtype)
+        self.counts.setdefault(topic, 0)
         return conn
 
     def write(self, topic: str, msg, stamp_ns: int, msgtype: str | None = None):
         """Write one message; ``msg`` is an rclpy message, or CDR bytes with ``msgtype`` given."""
         if isinstance(msg, (bytes, bytearray, memoryview)):
-            if msgtype is None and topic not in self._conns:
+            if msgtype is None and topic not in self._types:
                 raise ValueError('raw bytes need msgtype for a new topic')
             data = bytes(msg)
         else:
             from rclpy.serialization import serialize_message
             msgtype = msgtype or msgtype_of(msg)
             data = serialize_message(msg)
-        conn = self._conns.get(topic)
-        if conn is None or (msgtype is not None and msgtype != conn.msgtype):
-            # add_topic refuses a type other than the topic's: the bag would not deserialize
+        if msgtype is None:
+            msgtype = self._types[topic]
+        conn = self._conns.get((topic, normalize_msgtype(msgtype)))
+        if conn is None:
+            # add_topic refuses a type other than the topic's (unless added as another_type):
+            # the bag would not deserialize
             conn = self.add_topic(topic, msgtype)
         try:
             self._writer.write(conn, int(stamp_ns), data)
