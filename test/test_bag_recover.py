@@ -550,5 +550,8 @@ def test_an_mcap_topic_recorded_in_two_types_keeps_both(tmp_path, storage, close
     with Reader(tmp_path / 'new') as r:
         assert sorted((c.topic, c.msgtype, c.msgcount) for c in r.connections) == [
             ('/x', 'std_msgs/msg/Int32', 3), ('/x', 'std_msgs/msg/String', 3)]
+    # (bag_info used to say std_msgs/msg/String, count 6)
+    assert bag.bag_info(tmp_path / 'new')['topics'] == {
+        '/x': {'type': 'std_msgs/msg/String, std_msgs/msg/Int32', 'count': 6}}
     assert [m for _, m, _ in bag.read_messages(tmp_path / 'new')] == [
         m for i in range(3) for m in (String(data=str(i)), Int32(data=i))]

@@ -531,12 +531,15 @@ def read_messages(bag_path, topics=None):
 
 
 def bag_info(bag_path) -> dict:
-    """Storage, duration and ``{topic: {'type', 'count'}}`` of a bag."""
+    """Storage, duration and ``{topic: {'type', 'count'}}`` of a bag; a topic recorded in
+    several types (mcap channels) has them all in 'type', comma-separated."""
     _check_readable(bag_path)
     with _reader(bag_path) as reader:
         topics = {}
         for c in reader.connections:
             d = topics.setdefault(c.topic, {'type': c.msgtype, 'count': 0})
+            if c.msgtype not in d['type'].split(', '):
+                d['type'] += f', {c.msgtype}'
             d['count'] += c.msgcount
         return {'path': str(bag_path), 'storage': detect_storage(bag_path),
                 'start_ns': reader.start_time if reader.message_count else 0,
