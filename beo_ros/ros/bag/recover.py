@@ -10,12 +10,11 @@ from pathlib import Path
 from beo_ros.ros.bag.msgtypes import (get_typestore, hash_rihs01, normalize_msgtype,
                                       types_from_msg)
 from beo_ros.ros.bag.recorder import BagWriteError
-from beo_ros.ros.bag.storage import (BagWriter, bad_qos, cdr_payload, hot_journal, not_cdr,
-                                     recorded_latched, recorded_reliable, storage_errors,
-                                     unmerged_wal)
+from beo_ros.ros.bag.storage import (MCAP_MAGIC, BagWriter, bad_qos, cdr_payload,
+                                     hot_journal, not_cdr, recorded_latched,
+                                     recorded_reliable, storage_errors, unmerged_wal)
 
 
-MCAP_MAGIC = b'\x89MCAP0\r\n'
 _MCAP_FOOTER_HEAD = b'\x02\x14' + bytes(7)   # opcode 2, length 20
 
 

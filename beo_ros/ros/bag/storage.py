@@ -311,18 +311,40 @@ def _check_split_files(bag_path, files: list):
                      'beo-bag-recover FILE -o NEW')
 
 
+MCAP_MAGIC = b'\x89MCAP0\r\n'   # an mcap file's first and last 8 bytes
+
+
+def _check_mcap_footer(bag_path):
+    """ValueError naming an mcap file of a bag (or the file itself) that starts as an mcap
+    file and does not end as one: a recording that was not closed, left without its footer.
+    rosbags says 'File end magic is invalid.'; beo-bag-recover reads it."""
+    p = Path(bag_path)
+    files = [p] if p.suffix == '.mcap' else (sorted(p.glob('*.mcap')) if p.is_dir() else [])
+    for f in files:
+        with contextlib.suppress(OSError), open(f, 'rb') as fh:
+            head = fh.read(8)
+            size = fh.seek(0, 2)
+            fh.seek(max(size - 8, 8))
+            if head == MCAP_MAGIC and fh.read(8) != MCAP_MAGIC:
+                raise ValueError(f'{f}: no mcap footer (a recording that was not closed?): '
+                                 f'make a closed bag of it with beo-bag-recover {f} -o NEW')
+
+
 def _check_readable(bag_path):
-    """ValueError for a .db3 left in the middle of a write (:func:`hot_journal`), or a bag
+    """ValueError for a .db3 left in the middle of a write (:func:`hot_journal`), an .mcap
+    file without its footer (:func:`_check_mcap_footer`), or a bag
     directory without metadata.yaml (a recording that was not closed), or whose metadata.yaml
     does not read or list all its files (:func:`_check_split_files`), saying what to do and
     naming the files; rosbags would call the directory itself the missing metadata file."""
     _check_no_hot_journal(bag_path)
     p = Path(bag_path)
     if not p.is_dir():
+        _check_mcap_footer(p)
         return
     files = sorted(f for f in p.iterdir() if f.suffix in ('.db3', '.mcap'))
     if (p / 'metadata.yaml').exists():
         _check_split_files(p, files)
+        _check_mcap_footer(p)
         return
     if len(files) > 1:
         raise ValueError(f'{bag_path}: no metadata.yaml (a recording that was not closed?); '
