@@ -567,6 +567,66 @@ def test_a_bag_with_a_service_event_topic_plays_and_recovers(ros_env_context, tm
     assert bag.msgtype_of(GetState_Event) == 'lifecycle_msgs/srv/GetState_Event'
 
 
+@pytest.mark.parametrize('storage', bag.STORAGES)
+def test_record_stores_a_service_event_topic_and_reads_it_back(ros_env_context, tmp_path,
+                                                               ros_interfaces, storage):
+    """The events of a service with introspection on (/<service>/_service_event, type
+    beo_interfaces/srv/Classify_Event). Before: record refused them ('no message definition
+    found for beo_interfaces/srv/Classify_Event': it looked for a .msg file, and rosbags'
+    parser files srv types under pkg/srv/msg/); now their definition comes from Classify.srv,
+    with rosidl's hash, and the bag reads back and recovers from its file alone."""
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import qos_profile_system_default
+    from rclpy.service_introspection import ServiceIntrospectionState
+    from rosbags.rosbag2 import Reader
+    from beo_interfaces.srv import Classify
+    server = rclpy.create_node('server', context=ros_env_context)
+    srv = server.create_service(Classify, '/classify_x',
+                                lambda req, resp: Classify.Response(success=req.has_up))
+    srv.configure_introspection(server.get_clock(), qos_profile_system_default,
+                                ServiceIntrospectionState.CONTENTS)
+    client = server.create_client(Classify, '/classify_x')
+    topic = '/classify_x/_service_event'
+    rec_node = rclpy.create_node('recorder', context=ros_env_context)
+    ready, result = threading.Event(), {}
+    th = threading.Thread(target=lambda: result.setdefault('s', bag.record(
+        rec_node, tmp_path / 'r', [f'{topic}:beo_interfaces/srv/Classify_Event'],
+        storage=storage, count=2, ready=ready)))
+    th.start()
+    assert ready.wait(10)
+    ex = SingleThreadedExecutor(context=ros_env_context)
+    ex.add_node(server)
+    future = client.call_async(Classify.Request(has_up=True))
+    ex.spin_until_future_complete(future, timeout_sec=10)
+    end = time.monotonic() + 20
+    while th.is_alive() and time.monotonic() < end:
+        ex.spin_once(timeout_sec=0.05)
+    th.join(10)
+    ex.shutdown()
+    assert not th.is_alive() and future.result().success
+    assert result['s'].topics == {topic: {'type': 'beo_interfaces/srv/Classify_Event',
+                                          'count': 2}}
+    events = [m for _, m, _ in bag.read_messages(tmp_path / 'r')]
+    assert [(e.info.event_type, len(e.request), len(e.response)) for e in events] == [
+        (1, 1, 0), (2, 0, 1)]   # REQUEST_RECEIVED, RESPONSE_SENT
+    assert events[0].request[0].has_up and events[1].response[0].success
+    with Reader(tmp_path / 'r') as r:
+        digest = r.connections[0].digest
+    from beo_ros.ros.bag.msgtypes import _find_msg_file
+    hashes = json.loads(_find_msg_file('beo_interfaces/srv/Classify').with_suffix('.json')
+                        .read_text())['type_hashes']
+    assert {'type_name': 'beo_interfaces/srv/Classify_Event', 'hash_string': digest} in hashes
+    # the bag's own definition, read without metadata.yaml (an mcap file has no hash: it is
+    # computed from the definition)
+    (tmp_path / 'r' / 'metadata.yaml').unlink()
+    from beo_ros.ros.bag.recover import _own_definition
+    with Reader(next((tmp_path / 'r').iterdir())) as r:
+        assert _own_definition(r.connections[0])['rihs01'] == digest
+    summary = bag.recover_bag(tmp_path / 'r', tmp_path / 'new')
+    assert summary['topics'] == {topic: 2}
+    assert [m.info.event_type for _, m, _ in bag.read_messages(tmp_path / 'new')] == [1, 2]
+
+
 @pytest.mark.parametrize('topic', ['/beo/up', 'beo/table_plane', '~/up'])
 def test_cli_pcd2bag_refuses_the_up_or_plane_topic_as_cloud_topic_before_reading(
         tmp_path, capsys, topic):

@@ -7,14 +7,14 @@ import os
 import shutil
 from pathlib import Path
 
-from beo_ros.ros.bag.msgtypes import get_typestore, normalize_msgtype
+from beo_ros.ros.bag.msgtypes import (get_typestore, hash_rihs01, normalize_msgtype,
+                                      types_from_msg)
 from beo_ros.ros.bag.recorder import BagWriteError
-from beo_ros.ros.bag.storage import (BagWriter, bad_qos, cdr_payload, hot_journal, not_cdr,
-                                     recorded_latched, recorded_reliable, storage_errors,
-                                     unmerged_wal)
+from beo_ros.ros.bag.storage import (MCAP_MAGIC, BagWriter, bad_qos, cdr_payload,
+                                     hot_journal, not_cdr, recorded_latched,
+                                     recorded_reliable, storage_errors, unmerged_wal)
 
 
-MCAP_MAGIC = b'\x89MCAP0\r\n'
 _MCAP_FOOTER_HEAD = b'\x02\x14' + bytes(7)   # opcode 2, length 20
 
 
@@ -271,8 +271,10 @@ def _copy_messages(readable: Path, dst: Path, storage: str, unindexed: bool) -> 
                     definition = _own_definition(c)
                 except KeyError:   # none in the bag: the installed one
                     definition = {}
+                # a topic of two types (two mcap channels): both are kept
                 writer.add_topic(c.topic, c.msgtype, reliable=recorded_reliable(c),
-                                 transient_local=recorded_latched(c), **definition)
+                                 transient_local=recorded_latched(c), another_type=True,
+                                 **definition)
                 topics.setdefault(c.topic, 0)
                 if readable.suffix == '.mcap':   # no crc to tell a damaged message
                     checks[c.id] = _cdr_check(c, definition)
@@ -306,12 +308,12 @@ def _copy_messages(readable: Path, dst: Path, storage: str, unindexed: bool) -> 
 def _cdr_check(conn, definition: dict):
     """A callable that raises for CDR bytes that do not deserialize as ``conn``'s type (the
     bag's own ``definition``, or the installed one), or None when the type does not parse."""
-    from rosbags.typesys import Stores, get_types_from_msg
+    from rosbags.typesys import Stores
     from rosbags.typesys import get_typestore as rosbags_typestore
     try:
         if definition:
             store = rosbags_typestore(Stores.EMPTY)
-            store.register(get_types_from_msg(definition['msgdef'], conn.msgtype))
+            store.register(types_from_msg(definition['msgdef'], conn.msgtype))
         else:
             store = get_typestore([conn.msgtype])
     except Exception:  # noqa: BLE001 - rosbags' parse errors have no common base
@@ -330,7 +332,7 @@ def _own_definition(conn) -> dict:
     without metadata.yaml has no hash: it is computed from the definition); KeyError when the
     bag has no ros2msg definition of it."""
     from rosbags.interfaces import MessageDefinitionFormat
-    from rosbags.typesys import Stores, get_types_from_msg
+    from rosbags.typesys import Stores
     from rosbags.typesys import get_typestore as rosbags_typestore
     msgdef = conn.msgdef
     if msgdef.format != MessageDefinitionFormat.MSG or not msgdef.data.strip():
@@ -340,8 +342,8 @@ def _own_definition(conn) -> dict:
     if not rihs01:
         try:
             store = rosbags_typestore(Stores.EMPTY)
-            store.register(get_types_from_msg(msgdef.data, conn.msgtype))
-            rihs01 = store.hash_rihs01(conn.msgtype)
+            store.register(types_from_msg(msgdef.data, conn.msgtype))
+            rihs01 = hash_rihs01(store, conn.msgtype)
         except Exception as e:  # noqa: BLE001 - rosbags' parse errors have no common base
             raise KeyError(f'{conn.msgtype}: the definition in the bag does not parse '
                            f'({e})') from None

@@ -8,7 +8,7 @@ import shutil
 from pathlib import Path
 
 from beo_ros.ros.bag.msgtypes import (get_typestore, import_msg_class, msgtype_of,
-                                      normalize_msgtype)
+                                      normalize_msgtype, service_definition)
 
 STORAGES = ('sqlite3', 'mcap')
 
@@ -105,8 +105,9 @@ class BagWriter:
         self.storage = storage
         self._writer = Writer(self.path, version=Writer.VERSION_LATEST,
                               storage_plugin=_storage_plugin(storage))
-        self._conns = {}
-        self.counts = {}
+        self._conns = {}   # (topic, msgtype) -> connection
+        self._types = {}   # topic -> its (first) msgtype
+        self.counts = {}   # topic -> messages written, of all its types
         self.failed = False
         self._opened = False
         self.committed = 0   # messages made durable by the last commit()
@@ -176,15 +177,18 @@ class BagWriter:
 
     def add_topic(self, topic: str, msgtype: str, *, reliable: bool = True,
                   transient_local: bool = False, msgdef: str | None = None,
-                  rihs01: str | None = None):
-        """Add ``topic`` (once; another type for it is a ValueError). Its definition comes from
-        the typestore (KeyError for an unknown type), or is ``msgdef`` + ``rihs01`` as given
-        (copied from another bag)."""
+                  rihs01: str | None = None, another_type: bool = False):
+        """Add ``topic`` (once; another type for it is a ValueError, unless ``another_type``:
+        a topic recorded in two types, such as two channels of an mcap file, gets a connection
+        per type). Its definition comes from the typestore (KeyError for an unknown type), or
+        is ``msgdef`` + ``rihs01`` as given (copied from another bag)."""
         msgtype = normalize_msgtype(msgtype)
-        if topic in self._conns:
-            if self._conns[topic].msgtype != msgtype:
-                raise ValueError(f'{topic}: already has type {self._conns[topic].msgtype}')
-            return self._conns[topic]
+        if (topic, msgtype) in self._conns:
+            return self._conns[topic, msgtype]
+        if topic in self._types and not another_type:
+            raise ValueError(f'{topic}: already has type {self._types[topic]}')
+        if not (msgdef and rihs01) and msgtype.split('/')[1] == 'srv':
+            msgdef, rihs01 = service_definition(msgtype)   # rosbags has msg types only
         store = None if msgdef and rihs01 else get_typestore([msgtype])
         try:
             conn = self._writer.add_connection(
@@ -194,23 +198,27 @@ class BagWriter:
         except storage_errors():
             self.failed = True
             raise
-        self._conns[topic] = conn
-        self.counts[topic] = 0
+        self._conns[topic, msgtype] = conn
+        self._types.setdefault(topic, msgtype)
+        self.counts.setdefault(topic, 0)
         return conn
 
     def write(self, topic: str, msg, stamp_ns: int, msgtype: str | None = None):
         """Write one message; ``msg`` is an rclpy message, or CDR bytes with ``msgtype`` given."""
         if isinstance(msg, (bytes, bytearray, memoryview)):
-            if msgtype is None and topic not in self._conns:
+            if msgtype is None and topic not in self._types:
                 raise ValueError('raw bytes need msgtype for a new topic')
             data = bytes(msg)
         else:
             from rclpy.serialization import serialize_message
             msgtype = msgtype or msgtype_of(msg)
             data = serialize_message(msg)
-        conn = self._conns.get(topic)
-        if conn is None or (msgtype is not None and msgtype != conn.msgtype):
-            # add_topic refuses a type other than the topic's: the bag would not deserialize
+        if msgtype is None:
+            msgtype = self._types[topic]
+        conn = self._conns.get((topic, normalize_msgtype(msgtype)))
+        if conn is None:
+            # add_topic refuses a type other than the topic's (unless added as another_type):
+            # the bag would not deserialize
             conn = self.add_topic(topic, msgtype)
         try:
             self._writer.write(conn, int(stamp_ns), data)
@@ -303,18 +311,40 @@ def _check_split_files(bag_path, files: list):
                      'beo-bag-recover FILE -o NEW')
 
 
+MCAP_MAGIC = b'\x89MCAP0\r\n'   # an mcap file's first and last 8 bytes
+
+
+def _check_mcap_footer(bag_path):
+    """ValueError naming an mcap file of a bag (or the file itself) that starts as an mcap
+    file and does not end as one: a recording that was not closed, left without its footer.
+    rosbags says 'File end magic is invalid.'; beo-bag-recover reads it."""
+    p = Path(bag_path)
+    files = [p] if p.suffix == '.mcap' else (sorted(p.glob('*.mcap')) if p.is_dir() else [])
+    for f in files:
+        with contextlib.suppress(OSError), open(f, 'rb') as fh:
+            head = fh.read(8)
+            size = fh.seek(0, 2)
+            fh.seek(max(size - 8, 8))
+            if head == MCAP_MAGIC and fh.read(8) != MCAP_MAGIC:
+                raise ValueError(f'{f}: no mcap footer (a recording that was not closed?): '
+                                 f'make a closed bag of it with beo-bag-recover {f} -o NEW')
+
+
 def _check_readable(bag_path):
-    """ValueError for a .db3 left in the middle of a write (:func:`hot_journal`), or a bag
+    """ValueError for a .db3 left in the middle of a write (:func:`hot_journal`), an .mcap
+    file without its footer (:func:`_check_mcap_footer`), or a bag
     directory without metadata.yaml (a recording that was not closed), or whose metadata.yaml
     does not read or list all its files (:func:`_check_split_files`), saying what to do and
     naming the files; rosbags would call the directory itself the missing metadata file."""
     _check_no_hot_journal(bag_path)
     p = Path(bag_path)
     if not p.is_dir():
+        _check_mcap_footer(p)
         return
     files = sorted(f for f in p.iterdir() if f.suffix in ('.db3', '.mcap'))
     if (p / 'metadata.yaml').exists():
         _check_split_files(p, files)
+        _check_mcap_footer(p)
         return
     if len(files) > 1:
         raise ValueError(f'{bag_path}: no metadata.yaml (a recording that was not closed?); '
@@ -523,12 +553,15 @@ def read_messages(bag_path, topics=None):
 
 
 def bag_info(bag_path) -> dict:
-    """Storage, duration and ``{topic: {'type', 'count'}}`` of a bag."""
+    """Storage, duration and ``{topic: {'type', 'count'}}`` of a bag; a topic recorded in
+    several types (mcap channels) has them all in 'type', comma-separated."""
     _check_readable(bag_path)
     with _reader(bag_path) as reader:
         topics = {}
         for c in reader.connections:
             d = topics.setdefault(c.topic, {'type': c.msgtype, 'count': 0})
+            if c.msgtype not in d['type'].split(', '):
+                d['type'] += f', {c.msgtype}'
             d['count'] += c.msgcount
         return {'path': str(bag_path), 'storage': detect_storage(bag_path),
                 'start_ns': reader.start_time if reader.message_count else 0,
