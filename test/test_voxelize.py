@@ -1,4 +1,6 @@
 """voxelize_view: occupied/free/unknown labelling, frame conventions, placement, validation."""
+import warnings
+
 import numpy as np
 import pytest
 
@@ -169,6 +171,19 @@ def test_occluders_hide_space_behind_them():
     # far-away occluders behind the sensor change nothing
     c = voxelize_view(pts, np.zeros(3), [0, 0, 1], spec, occluders=wall * [-1, 1, 1] - [5, 0, 0])
     np.testing.assert_array_equal(c.grid, a.grid)
+
+
+def test_occluder_points_too_far_for_a_voxel_index_change_nothing():
+    # 1e300 m has no int64 voxel index: the cast warned ("invalid value encountered in cast")
+    # before the distance test dropped the point
+    pts = box_front()
+    spec = GridSpec(N, units='metric', voxel_size=0.02)
+    a = voxelize_view(pts, np.zeros(3), [0, 0, 1], spec)
+    far = np.array([[1e300, 0.0, 0.0], [0.0, -1e300, 1e300]])
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        b = voxelize_view(pts, np.zeros(3), [0, 0, 1], spec, occluders=far)
+    np.testing.assert_array_equal(b.grid, a.grid)
 
 
 def test_points_outside_the_grid_still_hide_what_is_behind_them():

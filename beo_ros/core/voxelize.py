@@ -235,11 +235,14 @@ def facing_squares(points: np.ndarray, origin: np.ndarray, half: float) -> tuple
 
 def _relevant_occluders(occ_pts_grid: np.ndarray, origin_grid: np.ndarray, n: int) -> np.ndarray:
     """Unique voxel indices (k, 3) of occluder points that may lie between sensor and grid."""
-    idx = np.floor(occ_pts_grid + 0.5).astype(np.int64)
     c = np.full(3, (n - 1) / 2.0)
     radius = np.sqrt(3) * n / 2.0 + 1.0  # bounding sphere of the grid (+ one voxel)
     to_c = c - origin_grid
     dc = np.linalg.norm(to_c)
+    # points beyond the box around the sphere below go first: one 1e300 away has no int64
+    # voxel index and overflows the norm (numpy warned about both)
+    near = np.all(np.abs(occ_pts_grid - origin_grid) <= dc + radius + 1.0, axis=1)
+    idx = np.floor(occ_pts_grid[near] + 0.5).astype(np.int64)
     d = idx - origin_grid
     dist = np.linalg.norm(d, axis=1)
     keep = dist <= dc + radius
