@@ -678,3 +678,16 @@ def test_a_relative_bag_topic_is_type_checked_by_its_full_name(ros_env_context, 
         w.write('both', String(data='x'), 11)
     with pytest.raises(KeyError, match='would both be played on /both'):
         bag.replay(q, player, all_topics=True, rate=0)
+    # one topic recorded in two types (as recover keeps two mcap channels): before, the advice
+    # was to remap one of them, which cannot part two types of one topic
+    t = tmp_path / 't'
+    with bag.BagWriter(t, 'mcap') as w:
+        w.add_topic('/two', 'std_msgs/msg/Int32')
+        w.add_topic('/two', 'std_msgs/msg/String', another_type=True)
+        w.write('/two', Int32(data=1), 10)
+        w.write('/two', String(data='x'), 11)
+        w.write('/one', Int32(data=2), 12)
+    with pytest.raises(KeyError, match=r'/two was recorded in two types \(std_msgs/msg/Int32, '
+                                       r'std_msgs/msg/String\) and one topic plays in one type'):
+        bag.replay(t, player, all_topics=True, rate=0)
+    assert bag.replay(t, player, topics='/one', rate=0).messages == 1

@@ -228,6 +228,9 @@ def _check_output_types(node, conns, remap) -> None:
         out = node.resolve_topic_name(remap.get(c.topic, c.topic))
         if outs.setdefault(out, (c.msgtype, c.topic))[0] != c.msgtype:
             typ, first = outs[out]
+            if first == c.topic:   # two channels of one mcap topic: a remap cannot part them
+                raise KeyError(f'{c.topic} was recorded in two types ({typ}, {c.msgtype}) and '
+                               'one topic plays in one type: leave it out of the topics played')
             raise KeyError(f'{first} ({typ}) and {c.topic} ({c.msgtype}) would both be played '
                            f'on {out}: one topic has one type; remap one of them elsewhere')
     graph = dict(node.get_topic_names_and_types())
