@@ -2304,6 +2304,29 @@ def test_estimate_refuses_a_yaw_that_is_not_a_finite_number(tiny, yaw):
         assert bank.estimate(grid, yaw=big).yaw == pytest.approx(wrap_yaw(float(big)))
 
 
+@pytest.mark.parametrize('kw', [dict(grid=None), dict(yaw=np.timedelta64(1, 's')),
+                                dict(yaw_step_deg=np.timedelta64(5)),
+                                dict(search_step_deg=np.timedelta64(5)),
+                                dict(n_hypotheses=np.timedelta64(2)),
+                                dict(stage2_modes=np.timedelta64(2)),
+                                dict(probe_deg=np.timedelta64(10)),
+                                dict(probe_deg=[10, np.timedelta64(20)])])
+def test_estimate_refuses_durations_which_numpy_counts_as_integers(tiny, kw):
+    # np.timedelta64 is an np.integer: a grid of them was estimated, a duration as yaw or step
+    # raised numpy's TypeError, one as count or probe offset was taken
+    n = tiny.spec.size
+    grid = np.zeros((n,) * 3, dtype=np.int8)
+    grid[5:10, 5:10, 3:8] = 1
+    if 'grid' in kw:
+        kw = dict(grid=grid.astype('m8[s]'))
+        match = 'grid must be an integer array'
+    else:
+        kw = dict(kw, grid=grid)
+        match = next(iter(kw))
+    with pytest.raises(ValueError, match=match):
+        tiny.estimate(**kw)
+
+
 @pytest.mark.parametrize('kw', [dict(refine_deg=float('nan')), dict(refine_deg=-1),
                                 dict(refine_deg=1e9), dict(stage2_window_deg=float('nan')),
                                 dict(stage2_window_deg=-5), dict(n_hypotheses=-1),
