@@ -1965,6 +1965,18 @@ def test_class_prior_moves_the_probabilities_by_bayes_rule():
     assert bank.class_prior == pytest.approx([0, 0.5, 0.5])  # a refused value changes nothing
 
 
+def test_a_class_of_prior_0_without_training_rows_is_never_chosen():
+    # class 0 had no training rows (fit_logistic's intercept -30): its offset was 0, so it kept
+    # its probability, all of it when the other classes' logits fell far below
+    bank, feats = _prior_bank()
+    clf = dict(bank.classifier['complete'], class_counts=np.array([0.0, 2.0, 2.0]),
+               intercept=np.array([-30.0, 0.0, 0.0]))
+    bank = ModelBank(bank.models, bank.spec, {'complete': clf}, class_prior=[0, 1, 1])
+    feats[1:, 1] = -100.0
+    p = bank.classify_features(feats, 'complete')[0]
+    assert p[0] == 0 and p[1:] == pytest.approx([0.5, 0.5])
+
+
 def test_class_prior_without_class_counts_is_not_applied_and_the_estimate_says_so():
     bank, feats = _prior_bank()
     clf = {k: v for k, v in bank.classifier['complete'].items() if k != 'class_counts'}
