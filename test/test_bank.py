@@ -236,6 +236,19 @@ def test_check_grid(tiny):
             tiny.estimate(empty, yaw=np.nan)
 
 
+def test_every_estimate_field_is_documented(tiny):
+    # 'features' was not: documented as an attribute line or named in another one
+    import re
+    from beo_ros.core.estimate import Estimate
+    from beo_ros.core.inference import FEATURE_NAMES
+    doc = Estimate.__doc__
+    for f in dataclasses.fields(Estimate):
+        assert re.search(rf'^ {{8}}{f.name}:|``{f.name}``', doc, re.M), f.name
+    e = tiny.estimate(views()[1])
+    assert e.features.dtype == np.float64 and e.features.shape == (2, len(FEATURE_NAMES))
+    assert tiny.estimate(np.zeros((N,) * 3, np.int8)).features is None
+
+
 @pytest.mark.parametrize('fill', [0, -1])
 def test_grid_without_occupied_voxel_is_no_object(tiny, fill):
     # the protocol's view of a one-voxel object can lose it to the rotation: an answer (no
