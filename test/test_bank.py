@@ -236,6 +236,19 @@ def test_check_grid(tiny):
             tiny.estimate(empty, yaw=np.nan)
 
 
+def test_every_estimate_field_is_documented(tiny):
+    # 'features' was not: documented as an attribute line or named in another one
+    import re
+    from beo_ros.core.estimate import Estimate
+    from beo_ros.core.inference import FEATURE_NAMES
+    doc = Estimate.__doc__
+    for f in dataclasses.fields(Estimate):
+        assert re.search(rf'^ {{8}}{f.name}:|``{f.name}``', doc, re.M), f.name
+    e = tiny.estimate(views()[1])
+    assert e.features.dtype == np.float64 and e.features.shape == (2, len(FEATURE_NAMES))
+    assert tiny.estimate(np.zeros((N,) * 3, np.int8)).features is None
+
+
 @pytest.mark.parametrize('fill', [0, -1])
 def test_grid_without_occupied_voxel_is_no_object(tiny, fill):
     # the protocol's view of a one-voxel object can lose it to the rotation: an answer (no
@@ -1965,6 +1978,18 @@ def test_class_prior_moves_the_probabilities_by_bayes_rule():
     assert bank.class_prior == pytest.approx([0, 0.5, 0.5])  # a refused value changes nothing
 
 
+def test_a_class_of_prior_0_without_training_rows_is_never_chosen():
+    # class 0 had no training rows (fit_logistic's intercept -30): its offset was 0, so it kept
+    # its probability, all of it when the other classes' logits fell far below
+    bank, feats = _prior_bank()
+    clf = dict(bank.classifier['complete'], class_counts=np.array([0.0, 2.0, 2.0]),
+               intercept=np.array([-30.0, 0.0, 0.0]))
+    bank = ModelBank(bank.models, bank.spec, {'complete': clf}, class_prior=[0, 1, 1])
+    feats[1:, 1] = -100.0
+    p = bank.classify_features(feats, 'complete')[0]
+    assert p[0] == 0 and p[1:] == pytest.approx([0.5, 0.5])
+
+
 def test_class_prior_without_class_counts_is_not_applied_and_the_estimate_says_so():
     bank, feats = _prior_bank()
     clf = {k: v for k, v in bank.classifier['complete'].items() if k != 'class_counts'}
@@ -2302,6 +2327,29 @@ def test_estimate_refuses_a_yaw_that_is_not_a_finite_number(tiny, yaw):
     from beo_ros.core.grid import wrap_yaw
     for big in (2 ** 70, 1e300):
         assert bank.estimate(grid, yaw=big).yaw == pytest.approx(wrap_yaw(float(big)))
+
+
+@pytest.mark.parametrize('kw', [dict(grid=None), dict(yaw=np.timedelta64(1, 's')),
+                                dict(yaw_step_deg=np.timedelta64(5)),
+                                dict(search_step_deg=np.timedelta64(5)),
+                                dict(n_hypotheses=np.timedelta64(2)),
+                                dict(stage2_modes=np.timedelta64(2)),
+                                dict(probe_deg=np.timedelta64(10)),
+                                dict(probe_deg=[10, np.timedelta64(20)])])
+def test_estimate_refuses_durations_which_numpy_counts_as_integers(tiny, kw):
+    # np.timedelta64 is an np.integer: a grid of them was estimated, a duration as yaw or step
+    # raised numpy's TypeError, one as count or probe offset was taken
+    n = tiny.spec.size
+    grid = np.zeros((n,) * 3, dtype=np.int8)
+    grid[5:10, 5:10, 3:8] = 1
+    if 'grid' in kw:
+        kw = dict(grid=grid.astype('m8[s]'))
+        match = 'grid must be an integer array'
+    else:
+        kw = dict(kw, grid=grid)
+        match = next(iter(kw))
+    with pytest.raises(ValueError, match=match):
+        tiny.estimate(**kw)
 
 
 @pytest.mark.parametrize('kw', [dict(refine_deg=float('nan')), dict(refine_deg=-1),

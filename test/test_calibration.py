@@ -129,6 +129,18 @@ def test_metrics_by_hand():
     assert np.isnan(metrics_from_sums([])['brier'])
 
 
+@pytest.mark.parametrize('bins', [0, -2, 2.5, True, '10', None, np.timedelta64(10)])
+def test_metrics_refuse_a_bin_count_that_is_no_positive_integer(bins):
+    # numpy's errors before ('list' argument must have no negative elements, ...); the
+    # classifiers' expected calibration error was 0 for bins 0 (no bin)
+    from beo_ros.core.classifier_training import expected_calibration_error
+    for metric in (calibration_metrics, calibration_sums, expected_calibration_error):
+        with pytest.raises(ValueError, match='bins must be an integer >= 1'):
+            metric(np.array([0.2, 0.8]), np.array([False, True]), bins=bins)
+    assert calibration_metrics(np.array([0.2, 0.8]), np.array([False, True]), bins=1)['ece'] \
+        == pytest.approx(0.0)   # |0.5 - 0.5|
+
+
 def broken(key, value):
     cal = OccupancyCalibration().fit(*overconfident(5000, np.random.default_rng(2)))
     arrays = dict(cal.arrays_)

@@ -385,7 +385,7 @@ class ModelBank:
             if not np.isfinite(grid).all() or (grid != np.round(grid)).any():
                 raise ValueError('a float grid must hold the whole values 1 (occupied), 0 (free) '
                                  'or -1 (unknown)')
-        elif not np.issubdtype(grid.dtype, np.integer) and grid.dtype != bool:
+        elif grid.dtype.kind not in 'iub':   # not timedelta64, which numpy counts as integer
             raise ValueError(f'grid must be an integer array (1 occupied, 0 free, -1 unknown), '
                              f'got dtype {grid.dtype}')
         # checked before the cast to int8, which would wrap 255 to -1 and 257 to 1
@@ -946,6 +946,12 @@ def heading_offset(grid_rotation, up) -> float:
     return float(np.arctan2(np.cross(u, ref) @ g, ref @ g))
 
 
+# what the number checks refuse although isinstance(value, int / np.integer) holds: numpy counts
+# timedelta64 as an integer (a step of np.timedelta64(5) raised numpy's UFuncTypeError, a count
+# or probe offset of one was taken)
+_NOT_NUMBERS = (bool, np.bool_, np.timedelta64)
+
+
 def check_yaw(yaw):
     """``yaw`` as a float (radians), or None (search it); ValueError unless it is a finite
     real number or None."""
@@ -958,8 +964,7 @@ def check_yaw(yaw):
             raise ValueError(f'yaw must be finite, got an integer of {yaw.bit_length()} '
                              'bits') from None
     a = np.asarray(yaw) if not isinstance(yaw, (str, bytes)) else None
-    if a is None or a.ndim != 0 or a.dtype == bool or not np.issubdtype(a.dtype, np.number) \
-            or np.iscomplexobj(a):
+    if a is None or a.ndim != 0 or a.dtype.kind not in 'iuf':   # nor bool, complex, timedelta
         raise ValueError(f'yaw must be None or a number of radians, got {yaw!r}')
     if not np.isfinite(a):
         raise ValueError(f'yaw must be finite, got {yaw}')
@@ -970,7 +975,7 @@ def check_step(name, value):
     """Raise ValueError unless ``value`` is a real number of degrees in YAW_STEP_RANGE_DEG
     ([0.05, 90])."""
     lo, hi = YAW_STEP_RANGE_DEG
-    if isinstance(value, (bool, np.bool_)) \
+    if isinstance(value, _NOT_NUMBERS) \
             or not isinstance(value, (int, float, np.integer, np.floating)) \
             or not lo <= value <= hi:   # also refuses NaN
         raise ValueError(f'{name} must be a number of degrees in [{lo:g}, {hi:g}], got {value!r}')
@@ -978,7 +983,7 @@ def check_step(name, value):
 
 def check_count(name, value):
     """Raise ValueError unless ``value`` is an integer >= 0 (bool is not one)."""
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) \
+    if isinstance(value, _NOT_NUMBERS) or not isinstance(value, (int, np.integer)) \
             or value < 0:
         raise ValueError(f'{name} must be an integer >= 0, got {value!r}')
 
@@ -998,7 +1003,7 @@ def _probe_offsets(probe_deg):
         raise ValueError(f'probe_deg must be offsets in (0, 180] degrees, got '
                          f'{probe_deg!r}') from None
     if not all(isinstance(p, (int, float, np.floating, np.integer))
-               and not isinstance(p, bool) and 0 < p <= 180 for p in probe_deg):
+               and not isinstance(p, _NOT_NUMBERS) and 0 < p <= 180 for p in probe_deg):
         raise ValueError(f'probe_deg must be offsets in (0, 180] degrees, got {probe_deg}')
     return probe_deg
 

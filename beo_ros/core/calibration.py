@@ -31,6 +31,14 @@ def _check_inputs(p, occupied):
     return p, occupied.astype(bool)
 
 
+def check_bin_count(bins):
+    """Raise ValueError unless ``bins`` (of an equal-width binning of probabilities) is an
+    integer >= 1 (bool and numpy's timedelta64 are not one)."""
+    if isinstance(bins, (bool, np.bool_, np.timedelta64)) \
+            or not isinstance(bins, (int, np.integer)) or bins < 1:
+        raise ValueError(f'bins must be an integer >= 1, got {bins!r}')
+
+
 class OccupancyCalibration:
     """Isotonic calibration of occupancy probabilities, scikit-learn style.
 
@@ -143,6 +151,7 @@ def calibration_sums(p, occupied, bins=10):
     """What :func:`metrics_from_sums` needs of one set of voxels (JSON-ready): their number, the
     sums of their squared errors and log losses, and per equal-width probability bin the sums
     of the probabilities and of the truths and the count."""
+    check_bin_count(bins)   # else numpy's errors ('list' argument must have no negative ...)
     p, occupied = _check_inputs(p, occupied)
     t = occupied.astype(np.float64)
     q = np.clip(p, 1e-6, 1 - 1e-6)

@@ -183,14 +183,17 @@ def format_class_prior(classes, weights):
 def prior_offset(counts, prior):
     """Logit offsets (C,) that move a classifier from its training prior (its training rows
     per class, ``counts`` (C,)) to ``prior`` (C,) (Bayes' rule: p'(c|x) ~ p(c|x) prior_c /
-    train_c), or None when ``prior`` or ``counts`` is None."""
+    train_c), or None when ``prior`` or ``counts`` is None. A class without training rows gets
+    0, unless its prior is 0: every class of prior 0 gets -inf (never chosen)."""
     if prior is None or counts is None:
         return None
     counts = np.asarray(counts, dtype=np.float64)
     seen = counts > 0
     with np.errstate(divide='ignore'):
+        # a class of prior 0 that the classifier never saw got 0 and kept its probability
+        # (all of it when the other classes' logits fell below its intercept -30)
         off = np.where(seen, np.log(prior) - np.log(np.where(seen, counts, 1) / counts.sum()),
-                       0.0)
+                       np.where(np.asarray(prior) > 0, 0.0, -np.inf))
     return off
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .calibration import check_bin_count
 from .classifier import classifier_input, prior_offset, resolve_class_prior
 from .inference import FEATURE_NAMES
 
@@ -127,8 +128,9 @@ UNKNOWN_MADS = 8.0
 
 
 def expected_calibration_error(confidence, correct, bins=10):
-    """Expected calibration error: the mean over 10 equal-width confidence bins of
+    """Expected calibration error: the mean over ``bins`` equal-width confidence bins of
     |mean confidence - accuracy|, weighted by the share of rows in the bin."""
+    check_bin_count(bins)   # else 0 for bins 0 (no bin), numpy's TypeError for 2.5
     confidence, correct = np.asarray(confidence, dtype=np.float64), np.asarray(correct)
     edges = np.linspace(0.0, 1.0, bins + 1)
     ece = 0.0

@@ -11,8 +11,9 @@ UNKNOWN_LABEL = 'unknown'
 @dataclass
 class Hypothesis:
     """One (class, yaw) pose hypothesis; ``score`` is a pooled-grid log-likelihood (higher is
-    better; the chosen class's hypotheses are scored with all its components, so compare scores
-    within one class only)."""
+    better; the chosen class's hypotheses are scored with all its components, the other
+    classes' with the leading ``pose_components`` (every class's with a given yaw or
+    ``refine_deg`` 0: no refinement), so compare scores within one class only)."""
 
     label: str
     yaw: float
@@ -36,10 +37,11 @@ class Estimate:
         variance: float32 (N,N,N) predictive variance of the linear-Gaussian occupancy (0
             where seen). The model's own quantity, not a good uncertainty: on ModelNet10 views
             it ranks the wrong voxels little better than chance (see ``occupancy_variance``).
-        hypotheses: top (class, yaw) hypotheses: ``(label, yaw)`` first, then the chosen
-            class's other yaw modes, then the other classes' best. When the orientation
-            verifier turned the yaw by a quarter turn, the first one's score can be below the
-            likelihood's own choice, which is listed next.
+        hypotheses: top (class, yaw) hypotheses: ``(label, yaw)`` first (the best class's
+            name when label is 'unknown'), then the chosen class's other yaw modes, then the
+            other classes' best. When the orientation verifier turned the yaw by a quarter
+            turn, the first one's score can be below the likelihood's own choice, which is
+            listed next.
         symmetric_yaws: radians, the yaws that the completed shape cannot tell from ``yaw``:
             ``yaw`` + each quarter turn about +z that maps the completion (p >= 0.5) onto itself
             with IoU >= 0.9, turned about its footprint's centre (see
@@ -55,6 +57,9 @@ class Estimate:
             'complete' / 'partial' (the bank's classifier on the grid features),
             'max_likelihood' (no classifier for this case) or 'none' (the grid has no occupied
             voxel: label 'unknown', the class prior as scores, nothing completed).
+        features: float64 (C, F) the classification features of every class (rows in class
+            order, columns ``beo_ros.core.inference.FEATURE_NAMES``) at its stage-1 yaw (or the
+            given one), or None (the grid has no occupied voxel).
         point_features: float64 (2,) side-normal descriptors (r4, frac10) of the raw points
             (see :mod:`beo_ros.core.normals`), or None (not computed: no points, or the bank
             has no 'points' classifier); NaN when undefined for this cloud.
