@@ -190,3 +190,17 @@ def test_interface_fields_the_readme_names_exist():
     assert named and named <= estimate, named - estimate
     has = set(re.findall(r'`(has_[a-z_]+)`', text))
     assert has and has <= requests, has - requests
+
+
+def test_readme_layout_names_every_module_script_and_doc():
+    text = README.read_text()
+    layout = text[text.index('## Repository layout'):]
+    # beo_ros/{train,evaluate}.py names train.py and evaluate.py
+    layout = re.sub(r'\{([\w,]+)\}\.py',
+                    lambda m: ' '.join(f'{n}.py' for n in m.group(1).split(',')), layout)
+    files = [p for p in (ROOT / 'beo_ros').rglob('*.py')
+             if p.name not in ('__init__.py', '__main__.py')]
+    files += list((ROOT / 'scripts').glob('*.py')) + list((ROOT / 'docs').glob('*.md'))
+    missing = sorted(str(p.relative_to(ROOT)) for p in files
+                     if not re.search(rf'(?<![\w.]){re.escape(p.name)}\b', layout))
+    assert not missing, missing
