@@ -332,9 +332,9 @@ def plot(inputs, rows, completed_pts, path):
 @interruptible('beo-demo')
 def main(argv=None) -> int:
     p = ArgumentParser(
-        prog='beo-demo', description='Render one partial view per class of the shipped model, '
-        'replay them as a rosbag2 bag into an in-process beo node, print the estimates and plot '
-        'them. Exit 0 only if every input got an estimate.')
+        prog='beo-demo', description='Render partial views of every class of the model (the '
+        'shipped one by default), replay them as a rosbag2 bag into an in-process beo node, '
+        'print the estimates and plot them. Exit 0 only if every input got an estimate.')
     p.add_argument('--out', default='./beo_demo_out', metavar='DIR',
                    help='output directory for results.json and beo_demo.png '
                         '(default ./beo_demo_out)')

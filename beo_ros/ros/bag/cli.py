@@ -234,7 +234,8 @@ def record_main(argv=None) -> int:
                    help='topic, optionally with its type (e.g. /beo/estimates:'
                    'beo_interfaces/msg/ObjectEstimate); otherwise discovered from the graph')
     p.add_argument('-o', '--output', required=True, metavar='BAG', help='new bag directory')
-    p.add_argument('--storage', choices=STORAGES, default='sqlite3')
+    p.add_argument('--storage', choices=STORAGES, default='sqlite3',
+                   help='bag storage (default %(default)s)')
     p.add_argument('--wait', type=number(0), default=10.0, metavar='S',
                    help='seconds to wait for publishers of untyped topics (default 10; exit 2)')
     p.add_argument('--duration', type=number(0, lo_open=True), metavar='S',
@@ -285,7 +286,8 @@ def pcd2bag_main(argv=None) -> int:
         '(std_msgs/Float64MultiArray), all in the camera frame.')
     p.add_argument('scenes', nargs='+', metavar='SCENE.pcd')
     p.add_argument('-o', '--output', required=True, metavar='BAG', help='new bag directory')
-    p.add_argument('--storage', choices=STORAGES, default='sqlite3')
+    p.add_argument('--storage', choices=STORAGES, default='sqlite3',
+                   help='bag storage (default %(default)s)')
     p.add_argument('--topic', default=DEFAULT_INPUT_TOPIC,
                    help=f'object cloud topic (default {DEFAULT_INPUT_TOPIC})')
     p.add_argument('--frame', default=DEFAULT_FRAME, help=f'frame id (default {DEFAULT_FRAME})')
