@@ -192,6 +192,12 @@ def test_score_samples_matches_dense_gaussian():
     (dict(mean_prior_variance=None), None, 'mean_prior_variance'),
     (dict(mean_prior_variance='1'), None, 'mean_prior_variance'),
     (dict(mean_prior_variance=-1.0), None, 'mean_prior_variance'),
+    (dict(min_noise_variance=-1e-4), None, 'min_noise_variance'),
+    (dict(min_noise_variance=float('nan')), None, 'min_noise_variance'),
+    (dict(min_noise_variance=float('inf')), None, 'min_noise_variance'),
+    (dict(min_noise_variance=None), None, 'min_noise_variance'),
+    (dict(min_noise_variance='1e-4'), None, 'min_noise_variance'),
+    (dict(min_noise_variance=True), None, 'min_noise_variance'),
 ])
 def test_parameter_validation(kwargs, args, msg):
     X, _, _ = planted(n=20, d=6)
@@ -538,3 +544,25 @@ def test_finish_keeps_the_posterior_of_the_unrotated_model():
     np.testing.assert_allclose(est.inverse_transform(est.transform(X)), want, atol=1e-5)
     np.testing.assert_allclose(est.component_variance_,
                                np.linalg.svd(W, compute_uv=False) ** 2 / d, rtol=1e-5)
+
+
+@pytest.mark.parametrize('masked', [False, True], ids=['full', 'missing'])
+def test_min_noise_variance_floors_the_noise_variance(masked):
+    # a caller's modelling floor (class-model training's for occupancies): noise-free data fit
+    # v at the numerical floor, far below it
+    X, Q, _ = planted(noise=0.0)
+    mask = np.random.default_rng(3).random(X.shape) > 0.2 if masked else None
+    free = fit_quiet(VBPCA(n_components=RANK, dtype=np.float64), X, mask=mask)
+    assert free.noise_variance_ < 1e-6
+    est = fit_quiet(VBPCA(n_components=RANK, dtype=np.float64, min_noise_variance=1e-2), X,
+                    mask=mask)
+    assert est.noise_variance_ == 1e-2
+    assert est.n_components_ == RANK
+    assert principal_cosines(Q, est.components_.T).min() > 0.9999
+    # above the data's own noise variance the floor does nothing
+    X, _, v = planted(noise=0.3)
+    ref = VBPCA(n_components=RANK, dtype=np.float64).fit(X, mask=mask)
+    low = VBPCA(n_components=RANK, dtype=np.float64, min_noise_variance=1e-3 * v).fit(
+        X, mask=mask)
+    assert low.noise_variance_ == ref.noise_variance_
+    np.testing.assert_array_equal(low.components_, ref.components_)

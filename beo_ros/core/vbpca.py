@@ -39,6 +39,9 @@ class VBPCA(TransformerMixin, BaseEstimator):
             0 <= prune_tol < 1, so the column of largest variance is always kept.
         init: 'pca' (SVD of the mean-imputed data) or 'random'.
         mean_prior_variance: variance v_mu of the Gaussian prior on mu (fixed).
+        min_noise_variance: lower bound on v (>= 0, in squared units of X; 0: only the numerical
+            floor). A modelling choice of the caller, e.g. for data known to be no more exact than
+            some resolution: the bound is maximised over v >= min_noise_variance.
         random_state: seed for 'random' init.
         verbose: print the bound every iteration.
         dtype: np.float32 or np.float64, the dtype of the heavy products (float32 halves memory
@@ -57,9 +60,11 @@ class VBPCA(TransformerMixin, BaseEstimator):
     """
 
     def __init__(self, n_components=20, *, max_iter=200, tol=1e-5, prune_tol=1e-3, init='pca',
-                 mean_prior_variance=1.0, random_state=None, verbose=False, dtype=np.float32):
+                 mean_prior_variance=1.0, min_noise_variance=0.0, random_state=None,
+                 verbose=False, dtype=np.float32):
         self.n_components = n_components
         self.mean_prior_variance = mean_prior_variance
+        self.min_noise_variance = min_noise_variance
         self.max_iter = max_iter
         self.tol = tol
         self.prune_tol = prune_tol
@@ -81,6 +86,11 @@ class VBPCA(TransformerMixin, BaseEstimator):
                     or not isinstance(value, (int, float, np.integer, np.floating))
                     or not (np.isfinite(value) and value > 0)):
                 raise ValueError(f'{name} must be a finite number > 0, got {value!r}')
+        mnv = self.min_noise_variance
+        if (isinstance(mnv, (bool, np.bool_))
+                or not isinstance(mnv, (int, float, np.integer, np.floating))
+                or not (np.isfinite(mnv) and mnv >= 0)):
+            raise ValueError(f'min_noise_variance must be a finite number >= 0, got {mnv!r}')
         if self.init not in ('pca', 'random'):
             raise ValueError(f"init must be 'pca' or 'random', got {self.init!r}")
         pt = self.prune_tol
@@ -166,7 +176,7 @@ class VBPCA(TransformerMixin, BaseEstimator):
             rng = np.random.default_rng(self.random_state)
             W = (rng.standard_normal((d, k)) * Xc.std() / np.sqrt(k)).astype(self.dtype)
             resid = float(Xc.var()) + 1e-4
-        return mu.astype(self.dtype), W, float(resid)
+        return mu.astype(self.dtype), W, max(float(resid), float(self.min_noise_variance))
 
     def _fit_full(self, X, k):
         # Only two (n, d) x (d, k) products per iteration: every other term is expanded into
@@ -204,7 +214,7 @@ class VBPCA(TransformerMixin, BaseEstimator):
             sq = (sq_total - 2 * mu @ col_sum + n * mu @ mu - 2 * cross + np.trace(XX @ WtW))
             sq += n * np.trace(WtW @ Sx) + d * np.trace(Sw @ XX)
             sq += n * d * np.trace(Sw @ Sx) + n * d * mu_var
-            v = max(sq / (n * d), 1e-8)
+            v = max(sq / (n * d), 1e-8, float(self.min_noise_variance))
             if not np.isfinite(v):          # overflow: stop early, _finish raises
                 break
             alpha = np.maximum((np.diag(WtW) + d * np.diag(Sw)) / d, _EPS)
@@ -277,7 +287,7 @@ class VBPCA(TransformerMixin, BaseEstimator):
             xs = Xm[:, :, None] * Xm[:, None, :]
             sq += ((M.T @ xs[:, iu[0], iu[1]]) * Sw[:, iu[0], iu[1]] * sym).sum()
             sq += (M * mu_var).sum()
-            v = max(sq / n_obs, 1e-8)
+            v = max(sq / n_obs, 1e-8, float(self.min_noise_variance))
             if not np.isfinite(v):          # overflow: stop early, _finish raises
                 break
             # without this step the bound creeps for hundreds of iterations along directions
