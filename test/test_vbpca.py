@@ -566,3 +566,30 @@ def test_min_noise_variance_floors_the_noise_variance(masked):
         X, mask=mask)
     assert low.noise_variance_ == ref.noise_variance_
     np.testing.assert_array_equal(low.components_, ref.components_)
+
+
+def _fit_at_scale(c, mask=None, **kw):
+    """The planted problem fitted on c * X (mean prior scaled with it, as documented)."""
+    X, Q, v = planted(n=120, d=30, noise=0.3, seed=1)
+    return Q, fit_quiet(VBPCA(n_components=8, max_iter=500, dtype=np.float64,
+                              mean_prior_variance=c * c, **kw), X * c, mask=mask)
+
+
+@pytest.mark.parametrize('masked', [False, True], ids=['full', 'missing'])
+@pytest.mark.parametrize('c', [1e-4, 1e-3, 1e-2, 1e2, 1e3])
+def test_fit_is_equivariant_under_the_scale_of_the_data(c, masked):
+    # the floors of the noise variance, the ARD variances and the initial noise variance were
+    # absolute: in small units (1e-3) the fit started from 100 times the data's noise variance
+    # and ended with other component variances, and at 1e-4 ARD collapsed every component
+    mask = None
+    if masked:
+        mask = np.random.default_rng(3).random((120, 30)) > 0.2
+    Q, ref = _fit_at_scale(1.0, mask)
+    _, est = _fit_at_scale(c, mask)
+    assert ref.n_components_ == RANK
+    assert est.n_components_ == ref.n_components_
+    assert principal_cosines(ref.components_.T, est.components_.T).min() > 0.9999
+    np.testing.assert_allclose(est.noise_variance_ / c ** 2, ref.noise_variance_, rtol=5e-3)
+    np.testing.assert_allclose(est.component_variance_ / c ** 2, ref.component_variance_,
+                               rtol=5e-3)
+    np.testing.assert_allclose(est.mean_ / c, ref.mean_, atol=0.05)

@@ -24,7 +24,9 @@ import numpy as np
 from sklearn.base import BaseEstimator, TransformerMixin
 from sklearn.exceptions import ConvergenceWarning, NotFittedError
 
-_EPS = 1e-10
+_EPS = 1e-10        # floor of the ARD variances, relative to the data's variance
+_V_FLOOR = 1e-8     # floor of the noise variance, relative to the data's variance
+_INIT_FLOOR = 1e-4  # floor of the initial noise variance, relative to the data's variance
 
 
 class VBPCA(TransformerMixin, BaseEstimator):
@@ -38,7 +40,11 @@ class VBPCA(TransformerMixin, BaseEstimator):
         prune_tol: a column whose ARD variance falls below ``prune_tol * max(alpha)`` is inactive;
             0 <= prune_tol < 1, so the column of largest variance is always kept.
         init: 'pca' (SVD of the mean-imputed data) or 'random'.
-        mean_prior_variance: variance v_mu of the Gaussian prior on mu (fixed).
+        mean_prior_variance: variance v_mu of the Gaussian prior on mu (fixed), in squared units
+            of X: every other quantity of the fit follows the scale of X (its numerical floors are
+            relative to the data's variance), so fitting ``c * X`` with ``c**2 *
+            mean_prior_variance`` (and ``c**2 * min_noise_variance``) gives the model of X scaled
+            by c (the bound shifted by ``-n * d * log|c|``), up to the convergence tolerance.
         min_noise_variance: lower bound on v (>= 0, in squared units of X; 0: only the numerical
             floor). A modelling choice of the caller, e.g. for data known to be no more exact than
             some resolution: the bound is maximised over v >= min_noise_variance.
@@ -159,6 +165,11 @@ class VBPCA(TransformerMixin, BaseEstimator):
             cnt = np.maximum(mask.sum(axis=0), 1)
             mu = np.where(mask, X, 0).sum(axis=0) / cnt
             Xc = np.where(mask, X - mu, 0)
+        # the data's variance per entry (1 for constant data): the unit of the numerical floors,
+        # which in absolute units pruned every component of data in small units
+        s2 = (float(Xc.var(dtype=np.float64)) if mask is None
+              else float(np.square(Xc, dtype=np.float64).sum() / mask.sum()))
+        s2 = s2 if np.isfinite(s2) and s2 > 0 else 1.0
         if self.init == 'pca':
             # eigen-decomposition in the smaller dimension: the dual (n, n) Gram for n << d
             if n < d:
@@ -171,22 +182,23 @@ class VBPCA(TransformerMixin, BaseEstimator):
                 e, V = e[::-1], V[:, ::-1]
                 W = V[:, :k] * np.sqrt(np.maximum(e[:k], 0) / n)
             W = W.astype(self.dtype)
-            resid = max(np.maximum(e[k:], 0).sum() / (n * d), 1e-4)
+            resid = max(np.maximum(e[k:], 0).sum() / (n * d), _INIT_FLOOR * s2)
         else:
             rng = np.random.default_rng(self.random_state)
             W = (rng.standard_normal((d, k)) * Xc.std() / np.sqrt(k)).astype(self.dtype)
-            resid = float(Xc.var()) + 1e-4
-        return mu.astype(self.dtype), W, max(float(resid), float(self.min_noise_variance))
+            resid = float(Xc.var()) + _INIT_FLOOR * s2
+        return mu.astype(self.dtype), W, max(float(resid), float(self.min_noise_variance)), s2
 
     def _fit_full(self, X, k):
         # Only two (n, d) x (d, k) products per iteration: every other term is expanded into
         # sufficient statistics, so no (n, d) temporary is ever formed.
         n, d = X.shape
-        mu, W, v = self._init_params(X, None, k)
+        mu, W, v, s2 = self._init_params(X, None, k)
+        a_floor, v_floor = _EPS * s2, max(_V_FLOOR * s2, float(self.min_noise_variance))
         mu = mu.astype(np.float64)
         col_sum = X.sum(axis=0, dtype=np.float64)                # (d,)
         sq_total = float(np.einsum('ij,ij->', X, X, dtype=np.float64))
-        alpha = np.maximum((W.astype(np.float64) ** 2).sum(axis=0) / d, _EPS)
+        alpha = np.maximum((W.astype(np.float64) ** 2).sum(axis=0) / d, a_floor)
         v_mu = float(self.mean_prior_variance)
         Sw = np.zeros((k, k))
         mu_var = 0.0
@@ -214,10 +226,10 @@ class VBPCA(TransformerMixin, BaseEstimator):
             sq = (sq_total - 2 * mu @ col_sum + n * mu @ mu - 2 * cross + np.trace(XX @ WtW))
             sq += n * np.trace(WtW @ Sx) + d * np.trace(Sw @ XX)
             sq += n * d * np.trace(Sw @ Sx) + n * d * mu_var
-            v = max(sq / (n * d), 1e-8, float(self.min_noise_variance))
+            v = max(sq / (n * d), v_floor)
             if not np.isfinite(v):          # overflow: stop early, _finish raises
                 break
-            alpha = np.maximum((np.diag(WtW) + d * np.diag(Sw)) / d, _EPS)
+            alpha = np.maximum((np.diag(WtW) + d * np.diag(Sw)) / d, a_floor)
             W = W64.astype(self.dtype)
             bound = self._bound_full(n, d, k, v, sq, Sx, Xm, Sw, W64, alpha, mu, mu_var, v_mu)
             if self.verbose:
@@ -244,12 +256,13 @@ class VBPCA(TransformerMixin, BaseEstimator):
 
     def _fit_missing(self, X, mask, k):
         n, d = X.shape
-        mu, W, v = self._init_params(X, mask, k)
+        mu, W, v, s2 = self._init_params(X, mask, k)
+        a_floor, v_floor = _EPS * s2, max(_V_FLOOR * s2, float(self.min_noise_variance))
         W = W.astype(np.float64)
         mu = mu.astype(np.float64)
         M = mask.astype(np.float64)
         Xo = np.where(mask, X, 0).astype(np.float64)
-        alpha = np.maximum((W ** 2).sum(axis=0) / d, _EPS)
+        alpha = np.maximum((W ** 2).sum(axis=0) / d, a_floor)
         v_mu = float(self.mean_prior_variance)
         Sw = np.zeros((d, k, k))
         mu_var = np.zeros(d)
@@ -287,14 +300,14 @@ class VBPCA(TransformerMixin, BaseEstimator):
             xs = Xm[:, :, None] * Xm[:, None, :]
             sq += ((M.T @ xs[:, iu[0], iu[1]]) * Sw[:, iu[0], iu[1]] * sym).sum()
             sq += (M * mu_var).sum()
-            v = max(sq / n_obs, 1e-8, float(self.min_noise_variance))
+            v = max(sq / n_obs, v_floor)
             if not np.isfinite(v):          # overflow: stop early, _finish raises
                 break
             # without this step the bound creeps for hundreds of iterations along directions
             # (scale and rotation of the scores) that barely change the fit (Ilin and Raiko 2010)
             W, Sw, Xm, Sx = _rotate_to_pca(W, Sw, Xm, Sx)
             alpha = np.maximum(((W ** 2).sum(axis=0) + Sw[:, range(k), range(k)].sum(axis=0)) / d,
-                               _EPS)
+                               a_floor)
             bound = self._bound_missing(n_obs, k, v, sq, Sx, Xm, Sw, W, alpha, mu, mu_var, v_mu)
             if self.verbose:
                 print(f'VBPCA(missing) iter {it}: bound {bound:.8g} v {v:.5g}')
