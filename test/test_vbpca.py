@@ -593,3 +593,17 @@ def test_fit_is_equivariant_under_the_scale_of_the_data(c, masked):
     np.testing.assert_allclose(est.component_variance_ / c ** 2, ref.component_variance_,
                                rtol=5e-3)
     np.testing.assert_allclose(est.mean_ / c, ref.mean_, atol=0.05)
+
+
+@pytest.mark.parametrize('masked', [False, True], ids=['full', 'missing'])
+def test_collapsed_columns_do_not_count_even_with_prune_tol_0(masked):
+    # exactly rank-3 data: ARD holds the 5 surplus columns at the floor of the variances, and
+    # prune_tol=0 kept them as zero rows of components_ in n_components_ (8)
+    X, Q, _ = planted(noise=0.0)
+    mask = np.random.default_rng(3).random(X.shape) > 0.2 if masked else None
+    est = fit_quiet(VBPCA(n_components=8, prune_tol=0, dtype=np.float64), X, mask=mask)
+    assert est.n_components_ == RANK
+    assert est.components_.shape == (RANK, X.shape[1])
+    assert est.loading_covariance_.shape == (RANK, RANK)
+    assert principal_cosines(Q, est.components_.T).min() > 0.999
+    assert est.component_variance_.min() > 0.1

@@ -38,7 +38,8 @@ class VBPCA(TransformerMixin, BaseEstimator):
         tol: stop when the relative change of the variational lower bound in one iteration falls
             below ``tol``.
         prune_tol: a column whose ARD variance falls below ``prune_tol * max(alpha)`` is inactive;
-            0 <= prune_tol < 1, so the column of largest variance is always kept.
+            0 <= prune_tol < 1, so the column of largest variance is always kept. A column that
+            ARD collapsed to the numerical floor of the variances is inactive for any prune_tol.
         init: 'pca' (SVD of the mean-imputed data) or 'random'.
         mean_prior_variance: variance v_mu of the Gaussian prior on mu (fixed), in squared units
             of X: every other quantity of the fit follows the scale of X (its numerical floors are
@@ -61,7 +62,7 @@ class VBPCA(TransformerMixin, BaseEstimator):
         loading_covariance_: (k_eff, k_eff) shared posterior covariance of a row of W
             (fully observed path; for the missing path the average over rows).
         mean_variance_: (d,) posterior variance of mu.
-        n_components_: k_eff, the number of columns ARD kept.
+        n_components_: k_eff, the number of columns ARD kept (collapsed ones never count).
         n_iter_, converged_, lower_bound_ (the bound at the last iteration).
     """
 
@@ -239,7 +240,7 @@ class VBPCA(TransformerMixin, BaseEstimator):
                 break
             prev = bound
         self._finish(W, mu, v, alpha, Sw, np.full(d, mu_var, dtype=np.float32), it, converged,
-                     bound)
+                     bound, a_floor)
 
     @staticmethod
     def _bound_full(n, d, k, v, sq, Sx, Xm, Sw, W, alpha, mu, mu_var, v_mu):
@@ -316,7 +317,7 @@ class VBPCA(TransformerMixin, BaseEstimator):
                 break
             prev = bound
         self._finish(W.astype(self.dtype), mu.astype(self.dtype), v, alpha, Sw.mean(axis=0),
-                     mu_var.astype(np.float32), it, converged, bound)
+                     mu_var.astype(np.float32), it, converged, bound, a_floor)
 
     @staticmethod
     def _bound_missing(n_obs, k, v, sq, Sx, Xm, Sw, W, alpha, mu, mu_var, v_mu):
@@ -335,7 +336,7 @@ class VBPCA(TransformerMixin, BaseEstimator):
         kl_mu = 0.5 * (((mu ** 2 + mu_var) / v_mu).sum() - d - np.log(mu_var / v_mu).sum())
         return float(ll - kl_x - kl_w - kl_mu)
 
-    def _finish(self, W, mu, v, alpha, Sw, mu_var, n_iter, converged, bound):
+    def _finish(self, W, mu, v, alpha, Sw, mu_var, n_iter, converged, bound, a_floor=0.0):
         # overflow (e.g. float32 products of data of large magnitude) turns the whole model into
         # NaN, and NaN ARD variances would then silently prune every column: refuse it
         if not (np.isfinite(v) and np.isfinite(mu).all() and np.isfinite(W).all()
@@ -348,7 +349,9 @@ class VBPCA(TransformerMixin, BaseEstimator):
             warnings.warn(f'VBPCA did not converge in {n_iter} iterations; raise max_iter or tol',
                           ConvergenceWarning)
         W64 = np.asarray(W, dtype=np.float64)
-        keep = alpha > self.prune_tol * alpha.max()
+        # a column at the floor is collapsed (prune_tol=0 kept it, as zeros in components_)
+        keep = (alpha > self.prune_tol * alpha.max()) & (alpha > a_floor)
+        keep[np.argmax(alpha)] = True   # all collapsed: the model still has one column
         # order kept columns by the variance they explain
         order = np.argsort(-(W64 ** 2).sum(axis=0))
         order = order[keep[order]]
