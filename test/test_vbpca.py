@@ -607,3 +607,20 @@ def test_collapsed_columns_do_not_count_even_with_prune_tol_0(masked):
     assert est.loading_covariance_.shape == (RANK, RANK)
     assert principal_cosines(Q, est.components_.T).min() > 0.999
     assert est.component_variance_.min() > 0.1
+
+
+@pytest.mark.parametrize('masked', [False, True], ids=['full', 'missing'])
+def test_converges_when_the_bound_is_near_zero(masked):
+    # the bound shifts by -n d log c when X is scaled by c: at the scale where it is ~0, a change
+    # relative to |bound| alone could not fall below tol and the fit ran to max_iter
+    X, Q, _ = planted()
+    mask = np.random.default_rng(3).random(X.shape) > 0.2 if masked else None
+    n_obs = X.size if mask is None else mask.sum()
+    ref = VBPCA(n_components=RANK, dtype=np.float64).fit(X, mask=mask)
+    c = np.exp(ref.lower_bound_ / n_obs)
+    est = VBPCA(n_components=RANK, dtype=np.float64, mean_prior_variance=c * c,
+                max_iter=4 * ref.n_iter_)
+    est = fit_quiet(est, X * c, mask=mask)
+    assert abs(est.lower_bound_) < 1e-3 * abs(ref.lower_bound_)
+    assert est.converged_
+    assert principal_cosines(Q, est.components_.T).min() > 0.99

@@ -35,8 +35,8 @@ class VBPCA(TransformerMixin, BaseEstimator):
     Parameters:
         n_components: upper bound k on the number of components (ARD prunes the surplus).
         max_iter: maximum number of VB iterations.
-        tol: stop when the relative change of the variational lower bound in one iteration falls
-            below ``tol``.
+        tol: stop when the change of the variational lower bound in one iteration falls below
+            ``tol * max(|bound|, n_samples)`` (relative, or tol nats per sample for a bound near 0).
         prune_tol: a column whose ARD variance falls below ``prune_tol * max(alpha)`` is inactive;
             0 <= prune_tol < 1, so the column of largest variance is always kept. A column that
             ARD collapsed to the numerical floor of the variances is inactive for any prune_tol.
@@ -235,12 +235,17 @@ class VBPCA(TransformerMixin, BaseEstimator):
             bound = self._bound_full(n, d, k, v, sq, Sx, Xm, Sw, W64, alpha, mu, mu_var, v_mu)
             if self.verbose:
                 print(f'VBPCA iter {it}: bound {bound:.8g} v {v:.5g}')
-            if np.isfinite(prev) and abs(bound - prev) <= self.tol * abs(bound):
+            if np.isfinite(prev) and self._small_change(bound, prev, n):
                 converged = True
                 break
             prev = bound
         self._finish(W, mu, v, alpha, Sw, np.full(d, mu_var, dtype=np.float32), it, converged,
                      bound, a_floor)
+
+    def _small_change(self, bound, prev, n):
+        # relative to |bound| alone the test could not be met by a bound near 0 (its value
+        # depends on the units of X: c * X shifts it by -n d log c)
+        return abs(bound - prev) <= self.tol * max(abs(bound), n)
 
     @staticmethod
     def _bound_full(n, d, k, v, sq, Sx, Xm, Sw, W, alpha, mu, mu_var, v_mu):
@@ -312,7 +317,7 @@ class VBPCA(TransformerMixin, BaseEstimator):
             bound = self._bound_missing(n_obs, k, v, sq, Sx, Xm, Sw, W, alpha, mu, mu_var, v_mu)
             if self.verbose:
                 print(f'VBPCA(missing) iter {it}: bound {bound:.8g} v {v:.5g}')
-            if np.isfinite(prev) and abs(bound - prev) <= self.tol * abs(bound):
+            if np.isfinite(prev) and self._small_change(bound, prev, n):
                 converged = True
                 break
             prev = bound
