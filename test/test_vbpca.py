@@ -624,3 +624,13 @@ def test_converges_when_the_bound_is_near_zero(masked):
     assert abs(est.lower_bound_) < 1e-3 * abs(ref.lower_bound_)
     assert est.converged_
     assert principal_cosines(Q, est.components_.T).min() > 0.99
+
+
+def test_float32_convergence_allows_for_the_rounding_of_the_bound():
+    # noise-free data: v is tiny, and the float32 rounding of X^T Xm moves the bound by far more
+    # than tol * |bound| every iteration, so the fit never met the test (or met it by chance)
+    X, Q, _ = planted(noise=0.0)
+    est = fit_quiet(VBPCA(n_components=RANK, dtype=np.float32, max_iter=100), X)
+    assert est.converged_
+    assert principal_cosines(Q, est.components_.T).min() > 0.9999
+    assert est.noise_variance_ < 1e-4 * np.var(X)

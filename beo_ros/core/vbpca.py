@@ -36,7 +36,8 @@ class VBPCA(TransformerMixin, BaseEstimator):
         n_components: upper bound k on the number of components (ARD prunes the surplus).
         max_iter: maximum number of VB iterations.
         tol: stop when the change of the variational lower bound in one iteration falls below
-            ``tol * max(|bound|, n_samples)`` (relative, or tol nats per sample for a bound near 0).
+            ``tol * max(|bound|, n_samples)`` (relative, or tol nats per sample for a bound
+            near 0), or below the rounding error of the bound for dtype float32.
         prune_tol: a column whose ARD variance falls below ``prune_tol * max(alpha)`` is inactive;
             0 <= prune_tol < 1, so the column of largest variance is always kept. A column that
             ARD collapsed to the numerical floor of the variances is inactive for any prune_tol.
@@ -206,6 +207,7 @@ class VBPCA(TransformerMixin, BaseEstimator):
         prev = -np.inf
         converged = False
         bound = np.nan
+        eps = float(np.finfo(self.dtype).eps)
         for it in range(1, self.max_iter + 1):
             W64 = W.astype(np.float64)
             # q(X): shared covariance
@@ -235,17 +237,21 @@ class VBPCA(TransformerMixin, BaseEstimator):
             bound = self._bound_full(n, d, k, v, sq, Sx, Xm, Sw, W64, alpha, mu, mu_var, v_mu)
             if self.verbose:
                 print(f'VBPCA iter {it}: bound {bound:.8g} v {v:.5g}')
-            if np.isfinite(prev) and self._small_change(bound, prev, n):
+            # X^T Xm is rounded to the dtype: the bound's error is about eps * |cross| / v (in
+            # float32 often above tol * |bound|, and the test was then met only by chance)
+            noise = 2 * eps * abs(cross) / v
+            if np.isfinite(prev) and self._small_change(bound, prev, n, noise):
                 converged = True
                 break
             prev = bound
         self._finish(W, mu, v, alpha, Sw, np.full(d, mu_var, dtype=np.float32), it, converged,
                      bound, a_floor)
 
-    def _small_change(self, bound, prev, n):
+    def _small_change(self, bound, prev, n, noise=0.0):
         # relative to |bound| alone the test could not be met by a bound near 0 (its value
-        # depends on the units of X: c * X shifts it by -n d log c)
-        return abs(bound - prev) <= self.tol * max(abs(bound), n)
+        # depends on the units of X: c * X shifts it by -n d log c); ``noise``: the bound's
+        # rounding error
+        return abs(bound - prev) <= max(self.tol * max(abs(bound), n), noise)
 
     @staticmethod
     def _bound_full(n, d, k, v, sq, Sx, Xm, Sw, W, alpha, mu, mu_var, v_mu):
