@@ -472,7 +472,9 @@ def _calibrate_only(args, X, y, names, spec, data_sha256=None):
     cal, report = fit_occupancy_calibration(
         X, y, names, spec, int(info.get('k', args.k)), int(info.get('folds', args.folds)),
         int(info.get('seed', args.seed)), args.calibration_views or 1, bank.classifier,
-        bank.class_prior, bank.pose_components, verbose=True)
+        bank.class_prior, bank.pose_components, verbose=True,
+        # manifests before the floor (2026-11) have none: their models were fitted without it
+        min_noise_variance=info.get('min_noise_variance', 0.0))
     report.update(seconds=round(time.time() - t0, 1))
     print(f'occupancy calibration: {report}', file=sys.stderr)
     ModelBank(bank.models, bank.spec, bank.classifier, dict(info, occupancy_calibration=report),

@@ -539,3 +539,43 @@ def test_fit_options_checked_before_congealing(tmp_path, capsys, monkeypatch, ex
                        *extra]) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / 'm').exists()
+
+
+# ---------------------------------------------------------------------- the noise variance floor
+def test_class_models_have_the_occupancy_floor_of_the_noise_variance(tmp_path):
+    # three noise-free boxes per class fitted v ~ 1e-8: a class absurdly sure of itself, whose
+    # likelihood against another such class hung on numerical noise
+    from beo_ros.core.training import OCCUPANCY_MIN_NOISE_VARIANCE
+    paths = []
+    for i in range(3):
+        for name, size in (('cube', (1, 1, 1 + 0.1 * i)), ('slab', (1 + 0.1 * i, 1, 0.2))):
+            paths.append(tmp_path / f'{name}_{i:04d}.off')
+            box_off(paths[-1], *size)
+    assert train.main([*map(str, paths), '-o', str(tmp_path / 'm'), '--grid', str(N)]
+                      + FAST) == 0
+    bank = ModelBank.load(tmp_path / 'm')
+    assert 1e-8 < OCCUPANCY_MIN_NOISE_VARIANCE < 5e-4     # below every shipped model's v
+    assert [m.noise_variance for m in bank.models] == [OCCUPANCY_MIN_NOISE_VARIANCE] * 2
+    assert bank.training['min_noise_variance'] == OCCUPANCY_MIN_NOISE_VARIANCE
+
+
+def test_calibrate_only_refits_with_the_floor_the_model_was_trained_with(tmp_path, monkeypatch):
+    from beo_ros.core import training
+    from beo_ros.core.training import OCCUPANCY_MIN_NOISE_VARIANCE
+    p = write_npz(tmp_path / 'd.npz')
+    m = tmp_path / 'm'
+    assert train.main([str(p), '-o', str(m), '--k', '2', '--folds', '2', '--views', '0',
+                       '--verifier-views', '0', '--calibration-views', '1']) == 0
+    floors = []
+    real = training.fit_class_models
+    monkeypatch.setattr(training, 'fit_class_models', lambda *a, **k: floors.append(
+        k['min_noise_variance']) or real(*a, **k))
+    assert train.main([str(p), '-o', str(m), '--calibrate-only']) == 0
+    assert floors == [OCCUPANCY_MIN_NOISE_VARIANCE] * 2
+    # a manifest from before the floor: its models were fitted without one
+    mf = json.loads((m / 'manifest.json').read_text())
+    del mf['training']['min_noise_variance']
+    (m / 'manifest.json').write_text(json.dumps(mf))
+    floors.clear()
+    assert train.main([str(p), '-o', str(m), '--calibrate-only']) == 0
+    assert floors == [0.0] * 2

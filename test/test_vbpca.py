@@ -192,6 +192,12 @@ def test_score_samples_matches_dense_gaussian():
     (dict(mean_prior_variance=None), None, 'mean_prior_variance'),
     (dict(mean_prior_variance='1'), None, 'mean_prior_variance'),
     (dict(mean_prior_variance=-1.0), None, 'mean_prior_variance'),
+    (dict(min_noise_variance=-1e-4), None, 'min_noise_variance'),
+    (dict(min_noise_variance=float('nan')), None, 'min_noise_variance'),
+    (dict(min_noise_variance=float('inf')), None, 'min_noise_variance'),
+    (dict(min_noise_variance=None), None, 'min_noise_variance'),
+    (dict(min_noise_variance='1e-4'), None, 'min_noise_variance'),
+    (dict(min_noise_variance=True), None, 'min_noise_variance'),
 ])
 def test_parameter_validation(kwargs, args, msg):
     X, _, _ = planted(n=20, d=6)
@@ -538,3 +544,93 @@ def test_finish_keeps_the_posterior_of_the_unrotated_model():
     np.testing.assert_allclose(est.inverse_transform(est.transform(X)), want, atol=1e-5)
     np.testing.assert_allclose(est.component_variance_,
                                np.linalg.svd(W, compute_uv=False) ** 2 / d, rtol=1e-5)
+
+
+@pytest.mark.parametrize('masked', [False, True], ids=['full', 'missing'])
+def test_min_noise_variance_floors_the_noise_variance(masked):
+    # a caller's modelling floor (class-model training's for occupancies): noise-free data fit
+    # v at the numerical floor, far below it
+    X, Q, _ = planted(noise=0.0)
+    mask = np.random.default_rng(3).random(X.shape) > 0.2 if masked else None
+    free = fit_quiet(VBPCA(n_components=RANK, dtype=np.float64), X, mask=mask)
+    assert free.noise_variance_ < 1e-6
+    est = fit_quiet(VBPCA(n_components=RANK, dtype=np.float64, min_noise_variance=1e-2), X,
+                    mask=mask)
+    assert est.noise_variance_ == 1e-2
+    assert est.n_components_ == RANK
+    assert principal_cosines(Q, est.components_.T).min() > 0.9999
+    # above the data's own noise variance the floor does nothing
+    X, _, v = planted(noise=0.3)
+    ref = VBPCA(n_components=RANK, dtype=np.float64).fit(X, mask=mask)
+    low = VBPCA(n_components=RANK, dtype=np.float64, min_noise_variance=1e-3 * v).fit(
+        X, mask=mask)
+    assert low.noise_variance_ == ref.noise_variance_
+    np.testing.assert_array_equal(low.components_, ref.components_)
+
+
+def _fit_at_scale(c, mask=None, **kw):
+    """The planted problem fitted on c * X (mean prior scaled with it, as documented)."""
+    X, Q, v = planted(n=120, d=30, noise=0.3, seed=1)
+    return Q, fit_quiet(VBPCA(n_components=8, max_iter=500, dtype=np.float64,
+                              mean_prior_variance=c * c, **kw), X * c, mask=mask)
+
+
+@pytest.mark.parametrize('masked', [False, True], ids=['full', 'missing'])
+@pytest.mark.parametrize('c', [1e-4, 1e-3, 1e-2, 1e2, 1e3])
+def test_fit_is_equivariant_under_the_scale_of_the_data(c, masked):
+    # the floors of the noise variance, the ARD variances and the initial noise variance were
+    # absolute: in small units (1e-3) the fit started from 100 times the data's noise variance
+    # and ended with other component variances, and at 1e-4 ARD collapsed every component
+    mask = None
+    if masked:
+        mask = np.random.default_rng(3).random((120, 30)) > 0.2
+    Q, ref = _fit_at_scale(1.0, mask)
+    _, est = _fit_at_scale(c, mask)
+    assert ref.n_components_ == RANK
+    assert est.n_components_ == ref.n_components_
+    assert principal_cosines(ref.components_.T, est.components_.T).min() > 0.9999
+    np.testing.assert_allclose(est.noise_variance_ / c ** 2, ref.noise_variance_, rtol=5e-3)
+    np.testing.assert_allclose(est.component_variance_ / c ** 2, ref.component_variance_,
+                               rtol=5e-3)
+    np.testing.assert_allclose(est.mean_ / c, ref.mean_, atol=0.05)
+
+
+@pytest.mark.parametrize('masked', [False, True], ids=['full', 'missing'])
+def test_collapsed_columns_do_not_count_even_with_prune_tol_0(masked):
+    # exactly rank-3 data: ARD holds the 5 surplus columns at the floor of the variances, and
+    # prune_tol=0 kept them as zero rows of components_ in n_components_ (8)
+    X, Q, _ = planted(noise=0.0)
+    mask = np.random.default_rng(3).random(X.shape) > 0.2 if masked else None
+    est = fit_quiet(VBPCA(n_components=8, prune_tol=0, dtype=np.float64), X, mask=mask)
+    assert est.n_components_ == RANK
+    assert est.components_.shape == (RANK, X.shape[1])
+    assert est.loading_covariance_.shape == (RANK, RANK)
+    assert principal_cosines(Q, est.components_.T).min() > 0.999
+    assert est.component_variance_.min() > 0.1
+
+
+@pytest.mark.parametrize('masked', [False, True], ids=['full', 'missing'])
+def test_converges_when_the_bound_is_near_zero(masked):
+    # the bound shifts by -n d log c when X is scaled by c: at the scale where it is ~0, a change
+    # relative to |bound| alone could not fall below tol and the fit ran to max_iter
+    X, Q, _ = planted()
+    mask = np.random.default_rng(3).random(X.shape) > 0.2 if masked else None
+    n_obs = X.size if mask is None else mask.sum()
+    ref = VBPCA(n_components=RANK, dtype=np.float64).fit(X, mask=mask)
+    c = np.exp(ref.lower_bound_ / n_obs)
+    est = VBPCA(n_components=RANK, dtype=np.float64, mean_prior_variance=c * c,
+                max_iter=4 * ref.n_iter_)
+    est = fit_quiet(est, X * c, mask=mask)
+    assert abs(est.lower_bound_) < 1e-3 * abs(ref.lower_bound_)
+    assert est.converged_
+    assert principal_cosines(Q, est.components_.T).min() > 0.99
+
+
+def test_float32_convergence_allows_for_the_rounding_of_the_bound():
+    # noise-free data: v is tiny, and the float32 rounding of X^T Xm moves the bound by far more
+    # than tol * |bound| every iteration, so the fit never met the test (or met it by chance)
+    X, Q, _ = planted(noise=0.0)
+    est = fit_quiet(VBPCA(n_components=RANK, dtype=np.float32, max_iter=100), X)
+    assert est.converged_
+    assert principal_cosines(Q, est.components_.T).min() > 0.9999
+    assert est.noise_variance_ < 1e-4 * np.var(X)

@@ -364,6 +364,7 @@ def train_scan_bank(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32, voxel_siz
     """
     import time
     from .bank import ModelBank
+    from .training import OCCUPANCY_MIN_NOISE_VARIANCE
     t0 = time.time()
     paths = list(paths)   # a generator would be consumed by load_scan_objects (manifest inputs)
     s = load_scan_objects(paths, scan_classes, grid, voxel_size, verbose)
@@ -373,7 +374,8 @@ def train_scan_bank(paths, scan_classes=DEFAULT_SCAN_CLASSES, grid=32, voxel_siz
         classifier = {'points': clf}
     models, n_grids = fit_scan_models(s, k, max_iter, mirror, congeal, verbose)
     info = dict(inputs=[str(p) for p in paths], scan_classes=str(scan_classes), k=k,
-                max_iter=max_iter, mirror=bool(mirror), congeal=bool(congeal),
+                min_noise_variance=OCCUPANCY_MIN_NOISE_VARIANCE, max_iter=max_iter,
+                mirror=bool(mirror), congeal=bool(congeal),
                 n_objects=int(len(s)), n_training_grids=n_grids, classifier_views=0,
                 rule='maximum likelihood', fit_seconds=round(time.time() - t0, 1))
     if classifier is not None:

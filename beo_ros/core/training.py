@@ -32,8 +32,8 @@ from .vbpca import VBPCA
 
 __all__ = [
     # defined here
-    'progress_bar', 'fit_class_models', 'check_class_counts', 'stratified_folds',
-    'VERIFIER_CHUNK', 'verifier_training_set', 'fit_verifier', 'view_features',
+    'progress_bar', 'OCCUPANCY_MIN_NOISE_VARIANCE', 'fit_class_models', 'check_class_counts',
+    'stratified_folds', 'VERIFIER_CHUNK', 'verifier_training_set', 'fit_verifier', 'view_features',
     'fit_occupancy_calibration', 'check_grid_size', 'fit_bank',
     # re-exported from classifier_training
     'MLP_HIDDEN', 'MLP_ALPHA', 'MLP_MAX_ITER', 'CLASSIFIER_KINDS', 'cross_validated_report',
@@ -46,6 +46,13 @@ __all__ = [
 
 # seconds between the progress lines of a loop when stderr is a file or a pipe
 PROGRESS_LINE_S = 30.0
+
+# Floor of a class model's noise variance. Occupancies are in [0, 1] and no voxelisation is
+# exact to better than about 1% per voxel (std 0.01, so v >= 1e-4); without it a class of a
+# few near noise-free objects fits v ~ 1e-8 and is absurdly sure of itself, so that its
+# likelihood against another such class hangs on numerical noise. The shipped models fit
+# v = 5e-4 (tabletop_32) to 0.04 (modelnet10_32), above it: their training is unchanged.
+OCCUPANCY_MIN_NOISE_VARIANCE = 1e-4
 
 
 def progress_bar(it, desc, total=None, disable=False):
@@ -81,8 +88,11 @@ def _progress_lines(it, desc, total):
     print(f'{desc}: {i}{of} in {time.monotonic() - t0:.1f} s', file=sys.stderr, flush=True)
 
 
-def fit_class_models(X, y, names, spec, k=20, masks=None, max_iter=200, tol=1e-5):
-    """One VBPCA ClassModel per class. X: (m, N^3) float32 in [0, 1]; masks: (m, N^3) observed."""
+def fit_class_models(X, y, names, spec, k=20, masks=None, max_iter=200, tol=1e-5,
+                     min_noise_variance=OCCUPANCY_MIN_NOISE_VARIANCE):
+    """One VBPCA ClassModel per class. X: (m, N^3) float32 in [0, 1]; masks: (m, N^3) observed;
+    ``min_noise_variance``: floor of each model's noise variance (see
+    ``OCCUPANCY_MIN_NOISE_VARIANCE``)."""
     models = []
     for c, name in enumerate(names):
         sel = y == c
@@ -91,8 +101,9 @@ def fit_class_models(X, y, names, spec, k=20, masks=None, max_iter=200, tol=1e-5
         Xc = X[sel]
         with warnings.catch_warnings():
             warnings.simplefilter('ignore')
-            est = VBPCA(n_components=int(min(k, sel.sum() - 1)), max_iter=max_iter,
-                        tol=tol).fit(Xc, mask=None if masks is None else masks[sel])
+            est = VBPCA(n_components=int(min(k, sel.sum() - 1)), max_iter=max_iter, tol=tol,
+                        min_noise_variance=min_noise_variance).fit(
+                            Xc, mask=None if masks is None else masks[sel])
         Xf = Xc if masks is None else np.where(masks[sel], Xc, est.inverse_transform(
             est.transform(Xc, masks[sel])))
         models.append(ClassModel.from_vbpca(name, est, *coarse_noise(
@@ -273,7 +284,7 @@ def _hypothesis_quality(engine, grid, per, yaw, rotated):
 
 def fit_occupancy_calibration(X, y, names, spec, k=20, folds=5, seed=0, views=1,
                               classifier=None, class_prior='train', pose_components=8,
-                              verbose=False):
+                              verbose=False, min_noise_variance=OCCUPANCY_MIN_NOISE_VARIANCE):
     """Calibrate the completion's occupancy probabilities on out-of-fold views.
 
     For each of ``folds`` stratified folds (those of ``fit_bank`` with the same ``seed``),
@@ -287,6 +298,7 @@ def fit_occupancy_calibration(X, y, names, spec, k=20, folds=5, seed=0, views=1,
     the Brier score, log loss and 10-bin ECE of the model probabilities ('raw'), and the
     Brier score and log loss of the calibrated ones ('calibrated_in_sample': on the same
     voxels, each at its bin's mean probability; held-out figures come from ``beo-eval``).
+    ``min_noise_variance``: that of the class models (``fit_class_models``).
     """
     if not (isinstance(views, (int, np.integer)) and views >= 1):
         raise ValueError(f'views must be an integer >= 1, got {views!r}')
@@ -302,7 +314,8 @@ def fit_occupancy_calibration(X, y, names, spec, k=20, folds=5, seed=0, views=1,
     for f in progress_bar(range(folds), 'occupancy calibration', disable=not verbose):
         # the class models of fit_bank's own fold f again: a few seconds, where keeping all
         # folds' models from its classifier loop would hold ~130 MB for ModelNet10
-        sub = ModelBank(fit_class_models(X[fold != f], y[fold != f], names, spec, k), spec,
+        sub = ModelBank(fit_class_models(X[fold != f], y[fold != f], names, spec, k,
+                                         min_noise_variance=min_noise_variance), spec,
                         classifier, pose_components=pose_components, class_prior=class_prior)
         ps, ts = [], []
         for i in np.flatnonzero(fold == f):
@@ -405,7 +418,8 @@ def fit_bank(X, y, names, spec, k=20, masks=None, pose_components=8, classifier_
               f'{", unknown voxels as missing data" if masks is not None else ""}) ...',
               file=sys.stderr, flush=True)
     models = fit_class_models(X, y, names, spec, k, masks)
-    info = dict(training or {}, k=k, n_objects=int(len(X)), folds=folds, seed=seed,
+    info = dict(training or {}, k=k, min_noise_variance=OCCUPANCY_MIN_NOISE_VARIANCE,
+                n_objects=int(len(X)), folds=folds, seed=seed,
                 classifier_views=classifier_views, fit_seconds=round(time.time() - t0, 1))
     classifier = None
     if classifier_views > 0:

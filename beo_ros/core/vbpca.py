@@ -24,7 +24,9 @@ import numpy as np
 from sklearn.base import BaseEstimator, TransformerMixin
 from sklearn.exceptions import ConvergenceWarning, NotFittedError
 
-_EPS = 1e-10
+_EPS = 1e-10        # floor of the ARD variances, relative to the data's variance
+_V_FLOOR = 1e-8     # floor of the noise variance, relative to the data's variance
+_INIT_FLOOR = 1e-4  # floor of the initial noise variance, relative to the data's variance
 
 
 class VBPCA(TransformerMixin, BaseEstimator):
@@ -33,12 +35,21 @@ class VBPCA(TransformerMixin, BaseEstimator):
     Parameters:
         n_components: upper bound k on the number of components (ARD prunes the surplus).
         max_iter: maximum number of VB iterations.
-        tol: stop when the relative change of the variational lower bound in one iteration falls
-            below ``tol``.
+        tol: stop when the change of the variational lower bound in one iteration falls below
+            ``tol * max(|bound|, n_samples)`` (relative, or tol nats per sample for a bound
+            near 0), or below the rounding error of the bound for dtype float32.
         prune_tol: a column whose ARD variance falls below ``prune_tol * max(alpha)`` is inactive;
-            0 <= prune_tol < 1, so the column of largest variance is always kept.
+            0 <= prune_tol < 1, so the column of largest variance is always kept. A column that
+            ARD collapsed to the numerical floor of the variances is inactive for any prune_tol.
         init: 'pca' (SVD of the mean-imputed data) or 'random'.
-        mean_prior_variance: variance v_mu of the Gaussian prior on mu (fixed).
+        mean_prior_variance: variance v_mu of the Gaussian prior on mu (fixed), in squared units
+            of X: every other quantity of the fit follows the scale of X (its numerical floors are
+            relative to the data's variance), so fitting ``c * X`` with ``c**2 *
+            mean_prior_variance`` (and ``c**2 * min_noise_variance``) gives the model of X scaled
+            by c (the bound shifted by ``-n * d * log|c|``), up to the convergence tolerance.
+        min_noise_variance: lower bound on v (>= 0, in squared units of X; 0: only the numerical
+            floor). A modelling choice of the caller, e.g. for data known to be no more exact than
+            some resolution: the bound is maximised over v >= min_noise_variance.
         random_state: seed for 'random' init.
         verbose: print the bound every iteration.
         dtype: np.float32 or np.float64, the dtype of the heavy products (float32 halves memory
@@ -52,14 +63,16 @@ class VBPCA(TransformerMixin, BaseEstimator):
         loading_covariance_: (k_eff, k_eff) shared posterior covariance of a row of W
             (fully observed path; for the missing path the average over rows).
         mean_variance_: (d,) posterior variance of mu.
-        n_components_: k_eff, the number of columns ARD kept.
+        n_components_: k_eff, the number of columns ARD kept (collapsed ones never count).
         n_iter_, converged_, lower_bound_ (the bound at the last iteration).
     """
 
     def __init__(self, n_components=20, *, max_iter=200, tol=1e-5, prune_tol=1e-3, init='pca',
-                 mean_prior_variance=1.0, random_state=None, verbose=False, dtype=np.float32):
+                 mean_prior_variance=1.0, min_noise_variance=0.0, random_state=None,
+                 verbose=False, dtype=np.float32):
         self.n_components = n_components
         self.mean_prior_variance = mean_prior_variance
+        self.min_noise_variance = min_noise_variance
         self.max_iter = max_iter
         self.tol = tol
         self.prune_tol = prune_tol
@@ -81,6 +94,11 @@ class VBPCA(TransformerMixin, BaseEstimator):
                     or not isinstance(value, (int, float, np.integer, np.floating))
                     or not (np.isfinite(value) and value > 0)):
                 raise ValueError(f'{name} must be a finite number > 0, got {value!r}')
+        mnv = self.min_noise_variance
+        if (isinstance(mnv, (bool, np.bool_))
+                or not isinstance(mnv, (int, float, np.integer, np.floating))
+                or not (np.isfinite(mnv) and mnv >= 0)):
+            raise ValueError(f'min_noise_variance must be a finite number >= 0, got {mnv!r}')
         if self.init not in ('pca', 'random'):
             raise ValueError(f"init must be 'pca' or 'random', got {self.init!r}")
         pt = self.prune_tol
@@ -149,6 +167,11 @@ class VBPCA(TransformerMixin, BaseEstimator):
             cnt = np.maximum(mask.sum(axis=0), 1)
             mu = np.where(mask, X, 0).sum(axis=0) / cnt
             Xc = np.where(mask, X - mu, 0)
+        # the data's variance per entry (1 for constant data): the unit of the numerical floors,
+        # which in absolute units pruned every component of data in small units
+        s2 = (float(Xc.var(dtype=np.float64)) if mask is None
+              else float(np.square(Xc, dtype=np.float64).sum() / mask.sum()))
+        s2 = s2 if np.isfinite(s2) and s2 > 0 else 1.0
         if self.init == 'pca':
             # eigen-decomposition in the smaller dimension: the dual (n, n) Gram for n << d
             if n < d:
@@ -161,28 +184,30 @@ class VBPCA(TransformerMixin, BaseEstimator):
                 e, V = e[::-1], V[:, ::-1]
                 W = V[:, :k] * np.sqrt(np.maximum(e[:k], 0) / n)
             W = W.astype(self.dtype)
-            resid = max(np.maximum(e[k:], 0).sum() / (n * d), 1e-4)
+            resid = max(np.maximum(e[k:], 0).sum() / (n * d), _INIT_FLOOR * s2)
         else:
             rng = np.random.default_rng(self.random_state)
             W = (rng.standard_normal((d, k)) * Xc.std() / np.sqrt(k)).astype(self.dtype)
-            resid = float(Xc.var()) + 1e-4
-        return mu.astype(self.dtype), W, float(resid)
+            resid = float(Xc.var()) + _INIT_FLOOR * s2
+        return mu.astype(self.dtype), W, max(float(resid), float(self.min_noise_variance)), s2
 
     def _fit_full(self, X, k):
         # Only two (n, d) x (d, k) products per iteration: every other term is expanded into
         # sufficient statistics, so no (n, d) temporary is ever formed.
         n, d = X.shape
-        mu, W, v = self._init_params(X, None, k)
+        mu, W, v, s2 = self._init_params(X, None, k)
+        a_floor, v_floor = _EPS * s2, max(_V_FLOOR * s2, float(self.min_noise_variance))
         mu = mu.astype(np.float64)
         col_sum = X.sum(axis=0, dtype=np.float64)                # (d,)
         sq_total = float(np.einsum('ij,ij->', X, X, dtype=np.float64))
-        alpha = np.maximum((W.astype(np.float64) ** 2).sum(axis=0) / d, _EPS)
+        alpha = np.maximum((W.astype(np.float64) ** 2).sum(axis=0) / d, a_floor)
         v_mu = float(self.mean_prior_variance)
         Sw = np.zeros((k, k))
         mu_var = 0.0
         prev = -np.inf
         converged = False
         bound = np.nan
+        eps = float(np.finfo(self.dtype).eps)
         for it in range(1, self.max_iter + 1):
             W64 = W.astype(np.float64)
             # q(X): shared covariance
@@ -204,20 +229,29 @@ class VBPCA(TransformerMixin, BaseEstimator):
             sq = (sq_total - 2 * mu @ col_sum + n * mu @ mu - 2 * cross + np.trace(XX @ WtW))
             sq += n * np.trace(WtW @ Sx) + d * np.trace(Sw @ XX)
             sq += n * d * np.trace(Sw @ Sx) + n * d * mu_var
-            v = max(sq / (n * d), 1e-8)
+            v = max(sq / (n * d), v_floor)
             if not np.isfinite(v):          # overflow: stop early, _finish raises
                 break
-            alpha = np.maximum((np.diag(WtW) + d * np.diag(Sw)) / d, _EPS)
+            alpha = np.maximum((np.diag(WtW) + d * np.diag(Sw)) / d, a_floor)
             W = W64.astype(self.dtype)
             bound = self._bound_full(n, d, k, v, sq, Sx, Xm, Sw, W64, alpha, mu, mu_var, v_mu)
             if self.verbose:
                 print(f'VBPCA iter {it}: bound {bound:.8g} v {v:.5g}')
-            if np.isfinite(prev) and abs(bound - prev) <= self.tol * abs(bound):
+            # X^T Xm is rounded to the dtype: the bound's error is about eps * |cross| / v (in
+            # float32 often above tol * |bound|, and the test was then met only by chance)
+            noise = 2 * eps * abs(cross) / v
+            if np.isfinite(prev) and self._small_change(bound, prev, n, noise):
                 converged = True
                 break
             prev = bound
         self._finish(W, mu, v, alpha, Sw, np.full(d, mu_var, dtype=np.float32), it, converged,
-                     bound)
+                     bound, a_floor)
+
+    def _small_change(self, bound, prev, n, noise=0.0):
+        # relative to |bound| alone the test could not be met by a bound near 0 (its value
+        # depends on the units of X: c * X shifts it by -n d log c); ``noise``: the bound's
+        # rounding error
+        return abs(bound - prev) <= max(self.tol * max(abs(bound), n), noise)
 
     @staticmethod
     def _bound_full(n, d, k, v, sq, Sx, Xm, Sw, W, alpha, mu, mu_var, v_mu):
@@ -234,12 +268,13 @@ class VBPCA(TransformerMixin, BaseEstimator):
 
     def _fit_missing(self, X, mask, k):
         n, d = X.shape
-        mu, W, v = self._init_params(X, mask, k)
+        mu, W, v, s2 = self._init_params(X, mask, k)
+        a_floor, v_floor = _EPS * s2, max(_V_FLOOR * s2, float(self.min_noise_variance))
         W = W.astype(np.float64)
         mu = mu.astype(np.float64)
         M = mask.astype(np.float64)
         Xo = np.where(mask, X, 0).astype(np.float64)
-        alpha = np.maximum((W ** 2).sum(axis=0) / d, _EPS)
+        alpha = np.maximum((W ** 2).sum(axis=0) / d, a_floor)
         v_mu = float(self.mean_prior_variance)
         Sw = np.zeros((d, k, k))
         mu_var = np.zeros(d)
@@ -277,23 +312,23 @@ class VBPCA(TransformerMixin, BaseEstimator):
             xs = Xm[:, :, None] * Xm[:, None, :]
             sq += ((M.T @ xs[:, iu[0], iu[1]]) * Sw[:, iu[0], iu[1]] * sym).sum()
             sq += (M * mu_var).sum()
-            v = max(sq / n_obs, 1e-8)
+            v = max(sq / n_obs, v_floor)
             if not np.isfinite(v):          # overflow: stop early, _finish raises
                 break
             # without this step the bound creeps for hundreds of iterations along directions
             # (scale and rotation of the scores) that barely change the fit (Ilin and Raiko 2010)
             W, Sw, Xm, Sx = _rotate_to_pca(W, Sw, Xm, Sx)
             alpha = np.maximum(((W ** 2).sum(axis=0) + Sw[:, range(k), range(k)].sum(axis=0)) / d,
-                               _EPS)
+                               a_floor)
             bound = self._bound_missing(n_obs, k, v, sq, Sx, Xm, Sw, W, alpha, mu, mu_var, v_mu)
             if self.verbose:
                 print(f'VBPCA(missing) iter {it}: bound {bound:.8g} v {v:.5g}')
-            if np.isfinite(prev) and abs(bound - prev) <= self.tol * abs(bound):
+            if np.isfinite(prev) and self._small_change(bound, prev, n):
                 converged = True
                 break
             prev = bound
         self._finish(W.astype(self.dtype), mu.astype(self.dtype), v, alpha, Sw.mean(axis=0),
-                     mu_var.astype(np.float32), it, converged, bound)
+                     mu_var.astype(np.float32), it, converged, bound, a_floor)
 
     @staticmethod
     def _bound_missing(n_obs, k, v, sq, Sx, Xm, Sw, W, alpha, mu, mu_var, v_mu):
@@ -312,7 +347,7 @@ class VBPCA(TransformerMixin, BaseEstimator):
         kl_mu = 0.5 * (((mu ** 2 + mu_var) / v_mu).sum() - d - np.log(mu_var / v_mu).sum())
         return float(ll - kl_x - kl_w - kl_mu)
 
-    def _finish(self, W, mu, v, alpha, Sw, mu_var, n_iter, converged, bound):
+    def _finish(self, W, mu, v, alpha, Sw, mu_var, n_iter, converged, bound, a_floor=0.0):
         # overflow (e.g. float32 products of data of large magnitude) turns the whole model into
         # NaN, and NaN ARD variances would then silently prune every column: refuse it
         if not (np.isfinite(v) and np.isfinite(mu).all() and np.isfinite(W).all()
@@ -325,7 +360,9 @@ class VBPCA(TransformerMixin, BaseEstimator):
             warnings.warn(f'VBPCA did not converge in {n_iter} iterations; raise max_iter or tol',
                           ConvergenceWarning)
         W64 = np.asarray(W, dtype=np.float64)
-        keep = alpha > self.prune_tol * alpha.max()
+        # a column at the floor is collapsed (prune_tol=0 kept it, as zeros in components_)
+        keep = (alpha > self.prune_tol * alpha.max()) & (alpha > a_floor)
+        keep[np.argmax(alpha)] = True   # all collapsed: the model still has one column
         # order kept columns by the variance they explain
         order = np.argsort(-(W64 ** 2).sum(axis=0))
         order = order[keep[order]]
