@@ -315,6 +315,12 @@ def test_mesh_class_names(tmp_path, monkeypatch):
     assert mesh_class_name('cans/can_7b.stl') == 'cans'
     monkeypatch.chdir(tmp_path)
     assert mesh_class_name('mug.ply') == tmp_path.name        # a bare name: the working folder
+    # '..' is the folder above, not a class '..' (refused after every mesh was voxelized)
+    (tmp_path / 'mugs' / 'sub').mkdir(parents=True)
+    monkeypatch.chdir(tmp_path / 'mugs' / 'sub')
+    assert mesh_class_name('../mug.ply') == 'mugs'
+    assert mesh_class_name('../../mugs/sub/../mug.ply') == 'mugs'
+    assert mesh_class_name('../sub/./mug.ply') == 'sub'
 
 
 # ---------------------------------------------------------------------- 7: one class

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from collections import Counter
 
 import numpy as np
@@ -204,7 +205,8 @@ def mesh_class_name(path) -> str:
     head, sep, tail = path.stem.rpartition('_')
     if sep and head and tail.isdigit():
         return head
-    return path.absolute().parent.name
+    # abspath, not Path.absolute: that keeps '..', so ../mug.off was of class '..'
+    return Path(os.path.abspath(path)).parent.name
 
 
 def load_meshes(paths, size):
