@@ -400,8 +400,8 @@ def _load_objects(args):
             check_grid_size(n)
         except ValueError as e:
             raise ValueError(f'{parts[0][0]}: grids of {n}^3: {e}') from None
-    if mesh_paths:   # all at once: one class list for every mesh
-        parts.append(('the meshes', *load_meshes(mesh_paths, n), n))
+    if mesh_paths:   # all at once: one class list for every mesh; --classes: only theirs read
+        parts.append(('the meshes', *load_meshes(mesh_paths, n, args.classes), n))
     Xs, ys, names = [], [], []
     for src, X1, y1, names1, n1 in parts:
         if n1 != n:

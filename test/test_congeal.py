@@ -153,3 +153,55 @@ def test_congeal_yaws_and_class_entropy_name_grids_of_another_size(n):
         congeal_yaws(X, 16, masks=np.ones((3, n ** 3), bool))
     # (m, n, n, n) grids are grids too
     assert class_entropy(X.reshape(3, 16, 16, 16), 16) == class_entropy(X, 16)
+
+
+def _rotated_set(n, m, seed=0):
+    """m copies of the L shape (scaled to n) turned by random yaws, (m, n^3) float32."""
+    base = l_shape(16).repeat(n // 16, 0).repeat(n // 16, 1).repeat(n // 16, 2)
+    rot = np.random.default_rng(seed).uniform(0, 2 * np.pi, m)
+    return np.stack([rotate_grid(base, r).ravel() for r in rot])
+
+
+def _peak_bytes(X, n, masks):
+    import tracemalloc
+    tracemalloc.start()
+    try:
+        congeal_yaws(X, n, masks, iters=1)
+        return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
+@pytest.mark.parametrize('with_masks', [False, True])
+def test_congealing_memory_per_object_is_about_a_byte_per_pooled_voxel_and_yaw(with_masks):
+    # every object's pooled occupancy and observed counts at all 36 yaws were cached as
+    # float32: 8 bytes per pooled voxel and yaw (9 MB an object at 64^3), plus float32 copies
+    # of X and the masks; 0/1 grids now keep uint8 counts and share N without masks
+    n, yaw_count = 32, 36
+    entries = yaw_count * (n // 2) ** 3
+    X = _rotated_set(n, 24)
+    masks = np.ones(X.shape, bool) if with_masks else None
+    if with_masks:
+        masks[::2, : n * n * 8] = False
+    few = _peak_bytes(X[:8], n, None if masks is None else masks[:8])
+    many = _peak_bytes(X, n, masks)
+    per_object = (many - few) / 16
+    assert per_object < (2.5 if with_masks else 1.5) * entries, per_object / entries
+
+
+@pytest.mark.parametrize('with_masks', [False, True])
+def test_compact_counts_give_the_float32_counts_yaws(monkeypatch, with_masks):
+    # the uint8 cache holds the same values as the float32 one: the same costs, the same yaws
+    from beo_ros.core import congeal
+    n = 16
+    X = _rotated_set(n, 10, seed=3)
+    masks = None
+    if with_masks:
+        masks = np.ones(X.shape, bool)
+        masks[1::3, : n * n * 5] = False
+    X[4] *= 0.75   # a fractional object: float32 counts beside the others' uint8 ones
+    compact = congeal_yaws(X, n, masks, yaw_step_deg=15.0)
+    monkeypatch.setattr(congeal, '_binary', lambda a: False)   # every object in float32
+    wide = congeal_yaws(X, n, masks, yaw_step_deg=15.0)
+    np.testing.assert_array_equal(compact[0], wide[0])
+    assert compact[1] == wide[1] and wide[1][-1] < wide[1][0]

@@ -238,16 +238,31 @@ def test_an_obj_vertex_line_of_two_numbers_is_refused_naming_the_file(tmp_path):
         voxelize_mesh(path)
 
 
+@pytest.mark.parametrize('solid_header', [False, True])
 @pytest.mark.parametrize('cut', [-30, 10])
-def test_a_binary_stl_of_the_wrong_length_is_called_so(tmp_path, cut):
+def test_a_binary_stl_of_the_wrong_length_is_called_so(tmp_path, cut, solid_header):
     # trimesh refuses a truncated (or padded) binary STL and then reads it as ASCII: the
-    # error said 'mesh has no triangles' of a file that declares 12
+    # error said 'mesh has no triangles' of a file that declares 12 (still so when the binary
+    # header starts with 'solid', as SolidWorks writes it)
     data = trimesh.exchange.stl.export_stl(trimesh.creation.box((1, 2, 3)))
+    if solid_header:
+        data = b'solid part1'.ljust(80) + data[80:]
+        assert len(load_mesh_bytes(tmp_path, data).faces) == 12   # whole: it loads
     path = tmp_path / 'box.stl'
     path.write_bytes(data[:cut] if cut < 0 else data + bytes(cut))
     with pytest.raises(MeshError, match=f'box.stl: binary STL of {len(data) + cut} bytes, its '
                                         r'header declares 12 triangles \(684 bytes\)'):
         load_mesh(path)
+
+
+def load_mesh_bytes(tmp_path, data, name='whole.stl'):
+    (tmp_path / name).write_bytes(data)
+    return load_mesh(tmp_path / name)
+
+
+def test_an_ascii_stl_without_triangles_has_none(tmp_path):
+    with pytest.raises(MeshError, match='empty.stl: mesh has no triangles'):
+        load_mesh_bytes(tmp_path, b'solid empty'.ljust(84) + b'\nendsolid empty\n', 'empty.stl')
 
 
 def test_an_off_file_with_faces_of_five_corners_loads(tmp_path):

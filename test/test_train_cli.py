@@ -306,6 +306,36 @@ def test_classes_apply_to_meshes(tmp_path, capsys):
     assert "classes ['cup'] not in ['cube', 'slab']" in capsys.readouterr().err
 
 
+def test_classes_read_only_their_meshes(tmp_path, capsys, monkeypatch):
+    # every mesh was voxelized before --classes dropped the others: minutes on ModelNet, and
+    # a broken mesh of a class not asked for stopped the training
+    from beo_ros.core import meshes
+    paths = []
+    for i in range(3):
+        for name, size in (('cube', (1, 1, 1 + 0.1 * i)), ('slab', (1 + 0.1 * i, 1, 0.2))):
+            paths.append(tmp_path / f'{name}_{i:04d}.off')
+            box_off(paths[-1], *size)
+    broken = tmp_path / 'cube_0009.off'
+    broken.write_text('OFF\n3 0 0\n0 0 0\n1 0 0\n0 1 0\n')   # no faces
+    read = []
+    real = meshes.load_mesh
+    monkeypatch.setattr(meshes, 'load_mesh', lambda p: read.append(p.name) or real(p))
+    argv = [*map(str, paths), str(broken), '--grid', '16'] + FAST
+    assert train.main(argv + ['-o', str(tmp_path / 'm'), '--classes', 'slab']) == 0, \
+        capsys.readouterr().err
+    assert sorted(read) == [f'slab_{i:04d}.off' for i in range(3)]
+    assert ModelBank.load(tmp_path / 'm').training['n_objects'] == 3
+    # the class asked for still stops at its broken mesh, naming it
+    assert train.main(argv + ['-o', str(tmp_path / 'm2'), '--classes', 'cube']) == 2
+    assert f'{broken}: mesh has no triangles' in capsys.readouterr().err
+    # npz objects with --classes of no mesh: no mesh is read
+    read.clear()
+    p = write_npz(tmp_path / 'd.npz')
+    assert train.main([str(p), *map(str, paths), '-o', str(tmp_path / 'm3'), '--classes',
+                       'cylinder', 'box'] + FAST) == 0, capsys.readouterr().err
+    assert read == [] and ModelBank.load(tmp_path / 'm3').classes == ['cylinder', 'box']
+
+
 def test_mesh_class_names(tmp_path, monkeypatch):
     from beo_ros.core.training import mesh_class_name
     assert mesh_class_name('chair/train/chair_0001.off') == 'chair'
@@ -315,6 +345,12 @@ def test_mesh_class_names(tmp_path, monkeypatch):
     assert mesh_class_name('cans/can_7b.stl') == 'cans'
     monkeypatch.chdir(tmp_path)
     assert mesh_class_name('mug.ply') == tmp_path.name        # a bare name: the working folder
+    # '..' is the folder above, not a class '..' (refused after every mesh was voxelized)
+    (tmp_path / 'mugs' / 'sub').mkdir(parents=True)
+    monkeypatch.chdir(tmp_path / 'mugs' / 'sub')
+    assert mesh_class_name('../mug.ply') == 'mugs'
+    assert mesh_class_name('../../mugs/sub/../mug.ply') == 'mugs'
+    assert mesh_class_name('../sub/./mug.ply') == 'sub'
 
 
 # ---------------------------------------------------------------------- 7: one class

@@ -68,6 +68,37 @@ def _check_grids(X, masks, n):
                              f' got shape {np.shape(a)}')
 
 
+def _binary(a):
+    return bool(((a == 0) | (a == 1)).all())
+
+
+def _rotated_counts(X, masks, n, pool, idx):
+    """The function i -> (S_i, N_i), object i's pooled occupancy and observed counts at every
+    candidate yaw ((Y, (n/pool)^3) each; ``idx`` the (Y, n^3) yaw_source_index maps).
+
+    The cache of these is the congealing's memory (36 yaws of a 64^3 grid: 9 MB an object in
+    float32), so an object whose observed occupancy and mask are 0/1 keeps its counts, small
+    integers, as uint8, and without masks every object shares one N (the rotated grid's own
+    voxels): the same values, so the same costs and yaws. Other objects stay float32.
+    """
+    pad = lambda a: np.append(a, np.float32(0))  # noqa: E731  outside the grid: unobserved
+    small = pool ** 3 <= np.iinfo(np.uint8).max
+    ones = np.ones(n ** 3, dtype=np.float32)
+    N_all = _pool(pad(ones)[idx], n, pool)
+    N_all_small = N_all.astype(np.uint8)
+
+    def rotated(i):
+        mf = ones if masks is None else np.asarray(masks[i], dtype=np.float32)
+        xo = np.where(mf > 0, X[i], 0)  # not X * Mf: NaN where unobserved made every cost NaN
+        S = _pool(pad(xo)[idx], n, pool)
+        N = N_all if masks is None else _pool(pad(mf)[idx], n, pool)
+        if not (small and _binary(xo) and (masks is None or _binary(mf))):
+            return S, N
+        return S.astype(np.uint8), N_all_small if masks is None else N.astype(np.uint8)
+
+    return rotated
+
+
 def congeal_yaws(X, n, masks=None, yaw_step_deg=10.0, iters=6, prior=0.5, pool=2, seed=0,
                  verbose=False):
     """Congeal one class: (yaws (m,) radians to rotate each object by, cost per sweep list).
@@ -88,17 +119,12 @@ def congeal_yaws(X, n, masks=None, yaw_step_deg=10.0, iters=6, prior=0.5, pool=2
         pool = 1
     yaws = np.deg2rad(np.arange(0.0, 360.0, yaw_step_deg))
     idx = yaw_source_index(n, yaws)                                  # (Y, n^3)
-    Mf = np.ones_like(X) if masks is None else np.asarray(masks, dtype=np.float32)
-    Xo = np.where(Mf > 0, X, 0)   # not X * Mf: NaN where unobserved made every cost NaN
-    pad = lambda a: np.append(a, np.float32(0))  # noqa: E731  outside the grid: unobserved
-
-    def rotated(i):  # pooled occupancy and observed counts of object i at every candidate yaw
-        return _pool(pad(Xo[i])[idx], n, pool), _pool(pad(Mf[i])[idx], n, pool)
-
+    rotated = _rotated_counts(X, masks, n, pool, idx)
     cache = [rotated(i) for i in range(m)]
     cur = np.zeros(m, dtype=int)
-    S = sum(c[0][0] for c in cache).astype(np.float64)
-    N = sum(c[1][0] for c in cache).astype(np.float64)
+    # in float32 as the sums of the float32 counts were (the compact ones hold the same values)
+    S = sum(c[0][0].astype(np.float32) for c in cache).astype(np.float64)
+    N = sum(c[1][0].astype(np.float32) for c in cache).astype(np.float64)
     history = [float(_cost(S, N, prior))]
     rng = np.random.default_rng(seed)
     for sweep in range(iters):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from collections import Counter
 
 import numpy as np
@@ -204,21 +205,28 @@ def mesh_class_name(path) -> str:
     head, sep, tail = path.stem.rpartition('_')
     if sep and head and tail.isdigit():
         return head
-    return path.absolute().parent.name
+    # abspath, not Path.absolute: that keeps '..', so ../mug.off was of class '..'
+    return Path(os.path.abspath(path)).parent.name
 
 
-def load_meshes(paths, size):
-    """Voxelize mesh files; the class of each is :func:`mesh_class_name`."""
+def load_meshes(paths, size, classes=None):
+    """Voxelize mesh files: (X (m, size^3) float32, labels (m,), sorted class names), the class
+    of each file :func:`mesh_class_name`. With ``classes``, the files of other classes are not
+    read (their classes stay in the names, with no objects)."""
     from pathlib import Path
     from .meshes import MeshError, load_mesh, voxelize_mesh
-    X, names_of = [], []
-    for p in paths:
-        p = Path(p)
+    paths = [Path(p) for p in paths]
+    names_of = [mesh_class_name(p) for p in paths]
+    names = sorted(set(names_of))
+    X, labels = [], []
+    for p, name in zip(paths, names_of):
+        if classes is not None and name not in classes:
+            continue
         mesh = load_mesh(p)
         try:
             X.append(voxelize_mesh(mesh, size).ravel())
         except MeshError as e:   # named the mesh, not the file
             raise MeshError(f'{p}: {e}') from None
-        names_of.append(mesh_class_name(p))
-    names = sorted(set(names_of))
-    return np.array(X, dtype=np.float32), np.array([names.index(s) for s in names_of]), names
+        labels.append(names.index(name))
+    X = np.array(X, dtype=np.float32).reshape(len(X), size ** 3)   # no meshes: (0, size^3)
+    return X, np.array(labels, dtype=int), names

@@ -87,7 +87,10 @@ def load_mesh(path) -> trimesh.Trimesh:
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         size = os.path.getsize(path)
         head = _head(path, 84)
-        if ext == '.stl' and len(head) == 84 and not head.lstrip().startswith(b'solid'):
+        # a binary header may start with 'solid' too (SolidWorks' do): an ASCII STL has no
+        # NUL, a binary one's triangle count (bytes 80-84) one unless it is over 2^24
+        binary = not head.lstrip().startswith(b'solid') or b'\0' in head
+        if ext == '.stl' and len(head) == 84 and binary:
             # trimesh refuses a binary STL of another length, then reads it as ASCII: nothing
             count = int.from_bytes(head[80:84], 'little')
             if size != 84 + 50 * count:
