@@ -267,6 +267,19 @@ def _shell_env(before, venv):
     return env
 
 
+def _activate_round_trips(shell, act, venv, show, leftover, prelude=''):
+    """Source ``act`` with ``shell`` (argv before the script) from every value of BEFORE:
+    activate, deactivate, activate twice, deactivate, printing AMENT_PREFIX_PATH (``show``)
+    after each, then the count of _BEO variables left (``leftover``)."""
+    script = (prelude + f'source {act}\n' + show + 'deactivate\n' + show
+              + f'source {act}\nsource {act}\n' + show + 'deactivate\n' + show + leftover)
+    for before in BEFORE:
+        r = _run(shell + [script], **_shell_env(before, venv))
+        assert r.returncode == 0, (before, r.stderr)
+        want = _expected(str(venv), before.format(venv=venv)) + ['leftover: 0']
+        assert r.stdout.splitlines() == want, (before, r.stderr)
+
+
 def test_setup_patches_activate_fish(tmp_path):
     # activate.fish was not patched: fish users got no AMENT_PREFIX_PATH, and ament_index
     # lookups of beo_interfaces and beo_ros failed
@@ -283,15 +296,9 @@ def test_setup_patches_activate_fish(tmp_path):
     if fish is None:
         return   # the text is checked; fish itself is not installed
     assert _run([fish, '--no-execute', str(act)]).returncode == 0
-    show = "printenv AMENT_PREFIX_PATH; or echo '<unset>'\n"
-    script = (f'source {act}\n' + show + 'deactivate\n' + show
-              + f'source {act}\nsource {act}\n' + show + 'deactivate\n' + show
-              + "echo leftover: (set -n | string match '_BEO*' | count)\n")
-    for before in BEFORE:
-        r = _run([fish, '--no-config', '-c', script], **_shell_env(before, venv))
-        assert r.returncode == 0, r.stderr
-        want = _expected(str(venv), before.format(venv=venv)) + ['leftover: 0']
-        assert r.stdout.splitlines() == want, before
+    _activate_round_trips([fish, '--no-config', '-c'], act, venv,
+                          show="printenv AMENT_PREFIX_PATH; or echo '<unset>'\n",
+                          leftover="echo leftover: (set -n | string match '_BEO*' | count)\n")
 
 
 def test_setup_patches_activate_csh(tmp_path):
@@ -308,16 +315,11 @@ def test_setup_patches_activate_csh(tmp_path):
     csh = shutil.which('tcsh') or shutil.which('csh')
     if csh is None:
         return   # the text is checked; no csh installed
-    show = 'printenv AMENT_PREFIX_PATH || echo "<unset>"\n'
-    script = ('set prompt="> "\n'   # a non-interactive csh has none; activate.csh reads it
-              f'source {act}\n' + show + 'deactivate\n' + show
-              + f'source {act}\nsource {act}\n' + show + 'deactivate\n' + show
-              + "echo leftover: `set | grep '^_BEO' | wc -l`\n")
-    for before in BEFORE:
-        r = _run([csh, '-f', '-c', script], **_shell_env(before, venv))
-        assert r.returncode == 0, r.stderr
-        want = _expected(str(venv), before.format(venv=venv)) + ['leftover: 0']
-        assert r.stdout.splitlines() == want, (before, r.stderr)
+    _activate_round_trips([csh, '-f', '-c'], act, venv,
+                          show='printenv AMENT_PREFIX_PATH || echo "<unset>"\n',
+                          leftover="echo leftover: `set | grep '^_BEO' | wc -l`\n",
+                          # a non-interactive csh has no prompt; activate.csh reads it
+                          prelude='set prompt="> "\n')
 
 
 # --- scripts/test and .ci/run in a scratch clone --------------------------------------------
