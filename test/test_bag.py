@@ -105,11 +105,12 @@ def test_write_read_back(tmp_path, storage):
 def test_writer_refuses_existing_and_type_clash(tmp_path):
     p = tmp_path / 'b'
     write_test_bag(p, 'sqlite3', n=1)
-    with pytest.raises(Exception):
+    with pytest.raises(Exception, match='exists already'):
         bag.BagWriter(p, 'sqlite3').open()
+    assert bag.bag_info(p)['message_count'] == 2   # the refused writer left the bag alone
     with bag.BagWriter(tmp_path / 'c', 'mcap') as w:
         w.add_topic('/x', 'std_msgs/String')
-        with pytest.raises(ValueError):
+        with pytest.raises(ValueError, match='/x: already has type std_msgs/msg/String'):
             w.add_topic('/x', 'std_msgs/msg/Float64MultiArray')
     # write() checks the type of a message on a known topic too (a Header after a String
     # would be written and fail to deserialize later)
@@ -143,11 +144,11 @@ def test_a_single_topic_string_is_one_topic_name(ros_env_context, tmp_path):
 def test_msgtype_names():
     assert bag.normalize_msgtype('sensor_msgs/PointCloud2') == 'sensor_msgs/msg/PointCloud2'
     assert bag.normalize_msgtype('std_msgs.msg.String') == 'std_msgs/msg/String'
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="not a message type name: 'nope'"):
         bag.normalize_msgtype('nope')
     assert bag.msgtype_of(PointCloud2()) == 'sensor_msgs/msg/PointCloud2'
     assert bag.parse_remaps(['/a:=/b', '/c:=/d/e']) == {'/a': '/b', '/c': '/d/e'}
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="remap must be OLD:=NEW, got '/a=/b'"):
         bag.parse_remaps(['/a=/b'])
     assert bag.parse_topic_specs(['/a', '/b:std_msgs/String']) == {
         '/a': None, '/b': 'std_msgs/msg/String'}

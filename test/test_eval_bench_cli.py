@@ -93,7 +93,9 @@ def test_eval_options_of_the_other_mode_refused(model, tmp_path, capsys, extra, 
     assert call(evaluate.main, ['--data', str(write_npz(tmp_path / 'd.npz')),
                                 '--out', str(out), *extra]) == 2
     err = capsys.readouterr().err
-    assert named in err and ('not used with --cv' in err or 'only with --cv' in err)
+    why = ('not used with --cv (each fold trains its own bank): ' if '--cv' in extra else
+           'used only with --cv, not in held-out mode: ')   # the mode's own reason
+    assert why + named in err, err
     assert not out.exists()
 
 
@@ -454,12 +456,18 @@ def test_bench_options_of_several_phases_none_run_refused(tmp_path, capsys, extr
 
 
 def test_bench_options_of_several_phases_used_by_one_still_accepted(tmp_path):
-    for extra in (['--no-icp', '--icp-init-yaws', '2'], ['--no-scaling', '--icp-init-yaws', '2'],
-                  ['--no-paper', '--slow-repeats', '3'], ['--model', 'm', '--k', '5'],
-                  ['--model', 'm', '--no-paper', '--k', '5'],
-                  ['--model', 'm', '--no-paper', '--no-icp', '--train-per-class', '5'],
-                  ['--no-paper', '--no-icp', '--no-scaling', '--train-per-class', '5']):
-        bench.parse_args(['--out', str(tmp_path / 'b'), *extra])
+    for extra, key, value in (
+            (['--no-icp', '--icp-init-yaws', '2'], 'icp_init_yaws', 2),
+            (['--no-scaling', '--icp-init-yaws', '2'], 'icp_init_yaws', 2),
+            (['--no-paper', '--slow-repeats', '3'], 'slow_repeats', 3),
+            (['--model', 'm', '--k', '5'], 'k', 5),
+            (['--model', 'm', '--no-paper', '--k', '5'], 'k', 5),
+            (['--model', 'm', '--no-paper', '--no-icp', '--train-per-class', '5'],
+             'train_per_class', 5),
+            (['--no-paper', '--no-icp', '--no-scaling', '--train-per-class', '5'],
+             'train_per_class', 5)):
+        args = bench.parse_args(['--out', str(tmp_path / 'b'), *extra])
+        assert getattr(args, key) == value, (extra, vars(args))   # taken, not reset
 
 
 def test_bench_odd_scaling_grid_refused_by_the_parser(tmp_path, capsys):

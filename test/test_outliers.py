@@ -190,6 +190,10 @@ def test_cluster_tolerance_bounds():
         off = outside_largest_cluster(np.r_[line, small + shift], tol)
         assert not off[:100].any()
         assert (not off[100:].any()) if joined else off[100:].all(), shift
+    # between the two bounds the cells decide: lines 2.25 tolerances apart along y lie in
+    # cells 0 and 2, which do not touch (a neighbour radius of 2+ cells joined them)
+    off = outside_largest_cluster(np.r_[line, small + [0, 0.045, 0]], tol)
+    assert not off[:100].any() and off[100:].all()
     # a chain of points each closer than the tolerance is one cluster, however long
     chain = np.c_[np.arange(0, 10, 0.019), np.zeros(527), np.zeros(527)]
     assert not outside_largest_cluster(chain, tol).any()

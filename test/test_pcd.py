@@ -107,7 +107,16 @@ HEADER = ('VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n'
     (HEADER.encode() + b'DATA binary_compressed\n' + struct.pack('<II', 4, 99) + b'abcd',
      'uncompressed size'),
     (HEADER.encode() + b'DATA binary_compressed\n' + struct.pack('<II', 40, 24) + b'abcd',
-     'truncated'),
+     r'compressed data truncated \(4 < 40 bytes\)'),
+    # one byte short: 40 was short by more than the 8-byte size header, so a check that
+    # counted that header as data passed it too
+    (HEADER.encode() + b'DATA binary_compressed\n' + struct.pack('<II', 5, 24) + b'abcd',
+     r'compressed data truncated \(4 < 5 bytes\)'),
+    # a negative WIDTH or HEIGHT alone (POINTS agreeing with the product)
+    (HEADER.replace('WIDTH 2', 'WIDTH -2').replace('POINTS 2', 'POINTS -2').encode()
+     + b'DATA ascii\n', 'bad WIDTH -2 / HEIGHT 1'),
+    (HEADER.replace('HEIGHT 1', 'HEIGHT -1').replace('POINTS 2', 'POINTS -2').encode()
+     + b'DATA ascii\n', 'bad WIDTH 2 / HEIGHT -1'),
     (HEADER.encode() + b'DATA binary_compressed\n' + struct.pack('<II', 3, 24) + b'\x05ab',
      'LZF'),
 ])
@@ -181,6 +190,14 @@ def test_ascii_packed_colour_typed_f_as_integer_or_float_text(tmp_path, name):
     # a float-text column stays floats, also with an integral-looking cell and nan
     path.write_text(head.format(t='F') + '0 4.2108e+06\n1 nan\n2 3\n3 1.5\n')
     np.testing.assert_array_equal(read_pcd(path)[name], np.float32([4.2108e6, np.nan, 3, 1.5]))
+    path.write_text(head.format(t='F') + '0 1.5\n1 3\n2 3\n3 3\n')   # without a nan too
+    np.testing.assert_array_equal(read_pcd(path)[name], np.float32([1.5, 3, 3, 3]))
+    # integer text with a nan cell is still integer text: nan there, the colours' bits elsewhere
+    path.write_text(head.format(t='F') + ''.join(
+        f'{i} {c}\n' for i, c in enumerate([str(int(v)) for v in colours] + ['nan'])))
+    got = read_pcd(path)[name]
+    np.testing.assert_array_equal(got[:3].view(np.uint32), colours)
+    assert np.isnan(got[3])
     # the integer text is only special for colour fields: elsewhere F text is a float
     path.write_text(head.replace(name, 'intensity').format(t='F') + '0 16744455\n' * 4)
     np.testing.assert_array_equal(read_pcd(path)['intensity'], np.float32([16744455.0] * 4))
