@@ -2594,3 +2594,23 @@ def test_save_gives_the_directory_the_umask_permissions_without_touching_the_uma
         os.umask(old)
     assert stat.S_IMODE(path.stat().st_mode) == 0o750
     assert ModelBank.load(path).classes == bank.classes
+
+
+def test_estimate_solves_each_exact_posterior_once(pose_case, monkeypatch):
+    # the refinement solved the stage-1 yaw of the chosen class again (at its stage-2 optimum
+    # or in the climb): the same rotation maps, the same posterior, twice the time
+    from beo_ros.core.inference import yaw_key
+    bank, cases = pose_case
+    eng = bank.engine
+    calls = []
+    exact = eng.exact
+
+    def counted(obs, c, yaw, with_prediction=True):
+        calls.append((c, yaw_key(-yaw), yaw_key(yaw)))
+        return exact(obs, c, yaw, with_prediction)
+
+    monkeypatch.setattr(eng, 'exact', counted)
+    for g, _, _, _ in cases:
+        calls.clear()
+        bank.estimate(g)
+        assert len(calls) == len(set(calls)), calls
