@@ -501,6 +501,26 @@ def test_scoring_a_row_twice_gives_its_score_twice(tiny):
                                        rtol=1e-4, atol=1e-6)
 
 
+def test_pooled_column_maps_sum_the_observed_cells_of_every_canonical_cell(tiny):
+    # the pooled maps are of (x, y) columns (16x smaller, and scores gathers whole columns):
+    # expanded to cells they must give each canonical cell exactly the observed cells that
+    # show it, as the cell-level map yaw_source_index says
+    eng = tiny.engine
+    nc, m, dc = eng.nc, eng.nc ** 2, eng.nc ** 3
+    yaws = np.deg2rad(np.arange(0, 360, 7.0))
+    first, extra = eng._rotation_maps(yaws)
+    assert first.shape == (len(yaws), m)
+    w = np.random.default_rng(0).integers(1, 1000, dc).astype(np.float64)   # exact sums
+    wcol = np.vstack([w.reshape(m, nc), np.zeros((1, nc))])
+    got = wcol[first]                                        # (Y, m, nc)
+    for pos, src in extra:
+        got.reshape(-1, nc)[pos] += wcol[src]
+    inv = yaw_source_index(nc, yaws)                         # observed cell -> canonical cell
+    for y in range(len(yaws)):
+        want = np.bincount(inv[y], weights=w, minlength=dc + 1)[:dc]
+        np.testing.assert_array_equal(got[y].ravel(), want)
+
+
 def test_stage2_windows_find_the_exhaustive_full_component_optimum(pose_case):
     # estimate() re-scores the chosen class with all components only within +-15 deg of its 6
     # best stage-1 modes; the exhaustive stage-2 search (stage2_modes=None) is the reference
@@ -2574,3 +2594,23 @@ def test_save_gives_the_directory_the_umask_permissions_without_touching_the_uma
         os.umask(old)
     assert stat.S_IMODE(path.stat().st_mode) == 0o750
     assert ModelBank.load(path).classes == bank.classes
+
+
+def test_estimate_solves_each_exact_posterior_once(pose_case, monkeypatch):
+    # the refinement solved the stage-1 yaw of the chosen class again (at its stage-2 optimum
+    # or in the climb): the same rotation maps, the same posterior, twice the time
+    from beo_ros.core.inference import yaw_key
+    bank, cases = pose_case
+    eng = bank.engine
+    calls = []
+    exact = eng.exact
+
+    def counted(obs, c, yaw, with_prediction=True):
+        calls.append((c, yaw_key(-yaw), yaw_key(yaw)))
+        return exact(obs, c, yaw, with_prediction)
+
+    monkeypatch.setattr(eng, 'exact', counted)
+    for g, _, _, _ in cases:
+        calls.clear()
+        bank.estimate(g)
+        assert len(calls) == len(set(calls)), calls

@@ -27,7 +27,8 @@ from .classifier import (CLASS_PRIORS, HIDDEN_CLASSIFIER_KEYS, MODES, OPTIONAL_C
 from .estimate import UNKNOWN_LABEL, Estimate, Hypothesis
 from .grid import (GridSpec, _real, symmetric_turns, unit_vector, wrap_yaw as _wrap, yaw_error,
                    yaw_grid, yaw_matrix)
-from .inference import FEATURE_NAMES, InferenceEngine, observed_edt, top_modes, top_yaw_modes
+from .inference import (FEATURE_NAMES, InferenceEngine, observed_edt, top_modes, top_yaw_modes,
+                        yaw_key)
 from .model_files import (CLASS_KEYS, FORMAT, OPTIONAL_CLASS_KEYS, OPTIONAL_FILES, UNREADABLE,
                           VERSION, _check_manifest_settings, _load_class_models,
                           _load_classifier, _manifest_layout, _optional_arrays, _read_checked,
@@ -399,7 +400,8 @@ class ModelBank:
 
         Returns (features (C, F), list of per-class dicts: yaw, exact, hypotheses, searched,
         search_step_deg, pooled and observed (the grid's pooled weights and its
-        ``InferenceEngine.observe`` arrays, shared)).
+        ``InferenceEngine.observe`` arrays, shared), solved (the class's exact posteriors
+        solved so far, see :meth:`_exact`)).
         """
         grid = self.check_grid(grid)
         check_step('yaw_step_deg', yaw_step_deg)
@@ -426,6 +428,7 @@ class ModelBank:
             modes = top_yaw_modes(yaws_c, ll_c, 3)   # exhaustive or coarse-to-fine yaws
             per.append(dict(yaw=float(best_yaw[c]), exact=ex, searched=searched[c],
                             search_step_deg=float(yaw_step_deg), pooled=pooled, observed=obs,
+                            solved={_solved_key(float(best_yaw[c])): ex},
                             hypotheses=[(float(yaws_c[i]), float(ll_c[i])) for i in modes]))
         return np.array(feats), per
 
@@ -522,7 +525,7 @@ class ModelBank:
             modes = top_modes(ll, 3, max(1, int(round(20.0 / stage2_step_deg))))
             modes = [i for i in modes if np.isfinite(ll[i])]
             y0 = float(yaws[modes[0]])
-            best = dict(per_c, yaw=y0, exact=eng.exact(obs, c, y0, with_prediction=False),
+            best = dict(per_c, yaw=y0, exact=self._exact(obs, c, y0, per_c),
                         hypotheses=[(float(yaws[i]), float(ll[i])) for i in modes])
         if window_deg > 0 and probe_deg:
             # exact solves a little further out: on 794 partial views of fold 0 (true class)
@@ -534,7 +537,7 @@ class ModelBank:
             for off in probe_deg:
                 for sign in (1, -1):
                     y = float(y0 + sign * np.deg2rad(off))
-                    ex = eng.exact(obs, c, y, with_prediction=False)
+                    ex = self._exact(obs, c, y, best)
                     if ex['loglik'] > top:
                         top, best = ex['loglik'], dict(best, yaw=y, exact=ex)
         # hill climbing up to +-window_deg in steps of max(step_deg, 1 deg), then below 1 deg
@@ -546,6 +549,20 @@ class ModelBank:
         eng.add_prediction(best['exact'], obs, c)
         return best
 
+    def _exact(self, obs, c, yaw, per_c):
+        """``engine.exact(obs, c, yaw, with_prediction=False)`` of the search result ``per_c``
+        of class c, or the posterior of the same rotation map solved earlier for it
+        (``per_c['solved']``, shared by the dicts made from it): the refinement often solves
+        the stage-1 yaw again. The result depends on the yaw only through its map keys."""
+        solved = per_c.get('solved')
+        key = _solved_key(yaw)
+        ex = None if solved is None else solved.get(key)
+        if ex is None:
+            ex = self.engine.exact(obs, c, yaw, with_prediction=False)
+            if solved is not None:
+                solved[key] = ex
+        return ex
+
     def _climb(self, obs, c, best, step_deg, window_deg):
         """Hill climbing of the exact log-likelihood from best['yaw'] in step_deg steps, up
         to +-window_deg, first upward, then downward if that found nothing better (the
@@ -556,7 +573,7 @@ class ModelBank:
             top = best['exact']['loglik']
             for i in range(1, int(round(window_deg / step_deg)) + 1):
                 y = float(y0 + direction * i * step)
-                ex = self.engine.exact(obs, c, y, with_prediction=False)
+                ex = self._exact(obs, c, y, best)
                 if ex['loglik'] < top:
                     break
                 top = ex['loglik']
@@ -603,7 +620,7 @@ class ModelBank:
         for k in range(1, TURNS):
             if logp[k] <= logp[0]:
                 continue
-            ex = eng.exact(obs, c, float(yaws[k]), with_prediction=False)
+            ex = self._exact(obs, c, float(yaws[k]), per_c)
             if ex['loglik'] + w * logp[k] > best_score:
                 best_k, best_score, best_ex = k, ex['loglik'] + w * logp[k], ex
         if best_k == 0:
@@ -842,6 +859,11 @@ class ModelBank:
             est.timings['point_descriptors'] = t2 - t1
         est.timings['total'] = time.perf_counter() - t0
         return est
+
+
+def _solved_key(yaw):
+    """What ``InferenceEngine.exact`` takes of a yaw (radians): the keys of its two maps."""
+    return yaw_key(-yaw), yaw_key(yaw)
 
 
 def _dir_identity(path):
