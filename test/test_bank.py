@@ -5,6 +5,8 @@ import json
 import os
 import shutil
 import warnings
+from decimal import Decimal
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
@@ -2355,7 +2357,10 @@ def test_estimate_refuses_a_yaw_that_is_not_a_finite_number(tiny, yaw):
                                 dict(n_hypotheses=np.timedelta64(2)),
                                 dict(stage2_modes=np.timedelta64(2)),
                                 dict(probe_deg=np.timedelta64(10)),
-                                dict(probe_deg=[10, np.timedelta64(20)])])
+                                dict(probe_deg=[10, np.timedelta64(20)]),
+                                # these raised numpy's TypeError (np.rint) instead
+                                dict(refine_deg=np.timedelta64(3)),
+                                dict(stage2_window_deg=np.timedelta64(15))])
 def test_estimate_refuses_durations_which_numpy_counts_as_integers(tiny, kw):
     # np.timedelta64 is an np.integer: a grid of them was estimated, a duration as yaw or step
     # raised numpy's TypeError, one as count or probe offset was taken
@@ -2387,6 +2392,39 @@ def test_estimate_refuses_bad_search_settings(tiny, kw):
     grid[5:10, 5:10, 3:8] = 1
     with pytest.raises(ValueError, match=next(iter(kw))):
         tiny.estimate(grid, **kw)
+
+
+@pytest.mark.parametrize('kind', [Fraction, Decimal])
+def test_estimate_takes_fractions_and_decimals_as_real_numbers(tiny, kind):
+    # the yaw, steps and probe offsets refused them ('must be a number'), refine_deg and
+    # stage2_window_deg took a Fraction but a Decimal raised TypeError (Decimal / float); counts
+    # stay integers: an integral Fraction or Decimal is refused as a float would be
+    n = tiny.spec.size
+    grid = np.zeros((n,) * 3, dtype=np.int8)
+    grid[5:10, 5:10, 3:8] = 1
+    for name, value in (('yaw', 0.5), ('yaw_step_deg', 2.0), ('search_step_deg', 5.0),
+                        ('refine_deg', 2.5), ('stage2_window_deg', 10.0), ('probe_deg', 7.5)):
+        want = tiny.estimate(grid, **{name: value})
+        got = tiny.estimate(grid, **{name: kind(str(value))})
+        assert (got.label, got.yaw) == (want.label, want.yaw), name
+    assert tiny.features(grid, yaw=kind('0.5'))[0].tolist() == tiny.features(grid, yaw=0.5)[
+        0].tolist()
+    for name in ('n_hypotheses', 'stage2_modes'):
+        with pytest.raises(ValueError, match=f'{name} must be an integer >= 0'):
+            tiny.estimate(grid, **{name: kind(2)})
+    with pytest.raises(ValueError, match='yaw must be finite'):
+        tiny.estimate(grid, yaw=kind(10) ** 400)
+
+
+def test_estimate_points_threshold_is_a_real_number(tiny):
+    # a duration (an integer to numpy) was taken and failed in numpy's comparison
+    pts = np.argwhere(views()[0] > 0) * 0.01
+    for bad in (np.timedelta64(1), True, 0.5j, '0.5'):
+        with pytest.raises(ValueError, match='threshold must be an occupancy probability'):
+            tiny.estimate_points(pts, threshold=bad)
+    want = tiny.estimate_points(pts, threshold=0.5)
+    for ok in (Fraction(1, 2), Decimal('0.5'), np.array(0.5)):
+        assert tiny.estimate_points(pts, threshold=ok).label == want.label
 
 
 def test_training_skips_views_that_lost_the_object(monkeypatch, capsys):

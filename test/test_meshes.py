@@ -238,6 +238,27 @@ def test_an_obj_vertex_line_of_two_numbers_is_refused_naming_the_file(tmp_path):
         voxelize_mesh(path)
 
 
+@pytest.mark.parametrize('material', [False, True])
+def test_an_obj_file_with_a_utf8_byte_order_mark_is_loaded(tmp_path, material):
+    # as Windows editors save UTF-8: trimesh took the BOM for part of the first 'v' keyword,
+    # dropped that vertex and failed with 'cannot parse mesh (IndexError: index 3 is out of
+    # bounds ...)'; its material file is still found next to it
+    body = ('v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n'
+            + ('mtllib tet.mtl\nusemtl red\n' if material else '')
+            + 'f 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n')
+    (tmp_path / 'tet.mtl').write_text('newmtl red\nKd 1 0 0\n')
+    (tmp_path / 'plain.obj').write_text(body)
+    (tmp_path / 'bom.obj').write_bytes(b'\xef\xbb\xbf' + body.encode())
+    plain, bom = load_mesh(tmp_path / 'plain.obj'), load_mesh(tmp_path / 'bom.obj')
+    np.testing.assert_array_equal(bom.vertices, plain.vertices)
+    np.testing.assert_array_equal(bom.faces, plain.faces)
+    assert len(bom.vertices) == 4
+    if material:
+        assert list(bom.visual.material.main_color) == [255, 0, 0, 255]
+    np.testing.assert_array_equal(voxelize_mesh(tmp_path / 'bom.obj', size=8),
+                                  voxelize_mesh(tmp_path / 'plain.obj', size=8))
+
+
 @pytest.mark.parametrize('solid_header', [False, True])
 @pytest.mark.parametrize('cut', [-30, 10])
 def test_a_binary_stl_of_the_wrong_length_is_called_so(tmp_path, cut, solid_header):

@@ -615,3 +615,28 @@ def test_calibrate_only_refits_with_the_floor_the_model_was_trained_with(tmp_pat
     floors.clear()
     assert train.main([str(p), '-o', str(m), '--calibrate-only']) == 0
     assert floors == [0.0] * 2
+
+
+def test_coarse_noise_variance_has_the_floor_of_the_pooled_occupancy_noise(tmp_path):
+    # the pooled model's scalar noise of a class of noise-free boxes was ~1e-6 under the 1e-4
+    # floor of the full-resolution one, so its stage-1 pose scores were -1e7..-1e8; the mean of
+    # 8 voxels of independent noise at the floor has variance floor / 8
+    from beo_ros.core.class_model import coarse_noise
+    from beo_ros.core.training import OCCUPANCY_MIN_NOISE_VARIANCE
+    paths = []
+    for i in range(3):
+        for name, size in (('cube', (1, 1, 1 + 0.1 * i)), ('slab', (1 + 0.1 * i, 1, 0.2))):
+            paths.append(tmp_path / f'{name}_{i:04d}.off')
+            box_off(paths[-1], *size)
+    assert train.main([*map(str, paths), '-o', str(tmp_path / 'm'), '--grid', str(N)]
+                      + FAST) == 0
+    bank = ModelBank.load(tmp_path / 'm')
+    floor = OCCUPANCY_MIN_NOISE_VARIANCE / 8
+    assert [m.coarse_noise_variance for m in bank.models] == [floor] * 2
+    # the floor is that of the fit (none: as before), and a residual above it is kept as is
+    X = np.random.default_rng(0).random((4, N ** 3)).astype(np.float32)
+    est = SimpleNamespace(transform=lambda X: X, inverse_transform=lambda Z: np.zeros_like(Z))
+    v, per = coarse_noise(X, est, N)
+    assert v > 1e-2 and coarse_noise(X, est, N, min_noise_variance=1e-4)[0] == v
+    assert coarse_noise(X * 0, est, N)[0] == 1e-6
+    assert coarse_noise(X * 0, est, N, min_noise_variance=1e-4)[0] == 1e-4 / 8

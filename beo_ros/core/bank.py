@@ -7,7 +7,9 @@ importable from here too.
 """
 from __future__ import annotations
 
+import decimal
 import json
+import numbers
 import os
 import shutil
 import tempfile
@@ -25,7 +27,7 @@ from .classifier import (CLASS_PRIORS, HIDDEN_CLASSIFIER_KEYS, MODES, OPTIONAL_C
                          format_class_prior, parse_class_prior, prior_offset,
                          resolve_class_prior, uses_descriptors)
 from .estimate import UNKNOWN_LABEL, Estimate, Hypothesis
-from .grid import (GridSpec, _real, symmetric_turns, unit_vector, wrap_yaw as _wrap, yaw_error,
+from .grid import (GridSpec, symmetric_turns, unit_vector, wrap_yaw as _wrap, yaw_error,
                    yaw_grid, yaw_matrix)
 from .inference import (FEATURE_NAMES, InferenceEngine, observed_edt, top_modes, top_yaw_modes,
                         yaw_key)
@@ -404,7 +406,7 @@ class ModelBank:
         solved so far, see :meth:`_exact`)).
         """
         grid = self.check_grid(grid)
-        check_step('yaw_step_deg', yaw_step_deg)
+        yaw_step_deg = check_step('yaw_step_deg', yaw_step_deg)
         yaw = check_yaw(yaw)
         if not (grid == 1).any():   # all free or all unknown: every class would "fit"
             raise ValueError('grid has no occupied voxel: there is no object to estimate')
@@ -662,7 +664,8 @@ class ModelBank:
         """
         t0 = time.perf_counter()
         grid = self.check_grid(grid)
-        search_step_deg, probe_deg, stage2_window_deg = _check_estimate_options(
+        yaw_step_deg, search_step_deg, probe_deg, refine_deg, stage2_window_deg = \
+            _check_estimate_options(
             yaw_step_deg, search_step_deg, probe_deg, refine_deg, stage2_window_deg, n_hypotheses,
             stage2_modes)
         yaw = check_yaw(yaw)
@@ -803,7 +806,8 @@ class ModelBank:
         """
         from .voxelize import (MIN_POINTS, finite_points, grid_to_points, unit_direction,
                                voxelize_view)
-        if not 0 < _real(threshold) <= 1:   # NaN for NaN and what is no real number
+        prob_threshold = _real_number(threshold)
+        if prob_threshold is None or not 0 < prob_threshold <= 1:   # also refuses NaN
             raise ValueError(f'threshold must be an occupancy probability in (0, 1], got '
                              f'{threshold!r}')
         t0 = time.perf_counter()
@@ -839,7 +843,7 @@ class ModelBank:
         pose = np.eye(4)
         pose[:3, :3] = R_grid @ yaw_matrix(est.yaw)
         # float64 points for the pose: float32 ones are centimetres off at 1e6 m
-        pts, prob = grid_to_points(est.completion, T, threshold, dtype=np.float64)
+        pts, prob = grid_to_points(est.completion, T, prob_threshold, dtype=np.float64)
         c = (self.spec.size - 1) / 2.0
         pose[:3, 3] = object_centre(
             pts if len(pts) else grid_to_points(view.grid, T, 1, dtype=np.float64)[0],
@@ -974,45 +978,57 @@ def heading_offset(grid_rotation, up) -> float:
 _NOT_NUMBERS = (bool, np.bool_, np.timedelta64)
 
 
+def _real_number(value):
+    """``value`` as a float if it is a real number, else None. Real numbers: numbers.Real (int,
+    float, numpy's, Fraction) and Decimal (which the numbers module leaves out), or a 0-d array
+    of one; not a bool, a numpy timedelta64, a complex number or a string. NaN for a real
+    number float cannot hold (an int or a Fraction beyond it, a signalling NaN Decimal)."""
+    if isinstance(value, np.ndarray) and value.ndim == 0:
+        value = value[()]
+    if isinstance(value, _NOT_NUMBERS) or not isinstance(value, (numbers.Real, decimal.Decimal)):
+        return None
+    try:
+        return float(value)
+    except (OverflowError, ValueError):
+        return np.nan
+
+
 def check_yaw(yaw):
     """``yaw`` as a float (radians), or None (search it); ValueError unless it is a finite
-    real number or None."""
+    real number (see :func:`_real_number`) or None."""
     if yaw is None:
         return None
-    if isinstance(yaw, int) and not isinstance(yaw, bool):   # beyond int64 numpy makes objects
-        try:
-            yaw = float(yaw)
-        except OverflowError:
-            raise ValueError(f'yaw must be finite, got an integer of {yaw.bit_length()} '
-                             'bits') from None
-    a = np.asarray(yaw) if not isinstance(yaw, (str, bytes)) else None
-    if a is None or a.ndim != 0 or a.dtype.kind not in 'iuf':   # nor bool, complex, timedelta
+    value = _real_number(yaw)
+    if value is None:
         raise ValueError(f'yaw must be None or a number of radians, got {yaw!r}')
-    if not np.isfinite(a):
-        raise ValueError(f'yaw must be finite, got {yaw}')
-    return float(a)
+    if not np.isfinite(value):
+        raise ValueError('yaw must be finite, got ' + (
+            f'an integer of {yaw.bit_length()} bits' if isinstance(yaw, int) else f'{yaw}'))
+    return value
 
 
 def check_step(name, value):
-    """Raise ValueError unless ``value`` is a real number of degrees in YAW_STEP_RANGE_DEG
-    ([0.05, 90])."""
+    """``value`` as a float; ValueError unless it is a real number (see :func:`_real_number`)
+    of degrees in YAW_STEP_RANGE_DEG ([0.05, 90])."""
     lo, hi = YAW_STEP_RANGE_DEG
-    if isinstance(value, _NOT_NUMBERS) \
-            or not isinstance(value, (int, float, np.integer, np.floating)) \
-            or not lo <= value <= hi:   # also refuses NaN
+    step = _real_number(value)
+    if step is None or not lo <= step <= hi:   # also refuses NaN
         raise ValueError(f'{name} must be a number of degrees in [{lo:g}, {hi:g}], got {value!r}')
+    return step
 
 
 def check_count(name, value):
-    """Raise ValueError unless ``value`` is an integer >= 0 (bool is not one)."""
-    if isinstance(value, _NOT_NUMBERS) or not isinstance(value, (int, np.integer)) \
+    """Raise ValueError unless ``value`` is an integer >= 0 (numbers.Integral: int, numpy's;
+    not a bool, a numpy timedelta64, nor an integral Fraction or Decimal)."""
+    if isinstance(value, _NOT_NUMBERS) or not isinstance(value, numbers.Integral) \
             or value < 0:
         raise ValueError(f'{name} must be an integer >= 0, got {value!r}')
 
 
 def _probe_offsets(probe_deg):
     """``probe_deg`` of :meth:`ModelBank.estimate` (None, one number or several, a list or an
-    array) as a tuple of offsets (degrees); ValueError unless each is a number in (0, 180]."""
+    array) as a tuple of float offsets (degrees); ValueError unless each is a real number (see
+    :func:`_real_number`) in (0, 180]."""
     if probe_deg is None:
         probe_deg = ()
     elif np.ndim(probe_deg) == 0:
@@ -1024,32 +1040,35 @@ def _probe_offsets(probe_deg):
     except TypeError:
         raise ValueError(f'probe_deg must be offsets in (0, 180] degrees, got '
                          f'{probe_deg!r}') from None
-    if not all(isinstance(p, (int, float, np.floating, np.integer))
-               and not isinstance(p, _NOT_NUMBERS) and 0 < p <= 180 for p in probe_deg):
+    offsets = tuple(_real_number(p) for p in probe_deg)
+    if not all(p is not None and 0 < p <= 180 for p in offsets):
         raise ValueError(f'probe_deg must be offsets in (0, 180] degrees, got {probe_deg}')
-    return probe_deg
+    return offsets
 
 
 def _check_estimate_options(yaw_step_deg, search_step_deg, probe_deg, refine_deg,
                             stage2_window_deg, n_hypotheses, stage2_modes):
     """Check the search options of :meth:`ModelBank.estimate` (ValueError naming the first bad
-    one) and return (search_step_deg: max(SEARCH_STEP_DEG, yaw_step_deg) when None,
-    probe_deg: a tuple (see :func:`_probe_offsets`), stage2_window_deg: 0.0 when None)."""
-    check_step('yaw_step_deg', yaw_step_deg)
+    one) and return them as floats (yaw_step_deg; search_step_deg: max(SEARCH_STEP_DEG,
+    yaw_step_deg) when None; probe_deg: a tuple (see :func:`_probe_offsets`); refine_deg;
+    stage2_window_deg: 0.0 when None)."""
+    yaw_step_deg = check_step('yaw_step_deg', yaw_step_deg)
     if search_step_deg is not None:
-        check_step('search_step_deg', search_step_deg)
+        search_step_deg = check_step('search_step_deg', search_step_deg)
     probe_deg = _probe_offsets(probe_deg)
     if stage2_window_deg is None:
         stage2_window_deg = 0.0
+    degrees = []
     for name, value in (('refine_deg', refine_deg), ('stage2_window_deg', stage2_window_deg)):
-        if not 0 <= _real(value) <= 180:   # NaN for NaN and what is no real number
+        degrees.append(_real_number(value))
+        if degrees[-1] is None or not 0 <= degrees[-1] <= 180:   # also refuses NaN
             raise ValueError(f'{name} must be in [0, 180] degrees, got {value!r}')
     check_count('n_hypotheses', n_hypotheses)
     if stage2_modes is not None:
         check_count('stage2_modes', stage2_modes)
     if search_step_deg is None:
         search_step_deg = max(SEARCH_STEP_DEG, yaw_step_deg)
-    return search_step_deg, probe_deg, stage2_window_deg
+    return yaw_step_deg, search_step_deg, probe_deg, *degrees
 
 
 def load_models(path=None, class_prior=None):

@@ -40,15 +40,18 @@ class ClassModel:
                    component_variance=est.component_variance_.astype(np.float32))
 
 
-def coarse_noise(X, est, n, shrink=100.0, floor=1e-4):
+def coarse_noise(X, est, n, shrink=100.0, floor=1e-4, min_noise_variance=0.0):
     """Residual variance of 2x-pooled training grids X (m, n^3) under the fitted model: the
     scalar over all voxels, and per pooled voxel (n^3 / 8,), shrunk toward the scalar as if
-    ``shrink`` extra objects had the scalar variance (few objects: noisy voxel estimates)."""
+    ``shrink`` extra objects had the scalar variance (few objects: noisy voxel estimates).
+    ``min_noise_variance``: the floor of the full-resolution model's noise variance; the
+    scalar is at least min_noise_variance / 8, that of the mean of 8 voxels with independent
+    noise of that variance (a few noise-free objects: no absurdly sure pose scores)."""
     from .inference import pool2
     Z = est.transform(X)
     R = (X - est.inverse_transform(Z)).T.reshape(n, n, n, -1)
     r2 = ((pool2(R) / 8.0) ** 2).reshape(-1, len(X))
-    v = float(r2.mean()) + 1e-6
+    v = max(float(r2.mean()) + 1e-6, min_noise_variance / 8.0)
     m = r2.shape[1]
     per = (m * r2.mean(axis=1) + shrink * v) / (m + shrink)
     return v, np.maximum(per, floor).astype(np.float32)

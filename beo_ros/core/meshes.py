@@ -7,6 +7,8 @@ surfaces is filled.
 """
 from __future__ import annotations
 
+import codecs
+import io
 import numbers
 import os
 
@@ -65,6 +67,19 @@ def _off_polygon_mesh(path):
     return trimesh.Trimesh(v, np.array(tris, dtype=np.int64).reshape(-1, 3), process=False)
 
 
+def _trimesh_load(path, ext):
+    """trimesh's one mesh of a file; an OBJ file's UTF-8 byte order mark dropped (trimesh took
+    it for part of the first keyword: a first 'v' line was lost, a face then pointed past the
+    vertices)."""
+    if ext == '.obj' and _head(path, len(codecs.BOM_UTF8)) == codecs.BOM_UTF8:
+        with open(path, 'rb') as f:
+            data = f.read()[len(codecs.BOM_UTF8):]
+        # the resolver finds the material files next to it, as when loaded by its path
+        return trimesh.load(io.BytesIO(data), file_type='obj', force='mesh', process=False,
+                            resolver=trimesh.resolvers.FilePathResolver(path))
+    return trimesh.load(path, force='mesh', process=False)
+
+
 def load_mesh(path) -> trimesh.Trimesh:
     """Load an OFF/OBJ/STL/PLY file as one triangle mesh (scenes are concatenated).
 
@@ -79,7 +94,7 @@ def load_mesh(path) -> trimesh.Trimesh:
     if ext not in MESH_EXTENSIONS:
         raise MeshError(f'{path}: unsupported mesh format {ext!r} (expected {MESH_EXTENSIONS})')
     try:
-        mesh = trimesh.load(path, force='mesh', process=False)
+        mesh = _trimesh_load(path, ext)
     except Exception as exc:  # trimesh raises many types on corrupt input
         mesh = _off_polygon_mesh(path) if ext == '.off' else None
         if mesh is None:

@@ -107,7 +107,7 @@ def fit_class_models(X, y, names, spec, k=20, masks=None, max_iter=200, tol=1e-5
         Xf = Xc if masks is None else np.where(masks[sel], Xc, est.inverse_transform(
             est.transform(Xc, masks[sel])))
         models.append(ClassModel.from_vbpca(name, est, *coarse_noise(
-            Xf.astype(np.float32), est, spec.size)))
+            Xf.astype(np.float32), est, spec.size, min_noise_variance=min_noise_variance)))
     return models
 
 
