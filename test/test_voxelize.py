@@ -92,6 +92,11 @@ def test_aligned_frame_fallback_when_sensor_straight_above():
     np.testing.assert_allclose(r.T @ r, np.eye(3), atol=1e-12)
     np.testing.assert_allclose(np.linalg.det(r), 1.0)
     np.testing.assert_allclose(r[:, 2], [0, 0, 1])
+    # straight above a target far from the origin, with rounding noise in the sensor's
+    # position: the same fixed axis, not the noise's direction
+    far = aligned_frame([0, 0, 1], [1e3 + 1e-7, -2e-8, 5.0], [1e3, 0.0, 0.0])
+    np.testing.assert_allclose(far, aligned_frame([0, 0, 1], [0, 0, 5], [0, 0, 0]), atol=1e-12)
+    np.testing.assert_allclose(far[:, 0], [1, 0, 0])   # the world axis least parallel to up
     rng = np.random.default_rng(0)
     pts = rng.uniform(-0.1, 0.1, (500, 3)) * [1, 1, 0] + [0, 0, 0.0]
     v = voxelize_view(pts, [0, 0, 1], [0, 0, 1], GridSpec(N))
@@ -117,10 +122,19 @@ def test_grid_to_input_and_grid_to_points():
     p, val = grid_to_points(prob, np.eye(4), threshold=0.5)
     np.testing.assert_array_equal(p, [[1, 2, 3]])
     np.testing.assert_allclose(val, [0.9])
-    with pytest.raises(ValueError):
+    # the threshold is inclusive: a labelled grid at threshold 1 gives its occupied voxels
+    p, val = grid_to_points(prob, np.eye(4), threshold=np.float32(0.3))
+    np.testing.assert_array_equal(p, [[1, 2, 3], [4, 5, 6]])
+    assert len(grid_to_points(v.grid, v.grid_to_input, threshold=1)[0]) == len(centres)
+    # (a 2-D grid failed in numpy's matmul, also a ValueError, naming no grid)
+    with pytest.raises(ValueError, match=r'grid must be 3-D, got shape \(4, 4\)'):
         grid_to_points(np.zeros((4, 4)), np.eye(4))
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r'grid_to_input must be a finite \(4, 4\)'):
         grid_to_points(prob, np.eye(3))
+    bad = np.eye(4)
+    bad[0, 3] = np.nan
+    with pytest.raises(ValueError, match=r'grid_to_input must be a finite \(4, 4\)'):
+        grid_to_points(prob, bad)
 
 
 def test_metric_bottom_anchor_floor_and_center_override():
@@ -139,9 +153,34 @@ def test_metric_bottom_anchor_floor_and_center_override():
     v = voxelize_view(pts, np.zeros(3), [0, 0, 1], GridSpec(N, units='metric', voxel_size=0.02),
                       center=[1.0, 0.1, 0.2])
     np.testing.assert_allclose(v.grid_to_input @ [C, C, C, 1], [1.0, 0.1, 0.2, 1], atol=1e-9)
-    # points outside a small metric grid are not voxelized and not counted
+    # points outside a small metric grid are not voxelized and not counted: inside means grid
+    # coordinates in [-0.5, N - 0.5] (the outer faces of the outer voxels), and every occupied
+    # voxel holds an inside point
     v = voxelize_view(pts, np.zeros(3), [0, 0, 1], GridSpec(8, units='metric', voxel_size=0.04))
-    assert 0 < v.n_points < len(pts)
+    g = (pts - v.grid_to_input[:3, 3]) @ v.input_to_grid[:3, :3].T
+    inside = np.all((g >= -0.5) & (g <= 8 - 0.5), axis=1)
+    assert 0 < inside.sum() < len(pts) and v.n_points == inside.sum()
+    want = np.zeros((8, 8, 8), bool)
+    want[tuple(np.floor(g[inside] + 0.5).astype(int).T)] = True
+    np.testing.assert_array_equal(v.grid == OCCUPIED, want)
+
+
+def test_floor_lowers_the_bottom_only_and_only_for_the_bottom_anchor():
+    pts = box_front()   # lowest point near z = 0
+    spec = GridSpec(N, units='metric', voxel_size=0.02, anchor='bottom')
+    ref = voxelize_view(pts, np.zeros(3), [0, 0, 1], spec)
+    # a floor above the lowest point (points below a fitted table plane) does not cut the
+    # object: the grid floor stays at its lowest point
+    v = voxelize_view(pts, np.zeros(3), [0, 0, 1], spec, floor=0.1)
+    assert v.n_points == len(pts)
+    np.testing.assert_array_equal(v.grid, ref.grid)
+    np.testing.assert_allclose(v.grid_to_input, ref.grid_to_input, atol=1e-12)
+    # the centre anchor takes no floor
+    spec = GridSpec(N, units='metric', voxel_size=0.02)
+    ref = voxelize_view(pts, np.zeros(3), [0, 0, 1], spec)
+    v = voxelize_view(pts, np.zeros(3), [0, 0, 1], spec, floor=-0.3)
+    np.testing.assert_array_equal(v.grid, ref.grid)
+    np.testing.assert_allclose(v.grid_to_input, ref.grid_to_input, atol=1e-12)
 
 
 def test_sensor_inside_grid():
