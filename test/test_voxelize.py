@@ -103,6 +103,14 @@ def test_aligned_frame_fallback_when_sensor_straight_above():
     assert counts(v.grid)[OCCUPIED] > 0 and counts(v.grid)[UNKNOWN] > 0  # below the plate
 
 
+def test_fill_scales_the_largest_extent_to_that_fraction_of_the_grid():
+    v = voxelize_view(box_front(), np.zeros(3), [0, 0, 1], GridSpec(N, fill=0.5))
+    assert v.voxel_size_m == pytest.approx(0.4 / (N / 2), rel=1e-3)
+    occ = np.argwhere(v.grid == OCCUPIED)
+    # 0.4 m over 16 voxels, 0.3 m over 12 (the ends may fall on a voxel face)
+    assert np.ptp(occ[:, 2]) in (15, 16) and np.ptp(occ[:, 1]) in (11, 12)
+
+
 def test_grid_to_input_and_grid_to_points():
     pts = box_front()
     v = voxelize_view(pts, np.zeros(3), [0, 0, 1], GridSpec(N))
@@ -210,6 +218,31 @@ def test_occluders_hide_space_behind_them():
     # far-away occluders behind the sensor change nothing
     c = voxelize_view(pts, np.zeros(3), [0, 0, 1], spec, occluders=wall * [-1, 1, 1] - [5, 0, 0])
     np.testing.assert_array_equal(c.grid, a.grid)
+
+
+def test_occluders_anywhere_in_front_of_a_grid_voxel_hide_it():
+    # the occluders are culled to those that can lie between the sensor and the grid: that
+    # cull must keep small blobs near the sensor on the way to the grid's corners (the corners
+    # lie sqrt(3) N / 2 from the centre) and a wall inside the grid beyond its centre
+    pts = box_front()
+    spec = GridSpec(N, units='metric', voxel_size=0.02)
+    a = voxelize_view(pts, np.zeros(3), [0, 0, 1], spec)
+    g2i = a.grid_to_input
+    corners = [(N - 1, N - 1, N - 1), (N - 1, 0, N - 1), (N - 1, N - 1, 0), (0, N - 1, N - 1)]
+    off = np.stack(np.meshgrid(*[np.arange(-1, 2) * 0.004] * 3), -1).reshape(-1, 3)
+    blobs = np.concatenate([0.4 * (g2i @ [*c, 1])[:3] + off for c in corners])
+    b = voxelize_view(pts, np.zeros(3), [0, 0, 1], spec, occluders=blobs)
+    for c in corners:
+        assert a.grid[c] == FREE and b.grid[c] == UNKNOWN, c
+    rng = np.random.default_rng(0)
+    wall = np.c_[np.full(2000, 1.25), rng.uniform(0.2, 0.3, 2000), rng.uniform(0.0, 0.4, 2000)]
+    assert 1.25 > (g2i @ [C, C, C, 1])[0]   # beyond the grid centre
+    w = voxelize_view(pts, np.zeros(3), [0, 0, 1], spec, occluders=wall)
+    xyz = np.indices(a.grid.shape).reshape(3, -1).T @ g2i[:3, :3].T + g2i[:3, 3]
+    behind = ((xyz[:, 0] > 1.27) & (np.abs(xyz[:, 1] / xyz[:, 0] - 0.2) < 0.03)
+              & (xyz[:, 2] > 0.05) & (xyz[:, 2] / xyz[:, 0] < 0.3 / 1.25))
+    assert behind.sum() > 200 and (a.grid.reshape(-1)[behind] == FREE).sum() > 200
+    assert (w.grid.reshape(-1)[behind] == UNKNOWN).all()
 
 
 def test_occluder_points_too_far_for_a_voxel_index_change_nothing():
@@ -469,6 +502,8 @@ def test_non_finite_points_are_dropped():
     pts[::2] = np.nan
     v = voxelize_view(pts, np.zeros(3), [0, 0, 1], GridSpec(16))
     assert v.n_points == 50
+    pts[1::4, 2] = np.inf   # one coordinate is enough
+    assert voxelize_view(pts, np.zeros(3), [0, 0, 1], GridSpec(16)).n_points == 25
     with pytest.raises(ValueError, match='at least 60'):
         voxelize_view(pts, np.zeros(3), [0, 0, 1], GridSpec(16), min_points=60)
 
