@@ -3,7 +3,8 @@ itself, and GridSpec."""
 import numpy as np
 import pytest
 
-from beo_ros.core.grid import (GridSpec, rotate_grid, symmetric_turns, yaw_error, yaw_error_up_to,
+from beo_ros.core.grid import (GridSpec, quaternion_matrix, rotate_grid, symmetric_turns,
+                                unit_vector, yaw_column_index, yaw_error, yaw_error_up_to,
                                 yaw_grid, yaw_matrix, wrap_yaw, yaw_source_index)
 
 
@@ -59,6 +60,28 @@ def test_four_quarter_turns_are_identity():
         assert np.array_equal(np.sort(rotate_grid(g, np.pi / 2).ravel()), np.sort(g.ravel()))
 
 
+def test_quaternion_matrix_is_w_first_and_right_handed():
+    # the core's own check of the convention (the PCD VIEWPOINT reader relies on it, and its
+    # round trip test uses quaternion_matrix both ways, so a transposed or x-first matrix
+    # cancels there): a turn by a about axis u is (cos a/2, sin a/2 u)
+    a = 0.7
+    c, s = np.cos(a / 2), np.sin(a / 2)
+    np.testing.assert_allclose(quaternion_matrix([c, 0, 0, s]), yaw_matrix(a), atol=1e-15)
+    # a quarter turn about +x takes +y to +z, about +y takes +z to +x
+    h = np.sqrt(0.5)
+    np.testing.assert_allclose(quaternion_matrix([h, h, 0, 0]) @ [0, 1, 0], [0, 0, 1],
+                               atol=1e-15)
+    np.testing.assert_allclose(quaternion_matrix([h, 0, h, 0]) @ [0, 0, 1], [1, 0, 0],
+                               atol=1e-15)
+    np.testing.assert_array_equal(quaternion_matrix([1, 0, 0, 0]), np.eye(3))
+    # q and -q are the same rotation
+    q = np.array([0.8, 0.3, -0.4, 0.33]) / np.linalg.norm([0.8, 0.3, -0.4, 0.33])
+    R = quaternion_matrix(q)
+    np.testing.assert_allclose(quaternion_matrix(-q), R, atol=1e-15)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-15)
+    assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-14)
+
+
 def _round_trip_source(n, yaw):
     """Flat source index of every voxel after rotate_grid by yaw then by -yaw."""
     a = yaw_source_index(n, [yaw])[0]
@@ -101,11 +124,39 @@ def test_yaw_source_index_shape_and_outside_marker():
     assert (idx[1] == n ** 3).any() and idx[1].max() == n ** 3
 
 
+@pytest.mark.parametrize('yaw', [0.3, -2.0, 0.8, 5.0])   # no rounding ties (pi / 4 has)
+def test_yaw_column_index_against_the_rotation(yaw):
+    # every column's source by R(-yaw) about the centre line, and exactly n**2 (not another
+    # index past the end, nor a negative one) where it lies outside: the inference's column
+    # counts bin on it
+    n = 12
+    c = (n - 1) / 2
+    col = yaw_column_index(n, [yaw])[0]
+    ii, jj = np.meshgrid(np.arange(n) - c, np.arange(n) - c, indexing='ij')
+    src = np.rint(np.c_[ii.ravel(), jj.ravel(), np.zeros(n * n)] @ yaw_matrix(-yaw).T[:, :2]
+                  + c).astype(int)
+    inside = ((src >= 0) & (src < n)).all(axis=1)
+    assert inside.any() and not inside.all()
+    np.testing.assert_array_equal(col, np.where(inside, src[:, 0] * n + src[:, 1], n * n))
+    # rotate_grid fills exactly those columns
+    r = rotate_grid(np.ones((n,) * 3, dtype=np.int8), yaw, fill=-1)
+    np.testing.assert_array_equal(r[..., 0].ravel() == -1, ~inside)
+
+
 def test_rotate_grid_rejects_non_cubes():
-    with pytest.raises(ValueError):
+    # (4, 4, 5) failed later in numpy's reshape (a ValueError too, naming no grid)
+    with pytest.raises(ValueError, match=r'grid must be \(N, N, N\), got shape \(4, 4, 5\)'):
         rotate_grid(np.zeros((4, 4, 5)), 0.1)
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r'grid must be \(N, N, N\)'):
         rotate_grid(np.zeros((4, 4)), 0.1)
+
+
+def test_unit_vector_of_huge_and_tiny_vectors():
+    # divided by the largest component first: the norm of 1e200 components overflows to inf
+    # (a zero vector), of 1e-170 underflows to 0 (NaN)
+    for scale in (1.0, 1e200, 1e-170, 1e-300):
+        np.testing.assert_allclose(unit_vector([0.0, 3 * scale, -4 * scale]), [0, 0.6, -0.8],
+                                   atol=1e-15)
 
 
 @pytest.mark.parametrize('kwargs', [
@@ -239,6 +290,10 @@ def test_yaw_error_up_to_the_shape_turns():
     assert np.rad2deg(yaw_error_up_to(a, b, (np.pi,))) == pytest.approx(1.0)
     # a quarter turn that is not among the shape's turns does not count
     assert np.rad2deg(yaw_error_up_to(np.deg2rad(93.0), b, (np.pi,))) == pytest.approx(89.0)
+    # the turns are added to b: a quarter turn alone (not closed under inverse) is one way
+    assert np.rad2deg(yaw_error_up_to(np.deg2rad(92.0), b, (np.pi / 2,))) == \
+        pytest.approx(0.0, abs=1e-9)
+    assert np.rad2deg(yaw_error_up_to(np.deg2rad(-88.0), b, (np.pi / 2,))) == pytest.approx(90.0)
     turns = (np.pi / 2, np.pi, 3 * np.pi / 2)
     assert np.rad2deg(yaw_error_up_to(np.deg2rad(-88.0), b, turns)) == pytest.approx(0.0, abs=1e-9)
 

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from beo_ros.core.normals import point_normals, side_normal_descriptors
+from beo_ros.core.normals import RADIUS, point_normals, side_normal_descriptors
 
 UP = np.array([0.0, 0.0, 1.0])
 SENSOR = np.array([-0.6, -0.45, 0.4])        # in front of and above the object at the origin
@@ -193,3 +193,72 @@ def test_non_numeric_normals_radius_and_ragged_points_are_refused_by_name():
     # imaginary part (a warning only)
     with pytest.raises(ValueError, match='^radius must be a finite number > 0'):
         point_normals(_BOX, SENSOR, radius=np.complex128(0.02))
+
+
+def _normals_by_definition(pts, origin, radius, max_nn):
+    """point_normals' documented result at every point, by brute force."""
+    normals, svs = np.full((len(pts), 3), np.nan), np.full(len(pts), np.nan)
+    for i, p in enumerate(pts):
+        d = np.linalg.norm(pts - p, axis=1)
+        near = np.argsort(d, kind='stable')[:max_nn]
+        near = near[d[near] <= radius]
+        q = pts[near]
+        cov = (q - q.mean(axis=0)).T @ (q - q.mean(axis=0)) / len(q)
+        ev, vec = np.linalg.eigh(cov)
+        if len(q) < 3 or ev[1] <= 1e-6 * ev.sum():
+            continue
+        n = vec[:, 0] if vec[:, 0] @ (origin - p) >= 0 else -vec[:, 0]
+        normals[i], svs[i] = n, ev[0] / ev.sum()
+    return normals, svs
+
+
+@pytest.mark.parametrize('max_nn', [30, 6])
+def test_point_normals_match_their_definition(max_nn):
+    # a curved noisy patch (11 to 63 points within 2 cm of each) and two lone points (2 each,
+    # no normal): the covariance over the at most max_nn nearest points within the radius (the
+    # missing ones not counted), its smallest eigenvector toward the sensor, l0 / (l0 + l1 + l2)
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(-0.05, 0.05, (400, 2))
+    pts = np.c_[xy, 3 * (xy ** 2).sum(axis=1) + rng.normal(0, 0.002, 400)]
+    pts = np.r_[pts, [[0.3, 0.0, 0.0], [0.3, 0.015, 0.0]]]
+    idx, normals, sv = point_normals(pts, SENSOR, max_nn=max_nn, max_query=None)
+    want_n, want_sv = _normals_by_definition(pts, SENSOR, RADIUS, max_nn)
+    np.testing.assert_array_equal(idx, np.arange(len(pts)))
+    np.testing.assert_array_equal(np.isnan(normals), np.isnan(want_n))
+    assert np.isnan(normals[-2:]).all() and np.isfinite(normals[:-2]).mean() > 0.95
+    np.testing.assert_allclose(normals, want_n, atol=1e-6)
+    np.testing.assert_allclose(sv, want_sv, rtol=1e-6, atol=1e-12)
+
+
+def test_a_tilted_line_has_no_normals():
+    # off the axes, rounding leaves the line's second eigenvalue a little above 0: still a line
+    line = np.linspace(0, 0.2, 200)[:, None] * np.array([1.0, 2.0, 3.0]) / np.sqrt(14) + 0.1
+    _, normals, sv = point_normals(line, SENSOR)
+    assert np.isnan(normals).all() and np.isnan(sv).all()
+
+
+def test_query_points_are_at_most_max_query():
+    pts = box_front()
+    for n, max_query, want in ((1001, 500, 3), (1000, 500, 2), (499, 500, 1), (1501, 1, 1501)):
+        idx, _, _ = point_normals(pts[:n], SENSOR, max_query=max_query)
+        # every ceil(n / max_query)-th point
+        np.testing.assert_array_equal(idx, np.arange(0, n, want))
+        assert len(idx) <= max_query
+
+
+def test_side_normals_are_within_45_degrees_of_horizontal_and_need_ten():
+    from beo_ros.core.normals import descriptors_from_normals, horizontal_basis
+
+    def tilted(elev_deg, k):   # k normals at this elevation above the horizontal, theta 0
+        e = np.radians(elev_deg)
+        return np.tile([np.cos(e), 0.0, np.sin(e)], (k, 1))
+    # 44 deg and -44 deg are side normals, 46 deg and -46 deg not
+    r4, frac10, ns = descriptors_from_normals(np.r_[tilted(44, 6), tilted(-44, 4),
+                                                    tilted(46, 7), tilted(-46, 3)], UP)
+    assert ns == 10 and r4 == pytest.approx(1.0) and frac10 == 1.0
+    # 9 side normals: undefined
+    r4, frac10, ns = descriptors_from_normals(np.r_[tilted(0, 9), tilted(80, 20)], UP)
+    assert ns == 9 and np.isnan(r4) and np.isnan(frac10)
+    up, e1, e2 = horizontal_basis([0.0, 0.0, 5.0])
+    np.testing.assert_allclose(np.c_[e1, e2, up].T @ np.c_[e1, e2, up], np.eye(3), atol=1e-15)
+    assert np.linalg.det(np.c_[e1, e2, up]) == pytest.approx(1.0)   # right-handed

@@ -43,6 +43,26 @@ def test_repeated_points_do_not_make_everything_an_outlier():
     assert not statistical_outliers(np.zeros((50, 3))).any()   # one place
 
 
+def test_many_copies_of_one_point_do_not_make_the_others_outliers():
+    # 600 copies of one point of the patch (d = 0) are left out of the median and MAD: with
+    # them the median is 0, the scale 0 and every other point of the patch an outlier
+    p = _patch(500)
+    pts = np.r_[p, np.tile(p[0], (600, 1)), [[5.0, 0, 0]]]
+    assert np.flatnonzero(statistical_outliers(pts)).tolist() == [1100]
+
+
+def test_neighbors_or_fewer_points_with_spread_are_never_outliers():
+    # 20 copies of one point and 8 others (d > 0), one of them 3 m out: the documented limit
+    # ("with neighbors or fewer points with d > 0 nothing is an outlier"), although 8 points
+    # would give a median and MAD by which the far one is out
+    ring = 0.01 * np.c_[np.cos(np.arange(8)), np.sin(np.arange(8)), np.zeros(8)]
+    ring[-1] = [3.0, 0, 0]
+    pts = np.r_[np.zeros((20, 3)), ring]
+    assert not statistical_outliers(pts, neighbors=8).any()
+    # one neighbour fewer: 8 points to judge by, and the far one is out
+    assert np.flatnonzero(statistical_outliers(pts, neighbors=7)).tolist() == [27]
+
+
 def test_a_cluster_of_strays_stays():
     # documented limit: twenty points together far away (as dense as the object) explain
     # each other
@@ -194,9 +214,29 @@ def test_cluster_tolerance_bounds():
     # cells 0 and 2, which do not touch (a neighbour radius of 2+ cells joined them)
     off = outside_largest_cluster(np.r_[line, small + [0, 0.045, 0]], tol)
     assert not off[:100].any() and off[100:].all()
+    # closer than the tolerance along a diagonal: the cells touch at an edge or a corner only
+    # (the neighbour radius reaches sqrt(3) cells); the first point puts the cells' corner
+    for step in ([0.5, 0.5, 0.0], [0.5, 0.5, 0.5]):
+        pts = np.array([[0, 0, 0], np.multiply(step, 1.4), np.multiply(step, 2.4)]) * tol
+        assert np.linalg.norm(pts[2] - pts[1]) < tol
+        assert not outside_largest_cluster(pts, tol).any(), step
     # a chain of points each closer than the tolerance is one cluster, however long
     chain = np.c_[np.arange(0, 10, 0.019), np.zeros(527), np.zeros(527)]
     assert not outside_largest_cluster(chain, tol).any()
+
+
+def test_clusters_do_not_depend_on_where_the_cloud_is():
+    # the cells start at the points' minimum, so moving the cloud moves its cells with it: a
+    # point 1.5 tolerances beyond the minimum is always in the next cell (joined); with cells
+    # fixed in space it fell two cells away (apart) for some positions
+    pts = np.array([[0, 0, 0], [0, 0, 0], [1.5, 0, 0]])
+    for shift in (0.0, 0.25, 0.5, 0.75, -0.25, 100.25, -100.75):
+        moved = pts + [shift, shift, -shift]
+        assert not outside_largest_cluster(moved, 1.0).any(), shift
+    # and a point 2.5 tolerances beyond is always two cells away
+    apart = np.r_[pts[:2], [[2.5, 0, 0]]]
+    for shift in (0.0, 0.25, 0.5, 0.75, -0.25, 100.25, -100.75):
+        assert outside_largest_cluster(apart + shift, 1.0).tolist() == [False, False, True]
 
 
 def test_equal_clusters_keep_the_one_with_the_first_point():
@@ -226,6 +266,12 @@ def test_bad_cluster_tolerance_is_named(tol):
 def test_a_tolerance_too_small_for_the_extent_is_named():
     with pytest.raises(ValueError, match='too small'):
         outside_largest_cluster(np.array([[0, 0, 0], [1e3, 0, 0]]), 1e-300)
+    # 1e16 cells: past 2**52 a float no longer holds every cell index (neighbours merge)
+    with pytest.raises(ValueError, match='too small'):
+        outside_largest_cluster(np.array([[0, 0, 0], [1e3, 0, 0]]), 1e-13)
+    # 1e15 cells: still exact
+    assert outside_largest_cluster(np.array([[0, 0, 0], [1e3, 0, 0]]), 1e-12).tolist() == \
+        [False, True]
 
 
 @pytest.mark.parametrize('pts', [np.zeros((10, 2)), np.full((10, 3), np.inf), np.zeros(3)])

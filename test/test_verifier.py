@@ -155,8 +155,40 @@ def test_fit_checks_its_input():
         v.fit(np.zeros((4, 1536)), np.array([0, 1, 2, 4]), np.zeros(4), 16)
     with pytest.raises(ValueError, match='all four turns'):
         v.fit(np.zeros((4, 1536)), np.array([0, 1, 2, 2]), np.zeros(4), 16)
-    with pytest.raises(ValueError, match='weight'):
-        OrientationVerifier(weight=-1).fit(np.zeros((4, 1536)), np.arange(4), np.zeros(4), 16)
+    for weight in (-1, np.nan, np.inf):
+        with pytest.raises(ValueError, match='weight must be finite and >= 0'):
+            OrientationVerifier(weight=weight).fit(np.zeros((4, 1536)), np.arange(4),
+                                                   np.zeros(4), 16)
+
+
+def test_export_refuses_trees_it_cannot_walk():
+    # reachable only by a direct call (fit gives every class 4 turns and the same iterations)
+    from sklearn.ensemble import HistGradientBoostingClassifier
+    from beo_ros.core.verifier import export_trees
+    rng = np.random.default_rng(0)
+    X = rng.random((40, 5))
+
+    def clf(turns, max_iter):
+        return HistGradientBoostingClassifier(max_iter=max_iter, early_stopping=False).fit(
+            X, np.arange(40) % turns)
+    with pytest.raises(ValueError, match='predict the 4 turns'):
+        export_trees([(0, clf(2, 2))], 1.0, 16)
+    with pytest.raises(ValueError, match='same number of iterations'):
+        export_trees([(0, clf(4, 2)), (1, clf(4, 3))], 1.0, 16)
+    a = export_trees([(0, clf(4, 2)), (1, clf(4, 2))], 1.0, 16)
+    assert a['roots'].shape == (2, 2, 4)
+
+
+def test_probabilities_do_not_overflow_and_the_weight_is_loaded(trained):
+    # the log-softmax subtracts the largest score: a common shift of the baseline (here 1000,
+    # exp() overflows) changes nothing
+    *_, F, turn, obj, v = trained
+    arrays = dict(v.arrays_, baseline=v.arrays_['baseline'] + 1000.0,
+                  weight=np.asarray(250.0))
+    shifted = OrientationVerifier.from_arrays(arrays)
+    np.testing.assert_allclose(shifted.predict_log_proba(0, F[:20]),
+                               v.predict_log_proba(0, F[:20]), atol=1e-9)
+    assert shifted.weight == 250.0   # not the default
 
 
 @pytest.fixture(scope='module')
@@ -243,6 +275,20 @@ def test_verifier_survives_save_load_and_pickling(bank, tmp_path):
     (lambda a: a.__setitem__('classes', a['classes'] + 0.5), 'classes has dtype'),
     (lambda a: a.__setitem__('classes', a['classes'][None]), '1-D'),
     (lambda a: a.__setitem__('left', a['left'] + 0.5), 'left has dtype'),
+    (lambda a: a.__setitem__('is_leaf', a['is_leaf'] + 0.5), 'is_leaf has dtype'),
+    # every check on its own: shapes, index ranges, signs, depth
+    (lambda a: a.__setitem__('roots', a['roots'][:, :, :3]), 'roots, baseline or depth'),
+    (lambda a: a.__setitem__('baseline', a['baseline'][:, :3]), 'roots, baseline or depth'),
+    (lambda a: a.__setitem__('depth', a['depth'][:1]), 'roots, baseline or depth'),
+    (lambda a: a.__setitem__('classes', np.array([1, 1])), 'distinct indices'),
+    (lambda a: a.__setitem__('classes', np.array([-1, 1])), 'distinct indices'),
+    (lambda a: a.__setitem__('right', a['right'] - 10 ** 6), 'right indices'),
+    (lambda a: a.__setitem__('roots', a['roots'] + 10 ** 6), 'roots indices'),
+    (lambda a: a.__setitem__('feature', np.full_like(a['feature'], -1)), 'feature indices'),
+    (lambda a: a.__setitem__('weight', np.asarray(-1.0)), 'weight >= 0'),
+    (lambda a: a.__setitem__('weight', np.asarray(np.inf)), 'must be finite'),
+    (lambda a: a.__setitem__('depth', a['depth'] * 0 + 65), 'depth out of range'),
+    (lambda a: a.__setitem__('depth', a['depth'] * 0 - 1), 'depth out of range'),
 ])
 def test_bad_verifier_files_are_refused(bank, tmp_path, change, msg):
     import hashlib

@@ -92,10 +92,23 @@ def test_aligned_frame_fallback_when_sensor_straight_above():
     np.testing.assert_allclose(r.T @ r, np.eye(3), atol=1e-12)
     np.testing.assert_allclose(np.linalg.det(r), 1.0)
     np.testing.assert_allclose(r[:, 2], [0, 0, 1])
+    # straight above a target far from the origin, with rounding noise in the sensor's
+    # position: the same fixed axis, not the noise's direction
+    far = aligned_frame([0, 0, 1], [1e3 + 1e-7, -2e-8, 5.0], [1e3, 0.0, 0.0])
+    np.testing.assert_allclose(far, aligned_frame([0, 0, 1], [0, 0, 5], [0, 0, 0]), atol=1e-12)
+    np.testing.assert_allclose(far[:, 0], [1, 0, 0])   # the world axis least parallel to up
     rng = np.random.default_rng(0)
     pts = rng.uniform(-0.1, 0.1, (500, 3)) * [1, 1, 0] + [0, 0, 0.0]
     v = voxelize_view(pts, [0, 0, 1], [0, 0, 1], GridSpec(N))
     assert counts(v.grid)[OCCUPIED] > 0 and counts(v.grid)[UNKNOWN] > 0  # below the plate
+
+
+def test_fill_scales_the_largest_extent_to_that_fraction_of_the_grid():
+    v = voxelize_view(box_front(), np.zeros(3), [0, 0, 1], GridSpec(N, fill=0.5))
+    assert v.voxel_size_m == pytest.approx(0.4 / (N / 2), rel=1e-3)
+    occ = np.argwhere(v.grid == OCCUPIED)
+    # 0.4 m over 16 voxels, 0.3 m over 12 (the ends may fall on a voxel face)
+    assert np.ptp(occ[:, 2]) in (15, 16) and np.ptp(occ[:, 1]) in (11, 12)
 
 
 def test_grid_to_input_and_grid_to_points():
@@ -117,10 +130,19 @@ def test_grid_to_input_and_grid_to_points():
     p, val = grid_to_points(prob, np.eye(4), threshold=0.5)
     np.testing.assert_array_equal(p, [[1, 2, 3]])
     np.testing.assert_allclose(val, [0.9])
-    with pytest.raises(ValueError):
+    # the threshold is inclusive: a labelled grid at threshold 1 gives its occupied voxels
+    p, val = grid_to_points(prob, np.eye(4), threshold=np.float32(0.3))
+    np.testing.assert_array_equal(p, [[1, 2, 3], [4, 5, 6]])
+    assert len(grid_to_points(v.grid, v.grid_to_input, threshold=1)[0]) == len(centres)
+    # (a 2-D grid failed in numpy's matmul, also a ValueError, naming no grid)
+    with pytest.raises(ValueError, match=r'grid must be 3-D, got shape \(4, 4\)'):
         grid_to_points(np.zeros((4, 4)), np.eye(4))
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r'grid_to_input must be a finite \(4, 4\)'):
         grid_to_points(prob, np.eye(3))
+    bad = np.eye(4)
+    bad[0, 3] = np.nan
+    with pytest.raises(ValueError, match=r'grid_to_input must be a finite \(4, 4\)'):
+        grid_to_points(prob, bad)
 
 
 def test_metric_bottom_anchor_floor_and_center_override():
@@ -139,9 +161,34 @@ def test_metric_bottom_anchor_floor_and_center_override():
     v = voxelize_view(pts, np.zeros(3), [0, 0, 1], GridSpec(N, units='metric', voxel_size=0.02),
                       center=[1.0, 0.1, 0.2])
     np.testing.assert_allclose(v.grid_to_input @ [C, C, C, 1], [1.0, 0.1, 0.2, 1], atol=1e-9)
-    # points outside a small metric grid are not voxelized and not counted
+    # points outside a small metric grid are not voxelized and not counted: inside means grid
+    # coordinates in [-0.5, N - 0.5] (the outer faces of the outer voxels), and every occupied
+    # voxel holds an inside point
     v = voxelize_view(pts, np.zeros(3), [0, 0, 1], GridSpec(8, units='metric', voxel_size=0.04))
-    assert 0 < v.n_points < len(pts)
+    g = (pts - v.grid_to_input[:3, 3]) @ v.input_to_grid[:3, :3].T
+    inside = np.all((g >= -0.5) & (g <= 8 - 0.5), axis=1)
+    assert 0 < inside.sum() < len(pts) and v.n_points == inside.sum()
+    want = np.zeros((8, 8, 8), bool)
+    want[tuple(np.floor(g[inside] + 0.5).astype(int).T)] = True
+    np.testing.assert_array_equal(v.grid == OCCUPIED, want)
+
+
+def test_floor_lowers_the_bottom_only_and_only_for_the_bottom_anchor():
+    pts = box_front()   # lowest point near z = 0
+    spec = GridSpec(N, units='metric', voxel_size=0.02, anchor='bottom')
+    ref = voxelize_view(pts, np.zeros(3), [0, 0, 1], spec)
+    # a floor above the lowest point (points below a fitted table plane) does not cut the
+    # object: the grid floor stays at its lowest point
+    v = voxelize_view(pts, np.zeros(3), [0, 0, 1], spec, floor=0.1)
+    assert v.n_points == len(pts)
+    np.testing.assert_array_equal(v.grid, ref.grid)
+    np.testing.assert_allclose(v.grid_to_input, ref.grid_to_input, atol=1e-12)
+    # the centre anchor takes no floor
+    spec = GridSpec(N, units='metric', voxel_size=0.02)
+    ref = voxelize_view(pts, np.zeros(3), [0, 0, 1], spec)
+    v = voxelize_view(pts, np.zeros(3), [0, 0, 1], spec, floor=-0.3)
+    np.testing.assert_array_equal(v.grid, ref.grid)
+    np.testing.assert_allclose(v.grid_to_input, ref.grid_to_input, atol=1e-12)
 
 
 def test_sensor_inside_grid():
@@ -171,6 +218,31 @@ def test_occluders_hide_space_behind_them():
     # far-away occluders behind the sensor change nothing
     c = voxelize_view(pts, np.zeros(3), [0, 0, 1], spec, occluders=wall * [-1, 1, 1] - [5, 0, 0])
     np.testing.assert_array_equal(c.grid, a.grid)
+
+
+def test_occluders_anywhere_in_front_of_a_grid_voxel_hide_it():
+    # the occluders are culled to those that can lie between the sensor and the grid: that
+    # cull must keep small blobs near the sensor on the way to the grid's corners (the corners
+    # lie sqrt(3) N / 2 from the centre) and a wall inside the grid beyond its centre
+    pts = box_front()
+    spec = GridSpec(N, units='metric', voxel_size=0.02)
+    a = voxelize_view(pts, np.zeros(3), [0, 0, 1], spec)
+    g2i = a.grid_to_input
+    corners = [(N - 1, N - 1, N - 1), (N - 1, 0, N - 1), (N - 1, N - 1, 0), (0, N - 1, N - 1)]
+    off = np.stack(np.meshgrid(*[np.arange(-1, 2) * 0.004] * 3), -1).reshape(-1, 3)
+    blobs = np.concatenate([0.4 * (g2i @ [*c, 1])[:3] + off for c in corners])
+    b = voxelize_view(pts, np.zeros(3), [0, 0, 1], spec, occluders=blobs)
+    for c in corners:
+        assert a.grid[c] == FREE and b.grid[c] == UNKNOWN, c
+    rng = np.random.default_rng(0)
+    wall = np.c_[np.full(2000, 1.25), rng.uniform(0.2, 0.3, 2000), rng.uniform(0.0, 0.4, 2000)]
+    assert 1.25 > (g2i @ [C, C, C, 1])[0]   # beyond the grid centre
+    w = voxelize_view(pts, np.zeros(3), [0, 0, 1], spec, occluders=wall)
+    xyz = np.indices(a.grid.shape).reshape(3, -1).T @ g2i[:3, :3].T + g2i[:3, 3]
+    behind = ((xyz[:, 0] > 1.27) & (np.abs(xyz[:, 1] / xyz[:, 0] - 0.2) < 0.03)
+              & (xyz[:, 2] > 0.05) & (xyz[:, 2] / xyz[:, 0] < 0.3 / 1.25))
+    assert behind.sum() > 200 and (a.grid.reshape(-1)[behind] == FREE).sum() > 200
+    assert (w.grid.reshape(-1)[behind] == UNKNOWN).all()
 
 
 def test_occluder_points_too_far_for_a_voxel_index_change_nothing():
@@ -430,6 +502,8 @@ def test_non_finite_points_are_dropped():
     pts[::2] = np.nan
     v = voxelize_view(pts, np.zeros(3), [0, 0, 1], GridSpec(16))
     assert v.n_points == 50
+    pts[1::4, 2] = np.inf   # one coordinate is enough
+    assert voxelize_view(pts, np.zeros(3), [0, 0, 1], GridSpec(16)).n_points == 25
     with pytest.raises(ValueError, match='at least 60'):
         voxelize_view(pts, np.zeros(3), [0, 0, 1], GridSpec(16), min_points=60)
 
