@@ -578,10 +578,8 @@ def test_fit_options_checked_before_congealing(tmp_path, capsys, monkeypatch, ex
 
 
 # ---------------------------------------------------------------------- the noise variance floor
-def test_class_models_have_the_occupancy_floor_of_the_noise_variance(tmp_path):
-    # three noise-free boxes per class fitted v ~ 1e-8: a class absurdly sure of itself, whose
-    # likelihood against another such class hung on numerical noise
-    from beo_ros.core.training import OCCUPANCY_MIN_NOISE_VARIANCE
+def _noise_free_boxes_bank(tmp_path):
+    """The bank beo-train makes of three noise-free mesh boxes per class (cube, slab)."""
     paths = []
     for i in range(3):
         for name, size in (('cube', (1, 1, 1 + 0.1 * i)), ('slab', (1 + 0.1 * i, 1, 0.2))):
@@ -589,7 +587,14 @@ def test_class_models_have_the_occupancy_floor_of_the_noise_variance(tmp_path):
             box_off(paths[-1], *size)
     assert train.main([*map(str, paths), '-o', str(tmp_path / 'm'), '--grid', str(N)]
                       + FAST) == 0
-    bank = ModelBank.load(tmp_path / 'm')
+    return ModelBank.load(tmp_path / 'm')
+
+
+def test_class_models_have_the_occupancy_floor_of_the_noise_variance(tmp_path):
+    # three noise-free boxes per class fitted v ~ 1e-8: a class absurdly sure of itself, whose
+    # likelihood against another such class hung on numerical noise
+    from beo_ros.core.training import OCCUPANCY_MIN_NOISE_VARIANCE
+    bank = _noise_free_boxes_bank(tmp_path)
     assert 1e-8 < OCCUPANCY_MIN_NOISE_VARIANCE < 5e-4     # below every shipped model's v
     assert [m.noise_variance for m in bank.models] == [OCCUPANCY_MIN_NOISE_VARIANCE] * 2
     assert bank.training['min_noise_variance'] == OCCUPANCY_MIN_NOISE_VARIANCE
@@ -623,14 +628,7 @@ def test_coarse_noise_variance_has_the_floor_of_the_pooled_occupancy_noise(tmp_p
     # 8 voxels of independent noise at the floor has variance floor / 8
     from beo_ros.core.class_model import coarse_noise
     from beo_ros.core.training import OCCUPANCY_MIN_NOISE_VARIANCE
-    paths = []
-    for i in range(3):
-        for name, size in (('cube', (1, 1, 1 + 0.1 * i)), ('slab', (1 + 0.1 * i, 1, 0.2))):
-            paths.append(tmp_path / f'{name}_{i:04d}.off')
-            box_off(paths[-1], *size)
-    assert train.main([*map(str, paths), '-o', str(tmp_path / 'm'), '--grid', str(N)]
-                      + FAST) == 0
-    bank = ModelBank.load(tmp_path / 'm')
+    bank = _noise_free_boxes_bank(tmp_path)
     floor = OCCUPANCY_MIN_NOISE_VARIANCE / 8
     assert [m.coarse_noise_variance for m in bank.models] == [floor] * 2
     # the floor is that of the fit (none: as before), and a residual above it is kept as is
