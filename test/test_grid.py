@@ -3,7 +3,7 @@ itself, and GridSpec."""
 import numpy as np
 import pytest
 
-from beo_ros.core.grid import (GridSpec, quaternion_matrix, rotate_grid, symmetric_turns,
+from beo_ros.core.grid import (GridSpec, quaternion_matrix, real_number, rotate_grid, symmetric_turns,
                                 unit_vector, yaw_column_index, yaw_error, yaw_error_up_to,
                                 yaw_grid, yaw_matrix, wrap_yaw, yaw_source_index)
 
@@ -307,3 +307,18 @@ def test_quarter_turn_of_a_footprint_padded_on_both_sides():
     occ[20, 13:15, :10] = True
     turns = symmetric_turns(occ)
     assert np.pi / 2 in turns and np.pi in turns and 3 * np.pi / 2 in turns
+
+
+def test_real_number_is_one_rule_for_the_core():
+    # bank's number checks and the other modules' (_real: grid, scans, synthetic, voxelize)
+    # took different things: Fraction and Decimal were refused by one, np.timedelta64 (numpy
+    # counts it as an integer) taken by the other
+    from decimal import Decimal
+    from fractions import Fraction
+    for v, want in ((3, 3.0), (np.float32(0.5), 0.5), (np.int64(2), 2.0), (Fraction(1, 4), 0.25),
+                    (Decimal('0.125'), 0.125), (np.array(1.5), 1.5)):
+        assert real_number(v) == want and type(real_number(v)) is float, v
+    for v in (True, np.bool_(False), np.timedelta64(5), 1 + 0j, '1', b'1', None, [1.0],
+              np.array([1.0])):
+        assert real_number(v) is None, v
+    assert np.isnan(real_number(10 ** 400)) and np.isnan(real_number(float('nan')))

@@ -168,6 +168,10 @@ def test_primitive_shapes():
     (lambda occ: partial_view(occ[:, :, :4], 0.1, 0.3), r'occ must be \(N, N, N\)'),   # IndexError
     (lambda occ: partial_view(occ, np.nan, 0.3), 'view angles must be finite'),   # garbage
     (lambda occ: partial_view(occ, 0.1, 0.3, step=-1.0), 'step must be a positive'),
+    # numpy counts timedelta64 as an integer: it was taken as 1 radian / 0.5 voxels
+    (lambda occ: partial_view(occ, np.timedelta64(1), 0.3), 'view angles must be finite'),
+    (lambda occ: partial_view(occ, 0.1, 0.3, step=np.timedelta64(1, 's')),
+     'step must be a positive'),
     (lambda occ: render_view_points(occ, 0.0, 0.1, np.nan), 'view angles must be finite'),
     (lambda occ: render_surface_points(occ.astype(float), 0.5, np.nan, 0.1, 0.3),
      'view angles must be finite'),                                     # 'arange: cannot ...'

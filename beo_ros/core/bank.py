@@ -7,7 +7,6 @@ importable from here too.
 """
 from __future__ import annotations
 
-import decimal
 import json
 import numbers
 import os
@@ -27,8 +26,8 @@ from .classifier import (CLASS_PRIORS, HIDDEN_CLASSIFIER_KEYS, MODES, OPTIONAL_C
                          format_class_prior, parse_class_prior, prior_offset,
                          resolve_class_prior, uses_descriptors)
 from .estimate import UNKNOWN_LABEL, Estimate, Hypothesis
-from .grid import (GridSpec, symmetric_turns, unit_vector, wrap_yaw as _wrap, yaw_error,
-                   yaw_grid, yaw_matrix)
+from .grid import (NOT_NUMBERS, GridSpec, real_number, symmetric_turns, unit_vector,
+                   wrap_yaw as _wrap, yaw_error, yaw_grid, yaw_matrix)
 from .inference import (FEATURE_NAMES, InferenceEngine, observed_edt, top_modes, top_yaw_modes,
                         yaw_key)
 from .model_files import (CLASS_KEYS, FORMAT, OPTIONAL_CLASS_KEYS, OPTIONAL_FILES, UNREADABLE,
@@ -806,7 +805,7 @@ class ModelBank:
         """
         from .voxelize import (MIN_POINTS, finite_points, grid_to_points, unit_direction,
                                voxelize_view)
-        prob_threshold = _real_number(threshold)
+        prob_threshold = real_number(threshold)
         if prob_threshold is None or not 0 < prob_threshold <= 1:   # also refuses NaN
             raise ValueError(f'threshold must be an occupancy probability in (0, 1], got '
                              f'{threshold!r}')
@@ -972,33 +971,12 @@ def heading_offset(grid_rotation, up) -> float:
     return float(np.arctan2(np.cross(u, ref) @ g, ref @ g))
 
 
-# what the number checks refuse although isinstance(value, int / np.integer) holds: numpy counts
-# timedelta64 as an integer (a step of np.timedelta64(5) raised numpy's UFuncTypeError, a count
-# or probe offset of one was taken)
-_NOT_NUMBERS = (bool, np.bool_, np.timedelta64)
-
-
-def _real_number(value):
-    """``value`` as a float if it is a real number, else None. Real numbers: numbers.Real (int,
-    float, numpy's, Fraction) and Decimal (which the numbers module leaves out), or a 0-d array
-    of one; not a bool, a numpy timedelta64, a complex number or a string. NaN for a real
-    number float cannot hold (an int or a Fraction beyond it, a signalling NaN Decimal)."""
-    if isinstance(value, np.ndarray) and value.ndim == 0:
-        value = value[()]
-    if isinstance(value, _NOT_NUMBERS) or not isinstance(value, (numbers.Real, decimal.Decimal)):
-        return None
-    try:
-        return float(value)
-    except (OverflowError, ValueError):
-        return np.nan
-
-
 def check_yaw(yaw):
     """``yaw`` as a float (radians), or None (search it); ValueError unless it is a finite
-    real number (see :func:`_real_number`) or None."""
+    real number (see :func:`~beo_ros.core.grid.real_number`) or None."""
     if yaw is None:
         return None
-    value = _real_number(yaw)
+    value = real_number(yaw)
     if value is None:
         raise ValueError(f'yaw must be None or a number of radians, got {yaw!r}')
     if not np.isfinite(value):
@@ -1008,10 +986,10 @@ def check_yaw(yaw):
 
 
 def check_step(name, value):
-    """``value`` as a float; ValueError unless it is a real number (see :func:`_real_number`)
+    """``value`` as a float; ValueError unless it is a real number (see :func:`~beo_ros.core.grid.real_number`)
     of degrees in YAW_STEP_RANGE_DEG ([0.05, 90])."""
     lo, hi = YAW_STEP_RANGE_DEG
-    step = _real_number(value)
+    step = real_number(value)
     if step is None or not lo <= step <= hi:   # also refuses NaN
         raise ValueError(f'{name} must be a number of degrees in [{lo:g}, {hi:g}], got {value!r}')
     return step
@@ -1020,7 +998,7 @@ def check_step(name, value):
 def check_count(name, value):
     """Raise ValueError unless ``value`` is an integer >= 0 (numbers.Integral: int, numpy's;
     not a bool, a numpy timedelta64, nor an integral Fraction or Decimal)."""
-    if isinstance(value, _NOT_NUMBERS) or not isinstance(value, numbers.Integral) \
+    if isinstance(value, NOT_NUMBERS) or not isinstance(value, numbers.Integral) \
             or value < 0:
         raise ValueError(f'{name} must be an integer >= 0, got {value!r}')
 
@@ -1028,7 +1006,7 @@ def check_count(name, value):
 def _probe_offsets(probe_deg):
     """``probe_deg`` of :meth:`ModelBank.estimate` (None, one number or several, a list or an
     array) as a tuple of float offsets (degrees); ValueError unless each is a real number (see
-    :func:`_real_number`) in (0, 180]."""
+    :func:`~beo_ros.core.grid.real_number`) in (0, 180]."""
     if probe_deg is None:
         probe_deg = ()
     elif np.ndim(probe_deg) == 0:
@@ -1040,7 +1018,7 @@ def _probe_offsets(probe_deg):
     except TypeError:
         raise ValueError(f'probe_deg must be offsets in (0, 180] degrees, got '
                          f'{probe_deg!r}') from None
-    offsets = tuple(_real_number(p) for p in probe_deg)
+    offsets = tuple(real_number(p) for p in probe_deg)
     if not all(p is not None and 0 < p <= 180 for p in offsets):
         raise ValueError(f'probe_deg must be offsets in (0, 180] degrees, got {probe_deg}')
     return offsets
@@ -1060,7 +1038,7 @@ def _check_estimate_options(yaw_step_deg, search_step_deg, probe_deg, refine_deg
         stage2_window_deg = 0.0
     degrees = []
     for name, value in (('refine_deg', refine_deg), ('stage2_window_deg', stage2_window_deg)):
-        degrees.append(_real_number(value))
+        degrees.append(real_number(value))
         if degrees[-1] is None or not 0 <= degrees[-1] <= 180:   # also refuses NaN
             raise ValueError(f'{name} must be in [0, 180] degrees, got {value!r}')
     check_count('n_hypotheses', n_hypotheses)

@@ -8,6 +8,8 @@ Conventions used everywhere in beo_ros:
 """
 from __future__ import annotations
 
+import decimal
+import numbers
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -70,14 +72,31 @@ class GridSpec:
         return cls(**known)
 
 
-def _real(value) -> float:
-    """``value`` as a float when it is a real number (not a bool or string), else NaN."""
-    if isinstance(value, (bool, np.bool_, str, bytes)) or np.ndim(value) != 0:
-        return np.nan
+# what the number checks refuse although isinstance(value, int / np.integer) holds: numpy counts
+# timedelta64 as an integer (a step of np.timedelta64(5) raised numpy's UFuncTypeError, a count
+# or probe offset of one was taken)
+NOT_NUMBERS = (bool, np.bool_, np.timedelta64)
+
+
+def real_number(value):
+    """``value`` as a float if it is a real number, else None. Real numbers: numbers.Real (int,
+    float, numpy's, Fraction) and Decimal (which the numbers module leaves out), or a 0-d array
+    of one; not a bool, a numpy timedelta64, a complex number or a string. NaN for a real
+    number float cannot hold (an int or a Fraction beyond it, a signalling NaN Decimal)."""
+    if isinstance(value, np.ndarray) and value.ndim == 0:
+        value = value[()]
+    if isinstance(value, NOT_NUMBERS) or not isinstance(value, (numbers.Real, decimal.Decimal)):
+        return None
     try:
         return float(value)
-    except (TypeError, ValueError, OverflowError):   # OverflowError: an int beyond float
+    except (OverflowError, ValueError):
         return np.nan
+
+
+def _real(value) -> float:
+    """``value`` as a float when it is a real number (see :func:`real_number`), else NaN."""
+    x = real_number(value)
+    return np.nan if x is None else x
 
 
 def real_array(value, name, what):
