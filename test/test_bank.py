@@ -2133,6 +2133,11 @@ def _rewrite_npz(path, fn, **change):
     # timedelta64, a number to numpy: loaded, then estimate raised UFuncTypeError
     (dict(complete__intercept=np.zeros(3, 'm8[s]')), "'intercept' has shape .*expected numbers"),
     (dict(complete__class_counts=np.ones(3, 'm8[s]')), 'class_counts must be 3 finite counts'),
+    # no rows at all, an infinite count, an unknown bound of +inf (-inf is 'never unknown')
+    (dict(complete__class_counts=np.zeros(3)), 'class_counts must be 3 finite counts'),
+    (dict(complete__class_counts=np.array([1.0, np.inf, 1.0])), 'class_counts must be 3 finite'),
+    (dict(complete__unknown_threshold=np.array([0.0, np.inf, 0.0])),
+     "'unknown_threshold' contains NaN or Inf"),
     # a misspelt array was ignored without a word (the 'points' classifier refused it)
     (dict(complete__row_standardise=np.asarray(True)),
      r"classifier 'complete' has unexpected arrays \['row_standardise'\]"),
@@ -2255,6 +2260,64 @@ def test_unknown_bound_counts_objects_not_views():
     want = loglik_bounds(F[:, 0::nf], y, 3)
     assert np.isfinite(want).all()                     # rows counted: every class bounded
     np.testing.assert_array_equal(clf['unknown_threshold'], [want[0], want[1], -np.inf])
+
+
+def test_unknown_bounds_are_inclusive():
+    # a log-likelihood at the class's bound explains the object, and explaining classes that
+    # hold exactly half the probability are enough (the '>=' and '< 0.5' of the docstring)
+    from beo_ros.core.bank import classifier_probabilities
+    clf = dict(mean=np.zeros(3), scale=np.ones(3), coef=np.eye(3), intercept=np.zeros(3),
+               unknown_threshold=np.full(3, -1.0))
+    Z = np.log([[0.5, 0.25, 0.25]])
+    p, unknown = classifier_probabilities(clf, Z, [[-1.0, -5.0, -5.0]])
+    np.testing.assert_array_equal(p, [[0.5, 0.25, 0.25]])
+    assert not unknown[0]
+    assert classifier_probabilities(clf, Z, [[-1.0 - 1e-9, -5.0, -5.0]])[1][0]
+    # the winner explains it, but with the others less than half: unknown
+    Z = np.log([[0.45, 0.3, 0.25]])
+    assert classifier_probabilities(clf, Z, [[0.0, -5.0, -5.0]])[1][0]
+
+
+def test_prior_offset_by_hand():
+    # Bayes' rule: log prior - log training frequency; a class without training rows gets 0
+    # (its probability is the classifier's own), -inf when its prior is 0
+    from beo_ros.core.bank import prior_offset
+    third = np.full(3, 1 / 3)
+    np.testing.assert_allclose(prior_offset([4, 2, 2], third),
+                               np.log(third) - np.log([0.5, 0.25, 0.25]))
+    np.testing.assert_allclose(prior_offset([0, 2, 2], third),
+                               [0.0, np.log(2 / 3), np.log(2 / 3)])
+    np.testing.assert_array_equal(prior_offset([0, 2, 2], [0, 0.5, 0.5]), [-np.inf, 0.0, 0.0])
+    np.testing.assert_array_equal(prior_offset([1, 2, 1], [0.5, 0, 0.5])[1], -np.inf)
+    assert prior_offset(None, third) is None and prior_offset([4, 2, 2], None) is None
+
+
+def test_expected_calibration_error_bins_by_hand():
+    from beo_ros.core.training import expected_calibration_error
+    # bins are (a, b]: a confidence of exactly 1 is in the last bin, 0.5 in (0.4, 0.5] only
+    assert expected_calibration_error(np.array([1.0]), np.array([False])) == pytest.approx(1.0)
+    assert expected_calibration_error(np.array([0.5]), np.array([False])) == pytest.approx(0.5)
+    # weighted by the share of rows in the bin: 2/3 * 0.05 + 1/3 * 0.65
+    assert expected_calibration_error(np.array([0.95, 0.95, 0.35]), np.ones(3, bool)) == \
+        pytest.approx(0.25)
+    # 4 bins: 0.3 and 0.45 share (0.25, 0.5]
+    assert expected_calibration_error(np.array([0.3, 0.45]), np.array([True, False]), bins=4) \
+        == pytest.approx(abs(0.375 - 0.5))
+
+
+def test_loglik_bounds_by_hand():
+    # median - UNKNOWN_MADS (8) scaled MADs of a class's own out-of-fold log-likelihoods, at
+    # least 1e-3 of MAD; -inf below 5 objects; an outlier moves neither median nor MAD
+    from beo_ros.core.training import UNKNOWN_MADS, loglik_bounds
+    assert UNKNOWN_MADS == 8.0
+    y = np.repeat([0, 1, 2], [5, 4, 5])
+    ll = np.zeros((len(y), 3))
+    ll[y == 0, 0] = [0.0, 1.0, 2.0, 3.0, 100.0]
+    ll[y == 1, 1] = [0.0, 1.0, 2.0, 3.0]
+    ll[y == 2, 2] = -3.0
+    np.testing.assert_allclose(loglik_bounds(ll, y, 3),
+                               [2.0 - 8 * 1.4826, -np.inf, -3.0 - 8e-3])
+    np.testing.assert_allclose(loglik_bounds(ll, y, 3, mads=2.0)[0], 2.0 - 2 * 1.4826)
 
 
 def test_fit_bank_refuses_labels_that_are_not_class_indices():
@@ -2580,6 +2643,10 @@ def test_parse_class_prior_refuses_an_unknown_name_in_the_text_form():
     assert parse_class_prior('a=1, b=2') == {'a': 1.0, 'b': 2.0}
     with pytest.raises(ValueError, match=r"'train', 'uniform' or 'name=weight,\.\.\.'.*'Uniform'"):
         parse_class_prior('Uniform')
+    # a class named twice: refused, not the last weight kept
+    for twice in ('a=1,b=2,a=3', '"a"=1,a=2'):
+        with pytest.raises(ValueError, match='each class once'):
+            parse_class_prior(twice)
 
 
 def test_parse_class_prior_reads_a_class_name_with_an_equals_sign():

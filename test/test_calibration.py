@@ -106,6 +106,33 @@ def test_calibration_refuses_bad_bins(bins):
         OccupancyCalibration(bins=bins).fit([0.1, 0.9], [0, 1])
 
 
+def test_isotonic_map_by_hand():
+    # three voxels at 0.1 (one occupied) and one at 0.9 (empty): decreasing frequencies are
+    # pooled into one level, weighted by the voxels (1 / 4, not the bins' mean 1 / 6), and
+    # the map stays non-decreasing (not turned into a decreasing one)
+    cal = OccupancyCalibration().fit([0.1, 0.1, 0.1, 0.9], [0, 0, 1, 0])
+    np.testing.assert_allclose(cal.predict([0.0, 0.1, 0.5, 0.9, 1.0]), 0.25, atol=1e-7)
+    # a perfect separation maps to 0 and 1 exactly, also beyond the knots
+    cal = OccupancyCalibration().fit([0.01, 0.01, 0.99, 0.99], [0, 0, 1, 1])
+    np.testing.assert_array_equal(cal.predict([0.0, 0.01, 0.99, 1.0]), [0, 0, 1, 1])
+    assert cal.predict(0.5) == pytest.approx(0.5, abs=1e-7)   # interpolated between knots
+
+
+def test_probabilities_0_and_1_fall_in_the_end_bins():
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')   # no log(0) on the way to the clipped logit
+        cal = OccupancyCalibration(bins=10).fit([0.0, 0.0, 1.0, 1.0, 1.0], [0, 0, 1, 1, 0])
+    np.testing.assert_array_equal(cal.counts_[0], [0, 0, 2])
+    np.testing.assert_array_equal(cal.counts_[-1], [3, 2, 3])
+    assert cal.counts_[1:-1].sum() == 0
+    table = np.array(calibration_sums(np.array([0.0, 1.0, 1.0]), np.array([0, 1, 0]),
+                                      bins=10)['bins'])
+    assert table.shape == (10, 3)
+    np.testing.assert_array_equal(table[0], [0, 0, 1])
+    np.testing.assert_array_equal(table[-1], [2, 1, 2])
+
+
 def test_predict_needs_two_distinct_probabilities():
     with pytest.raises(ValueError, match='not fitted'):
         OccupancyCalibration().predict([0.5])
@@ -161,10 +188,28 @@ def broken(key, value):
     ('probability', lambda a: a.astype(np.int64), 'floating point'),
     ('counts', lambda a: -a, 'counts'),
     ('counts', lambda a: a[:, :2], 'counts'),
+    # each bound on its own (only a frequency twice too large, reversed maps and negative
+    # counts were refused here: dropping any other check passed)
+    ('frequency', lambda a: a.astype(np.int64), 'floating point'),
+    ('frequency', lambda a: np.where(np.arange(len(a)) == 1, np.inf, a), 'finite'),
+    ('probability', lambda a: np.where(np.arange(len(a)) == 0, -0.01, a), r'\[0, 1\]'),
+    ('probability', lambda a: np.where(np.arange(len(a)) == len(a) - 1, 1.01, a), r'\[0, 1\]'),
+    ('frequency', lambda a: np.where(np.arange(len(a)) == 0, -0.01, a), r'\[0, 1\]'),
+    ('frequency', lambda a: np.where(np.arange(len(a)) == len(a) - 1, 1.01, a), r'\[0, 1\]'),
+    ('probability', lambda a: np.where(np.arange(len(a)) == 1, a[0], a), 'increasing'),
+    ('counts', lambda a: a[:1], 'counts'),
+    ('counts', lambda a: np.where(np.arange(len(a))[:, None] == 3, np.inf, a), 'counts'),
 ])
 def test_check_arrays_names_what_is_wrong(key, value, message):
     reason = check_arrays(broken(key, value), 'x.npz')
     assert reason.startswith('x.npz') and re.search(message, reason)
+
+
+def test_check_arrays_wants_two_knots_and_takes_a_fitted_map():
+    arrays = broken('counts', lambda a: a)
+    assert check_arrays(arrays) == ''
+    one = dict(arrays, probability=arrays['probability'][:1], frequency=arrays['frequency'][:1])
+    assert 'same length >= 2' in check_arrays(one)
 
 
 # ---------------------------------------------------------------------- in the bank

@@ -205,3 +205,44 @@ def test_compact_counts_give_the_float32_counts_yaws(monkeypatch, with_masks):
     wide = congeal_yaws(X, n, masks, yaw_step_deg=15.0)
     np.testing.assert_array_equal(compact[0], wide[0])
     assert compact[1] == wide[1] and wide[1][-1] < wide[1][0]
+
+
+def test_class_entropy_by_hand():
+    # sum over voxels of n_v H(p_v), p_v = (a + occupied) / (2a + observed), a = prior: the
+    # other tests only compared costs with each other (lower after congealing)
+    n = 2
+    X = np.stack([np.ones(8), np.zeros(8)]).astype(np.float32)
+    assert class_entropy(X, n, pool=1) == pytest.approx(16.0)       # p = 1/2 everywhere
+    masks = np.ones(X.shape, bool)
+    masks[1, 4:] = False      # the empty object observes half the voxels
+    h = -(0.75 * np.log2(0.75) + 0.25 * np.log2(0.25))               # p = 1.5 / 2
+    assert class_entropy(X, n, masks, pool=1) == pytest.approx(4 * 2 + 4 * h)
+    # prior 0: the observed-by-one voxels are certain (0 bits)
+    assert class_entropy(X, n, masks, prior=0.0, pool=1) == pytest.approx(8.0)
+    # pooled: 2^3 blocks of a 4^3 grid, occupied counts 8 and 0 out of 16 observed
+    X4 = np.stack([np.ones(64), np.zeros(64)]).astype(np.float32)
+    X4[1, :32] = 1   # the second object full in its lower half of x: blocks 16/16 or 8/16
+    full = -(16.5 / 17 * np.log2(16.5 / 17) + 0.5 / 17 * np.log2(0.5 / 17))
+    assert class_entropy(X4, 4, pool=2) == pytest.approx(16 * (4 * full + 4 * 1.0))
+
+
+def test_congeal_history_starts_at_the_objective_of_the_grids_as_given():
+    n = 16
+    X = _rotated_set(n, 5, seed=1)
+    masks = np.ones(X.shape, bool)
+    masks[::2, : n * n * 3] = False
+    for prior in (0.5, 0.0):
+        _, hist = congeal_yaws(X, n, masks, iters=1, prior=prior)
+        assert hist[0] == pytest.approx(class_entropy(X, n, masks, prior=prior), rel=1e-6)
+
+
+def test_objects_do_not_move_between_yaws_of_equal_cost_and_the_sweeps_stop():
+    # a cube centred in the grid costs the same at every quarter turn: no object moves (an
+    # equal cost is no gain), so the first sweep changes nothing and is the last
+    n = 16
+    g = np.zeros((n,) * 3, np.float32)
+    g[4:12, 4:12, 0:6] = 1
+    X = np.stack([g.ravel()] * 4)
+    yaws, hist = congeal_yaws(X, n, yaw_step_deg=90.0, iters=6)
+    np.testing.assert_array_equal(yaws, 0.0)
+    assert len(hist) == 2 and hist[1] == hist[0]

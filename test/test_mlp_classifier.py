@@ -136,3 +136,29 @@ def test_a_column_constant_in_training_does_not_decide_the_class():
     p_off, _ = classifier_probabilities(clf, q, q[:, 0:3 * NF:NF])
     np.testing.assert_allclose(p_off, p, atol=1e-3)
     assert clf['scale'][-1] == 1.0
+
+
+def test_select_classifier_keeps_the_logistic_regression_on_a_tie_and_reports_the_runner_up():
+    # separable rows: every option is right on all of them, and the first of equals (the
+    # logistic regression) wins; accuracy_other_input is the best of the others, not the winner
+    F, y = _rows(3, m=60, seed=2)
+    F[np.arange(len(y)), y * NF] += 20.0
+    clf, rep = select_classifier(F, y, [], np.arange(len(y)), None, 3, C=0.3,
+                                 descriptors=False, row_standardize=False)
+    assert set(rep['accuracy_by_input'].values()) == {1.0}
+    assert rep['kind'] == 'logistic' and 'hidden_coef' not in clf
+    F, y = _rows(3, m=120, seed=1)
+    _, rep = select_classifier(F, y, [], np.arange(len(y)), None, 3, C=(0.01, 1.0),
+                               descriptors=False, row_standardize=False, kind='logistic')
+    by = rep['accuracy_by_input']
+    winner = 'raw, C=' + format(rep['C'], 'g')
+    assert rep['accuracy_other_input'] == max(a for k, a in by.items() if k != winner)
+
+
+def test_cross_validated_network_takes_its_penalty():
+    from beo_ros.core.training import cross_validated_report
+    F, y = _rows(3, m=90, seed=4)
+    light = cross_validated_report(F, y, [], hidden=16, alpha=1.0)
+    heavy = cross_validated_report(F, y, [], hidden=16, alpha=300.0)
+    # a heavy L2 penalty pulls the probabilities towards uniform
+    assert heavy['log_loss'] > light['log_loss'] + 0.1

@@ -169,3 +169,44 @@ def test_second_set_describes_how_the_voxels_are_built():
     assert d['shelf']['column_fill'] < 0.7 < d['block']['column_fill']
     assert d['pedestal']['spread_q3'] > 3 * d['pedestal']['spread_q0']
     assert d['block']['spread_q3'] == pytest.approx(d['block']['spread_q0'])
+
+
+def test_every_descriptor_of_a_box_by_hand():
+    # the box's voxels: x 3..12, y 5..9, z 2..8 (350); only height, elongation, log_count and
+    # (in the second set) the block's stacking were pinned: a swapped quartile, another
+    # length unit or mean_height over the object's height passed
+    d = dict(zip(DESCRIPTOR_NAMES, shape_descriptors(_box())))
+    m = 10 * 5 * 7
+    var_x, var_y = 82.5 * 35 / (m - 1), 10.0 * 70 / (m - 1)   # np.cov of the voxels' x, y
+    assert d['extent_major'] == pytest.approx(np.sqrt(var_x) / (N / 2))
+    assert d['extent_minor'] == pytest.approx(np.sqrt(var_y) / (N / 2))
+    assert d['elongation'] == pytest.approx(np.sqrt(var_y / var_x))
+    # 7 z layers at relative heights 0, 1/7, ..., 6/7: 2, 2, 2 and 1 of them per quarter
+    layers = np.array([2, 2, 2, 1]) / 7
+    assert [d[f'height_q{i}'] for i in (1, 2, 3)] == pytest.approx(layers[:3])
+    assert d['mean_height'] == pytest.approx(5 / N)
+    # z 2..8 over the eighths of 16: 2, 2, 2, 1 layers in eighths 1..4
+    assert [d[f'z_profile_{i}'] for i in range(8)] == pytest.approx(
+        [0, 2 / 7, 2 / 7, 2 / 7, 1 / 7, 0, 0, 0])
+    # radius from the footprint's centre (7.5, 7), relative to its farthest cell
+    x, y = np.meshgrid(np.arange(3, 13) - 7.5, np.arange(5, 10) - 7.0)
+    r = np.hypot(x, y).ravel()
+    share = np.histogram(r / r.max(), bins=4, range=(0, 1))[0] / r.size
+    assert [d[f'radius_q{i}'] for i in (1, 2, 3)] == pytest.approx(share[:3])
+    # a box: the height and radius quarters are independent
+    joint = [[d[f'height_radius_{i}_{j}'] for j in range(4)] for i in range(4)]
+    np.testing.assert_allclose(joint, np.outer(layers, share), atol=1e-12)
+    assert d['supported'] == pytest.approx(6 / 7) and d['column_fill'] == pytest.approx(1.0)
+    assert d['columns'] == pytest.approx(50 / m)
+    rms = np.sqrt(np.mean(r ** 2)) / (N / 2)
+    assert [d[f'spread_q{i}'] for i in range(4)] == pytest.approx([rms] * 4)
+
+
+def test_two_voxels_are_too_few_and_three_are_enough():
+    g = np.zeros((N,) * 3, dtype=np.int8)
+    g[4, 4, 0:2] = 1
+    assert not shape_descriptors(g).any()
+    g[4, 4, 2] = 1   # a column of 3: height 3 / N, all stacked but the top one
+    d = dict(zip(DESCRIPTOR_NAMES, shape_descriptors(g)))
+    assert d['height'] == pytest.approx(3 / N) and d['supported'] == pytest.approx(2 / 3)
+    assert d['log_count'] == pytest.approx(np.log(3))
