@@ -64,8 +64,11 @@ class FakeBank:
         if len(points) != BIG:
             return b'small'
         result = b'x' * self.size
-        with open(self.flag, 'w') as f:
+        # written whole, then renamed: the test polls for the file and read it empty once
+        # (created, pid not yet written; CI 2026-11-25)
+        with open(self.flag + '.tmp', 'w') as f:
             f.write(str(os.getpid()))
+        os.replace(self.flag + '.tmp', self.flag)
         return result
 
 
