@@ -8,7 +8,6 @@ importable from here too.
 from __future__ import annotations
 
 import json
-import numbers
 import os
 import shutil
 import tempfile
@@ -26,7 +25,7 @@ from .classifier import (CLASS_PRIORS, HIDDEN_CLASSIFIER_KEYS, MODES, OPTIONAL_C
                          format_class_prior, parse_class_prior, prior_offset,
                          resolve_class_prior, uses_descriptors)
 from .estimate import UNKNOWN_LABEL, Estimate, Hypothesis
-from .grid import (NOT_NUMBERS, GridSpec, real_number, symmetric_turns, unit_vector,
+from .grid import (GridSpec, check_count, real_number, symmetric_turns, unit_vector,
                    wrap_yaw as _wrap, yaw_error, yaw_grid, yaw_matrix)
 from .inference import (FEATURE_NAMES, InferenceEngine, observed_edt, top_modes, top_yaw_modes,
                         yaw_key)
@@ -993,14 +992,6 @@ def check_step(name, value):
     if step is None or not lo <= step <= hi:   # also refuses NaN
         raise ValueError(f'{name} must be a number of degrees in [{lo:g}, {hi:g}], got {value!r}')
     return step
-
-
-def check_count(name, value):
-    """Raise ValueError unless ``value`` is an integer >= 0 (numbers.Integral: int, numpy's;
-    not a bool, a numpy timedelta64, nor an integral Fraction or Decimal)."""
-    if isinstance(value, NOT_NUMBERS) or not isinstance(value, numbers.Integral) \
-            or value < 0:
-        raise ValueError(f'{name} must be an integer >= 0, got {value!r}')
 
 
 def _probe_offsets(probe_deg):

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .grid import check_count
+
 # the probabilities are binned on the logit scale in [-LOGIT_RANGE, LOGIT_RANGE]: the model's
 # probabilities reach 1e-8 and below, where the observed frequencies still differ
 LOGIT_RANGE = 20.0
@@ -33,10 +35,8 @@ def _check_inputs(p, occupied):
 
 def check_bin_count(bins):
     """Raise ValueError unless ``bins`` (of an equal-width binning of probabilities) is an
-    integer >= 1 (bool and numpy's timedelta64 are not one)."""
-    if isinstance(bins, (bool, np.bool_, np.timedelta64)) \
-            or not isinstance(bins, (int, np.integer)) or bins < 1:
-        raise ValueError(f'bins must be an integer >= 1, got {bins!r}')
+    integer >= 1."""
+    check_count('bins', bins, 1)
 
 
 class OccupancyCalibration:

@@ -93,6 +93,14 @@ def real_number(value):
         return np.nan
 
 
+def check_count(name, value, minimum=0):
+    """Raise ValueError unless ``value`` is an integer >= ``minimum`` (numbers.Integral: int,
+    numpy's; not a bool, a numpy timedelta64, nor an integral Fraction or Decimal)."""
+    if isinstance(value, NOT_NUMBERS) or not isinstance(value, numbers.Integral) \
+            or value < minimum:
+        raise ValueError(f'{name} must be an integer >= {minimum}, got {value!r}')
+
+
 def _real(value) -> float:
     """``value`` as a float when it is a real number (see :func:`real_number`), else NaN."""
     x = real_number(value)
