@@ -59,21 +59,20 @@ class ViewGrid:
 # ----------------------------------------------------------------------------------- validation
 
 def _numbers(value):
-    """``value`` as an array if it holds real numbers (integers or floats), else None: a cast to
-    float parsed strings as numbers, took bools, dropped an imaginary part with a warning only."""
+    """``value`` as a float64 array if it holds real numbers (integers or floats), else None
+    (:func:`~beo_ros.core.grid.real_array`'s rule: a cast to float parsed strings as numbers,
+    took bools, dropped an imaginary part with a warning only)."""
     try:
-        a = np.asarray(value)
-    except ValueError:   # rows of different lengths
+        return real_array(value, 'value', 'an array')
+    except ValueError:   # other dtypes, rows of different lengths
         return None
-    return a if a.dtype.kind in 'iuf' else None
 
 
 def _check_points(points, min_points: int) -> np.ndarray:
-    a = _numbers(points)
-    if a is None:   # a structured array, text, bools, complex numbers, a dict, ragged rows, ...
+    pts = _numbers(points)
+    if pts is None:   # a structured array, text, bools, complex numbers, a dict, ragged rows, ...
         dtype = getattr(points, 'dtype', type(points).__name__)
         raise ValueError(f'points must be an (n, 3) array of numbers, got {dtype}')
-    pts = a.astype(np.float64, copy=False)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f'points must be an (n, 3) array, got shape {pts.shape}')
     pts = pts[np.isfinite(pts).all(axis=1)]
@@ -101,7 +100,7 @@ def _check_vec(v, name: str, unit: bool = False) -> np.ndarray:
     a = _numbers(v)
     if a is None:   # e.g. 'abc', ['0', '0', '1'], [1, 'x', 2], None, bools
         raise ValueError(f'{name} must be a finite 3-vector of numbers, got {v!r}')
-    v = a.astype(np.float64, copy=False)
+    v = a
     if v.shape != (3,) or not np.isfinite(v).all():
         raise ValueError(f'{name} must be a finite 3-vector, got {np.asarray(v)!r}')
     if unit:
