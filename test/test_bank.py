@@ -2294,7 +2294,8 @@ def test_prior_offset_by_hand():
 
 def test_expected_calibration_error_bins_by_hand():
     from beo_ros.core.training import expected_calibration_error
-    # bins are (a, b]: a confidence of exactly 1 is in the last bin, 0.5 in (0.4, 0.5] only
+    # bins are [0, 0.1], then (a, b]: a confidence of exactly 1 is in the last bin, 0.5 in
+    # (0.4, 0.5] only
     assert expected_calibration_error(np.array([1.0]), np.array([False])) == pytest.approx(1.0)
     assert expected_calibration_error(np.array([0.5]), np.array([False])) == pytest.approx(0.5)
     # weighted by the share of rows in the bin: 2/3 * 0.05 + 1/3 * 0.65
@@ -2303,6 +2304,36 @@ def test_expected_calibration_error_bins_by_hand():
     # 4 bins: 0.3 and 0.45 share (0.25, 0.5]
     assert expected_calibration_error(np.array([0.3, 0.45]), np.array([True, False]), bins=4) \
         == pytest.approx(abs(0.375 - 0.5))
+
+
+def test_expected_calibration_error_counts_a_confidence_of_zero():
+    from beo_ros.core.training import expected_calibration_error
+    # the first bin is [0, 0.1]: a row at 0 was in no bin, dropped (0 for a sure miss of 0)
+    assert expected_calibration_error(np.array([0.0]), np.array([True])) == pytest.approx(1.0)
+    # 0 and 0.05 share the first bin: |mean confidence 0.025 - accuracy 0.5|
+    assert expected_calibration_error(np.array([0.0, 0.05]), np.array([True, False])) == \
+        pytest.approx(0.475)
+    assert expected_calibration_error(np.array([0.0, 0.9]), np.array([False, True])) == \
+        pytest.approx(0.05)   # 1/2 * 0 + 1/2 * 0.1
+    assert expected_calibration_error(np.array([]), np.array([], bool)) == 0.0
+
+
+@pytest.mark.parametrize('confidence, correct, message', [
+    ([1.5], [True], r'confidence must be finite probabilities in \[0, 1\]'),
+    ([-0.5], [False], 'confidence must be finite probabilities'),
+    ([np.nan], [True], 'confidence must be finite probabilities'),
+    ([np.inf], [True], 'confidence must be finite probabilities'),
+    ([0.5], [True, False], 'confidence and correct must have the same shape'),
+    ([0.5, 0.5], [True], 'confidence and correct must have the same shape'),
+    ([0.5], [0.5], 'correct must be boolean or 0/1'),
+    ([0.5], [np.nan], 'correct must be boolean or 0/1'),
+])
+def test_expected_calibration_error_refuses_bad_rows(confidence, correct, message):
+    # before: 0 for a confidence out of [0, 1] or NaN (in no bin), numpy's IndexError for
+    # different lengths
+    from beo_ros.core.training import expected_calibration_error
+    with pytest.raises(ValueError, match=message):
+        expected_calibration_error(np.array(confidence), np.array(correct))
 
 
 def test_loglik_bounds_by_hand():
