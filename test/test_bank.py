@@ -2012,6 +2012,26 @@ def test_a_class_of_prior_0_without_training_rows_is_never_chosen():
     assert p[0] == 0 and p[1:] == pytest.approx([0.5, 0.5])
 
 
+def test_classes_without_training_rows_follow_their_prior_weights():
+    # classes 0 and 1 had no training rows (intercept -30, no weights): their offset was 0,
+    # so their prior weights were ignored (0.7 / 0.3 gave 0.5 / 0.5 once the prior ruled out
+    # class 2, while the no-object estimate of the same bank answered the prior 0.7 / 0.3)
+    bank, feats = _prior_bank()
+    clf = dict(bank.classifier['complete'], class_counts=np.array([0.0, 0.0, 4.0]),
+               intercept=np.array([-30.0, -30.0, 0.0]),
+               coef=bank.classifier['complete']['coef'] * [[0], [0], [1]])
+    bank = ModelBank(bank.models, bank.spec, {'complete': clf}, class_prior=[0.7, 0.3, 0])
+    p = bank.classify_features(feats, 'complete')[0]
+    assert p == pytest.approx([0.7, 0.3, 0.0]) and p[2] == 0
+    scores = bank.estimate(np.zeros((8, 8, 8), np.int8), yaw=0.0).scores
+    assert list(scores.values()) == pytest.approx(list(p))
+    # with the class that had rows allowed, they stay at ~0, in proportion to their weights
+    bank.class_prior = [0.7, 0.3, 0.5]
+    p = bank.classify_features(feats, 'complete')[0]
+    assert p[2] == pytest.approx(1.0) and p[:2].max() < 1e-11
+    assert p[0] / p[1] == pytest.approx(0.7 / 0.3)
+
+
 def test_class_prior_without_class_counts_is_not_applied_and_the_estimate_says_so():
     bank, feats = _prior_bank()
     clf = {k: v for k, v in bank.classifier['complete'].items() if k != 'class_counts'}
@@ -2279,14 +2299,16 @@ def test_unknown_bounds_are_inclusive():
 
 
 def test_prior_offset_by_hand():
-    # Bayes' rule: log prior - log training frequency; a class without training rows gets 0
-    # (its probability is the classifier's own), -inf when its prior is 0
+    # Bayes' rule: log prior - log training frequency; a class without training rows gets log
+    # prior (no frequency to divide by), -inf when its prior is 0
     from beo_ros.core.bank import prior_offset
     third = np.full(3, 1 / 3)
     np.testing.assert_allclose(prior_offset([4, 2, 2], third),
                                np.log(third) - np.log([0.5, 0.25, 0.25]))
     np.testing.assert_allclose(prior_offset([0, 2, 2], third),
-                               [0.0, np.log(2 / 3), np.log(2 / 3)])
+                               [np.log(1 / 3), np.log(2 / 3), np.log(2 / 3)])
+    np.testing.assert_allclose(prior_offset([0, 0, 4], [0.7, 0.3, 0]),
+                               [np.log(0.7), np.log(0.3), -np.inf])
     np.testing.assert_array_equal(prior_offset([0, 2, 2], [0, 0.5, 0.5]), [-np.inf, 0.0, 0.0])
     np.testing.assert_array_equal(prior_offset([1, 2, 1], [0.5, 0, 0.5])[1], -np.inf)
     assert prior_offset(None, third) is None and prior_offset([4, 2, 2], None) is None
