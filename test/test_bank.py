@@ -2012,6 +2012,26 @@ def test_a_class_of_prior_0_without_training_rows_is_never_chosen():
     assert p[0] == 0 and p[1:] == pytest.approx([0.5, 0.5])
 
 
+def test_classes_without_training_rows_follow_their_prior_weights():
+    # classes 0 and 1 had no training rows (intercept -30, no weights): their offset was 0,
+    # so their prior weights were ignored (0.7 / 0.3 gave 0.5 / 0.5 once the prior ruled out
+    # class 2, while the no-object estimate of the same bank answered the prior 0.7 / 0.3)
+    bank, feats = _prior_bank()
+    clf = dict(bank.classifier['complete'], class_counts=np.array([0.0, 0.0, 4.0]),
+               intercept=np.array([-30.0, -30.0, 0.0]),
+               coef=bank.classifier['complete']['coef'] * [[0], [0], [1]])
+    bank = ModelBank(bank.models, bank.spec, {'complete': clf}, class_prior=[0.7, 0.3, 0])
+    p = bank.classify_features(feats, 'complete')[0]
+    assert p == pytest.approx([0.7, 0.3, 0.0]) and p[2] == 0
+    scores = bank.estimate(np.zeros((8, 8, 8), np.int8), yaw=0.0).scores
+    assert list(scores.values()) == pytest.approx(list(p))
+    # with the class that had rows allowed, they stay at ~0, in proportion to their weights
+    bank.class_prior = [0.7, 0.3, 0.5]
+    p = bank.classify_features(feats, 'complete')[0]
+    assert p[2] == pytest.approx(1.0) and p[:2].max() < 1e-11
+    assert p[0] / p[1] == pytest.approx(0.7 / 0.3)
+
+
 def test_class_prior_without_class_counts_is_not_applied_and_the_estimate_says_so():
     bank, feats = _prior_bank()
     clf = {k: v for k, v in bank.classifier['complete'].items() if k != 'class_counts'}
@@ -2279,14 +2299,16 @@ def test_unknown_bounds_are_inclusive():
 
 
 def test_prior_offset_by_hand():
-    # Bayes' rule: log prior - log training frequency; a class without training rows gets 0
-    # (its probability is the classifier's own), -inf when its prior is 0
+    # Bayes' rule: log prior - log training frequency; a class without training rows gets log
+    # prior (no frequency to divide by), -inf when its prior is 0
     from beo_ros.core.bank import prior_offset
     third = np.full(3, 1 / 3)
     np.testing.assert_allclose(prior_offset([4, 2, 2], third),
                                np.log(third) - np.log([0.5, 0.25, 0.25]))
     np.testing.assert_allclose(prior_offset([0, 2, 2], third),
-                               [0.0, np.log(2 / 3), np.log(2 / 3)])
+                               [np.log(1 / 3), np.log(2 / 3), np.log(2 / 3)])
+    np.testing.assert_allclose(prior_offset([0, 0, 4], [0.7, 0.3, 0]),
+                               [np.log(0.7), np.log(0.3), -np.inf])
     np.testing.assert_array_equal(prior_offset([0, 2, 2], [0, 0.5, 0.5]), [-np.inf, 0.0, 0.0])
     np.testing.assert_array_equal(prior_offset([1, 2, 1], [0.5, 0, 0.5])[1], -np.inf)
     assert prior_offset(None, third) is None and prior_offset([4, 2, 2], None) is None
@@ -2294,7 +2316,8 @@ def test_prior_offset_by_hand():
 
 def test_expected_calibration_error_bins_by_hand():
     from beo_ros.core.training import expected_calibration_error
-    # bins are (a, b]: a confidence of exactly 1 is in the last bin, 0.5 in (0.4, 0.5] only
+    # bins are [0, 0.1], then (a, b]: a confidence of exactly 1 is in the last bin, 0.5 in
+    # (0.4, 0.5] only
     assert expected_calibration_error(np.array([1.0]), np.array([False])) == pytest.approx(1.0)
     assert expected_calibration_error(np.array([0.5]), np.array([False])) == pytest.approx(0.5)
     # weighted by the share of rows in the bin: 2/3 * 0.05 + 1/3 * 0.65
@@ -2303,6 +2326,36 @@ def test_expected_calibration_error_bins_by_hand():
     # 4 bins: 0.3 and 0.45 share (0.25, 0.5]
     assert expected_calibration_error(np.array([0.3, 0.45]), np.array([True, False]), bins=4) \
         == pytest.approx(abs(0.375 - 0.5))
+
+
+def test_expected_calibration_error_counts_a_confidence_of_zero():
+    from beo_ros.core.training import expected_calibration_error
+    # the first bin is [0, 0.1]: a row at 0 was in no bin, dropped (0 for a sure miss of 0)
+    assert expected_calibration_error(np.array([0.0]), np.array([True])) == pytest.approx(1.0)
+    # 0 and 0.05 share the first bin: |mean confidence 0.025 - accuracy 0.5|
+    assert expected_calibration_error(np.array([0.0, 0.05]), np.array([True, False])) == \
+        pytest.approx(0.475)
+    assert expected_calibration_error(np.array([0.0, 0.9]), np.array([False, True])) == \
+        pytest.approx(0.05)   # 1/2 * 0 + 1/2 * 0.1
+    assert expected_calibration_error(np.array([]), np.array([], bool)) == 0.0
+
+
+@pytest.mark.parametrize('confidence, correct, message', [
+    ([1.5], [True], r'confidence must be finite probabilities in \[0, 1\]'),
+    ([-0.5], [False], 'confidence must be finite probabilities'),
+    ([np.nan], [True], 'confidence must be finite probabilities'),
+    ([np.inf], [True], 'confidence must be finite probabilities'),
+    ([0.5], [True, False], 'confidence and correct must have the same shape'),
+    ([0.5, 0.5], [True], 'confidence and correct must have the same shape'),
+    ([0.5], [0.5], 'correct must be boolean or 0/1'),
+    ([0.5], [np.nan], 'correct must be boolean or 0/1'),
+])
+def test_expected_calibration_error_refuses_bad_rows(confidence, correct, message):
+    # before: 0 for a confidence out of [0, 1] or NaN (in no bin), numpy's IndexError for
+    # different lengths
+    from beo_ros.core.training import expected_calibration_error
+    with pytest.raises(ValueError, match=message):
+        expected_calibration_error(np.array(confidence), np.array(correct))
 
 
 def test_loglik_bounds_by_hand():

@@ -199,6 +199,12 @@ def broken(key, value):
     ('probability', lambda a: np.where(np.arange(len(a)) == 1, a[0], a), 'increasing'),
     ('counts', lambda a: a[:1], 'counts'),
     ('counts', lambda a: np.where(np.arange(len(a))[:, None] == 3, np.inf, a), 'counts'),
+    # counts that contradict themselves (columns: sum of p, occupied, voxels; passed before)
+    ('counts', lambda a: a + [0, 0, 0.5], 'whole numbers'),
+    ('counts', lambda a: a + [0, 0.5, 1], 'whole numbers'),
+    ('counts', lambda a: a[:, [0, 2, 1]], 'cannot exceed its voxels'),   # occupied > voxels
+    ('counts', lambda a: a[:, [2, 1, 0]], 'whole numbers'),   # sums and voxels swapped
+    ('counts', lambda a: a + [1, 0, 0], 'cannot exceed its voxels'),     # sum of p > voxels
 ])
 def test_check_arrays_names_what_is_wrong(key, value, message):
     reason = check_arrays(broken(key, value), 'x.npz')
@@ -208,6 +214,12 @@ def test_check_arrays_names_what_is_wrong(key, value, message):
 def test_check_arrays_wants_two_knots_and_takes_a_fitted_map():
     arrays = broken('counts', lambda a: a)
     assert check_arrays(arrays) == ''
+    # a bin's sum of probabilities may equal its voxels (all at p = 1), empty bins are zeros
+    full = arrays['counts'].copy()
+    full[-1] = [7, 7, 7]
+    full[0] = [0, 0, 5]
+    assert check_arrays(dict(arrays, counts=full)) == ''
+    assert check_arrays(dict(arrays, counts=full.astype(np.int64))) == ''
     one = dict(arrays, probability=arrays['probability'][:1], frequency=arrays['frequency'][:1])
     assert 'same length >= 2' in check_arrays(one)
 
@@ -273,6 +285,14 @@ def test_a_broken_calibration_file_is_refused(calibrated, tmp_path):
     mf['files']['calibration.npz'] = _sha256(tmp_path / 'm' / 'calibration.npz')
     (tmp_path / 'm' / 'manifest.json').write_text(json.dumps(mf))
     with pytest.raises(ModelError, match='calibration.npz: the map must be increasing'):
+        ModelBank.load(tmp_path / 'm')
+    # counts that contradict themselves: more occupied voxels than voxels in a bin
+    arrays = dict(bank.occupancy_calibration.arrays_)
+    arrays['counts'] = arrays['counts'] + [0, 1, 0]
+    np.savez_compressed(tmp_path / 'm' / 'calibration.npz', **arrays)
+    mf['files']['calibration.npz'] = _sha256(tmp_path / 'm' / 'calibration.npz')
+    (tmp_path / 'm' / 'manifest.json').write_text(json.dumps(mf))
+    with pytest.raises(ModelError, match='calibration.npz: counts: .* cannot exceed its voxels'):
         ModelBank.load(tmp_path / 'm')
     (tmp_path / 'm' / 'calibration.npz').write_bytes(b'not a zip')
     mf['files']['calibration.npz'] = _sha256(tmp_path / 'm' / 'calibration.npz')

@@ -144,6 +144,14 @@ def check_arrays(arrays, where='calibration'):
     if c.ndim != 2 or c.shape[1] != 3 or len(c) < 2 or not np.issubdtype(c.dtype, np.number) \
             or not np.all(np.isfinite(c)) or c.min() < 0:
         return f'{where}: counts must be a finite, non-negative (bins >= 2, 3) array'
+    # per bin: the sum of the probabilities, the occupied voxels, the voxels (see partial_fit)
+    if np.any(c[:, 1:] != np.round(c[:, 1:])):
+        return f'{where}: counts of occupied voxels and of voxels must be whole numbers'
+    # a sum of probabilities <= 1 each is <= their number in floating point too (monotone
+    # rounding, whole numbers exact): no tolerance
+    if np.any(c[:, 0] > c[:, 2]) or np.any(c[:, 1] > c[:, 2]):
+        return (f'{where}: counts: the sum of probabilities and the occupied voxels of a bin '
+                'cannot exceed its voxels')
     return ''
 
 

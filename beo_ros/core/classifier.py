@@ -184,17 +184,19 @@ def prior_offset(counts, prior):
     """Logit offsets (C,) that move a classifier from its training prior (its training rows
     per class, ``counts`` (C,)) to ``prior`` (C,) (Bayes' rule: p'(c|x) ~ p(c|x) prior_c /
     train_c), or None when ``prior`` or ``counts`` is None. A class without training rows gets
-    0, unless its prior is 0: every class of prior 0 gets -inf (never chosen)."""
+    log prior_c (-inf for prior 0: never chosen): it stays at the ~0 probability its head gives
+    it (intercept -30), and only when the prior rules out every class with training rows do
+    the others share the probability in proportion to their prior."""
     if prior is None or counts is None:
         return None
     counts = np.asarray(counts, dtype=np.float64)
     seen = counts > 0
+    # train_c is 0 for a class without rows: Bayes' rule has no likelihood to move (0 * inf),
+    # so it is left out (as if train_c were 1, the least any frequency could lift the class);
+    # an offset of 0 ignored its prior weight (0.7 and 0.3 for two such classes gave 0.5, 0.5)
+    train = np.where(seen, counts / (counts.sum() or 1.0), 1.0)
     with np.errstate(divide='ignore'):
-        # a class of prior 0 that the classifier never saw got 0 and kept its probability
-        # (all of it when the other classes' logits fell below its intercept -30)
-        off = np.where(seen, np.log(prior) - np.log(np.where(seen, counts, 1) / counts.sum()),
-                       np.where(np.asarray(prior) > 0, 0.0, -np.inf))
-    return off
+        return np.log(np.asarray(prior, dtype=np.float64)) - np.log(train)
 
 
 def _softmax(z):

@@ -129,16 +129,27 @@ UNKNOWN_MADS = 8.0
 
 def expected_calibration_error(confidence, correct, bins=10):
     """Expected calibration error: the mean over ``bins`` equal-width confidence bins of
-    |mean confidence - accuracy|, weighted by the share of rows in the bin."""
+    |mean confidence - accuracy|, weighted by the share of rows in the bin.
+
+    confidence (n,): probabilities in [0, 1]; correct (n,): boolean or 0/1. The bins are
+    [0, 1/bins], then (a, b] up to 1. 0 for no rows."""
     check_bin_count(bins)   # else 0 for bins 0 (no bin), numpy's TypeError for 2.5
     confidence, correct = np.asarray(confidence, dtype=np.float64), np.asarray(correct)
-    edges = np.linspace(0.0, 1.0, bins + 1)
-    ece = 0.0
-    for a, b in zip(edges[:-1], edges[1:]):
-        m = (confidence > a) & (confidence <= b)
-        if m.any():
-            ece += m.mean() * abs(confidence[m].mean() - correct[m].mean())
-    return float(ece)
+    if confidence.shape != correct.shape:
+        raise ValueError(f'confidence and correct must have the same shape, got '
+                         f'{confidence.shape} and {correct.shape}')
+    if not np.all((confidence >= 0) & (confidence <= 1)):   # also False for NaN
+        raise ValueError('confidence must be finite probabilities in [0, 1]')
+    if correct.dtype != bool and not np.all((correct == 0) | (correct == 1)):
+        raise ValueError('correct must be boolean or 0/1')
+    if not confidence.size:
+        return 0.0
+    # bin i holds edges[i] < c <= edges[i + 1]; 0 joins the first bin
+    b = np.maximum(np.digitize(confidence.ravel(), np.linspace(0.0, 1.0, bins + 1),
+                               right=True), 1) - 1
+    gap = np.bincount(b, weights=confidence.ravel(), minlength=bins) - \
+        np.bincount(b, weights=correct.ravel().astype(np.float64), minlength=bins)
+    return float(np.abs(gap).sum() / confidence.size)
 
 
 def loglik_bounds(ll, y, n_classes, mads=UNKNOWN_MADS, objects=None):
