@@ -173,6 +173,7 @@ class EstimatorPool:
         # ran out of time without any process hanging, and the healthy ones were killed)
         self._sent = threading.BoundedSemaphore(self.n)
         self.waiting = 0   # estimates waiting for a free process
+        self._procs = None   # the processes, once all are ready (see _processes)
         self._pool = ProcessPoolExecutor(
             self.n, mp_context=multiprocessing.get_context('spawn'), initializer=_init,
             initargs=(bank, int(blas_threads), os.getpid()))
@@ -181,7 +182,7 @@ class EstimatorPool:
         except BaseException:
             self.shutdown(timeout=1.0)
             raise
-        procs = list(self._pool._processes.values())
+        procs = self._procs = list(self._pool._processes.values())
         # taken now: ProcessPoolExecutor.shutdown drops its result queue, and a pool shut down
         # right after a process died mid-send left the watchdog nothing to close
         writer = getattr(getattr(self._pool, '_result_queue', None), '_writer', None)
@@ -300,11 +301,21 @@ class EstimatorPool:
             raise BrokenProcessPool('the estimate was cancelled: its pool was shut down') \
                 from None
 
+    def _processes(self):
+        """The worker processes: those of the ready pool (they are never replaced), else the
+        executor's so far. Why not always the executor's: ProcessPoolExecutor.shutdown forgets
+        them, so a kill() after shutdown(timeout=None) (the timeout of an estimate a reload's
+        old processes still had) killed none, and a hung process kept the executor's thread,
+        joined at interpreter exit, waiting for ever."""
+        if self._procs is not None:
+            return self._procs
+        return list((getattr(self._pool, '_processes', None) or {}).values())
+
     def kill(self):
-        """Kill the processes at once (SIGKILL: also ends a stopped or hung process); the pool
-        is broken afterwards."""
+        """Kill the processes at once (SIGKILL: also ends a stopped or hung process), also after
+        a shutdown; the pool is broken afterwards."""
         self._killed = True
-        for p in list((getattr(self._pool, '_processes', None) or {}).values()):
+        for p in self._processes():
             if p.is_alive():
                 p.kill()
 
@@ -324,7 +335,7 @@ class EstimatorPool:
         SIGTERM pending); their estimates raise BrokenProcessPool.
         """
         self._closed = True
-        procs = list((getattr(self._pool, '_processes', None) or {}).values())
+        procs = self._processes()
         self._pool.shutdown(wait=False, cancel_futures=timeout is not None)
         if timeout is None:
             return
