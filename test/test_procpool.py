@@ -427,3 +427,33 @@ def test_a_timeout_after_shutdown_without_a_timeout_kills_the_hung_process():
         print([e.__name__ for e in errors], t._ended(procs))
     """)
     assert out.splitlines()[-1] == "['EstimateTimeout'] True", out
+
+
+def test_a_death_mid_send_after_shutdown_without_a_timeout_ends_the_pool(tmp_path):
+    """A reload shuts the old pool (two processes) down with timeout=None, then the process
+    sending a result is killed half-way (the OOM killer, say): the estimate raises
+    BrokenProcessPool and the interpreter can exit. Before, the watchdog left the idle sibling
+    alone once the pool was shut down: the result pipe's write end stayed open, the executor's
+    thread waited for the rest of the result for ever, the estimate never ended and the
+    interpreter hung at exit joining that thread."""
+    out = _run_script(f"""
+        import os, pathlib, signal
+        flag = pathlib.Path({str(tmp_path / 'sending')!r})
+        pool = t.EstimatorPool(2, t.FakeBank(flag=str(flag), size=400_000_000), blas_threads=0,
+                               timeout=t.WAIT)
+        for attempt in range(5):   # as in test_process_killed_while_sending_result
+            thread, out, pid, sending = t._big_send(pool, flag)
+            if sending:
+                break
+            thread.join()
+        if not sending:
+            print('never seen sending')
+            raise SystemExit
+        pool.shutdown(timeout=None)
+        os.kill(pid, signal.SIGKILL)
+        thread.join()
+        print(type(out.get('error')).__name__)
+    """)
+    if out.splitlines()[-1] == 'never seen sending':
+        pytest.skip('the result was sent whole before a poll saw the write')
+    assert out.splitlines()[-1] == 'BrokenProcessPool', out

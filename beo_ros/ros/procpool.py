@@ -64,6 +64,16 @@ def _die_with(parent_pid):
     threading.Thread(target=watch, name='beo_parent_watch', daemon=True).start()
 
 
+def _exit_code(process, wait=1.0):
+    """``process.exitcode`` of a process that has ended. It reads None while another thread
+    reaps the process (the executor's, joining it: waitpid there, ECHILD here), so it is asked
+    again for up to ``wait`` s."""
+    end = time.monotonic() + wait
+    while (code := process.exitcode) is None and time.monotonic() < end:
+        time.sleep(0.005)
+    return code
+
+
 def _init(bank, blas_threads, parent_pid=None):
     """Process initializer: BLAS threads, the bank, one throw-away estimate."""
     global _bank, _blas_limits
@@ -191,9 +201,9 @@ class EstimatorPool:
         self._watchdog.start()
 
     def _watch(self, procs, writer):
-        """Thread: a process that dies on its own (not shut down) takes its siblings with it;
-        once all are gone, the parent's copy of the result pipe's write end (``writer``, taken
-        when the pool started) is closed.
+        """Thread: a process that dies (ends before the pool is shut down, or after it with a
+        non-zero exit code) takes its siblings with it; once all are gone, the parent's copy of
+        the result pipe's write end (``writer``, taken when the pool started) is closed.
 
         Why: ProcessPoolExecutor (CPython 3.11) reads a result to its end before it looks at
         the processes again, and the parent keeps a write end of that pipe open. A process
@@ -202,13 +212,17 @@ class EstimatorPool:
         marked broken, and the interpreter hangs at exit joining that thread. A sibling may
         also wait for ever on the queue lock the dead process held. With every process gone
         and the last write end closed, the read ends in EOF and the executor breaks the pool
-        as for any other death.
+        as for any other death. Also after shutdown(timeout=None) (a reload's old processes):
+        the siblings, idle, would otherwise wait for ever for the executor's thread to tell
+        them to end.
         """
-        pending = [p.sentinel for p in procs]
+        pending = {p.sentinel: p for p in procs}
         while pending:
-            ready = wait_ready(pending)
-            pending = [s for s in pending if s not in ready]
-            if pending and not self._closed:
+            ended = [pending.pop(s) for s in wait_ready(list(pending))]
+            # exit code 0: ended by the executor's shutdown, which ends the processes only once
+            # every estimate sent is answered (a code still unknown counts as a death: a kill
+            # is harmless then)
+            if pending and (not self._closed or any(_exit_code(p) != 0 for p in ended)):
                 self.kill()   # the pool is broken anyway
         if writer is not None:
             try:
