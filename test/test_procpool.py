@@ -6,6 +6,9 @@ killed half-way through.
 """
 import os
 import signal
+import subprocess
+import sys
+import textwrap
 import threading
 import time
 
@@ -117,6 +120,25 @@ def _resume(pids):
             os.kill(pid, signal.SIGCONT)
         except ProcessLookupError:
             pass
+
+
+def _run_script(body, timeout=2 * WAIT):
+    """Run ``body`` (Python, with this module imported as ``t``) in a new interpreter, a
+    session of its own -> its stdout. Fails when it has not exited within ``timeout`` s (its
+    process group is killed then, worker processes included): the interpreter joins the
+    executor's thread at exit, so a pool that never winds down shows as a hang there."""
+    code = (f'import sys\nsys.path.insert(0, {os.path.dirname(__file__)!r})\n'
+            'import test_procpool as t\n' + textwrap.dedent(body))
+    proc = subprocess.Popen([sys.executable, '-c', code], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        out, err = proc.communicate()
+        pytest.fail(f'the script did not end within {timeout:g} s; it printed {out!r}')
+    assert proc.returncode == 0, err
+    return out
 
 
 @pytest.fixture
@@ -381,3 +403,57 @@ def test_shutdown_without_a_timeout_lets_the_processes_answer_what_they_were_sen
         assert answers == [(b'slow', ['a', 'b'])] and errors == [BrokenProcessPool], errors
     finally:
         pool.shutdown(timeout=5.0)
+
+
+def test_a_timeout_after_shutdown_without_a_timeout_kills_the_hung_process():
+    """A reload shuts the old pool down with timeout=None while an estimate hangs in it: the
+    estimate's timeout kills the process and the interpreter can exit. Before, kill() found no
+    process (ProcessPoolExecutor.shutdown forgets them): the stopped process stayed, and the
+    interpreter hung at exit joining the executor's thread, which waited for its answer."""
+    out = _run_script("""
+        import os, signal, time
+        import numpy as np
+        pool = t.EstimatorPool(1, t.FakeBank(), blas_threads=0, timeout=t.WAIT)
+        procs = list(pool._pool._processes.values())
+        os.kill(pool.pids[0], signal.SIGSTOP)   # hung
+        threads, errors = t._callers(1, lambda: pool.estimate(
+            np.zeros((3, 3)), np.zeros(3), np.zeros(3), 10.0, 0.5, timeout=1.0))
+        threads[0].start()
+        end = time.monotonic() + t.WAIT   # sent (to the stopped process)
+        while not pool._pool._pending_work_items and time.monotonic() < end:
+            time.sleep(0.01)
+        pool.shutdown(timeout=None)
+        threads[0].join()
+        print([e.__name__ for e in errors], t._ended(procs))
+    """)
+    assert out.splitlines()[-1] == "['EstimateTimeout'] True", out
+
+
+def test_a_death_mid_send_after_shutdown_without_a_timeout_ends_the_pool(tmp_path):
+    """A reload shuts the old pool (two processes) down with timeout=None, then the process
+    sending a result is killed half-way (the OOM killer, say): the estimate raises
+    BrokenProcessPool and the interpreter can exit. Before, the watchdog left the idle sibling
+    alone once the pool was shut down: the result pipe's write end stayed open, the executor's
+    thread waited for the rest of the result for ever, the estimate never ended and the
+    interpreter hung at exit joining that thread."""
+    out = _run_script(f"""
+        import os, pathlib, signal
+        flag = pathlib.Path({str(tmp_path / 'sending')!r})
+        pool = t.EstimatorPool(2, t.FakeBank(flag=str(flag), size=400_000_000), blas_threads=0,
+                               timeout=t.WAIT)
+        for attempt in range(5):   # as in test_process_killed_while_sending_result
+            thread, out, pid, sending = t._big_send(pool, flag)
+            if sending:
+                break
+            thread.join()
+        if not sending:
+            print('never seen sending')
+            raise SystemExit
+        pool.shutdown(timeout=None)
+        os.kill(pid, signal.SIGKILL)
+        thread.join()
+        print(type(out.get('error')).__name__)
+    """)
+    if out.splitlines()[-1] == 'never seen sending':
+        pytest.skip('the result was sent whole before a poll saw the write')
+    assert out.splitlines()[-1] == 'BrokenProcessPool', out

@@ -64,6 +64,16 @@ def _die_with(parent_pid):
     threading.Thread(target=watch, name='beo_parent_watch', daemon=True).start()
 
 
+def _exit_code(process, wait=1.0):
+    """``process.exitcode`` of a process that has ended. It reads None while another thread
+    reaps the process (the executor's, joining it: waitpid there, ECHILD here), so it is asked
+    again for up to ``wait`` s."""
+    end = time.monotonic() + wait
+    while (code := process.exitcode) is None and time.monotonic() < end:
+        time.sleep(0.005)
+    return code
+
+
 def _init(bank, blas_threads, parent_pid=None):
     """Process initializer: BLAS threads, the bank, one throw-away estimate."""
     global _bank, _blas_limits
@@ -173,6 +183,7 @@ class EstimatorPool:
         # ran out of time without any process hanging, and the healthy ones were killed)
         self._sent = threading.BoundedSemaphore(self.n)
         self.waiting = 0   # estimates waiting for a free process
+        self._procs = None   # the processes, once all are ready (see _processes)
         self._pool = ProcessPoolExecutor(
             self.n, mp_context=multiprocessing.get_context('spawn'), initializer=_init,
             initargs=(bank, int(blas_threads), os.getpid()))
@@ -181,7 +192,7 @@ class EstimatorPool:
         except BaseException:
             self.shutdown(timeout=1.0)
             raise
-        procs = list(self._pool._processes.values())
+        procs = self._procs = list(self._pool._processes.values())
         # taken now: ProcessPoolExecutor.shutdown drops its result queue, and a pool shut down
         # right after a process died mid-send left the watchdog nothing to close
         writer = getattr(getattr(self._pool, '_result_queue', None), '_writer', None)
@@ -190,9 +201,9 @@ class EstimatorPool:
         self._watchdog.start()
 
     def _watch(self, procs, writer):
-        """Thread: a process that dies on its own (not shut down) takes its siblings with it;
-        once all are gone, the parent's copy of the result pipe's write end (``writer``, taken
-        when the pool started) is closed.
+        """Thread: a process that dies (ends before the pool is shut down, or after it with a
+        non-zero exit code) takes its siblings with it; once all are gone, the parent's copy of
+        the result pipe's write end (``writer``, taken when the pool started) is closed.
 
         Why: ProcessPoolExecutor (CPython 3.11) reads a result to its end before it looks at
         the processes again, and the parent keeps a write end of that pipe open. A process
@@ -201,13 +212,17 @@ class EstimatorPool:
         marked broken, and the interpreter hangs at exit joining that thread. A sibling may
         also wait for ever on the queue lock the dead process held. With every process gone
         and the last write end closed, the read ends in EOF and the executor breaks the pool
-        as for any other death.
+        as for any other death. Also after shutdown(timeout=None) (a reload's old processes):
+        the siblings, idle, would otherwise wait for ever for the executor's thread to tell
+        them to end.
         """
-        pending = [p.sentinel for p in procs]
+        pending = {p.sentinel: p for p in procs}
         while pending:
-            ready = wait_ready(pending)
-            pending = [s for s in pending if s not in ready]
-            if pending and not self._closed:
+            ended = [pending.pop(s) for s in wait_ready(list(pending))]
+            # exit code 0: ended by the executor's shutdown, which ends the processes only once
+            # every estimate sent is answered (a code still unknown counts as a death: a kill
+            # is harmless then)
+            if pending and (not self._closed or any(_exit_code(p) != 0 for p in ended)):
                 self.kill()   # the pool is broken anyway
         if writer is not None:
             try:
@@ -300,11 +315,21 @@ class EstimatorPool:
             raise BrokenProcessPool('the estimate was cancelled: its pool was shut down') \
                 from None
 
+    def _processes(self):
+        """The worker processes: those of the ready pool (they are never replaced), else the
+        executor's so far. Why not always the executor's: ProcessPoolExecutor.shutdown forgets
+        them, so a kill() after shutdown(timeout=None) (the timeout of an estimate a reload's
+        old processes still had) killed none, and a hung process kept the executor's thread,
+        joined at interpreter exit, waiting for ever."""
+        if self._procs is not None:
+            return self._procs
+        return list((getattr(self._pool, '_processes', None) or {}).values())
+
     def kill(self):
-        """Kill the processes at once (SIGKILL: also ends a stopped or hung process); the pool
-        is broken afterwards."""
+        """Kill the processes at once (SIGKILL: also ends a stopped or hung process), also after
+        a shutdown; the pool is broken afterwards."""
         self._killed = True
-        for p in list((getattr(self._pool, '_processes', None) or {}).values()):
+        for p in self._processes():
             if p.is_alive():
                 p.kill()
 
@@ -324,7 +349,7 @@ class EstimatorPool:
         SIGTERM pending); their estimates raise BrokenProcessPool.
         """
         self._closed = True
-        procs = list((getattr(self._pool, '_processes', None) or {}).values())
+        procs = self._processes()
         self._pool.shutdown(wait=False, cancel_futures=timeout is not None)
         if timeout is None:
             return
