@@ -420,6 +420,8 @@ def _load_objects(args):
         print(f'beo-train: warning: dropped {sum(dropped.values())} objects with no occupied '
               'voxel (' + ', '.join(f'{c}: {m}' for c, m in dropped.items()) + ')',
               file=sys.stderr)
+    # fit_bank checks this too, but cannot name the option that leaves a class out
+    check_class_counts(y, names, leave_out='--classes with the others')
     return X, y, names, GridSpec(size=n)
 
 
