@@ -30,7 +30,8 @@ from .core.bank import load_models, parse_class_prior
 from .core.calibration import calibration_sums, metrics_from_sums
 from .core.grid import GridSpec, symmetric_turns, yaw_error, yaw_error_up_to
 from .core.synthetic import random_partial_view
-from .core.datasets import drop_empty_objects, load_voxel_npz, select_classes
+from .core.datasets import (drop_empty_objects, load_voxel_npz, select_classes,
+                            training_data_hash)
 from .core.training import check_class_counts, fit_bank, progress_bar, stratified_folds
 
 # folds of the out-of-fold classifier features of each --cv fold's bank (fit_bank's default)
@@ -435,13 +436,32 @@ def _load_inputs(args, class_prior):
 def _evaluate_held_out(args, bank, X, y, names, rng):
     """Held-out mode: ``bank`` on (at most --max-objects of) the objects -> (summary,
     records, examples)."""
+    own = _is_training_data(bank, X, y, names)
+    if own:   # e.g. the shipped model on the shared train split: its numbers look held-out
+        print(f"beo-eval: warning: {args.data} holds the objects the model "
+              f"{args.model or '(shipped)'} was trained on: these numbers are in-sample, not "
+              "held-out (out-of-fold numbers: --cv K, or the model's manifest.json "
+              "'cross_validation')", file=sys.stderr)
     te = np.arange(len(X))
     if args.max_objects:
         te = stratified_subset(te, y, args.max_objects, rng)
     summary, recs, examples = evaluate_bank(bank, X[te], y[te], names, rng, args.views,
                                              index=te)
-    summary['protocol'] = f'held-out: model {args.model or "shipped"} on {args.data}'
+    summary['protocol'] = (f'in-sample: model {args.model or "shipped"} on its own training '
+                           f'data {args.data}' if own else
+                           f'held-out: model {args.model or "shipped"} on {args.data}')
     return summary, recs, examples
+
+
+def _is_training_data(bank, X, y, names) -> bool:
+    """True when (X, y, names) are the objects ``bank`` was trained on: the manifest's
+    ``data_sha256`` (beo-train's hash of its objects after dropping those with no occupied
+    voxel) equals theirs. False when the model has no hash (older or --scans models)."""
+    recorded = bank.training.get('data_sha256')
+    if not recorded:
+        return False
+    kept = (np.asarray(X) > 0.5).any(axis=1)
+    return training_data_hash(X[kept], np.asarray(y)[kept], names) == recorded
 
 
 def _cross_validate(args, X, y, names, n, class_prior, rng):

@@ -70,7 +70,7 @@ def _parser():
                     help='model directory to write: new, empty, or holding a model, which is '
                          'replaced as a whole once the new one is complete')
     ap.add_argument('--k', type=count(1), default=20,
-                    help='upper bound on components per class')
+                    help='upper bound on components per class (default: %(default)s)')
     ap.add_argument('--grid', type=count(4, 256), default=None,
                     help='grid size N for meshes/scans: even, a multiple of 8 with the '
                          'orientation verifier (default 32; npz files carry their own, which '
@@ -81,15 +81,16 @@ def _parser():
                     help='align the yaw of unaligned training objects within each class')
     ap.add_argument('--views', type=int, default=1,
                     help='random partial views per object for the OOF classifier (0: none, '
-                         'the maximum-likelihood rule)')
+                         'the maximum-likelihood rule; default: %(default)s)')
     ap.add_argument('--folds', type=int, default=5,
                     help='folds for out-of-fold features and the calibration views (>= 2; '
-                    'not used with --views 0 unless --calibration-views is >= 1)')
+                    'not used with --views 0 unless --calibration-views is >= 1; default: '
+                    '%(default)s)')
     ap.add_argument('--pose-components', type=int, default=8,
                     help='leading components per class used by the coarse pose search (>= 1; '
                          "at most the class model's components are used; --mirror banks always "
                          'use 8; default: %(default)s)')
-    ap.add_argument('--seed', type=count(0), default=0)
+    ap.add_argument('--seed', type=count(0), default=0, help='default: %(default)s')
     ap.add_argument('--oof-out', help='also save the out-of-fold features and records (npz)')
     _add_fit_options(ap)
     return ap
@@ -420,6 +421,8 @@ def _load_objects(args):
         print(f'beo-train: warning: dropped {sum(dropped.values())} objects with no occupied '
               'voxel (' + ', '.join(f'{c}: {m}' for c, m in dropped.items()) + ')',
               file=sys.stderr)
+    # fit_bank checks this too, but cannot name the option that leaves a class out
+    check_class_counts(y, names, leave_out='--classes with the others')
     return X, y, names, GridSpec(size=n)
 
 

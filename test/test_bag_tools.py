@@ -453,6 +453,25 @@ def test_cli_replay_refuses_wait_timeout_without_wait_subscribers(tmp_path, caps
     assert '--wait-timeout is for --wait-subscribers N' in capsys.readouterr().err
 
 
+def test_cli_replay_wait_timeout_says_what_to_check(tmp_path, capsys, monkeypatch,
+                                                    ros_domain_id):
+    """--wait-subscribers with nobody subscribing: the line used to stop at the counts
+    (matched: {'/beo/input': 0}); it now names the usual causes, with this process's domain
+    and discovery range."""
+    write_test_bag(tmp_path / 'b', 'sqlite3', n=1)
+    monkeypatch.setenv('ROS_DOMAIN_ID', str(ros_domain_id))
+    monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'OFF')
+    code = bag.replay_main([str(tmp_path / 'b'), '--wait-subscribers', '1',
+                            '--wait-timeout', '0.2'])
+    assert code == 3
+    err = capsys.readouterr().err
+    assert err.startswith('beo-replay: waited 0.2 s for 1 subscriber(s); matched: ') and \
+        err.count('\n') == 1, err
+    assert (f'start the subscriber first, e.g. beo-node; it must run with the same '
+            f'ROS_DOMAIN_ID, here {ros_domain_id}, and ROS_AUTOMATIC_DISCOVERY_RANGE, here OFF'
+            in err), err
+
+
 # ------------------------------------------------------------------------------------------
 # 7. SIGTERM ends beo-replay with 143
 # ------------------------------------------------------------------------------------------

@@ -312,6 +312,27 @@ def test_eval_held_out_json_sections_in_order(model, tmp_path, capsys):
     assert printed[0].split()[:3] == ['mode', 'n', 'acc'] and printed[-1].startswith('wrote ')
 
 
+
+def test_eval_on_the_models_own_training_data_says_it_is_in_sample(tmp_path, capsys):
+    """The shipped model on the shared train split (the only npz a new user has) printed its
+    in-sample numbers as held-out ones (complete accuracy 1.0 on 10 objects) without a word:
+    the manifest's data hash now names them in-sample; other data is still held-out."""
+    from beo_ros.core.datasets import training_data_hash
+    X, y, names = primitive_shapes(N, 15, np.random.default_rng(0))
+    bank = make_tiny_bank(n=N, k=2)   # fitted on these objects
+    bank.training['data_sha256'] = training_data_hash(X, y, names)
+    bank.save(tmp_path / 'model')
+    for data, own in ((save_npz(tmp_path / 'train.npz', X, y, names), True),
+                      (write_npz(tmp_path / 'other.npz', seed=1), False)):
+        out = tmp_path / data.stem
+        assert call(evaluate.main, ['--model', str(tmp_path / 'model'), '--data', str(data),
+                                    '--max-objects', '2', '--out', str(out)]) == 0
+        err = capsys.readouterr().err
+        assert ('in-sample, not held-out' in err) == own, err
+        protocol = json.loads((out / 'eval.json').read_text())['protocol']
+        assert protocol.startswith('in-sample: ' if own else 'held-out: '), protocol
+
+
 # ---------------------------------------------------------------------- beo-eval --scans
 @pytest.mark.parametrize('extra', [['--grid', '0'], ['--yaw-step', '0'], ['--max-iter', '0'],
                                    ['--yaw-step', 'nan'], ['--voxel-size', '-1'],

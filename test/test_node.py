@@ -1761,6 +1761,39 @@ def test_arguments_before_ros_args_and_bad_ros_args_refused(capsys, monkeypatch)
     assert err.startswith('beo-node: cannot start:') and 'Traceback' not in err
 
 
+def test_missing_params_file_named_with_the_packages_own(tmp_path, capsys, monkeypatch):
+    """`beo-node --ros-args --params-file config/beo.yaml`, as -h says, run outside the source
+    tree: rcl's 'Error opening YAML file' said neither that the file is missing nor where the
+    package's is. Now one line names both; -h gives the installed path too."""
+    from pathlib import Path
+
+    from rclpy.context import Context
+
+    from beo_ros.ros import node as node_mod
+    from beo_ros.ros.params import package_params_file
+    own = package_params_file()
+    assert own and Path(own).is_file() and Path(own).name == 'beo.yaml'
+    real_init = node_mod.rclpy.init
+    monkeypatch.setattr(node_mod.rclpy, 'init', lambda args: real_init(args=args,
+                                                                        context=Context()))
+    missing = str(tmp_path / 'config' / 'beo.yaml')
+    with pytest.raises(SystemExit) as ei:
+        node_mod.main(['--ros-args', '--params-file', missing])
+    assert ei.value.code == 1
+    err = capsys.readouterr().err
+    assert err.endswith(f"beo-node: cannot start: --params-file {missing}: no such file (the "
+                        f"package's config/beo.yaml is {own})\n"), err
+    bad = tmp_path / 'bad.yaml'
+    bad.write_text('bad: [\n')   # a file rcl cannot parse: its own error as before
+    with pytest.raises(SystemExit) as ei:
+        node_mod.main(['--ros-args', '--params-file', str(bad)])
+    err = capsys.readouterr().err
+    assert 'cannot start: RCLError' in err and 'no such file' not in err
+    monkeypatch.setattr(node_mod.rclpy, 'init', real_init)
+    node_mod.main(['--help'])
+    assert f"The package's config/beo.yaml: {own}" in capsys.readouterr().out
+
+
 def test_help_prints_usage_without_starting_the_node(capsys, monkeypatch):
     from beo_ros.ros import node as node_mod
 

@@ -111,11 +111,12 @@ def fit_class_models(X, y, names, spec, k=20, masks=None, max_iter=200, tol=1e-5
     return models
 
 
-def check_class_counts(y, names, folds=0, no_classifier='views 0'):
+def check_class_counts(y, names, folds=0, no_classifier='views 0', leave_out=None):
     """ValueError naming the first class of ``names`` with too few objects in labels y: a class
     model needs 2; with ``folds`` >= 2 (out-of-fold classifier features) every fold's training
     part needs 2 as well, i.e. the objects a class keeps when its biggest fold is held out
-    (``no_classifier``: the caller's option that trains no classifier, for the message).
+    (``no_classifier``: the caller's option that trains no classifier, ``leave_out``: its
+    option that leaves a class out, if any, for the message).
     Labels that are not class indices into ``names`` are refused (a label past the names was
     left out of every model without a word, a negative one failed in numpy's bincount)."""
     y = np.asarray(y)
@@ -134,7 +135,9 @@ def check_class_counts(y, names, folds=0, no_classifier='views 0'):
                    "(each fold trains class models on the other folds' objects); "
                    + ('use 3 or more folds' if m >= 3 else
                       f'add objects, or train no classifier ({no_classifier})')) \
-                if folds >= 2 and m >= 2 else 'a class model needs >= 2'
+                if folds >= 2 and m >= 2 else ('a class model needs >= 2: add objects of it, '
+                                                'or leave the class out'
+                                                + (f' ({leave_out})' if leave_out else ''))
             raise ValueError(f'class {name!r} has {int(m)} training objects; {why}')
 
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import os
 import re
 import sys
 import threading
@@ -52,8 +53,8 @@ from beo_ros.ros.conversions import (CloudFormatError, cloud_to_xyz, completed_c
                                      estimate_to_msg, interfaces)
 from beo_ros.ros.env import check_domain_id
 from beo_ros.ros.markers import auto_lifetime, delete_all_markers, delete_markers, object_markers
-from beo_ros.ros.params import (CHECKED_AT_START, declare, default_model_dir, refusal,
-                                vector_reason)
+from beo_ros.ros.params import (CHECKED_AT_START, declare, default_model_dir,
+                                package_params_file, refusal, vector_reason)
 from beo_ros.ros.procpool import (BrokenProcessPool, EstimateTimeout, EstimatorPool, PoolRetired,
                                   warm_up_points)
 
@@ -1375,13 +1376,21 @@ config/beo.yaml); arrays of doubles need decimal points (-p up_vector:="[0.0, -1
 """
 
 
+def _params_files(argv) -> list:
+    """The files of the ``--params-file FILE`` arguments after ``--ros-args`` in ``argv``."""
+    ros = argv[argv.index('--ros-args') + 1:] if '--ros-args' in argv else []
+    return [ros[i + 1] for i, a in enumerate(ros[:-1]) if a == '--params-file']
+
+
 def main(args=None):
     """Run the node until Ctrl-C / shutdown; exits with status 1 if it cannot start."""
     argv = sys.argv[1:] if args is None else list(args)
     own = argv[:argv.index('--ros-args')] if '--ros-args' in argv else argv
     if '-h' in own or '--help' in own:
         from beo_ros.cli import print_help
-        return print_help(USAGE + '\n' + __doc__)   # 141, quietly, into a closed pipe
+        where = package_params_file()
+        where = f"The package's config/beo.yaml: {where}\n" if where else ''
+        return print_help(USAGE + where + '\n' + __doc__)   # 141, quietly, into a closed pipe
     if own:   # e.g. '-p model_dir:=...' without --ros-args would be ignored unseen
         print(f"{USAGE}\nbeo-node: error: unrecognized arguments: {' '.join(own)} (ROS "
               'arguments go after --ros-args)', file=sys.stderr)
@@ -1391,7 +1400,14 @@ def main(args=None):
         check_domain_id(rclpy.get_default_context())
     except Exception as e:  # e.g. --params-file of a missing or malformed file
         rclpy.try_shutdown()
-        print(f'beo-node: cannot start: {type(e).__name__}: {e}', file=sys.stderr)
+        missing = [f for f in _params_files(argv) if not os.path.isfile(f)]
+        if missing:   # rcl's 'Error opening YAML file' names neither the cause nor the remedy
+            where = package_params_file()
+            print(f'beo-node: cannot start: --params-file {missing[0]}: no such file'
+                  + (f" (the package's config/beo.yaml is {where})" if where else ''),
+                  file=sys.stderr)
+        else:
+            print(f'beo-node: cannot start: {type(e).__name__}: {e}', file=sys.stderr)
         sys.exit(1)
     node = None
     executor = None

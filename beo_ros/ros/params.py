@@ -30,6 +30,14 @@ def default_model_dir() -> str:
     return str(shipped_model_dir(DEFAULT_MODEL))
 
 
+def package_params_file() -> str | None:
+    """The package's own ``config/beo.yaml`` (beside the shipped models: the installed share
+    dir, else the source tree), or None when it is not there."""
+    from pathlib import Path
+    path = Path(shipped_model_dir(DEFAULT_MODEL)).parent.parent / 'config' / 'beo.yaml'
+    return str(path) if path.is_file() else None
+
+
 def vector_reason(name, value, nonzero=False) -> str | None:
     """Why the 3-vector ``value`` of ``name`` is invalid (None when it is fine): not 3 finite
     components within +-MAX_COORDINATE, or (``nonzero``) none of them as large as the core's

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import signal
 import sys
 import threading
@@ -200,8 +201,11 @@ def replay_main(argv=None) -> int:
                 code = INTERRUPTED
         except BrokenPipeError:   # stdout's reader is gone, not the bag: cli.interruptible
             raise
-        except TimeoutError as e:
-            print(f'beo-replay: {e}', file=sys.stderr)
+        except TimeoutError as e:   # the usual causes: no subscriber yet, or another domain
+            rng = os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE') or 'unset'
+            print(f'beo-replay: {e} (start the subscriber first, e.g. beo-node; it must run '
+                  f'with the same ROS_DOMAIN_ID, here {node.context.get_domain_id()}, and '
+                  f'ROS_AUTOMATIC_DISCOVERY_RANGE, here {rng})', file=sys.stderr)
             code = 3
         except KeyError as e:
             print(f'beo-replay: {e.args[0]}', file=sys.stderr)
