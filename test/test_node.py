@@ -1752,8 +1752,8 @@ def test_arguments_before_ros_args_and_bad_ros_args_refused(capsys, monkeypatch)
         assert 'unrecognized arguments' in err and '--ros-args' in err
     monkeypatch.setattr(node_mod.rclpy, 'init', real_init)
     from rclpy.context import Context
-    monkeypatch.setattr(node_mod.rclpy, 'init', lambda args: real_init(args=args,
-                                                                        context=Context()))
+    monkeypatch.setattr(node_mod.rclpy, 'init', lambda args, **kw: real_init(
+        args=args, context=Context(), **kw))
     with pytest.raises(SystemExit) as ei:
         node_mod.main(['--ros-args', '--params-file', '/nonexistent/beo.yaml'])
     assert ei.value.code == 1

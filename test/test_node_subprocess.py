@@ -113,6 +113,69 @@ def test_node_process_streams_and_stops_on_sigint(ros_tiny_model_dir, ros_domain
 
 @pytest.mark.usefixtures('ros_interfaces')
 @pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
+def test_a_signal_deletes_the_markers_before_the_node_exits(ros_tiny_model_dir, ros_domain_id,
+                                                            monkeypatch, sig):
+    """Ctrl-C (or the SIGTERM of ros2 launch or docker stop) to beo-node: a DELETEALL on
+    ~/markers, the last of them, before it exits 0, and at once (not at the next tick of its
+    diagnostics timer, 60 s here). rclpy's own signal handlers shut the ROS context down
+    first: nothing was left to send the DELETEALL on, and the objects stayed up in RViz for
+    their marker lifetime (up to an hour)."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import PointCloud2
+    from visualization_msgs.msg import Marker, MarkerArray
+    from _shapes import box_view
+
+    proc = subprocess.Popen(
+        node_command() + ['--ros-args', '-p', f'model_dir:={ros_tiny_model_dir}',
+                          '-p', 'diagnostics_period:=60.0'],
+        env=node_env(ros_domain_id), cwd=ROOT, stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE, text=True)
+    monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=ros_domain_id)
+    node = rclpy.create_node('beo_marker_client', context=ctx)
+    actions = []
+    try:
+        node.create_subscription(MarkerArray, '/beo/markers',
+                                 lambda msg: actions.extend(m.action for m in msg.markers), 10)
+        pub = node.create_publisher(PointCloud2, '/beo/input', qos_profile_sensor_data)
+        cloud = xyz_to_cloud(box_view(), Header(frame_id='camera'))
+        executor = SingleThreadedExecutor(context=ctx)
+        executor.add_node(node)
+        t0 = time.monotonic()
+        last = 0.0
+        while Marker.ADD not in actions and time.monotonic() - t0 < 90:
+            assert proc.poll() is None, proc.communicate()
+            if time.monotonic() - last > 0.5:
+                pub.publish(cloud)
+                last = time.monotonic()
+            executor.spin_once(timeout_sec=0.05)
+        assert Marker.ADD in actions, 'no markers from the node process'
+        proc.send_signal(sig)
+        end = time.monotonic() + 30
+        while proc.poll() is None and time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.05)
+        end = time.monotonic() + 5   # what it sent last may still be on its way
+        while proc.poll() is not None and Marker.DELETEALL not in actions and \
+                time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.05)
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+        if proc.poll() is None:
+            proc.kill()
+            pytest.fail(f'node did not exit within 30 s of the signal:\n{proc.communicate()[1]}')
+    err = proc.communicate()[1]
+    assert proc.returncode == 0, err
+    assert 'Traceback' not in err, err
+    assert actions[-1] == Marker.DELETEALL, actions
+
+
+@pytest.mark.usefixtures('ros_interfaces')
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
 def test_signal_to_the_group_while_worker_processes_start(ros_domain_id, sig):
     """Ctrl-C (or docker stop's SIGTERM) reaches the whole process group while the worker
     processes import and read their copy of the models: the node exits, quietly. (They died

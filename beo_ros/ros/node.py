@@ -25,6 +25,7 @@ import collections
 import contextlib
 import os
 import re
+import signal
 import sys
 import threading
 import time
@@ -41,6 +42,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import (HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_policy_name_from_kind,
                        qos_profile_sensor_data)
+from rclpy.signals import SignalHandlerOptions
 from rclpy.task import Future
 from rclpy.time import Time
 from sensor_msgs.msg import PointCloud2
@@ -1262,7 +1264,8 @@ class BeoNode(Node):
 
     def _delete_all_markers(self, log):
         """DELETEALL on ~/markers once the worker threads are done, if any are up: no object
-        is published any more (not when a signal shut the context down: nothing to send on)."""
+        is published any more (not when a signal shut the context down: nothing to send on;
+        ``main``'s handlers leave it up)."""
         if not getattr(self, '_marked', None) or not self.context.ok():
             return
         self._marked.clear()
@@ -1368,6 +1371,50 @@ def _shut_down(executor, node):
                     'interrupted again: shutting down all the same')
 
 
+def _interrupt(signum, frame):  # noqa: ARG001 - signal handler signature
+    """SIGTERM (ros2 launch, docker stop) ends beo-node as a Ctrl-C does."""
+    raise KeyboardInterrupt(signal.Signals(signum).name)
+
+
+class _Interrupts:
+    """main's Ctrl-C and SIGTERM: each raises KeyboardInterrupt in the main thread with the ROS
+    context still up, so that destroy_node can publish its DELETEALL on ~/markers (rclpy's own
+    handlers shut the context down first: ros2/rclpy#1287).
+
+    Python runs a signal handler only once the main thread is back in Python, and a spinning
+    executor waits in C until its next timer or message (seconds): a thread reads the signal's
+    byte from the wakeup fd and wakes ``executor``, whose spin then returns to Python. Main
+    thread only; ``close`` restores the handlers found."""
+
+    def __init__(self):
+        self.executor = None
+        self._read, self._write = os.pipe()
+        os.set_blocking(self._write, False)   # the C handler writes: it must never block
+        self._old = {sig: signal.signal(sig, handler) for sig, handler in (
+            (signal.SIGINT, signal.default_int_handler), (signal.SIGTERM, _interrupt))}
+        self._old_fd = signal.set_wakeup_fd(self._write, warn_on_full_buffer=False)
+        threading.Thread(target=self._wake, name='beo_signal_wake', daemon=True).start()
+
+    def _wake(self):
+        try:
+            while os.read(self._read, 512):
+                executor = self.executor
+                if executor is not None:
+                    try:
+                        executor.wake()
+                    except Exception:  # noqa: BLE001 - shut down meanwhile: nothing to wake
+                        pass
+        finally:   # the write end was closed
+            os.close(self._read)
+
+    def close(self):
+        self.executor = None
+        signal.set_wakeup_fd(self._old_fd)
+        for sig, handler in self._old.items():   # None: one not set from Python
+            signal.signal(sig, signal.SIG_DFL if handler is None else handler)
+        os.close(self._write)
+
+
 USAGE = """usage: beo-node [-h] [--ros-args (-p NAME:=VALUE | --params-file FILE) ...]
 
 Runs the beo node (node name 'beo') until Ctrl-C. Parameters, with their defaults and
@@ -1383,7 +1430,8 @@ def _params_files(argv) -> list:
 
 
 def main(args=None):
-    """Run the node until Ctrl-C / shutdown; exits with status 1 if it cannot start."""
+    """Run the node until Ctrl-C, SIGTERM or shutdown (then it deletes its markers); exits with
+    status 1 if it cannot start."""
     argv = sys.argv[1:] if args is None else list(args)
     own = argv[:argv.index('--ros-args')] if '--ros-args' in argv else argv
     if '-h' in own or '--help' in own:
@@ -1396,7 +1444,8 @@ def main(args=None):
               'arguments go after --ros-args)', file=sys.stderr)
         sys.exit(2)
     try:
-        rclpy.init(args=args)
+        # not rclpy's signal handlers: they shut the context down before destroy_node runs
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
         check_domain_id(rclpy.get_default_context())
     except Exception as e:  # e.g. --params-file of a missing or malformed file
         rclpy.try_shutdown()
@@ -1409,12 +1458,14 @@ def main(args=None):
         else:
             print(f'beo-node: cannot start: {type(e).__name__}: {e}', file=sys.stderr)
         sys.exit(1)
+    interrupts = _Interrupts()
     node = None
     executor = None
     failed = False
     try:
         node = BeoNode()
         executor = make_executor()
+        interrupts.executor = executor
         executor.add_node(node)
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
@@ -1428,7 +1479,11 @@ def main(args=None):
         # a signal shut rclpy down while the node was starting (e.g. creating a publisher on
         # the dead context): a normal shutdown
     finally:
-        _shut_down(executor, node)
+        interrupts.executor = None   # not spinning any more: nothing to wake
+        try:
+            _shut_down(executor, node)
+        finally:
+            interrupts.close()
     if failed:
         sys.exit(1)
 

@@ -109,8 +109,10 @@ def _spawning():
     ``popen_spawn_posix``), and the process reads it while it imports open3d (seconds). A
     Ctrl-C or SIGTERM to the process group (a terminal, ``docker stop``) killed the process
     half-way, and the parent then waited for ever in that write: the node never exited (and
-    each process printed a KeyboardInterrupt traceback). The parent's own handlers run in
-    its other threads meanwhile (rclpy's shut the context down)."""
+    each process printed a KeyboardInterrupt traceback). The signal reaches the parent's
+    other threads meanwhile (beo-node's handlers raise KeyboardInterrupt in its main thread
+    once the block is lifted; rclpy's, in a process that embeds the node, shut the context
+    down)."""
     old = signal.pthread_sigmask(signal.SIG_BLOCK, _START_SIGNALS)
     try:
         yield
