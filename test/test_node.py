@@ -1774,8 +1774,8 @@ def test_missing_params_file_named_with_the_packages_own(tmp_path, capsys, monke
     own = package_params_file()
     assert own and Path(own).is_file() and Path(own).name == 'beo.yaml'
     real_init = node_mod.rclpy.init
-    monkeypatch.setattr(node_mod.rclpy, 'init', lambda args: real_init(args=args,
-                                                                        context=Context()))
+    monkeypatch.setattr(node_mod.rclpy, 'init', lambda args, **kw: real_init(
+        args=args, context=Context(), **kw))
     missing = str(tmp_path / 'config' / 'beo.yaml')
     with pytest.raises(SystemExit) as ei:
         node_mod.main(['--ros-args', '--params-file', missing])
