@@ -249,7 +249,11 @@ def test_load_scan_objects_refuses_a_path_that_is_no_file(tmp_path, bad, message
     # or an unmatched glob ('learn*.pcd') left a scan out, or ended in 'no scan matched the
     # scan classes' naming no file
     (tmp_path / 'scans').mkdir()
+    good = [tmp_path / 'good' / f'learn{i}.pcd' for i in (0, 1)]   # checked before any is read
+    good[0].parent.mkdir()
+    for path in good:
+        path.write_bytes(b'')
     with pytest.raises(ValueError, match=f'{bad}: {message}'):
-        load_scan_objects([OSD / 'learn0.pcd', OSD / 'learn1.pcd', tmp_path / bad], 'box:0-1')
+        load_scan_objects(good + [tmp_path / bad], 'box:0-1')
     with pytest.raises(ValueError, match=f'{bad}: {message}'):
         load_scan_objects(iter([tmp_path / bad]))
