@@ -124,6 +124,10 @@ def test_scene_cv_is_grouped_and_learns():
     assert unknown[0] and not unknown[1:].any()
     rep = classifier_comparison(F3, y, groups, variants=(('all', 1.0),))['lr_all_C1']
     assert rep['n_unknown'] == 1 and 0 in rep['wrong']
+    # the unknown object is neither correct nor in the confusion of the known answers
+    assert rep['n_correct'] == len(y) - len(rep['wrong'])
+    assert rep['accuracy'] == pytest.approx(rep['n_correct'] / len(y), abs=1e-4)
+    assert np.sum(rep['confusion']) == len(y) - 1
 
 
 def test_scene_cv_logistic_when_the_other_scenes_hold_one_class():
@@ -139,6 +143,50 @@ def test_scene_cv_logistic_when_the_other_scenes_hold_one_class():
     assert set(pred[groups != 'c']) <= {0, 1}
     with pytest.raises(ValueError, match='at least 2 groups'):
         scene_cv_logistic(Z, y, np.zeros(9))
+    # the only class the other scenes hold is that class, not class 0
+    np.testing.assert_array_equal(scene_cv_logistic(Z, 1 - y, groups)[groups == 'c'], 1)
+    F = np.random.default_rng(1).normal(size=(9, 2, len(FEATURE_NAMES)))
+    pred, _ = scene_cv_predictions(F, 1 - y, groups, 'all')
+    np.testing.assert_array_equal(pred[groups == 'c'], 1)
+    pred, _ = scene_cv_point_predictions(F, Z[:, :2], 1 - y, groups)
+    np.testing.assert_array_equal(pred[groups == 'c'], 1)
+    # standardised: an affine change of the inputs changes no answer
+    np.testing.assert_array_equal(scene_cv_logistic(Z * 1e3 + 500.0, y, groups),
+                                  scene_cv_logistic(Z, y, groups))
+
+
+def test_no_diff_rule_for_more_than_two_classes():
+    rng = np.random.default_rng(0)
+    F = rng.normal(size=(12, 3, len(FEATURE_NAMES)))
+    y = np.arange(12) % 3
+    comp = classifier_comparison(F, y, np.repeat(['a', 'b', 'c', 'd'], 3))
+    assert set(comp) == {'max_likelihood', 'lr_all_C0.1', 'lr_all_C1'}
+
+
+def test_footprint_angle_and_circular_spread():
+    from beo_ros.scan_eval import circular_spread_deg, footprint_angle
+    t = np.linspace(0, 1, 200, endpoint=False)
+    outline = np.r_[np.c_[10 * t, 0 * t], np.c_[10 * t, 4 + 0 * t], np.c_[0 * t, 4 * t],
+                    np.c_[10 + 0 * t, 4 * t]]
+    for deg in (30.0, 70.0):
+        a = np.deg2rad(deg)
+        rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+        pts = np.c_[outline @ rot.T + [5.0, 7.0], np.ones(len(outline))]
+        assert np.rad2deg(footprint_angle(pts)) == pytest.approx(deg, abs=0.5)
+    # -10 and -20 deg modulo 90: mean 75, spread about 5 deg
+    mean, std = circular_spread_deg(np.deg2rad([-10.0, -20.0]), 90.0)
+    assert mean == pytest.approx(75.0, abs=1e-6) and std == pytest.approx(5.0, abs=0.2)
+
+
+def test_a_fold_leaving_one_object_of_a_class_is_refused_only_without_mirror():
+    from types import SimpleNamespace
+    from beo_ros.scan_eval import _check_groups
+    objs = SimpleNamespace(y=np.array([0, 0, 1, 1]), names=['box', 'cyl'],
+                           scenes=np.array(['s0', 's1', 's2', 's3']))
+    _check_groups(SimpleNamespace(mirror=True), objs, [['s2']])   # an object and its mirror
+    with pytest.raises(ValueError, match=r"holding out s2 leaves class 'cyl' 1 training "
+                                         r'object\(s\)'):
+        _check_groups(SimpleNamespace(mirror=False), objs, [['s2']])
 
 
 def test_loso_saves_out_of_fold_features(scan_files, tmp_path, monkeypatch):
@@ -168,6 +216,10 @@ def test_loso_saves_out_of_fold_features(scan_files, tmp_path, monkeypatch):
     # the saved features are the ones of the records, under the models fitted without the scene
     for r, f, sc, oid in zip(recs, z['features'], z['scenes'], z['object_ids']):
         assert (r['scene'], r['object']) == (sc, oid)
+        # the generated objects: 8-12 cm wide, 10-20 cm tall, standing on the table
+        assert 7 < min(r['extent_cm'][:2]) and max(r['extent_cm'][:2]) < 15, r['extent_cm']
+        assert 9 < r['extent_cm'][2] < 21 and abs(r['above_table_cm']) < 1.5, r
+        assert 0 < r['n_occupied'] < 500 and 0 < r['unknown_fraction'] < 1
         np.testing.assert_allclose([r['features']['box'][n] for n in FEATURE_NAMES], f[0],
                                    atol=1e-4)
     # the maximum-likelihood rule on the saved features is the rule the loop used

@@ -19,9 +19,21 @@ def test_parse_scan_classes():
     assert names == ['box', 'cylinder']
     assert table == {0: 0, 1: 0, 2: 0, 33: 1, 34: 1, 40: 1}
     assert scene_number('/x/learn33.pcd') == 33
-    for bad in ('box', 'box:3-1', 'box:a', 'box:1,cyl:1'):
-        with pytest.raises(ValueError):
+    for bad, why in (('box', 'is not name:first-last'), ('box:3-1', 'empty range'),
+                     ('box:a', 'bad range'), ('box:1,cyl:1', 'scene 1 is in two classes'),
+                     (':1', 'has no name'), (' , ', 'no scan classes')):
+        with pytest.raises(ValueError, match=why):
             parse_scan_classes(bad)
+
+
+def test_parse_scan_classes_names_a_class_once_and_takes_the_last_number():
+    # a class named twice is one class, a scene given twice to one class is no clash
+    names, table = parse_scan_classes('box:0-1,cyl:5,box:3+1')
+    assert names == ['box', 'cyl'] and table == {0: 0, 1: 0, 3: 0, 5: 1}
+    assert parse_scan_classes({'box': '0-1', 'cyl': 5}) == (['box', 'cyl'], {0: 0, 1: 0, 5: 1})
+    # the scene number is the one that ends the file stem
+    assert scene_number('/x/scan2_learn33.pcd') == 33
+    assert scene_number('/x/learn.pcd') is None
 
 
 @pytest.fixture(scope='module')
@@ -257,3 +269,59 @@ def test_load_scan_objects_refuses_a_path_that_is_no_file(tmp_path, bad, message
         load_scan_objects(good + [tmp_path / bad], 'box:0-1')
     with pytest.raises(ValueError, match=f'{bad}: {message}'):
         load_scan_objects(iter([tmp_path / bad]))
+
+
+def _cube_scene(path):
+    """A table z = 1 seen face-on and one 10 cm cube on it (labels 1 and 20)."""
+    from beo_ros.core.pcd import write_pcd
+    rng = np.random.default_rng(0)
+    table = np.c_[rng.uniform(-0.5, 0.5, (2000, 2)), np.ones(2000)]
+    cube = rng.uniform([-0.05, -0.05, 0.9], [0.05, 0.05, 0.95], (300, 3))
+    pts = np.r_[table, cube].astype(np.float32)
+    write_pcd(path, {'x': pts[:, 0], 'y': pts[:, 1], 'z': pts[:, 2],
+                     'label': np.r_[np.ones(2000), np.full(300, 20)].astype(np.uint32)})
+    return path
+
+
+def test_load_scan_objects_skips_scenes_of_no_class_and_orders_by_scene_number(tmp_path,
+                                                                             capsys):
+    files = [_cube_scene(tmp_path / f'learn{i}.pcd') for i in (10, 7, 2)]
+    s = load_scan_objects(files, 'box:2+10', verbose=True)
+    assert s.scenes.tolist() == ['learn2', 'learn10']   # by number, not by name or argument
+    assert 'learn7.pcd: scene 7 is in no class, skipped' in capsys.readouterr().err
+    assert set(s.scene_notes) == {'learn2', 'learn10'}
+
+
+def test_subset_keeps_every_field_of_the_objects_it_selects(small_set):
+    s = small_set
+    for sel in (s.y == 1, np.flatnonzero(s.y == 1)):
+        sub = s.subset(sel)
+        idx = np.flatnonzero(s.y == 1)
+        assert len(sub) == len(idx) == len(sub.points) and set(sub.y) == {1}
+        for a, i in zip(sub.points, idx):
+            assert a is s.points[i]
+        np.testing.assert_array_equal(sub.grid_to_input, s.grid_to_input[idx])
+
+
+def test_point_classifier_from_oof_matches_rows_by_scene_and_object(small_set, tmp_path):
+    # rows of the npz in another order than the objects: each object must get its own row's
+    # log-likelihoods (feature 0), not the row at its index
+    from beo_ros.core.scan_training import (point_classifier_from_oof, scan_point_descriptors,
+                                            train_point_classifier)
+    s = small_set
+    rng = np.random.default_rng(2)
+    F = rng.normal(0, 1, (len(s), 2, 3))
+    F[:, :, 0] += np.where(s.y == 0, 1.0, -1.0)[:, None] * [1, -1]
+    order = rng.permutation(len(s))
+    oof = tmp_path / 'oof_features.npz'
+    np.savez(oof, features=F[order], scenes=s.scenes[order], object_ids=s.object_ids[order],
+             classes=np.array(s.names), grid_source=np.array('estimate_points'))
+    clf, info = point_classifier_from_oof(oof, s, C=0.5)
+    want = train_point_classifier(F[:, :, 0], scan_point_descriptors(s), s.y, 2, C=0.5)
+    for key in ('mean', 'scale', 'coef', 'intercept', 'unknown_threshold'):
+        np.testing.assert_allclose(clf[key], want[key], rtol=1e-9, err_msg=key)
+    assert info['point_classifier']['oof_grid_source'] == 'estimate_points'
+    np.savez(oof, features=F, scenes=s.scenes, object_ids=s.object_ids,
+             classes=np.array(['cylinder', 'box']))
+    with pytest.raises(ValueError, match=r"classes \['cylinder', 'box'\] differ from the scans"):
+        point_classifier_from_oof(oof, s)
