@@ -122,6 +122,7 @@ def test_load_scene_moves_double_map_coordinates_before_rounding_to_float32(tmp_
 @pytest.mark.parametrize('label_type,values,match', [
     ('I', b'-1', 'not integers'),          # a cast wrapped it to 4294967295: an object label
     ('F', b'nan', 'not integers'), ('F', b'20.5', 'not integers'), ('F', b'-3', 'not integers'),
+    ('F', b'4294967296', 'not integers'),  # 2^32: a cast wrapped it to 0, invalid
 ])
 def test_load_scene_refuses_labels_that_are_not_label_numbers(tmp_path, label_type, values,
                                                                match):
