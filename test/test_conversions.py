@@ -194,17 +194,21 @@ def _good(pts):
      'duplicate'),
     (lambda m: setattr(m, 'point_step', 8), 'overruns point_step'),         # smaller than fields
     (lambda m: setattr(m.fields[2], 'offset', 10), 'overruns point_step'),
-    (lambda m: setattr(m, 'point_step', 0), 'point_step'),
+    (lambda m: setattr(m, 'point_step', 0), 'point_step must be > 0, got 0'),
     (lambda m: setattr(m, 'data', m.data[:-5]), 'needs'),                    # truncated
     (lambda m: setattr(m, 'data', array.array('B')), 'needs'),              # no data at all
     (lambda m: setattr(m, 'width', m.width * 2), 'row_step'),                # header lies
-    (lambda m: setattr(m, 'row_step', 11), 'row_step'),                     # organized, too small
+    (lambda m: setattr(m, 'row_step', 11), r'row_step 11 < width\*point_step 144'),  # organized
     (lambda m: setattr(m, 'data', m.data + array.array('B', [0] * 12)), 'needs'),  # data too long
     (lambda m: setattr(m, 'height', 1), 'needs'),                            # 2nd row ignored
     (lambda m: setattr(m.fields[1], 'offset', 2), 'overlap'),
     (lambda m: [setattr(f, 'offset', 0) for f in m.fields], 'overlap'),
     (lambda m: setattr(m.fields[0], 'count', 2), 'overlap'),                 # x[2] runs into y
     (lambda m: setattr(m.fields[2], 'count', 2), 'overruns point_step'),     # z[2] past the point
+    (lambda m: setattr(m.fields[2], 'offset', 9), 'overruns point_step'),    # by one byte
+    # count 0 is one value (as count 1): still 4 bytes, past the point at offset 10
+    (lambda m: [setattr(m.fields[2], 'count', 0), setattr(m.fields[2], 'offset', 10)],
+     'overruns point_step'),
 ])
 def test_malformed_clouds_raise_named_error(pts, breaker, match):
     msg = _good(pts)
@@ -215,12 +219,14 @@ def test_malformed_clouds_raise_named_error(pts, breaker, match):
 
 
 def test_xyz_to_cloud_rejects_bad_shapes():
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r'must be \(n, 3\), got shape \(4, 2\)'):
         xyz_to_cloud(np.zeros((4, 2)), Header())
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="field 'p' has 3 values for 4 points"):
         xyz_to_cloud(np.zeros((4, 3)), Header(), {'p': np.zeros(3)})
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="duplicate field name 'x'"):
         xyz_to_cloud(np.zeros((4, 3)), Header(), {'x': np.zeros(4)})
+    # is_dense says whether every point is finite
+    assert not xyz_to_cloud([[0, 0, 1], [np.nan, 0, 1]], Header()).is_dense
     # 3 points without coordinates were an empty cloud (size 0), not an error
     with pytest.raises(ValueError, match=r'must be \(n, 3\), got shape \(3, 0\)'):
         xyz_to_cloud(np.zeros((3, 0)), Header())
@@ -246,7 +252,7 @@ def test_pose_round_trip():
     for r in (np.diag([1, -1, -1]), np.diag([-1, 1, -1]), np.diag([-1, -1, 1])):  # 180 deg
         np.testing.assert_allclose(quaternion_to_rotation(rotation_to_quaternion(r)), r,
                                    atol=1e-12)
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match='16 non-finite entries'):
         matrix_to_pose(np.full((4, 4), np.nan))
     with pytest.raises(ValueError, match=r'shape \(3, 4\)'):
         matrix_to_pose(np.eye(4)[:3])
@@ -269,7 +275,7 @@ def test_yaw_quaternion_rotates_about_up(up):
     if up == (0, 0, 1):
         np.testing.assert_allclose(r[:2, :2], [[math.cos(yaw), -math.sin(yaw)],
                                                [math.sin(yaw), math.cos(yaw)]], atol=1e-12)
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match='up must be a finite non-zero vector'):
         yaw_quaternion(1.0, (0, 0, 0))
 
 
@@ -318,11 +324,30 @@ def test_estimate_to_msg():
     np.testing.assert_allclose([m.dimensions.x, m.dimensions.y, m.dimensions.z],
                                [0.41, 0.21, 0.61], atol=1e-5)
     assert [hh.label for hh in m.hypotheses] == ['chair', 'table']
+    assert [hh.score for hh in m.hypotheses] == [-1.0, -3.0]
+    prob = np.frombuffer(bytes(m.completed_cloud.data), '<f4').reshape(3, 4)[:, 3]
+    np.testing.assert_array_equal(prob, np.float32([0.9, 0.8, 0.7]))
     np.testing.assert_allclose(m.symmetric_yaws, [0.5 - np.pi], rtol=1e-7)
     assert m.source_topic == '/in' and abs(m.latency - 0.25) < 1e-6 and m.status == 'ok'
     assert m.completed_cloud.width == 3 and m.completed_cloud.header.frame_id == 'cam'
     m2 = conv.estimate_to_msg(est, h, '/in', 0.0, include_cloud=False)
     assert m2.completed_cloud.width == 0 and list(m2.class_names) == ['chair', 'table']
+    assert m2.completed_cloud.header.frame_id == 'cam'
+    # a class the scores do not name has probability 0; no completed probability: 1 each
+    m4 = conv.estimate_to_msg(est, h, class_names=['sofa', 'chair'])
+    np.testing.assert_allclose(m4.class_probabilities, [0.0, 0.8], atol=1e-6)
+    est.completed_probability = None
+    m5 = conv.estimate_to_msg(est, h, include_cloud=True)
+    prob = np.frombuffer(bytes(m5.completed_cloud.data), '<f4').reshape(3, 4)[:, 3]
+    np.testing.assert_array_equal(prob, [1.0, 1.0, 1.0])
+    # an estimate without pose: the identity orientation; no completed points: no extent
+    bare = Estimate(label='chair', scores={'chair': 1.0}, yaw=0.0, completion=est.completion,
+                    variance=est.variance)
+    m6 = conv.estimate_to_msg(bare, h)
+    assert (m6.pose.orientation.w, m6.pose.orientation.x) == (1.0, 0.0)
+    bare.pose, bare.completed_points = pose, np.zeros((0, 3), np.float32)
+    m7 = conv.estimate_to_msg(bare, h)
+    assert [m7.dimensions.x, m7.dimensions.y, m7.dimensions.z] == [0.0, 0.0, 0.0]
     # yaws from estimate_points are in the grid frame: the message has headings in its frame
     est.heading_offset = 3.0
     m3 = conv.estimate_to_msg(est, h)
@@ -338,6 +363,11 @@ def test_stamps_round_trip_nanoseconds():
         t = stamp_from_ns(ns)
         assert 0 <= t.nanosec < 1_000_000_000 and ns_from_stamp(t) == ns
     assert (stamp_from_ns(T0_NS + 5).sec, stamp_from_ns(T0_NS + 5).nanosec) == (1_700_000_000, 5)
+    from beo_ros.ros import MAX_STAMP_NS
+    assert ns_from_stamp(stamp_from_ns(MAX_STAMP_NS)) == MAX_STAMP_NS
+    for bad in (-1, MAX_STAMP_NS + 1):
+        with pytest.raises(ValueError, match='outside what a builtin_interfaces/Time holds'):
+            stamp_from_ns(bad)
 
 
 def test_dimensions_keep_their_precision_far_from_the_origin(ros_tiny_model_dir):
@@ -362,3 +392,23 @@ def test_dimensions_keep_their_precision_far_from_the_origin(ros_tiny_model_dir)
         dims.append([d.x, d.y, d.z])
     assert min(dims[0]) > 0.1
     np.testing.assert_allclose(dims[1], dims[0], atol=1e-6)
+
+
+def test_rotation_to_quaternion_near_half_turns_about_each_axis():
+    # about 180 deg the quaternion comes from the largest diagonal entry: a branch taken for
+    # another entry divides by a tiny s and loses the digits
+    for axis in np.eye(3):
+        for tilt in (1e-6, -1e-6):
+            a = axis + tilt * np.roll(axis, 1)
+            a /= np.linalg.norm(a)
+            r = 2 * np.outer(a, a) - np.eye(3)            # 180 deg about a
+            np.testing.assert_allclose(quaternion_to_rotation(rotation_to_quaternion(r)), r,
+                                       atol=1e-12)
+
+
+def test_matrix_to_pose_gives_a_unit_quaternion_of_a_rounded_rotation():
+    # a rotation through float32 is no exact rotation: the quaternion is still normalised
+    t = np.eye(4)
+    t[:3, :3] = quaternion_to_rotation([0.3, -0.2, 0.5, 0.8]).astype(np.float32)
+    o = matrix_to_pose(t).orientation
+    assert abs(np.linalg.norm([o.x, o.y, o.z, o.w]) - 1) < 1e-12

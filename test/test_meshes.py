@@ -47,7 +47,7 @@ def test_z_up_and_odd_size():
     np.testing.assert_allclose(t[:3, :3] @ [0, 0, 2.0], [0, 0, 17])
     # a whole float is an integer size (a TypeError in np.zeros before); bool and 16.5 are not
     np.testing.assert_array_equal(voxelize_mesh(tet, 17.0), g)
-    for bad in (True, 16.5, float('nan'), '16'):
+    for bad in (True, 16.5, float('nan'), '16', 1):
         with pytest.raises(ValueError, match='size must be an integer'):
             voxelize_mesh(tet, bad)
 
@@ -65,17 +65,23 @@ def test_load_mesh_formats_and_errors(tmp_path):
     with pytest.raises(MeshError, match='no such'):
         load_mesh(tmp_path / 'missing.off')
     (tmp_path / 'junk.off').write_text('OFF\n3 1 0\n0 0 0\nthis is not a number\n')
-    with pytest.raises(MeshError):
+    with pytest.raises(MeshError, match='junk.off: cannot parse mesh'):
         load_mesh(tmp_path / 'junk.off')
-    (tmp_path / 'empty.stl').write_bytes(b'')
-    with pytest.raises(MeshError):
+    (tmp_path / 'empty.stl').write_bytes(b'')   # shorter than a binary STL header
+    with pytest.raises(MeshError, match='empty.stl: mesh has no triangles'):
         load_mesh(tmp_path / 'empty.stl')
     (tmp_path / 'x.xyz').write_text('1 2 3\n')
     with pytest.raises(MeshError, match='unsupported'):
         load_mesh(tmp_path / 'x.xyz')
     flat = trimesh.Trimesh([[0, 0, 0], [0, 0, 0], [0, 0, 0]], [[0, 1, 2]], process=False)
-    with pytest.raises(MeshError):
+    with pytest.raises(MeshError, match='zero or non-finite extent'):
         voxelize_mesh(flat)
+    (tmp_path / 'point.off').write_text('OFF\n3 1 0\n1 2 3\n1 2 3\n1 2 3\n3 0 1 2\n')
+    with pytest.raises(MeshError, match=r'point\.off: mesh is degenerate \(zero extent\)'):
+        load_mesh(tmp_path / 'point.off')
+    # the extension's case does not matter
+    box.export(tmp_path / 'BOX.OFF', file_type='off')
+    assert len(load_mesh(tmp_path / 'BOX.OFF').faces) == 12
     assert issubclass(MeshError, ValueError)
 
 
@@ -198,7 +204,8 @@ def test_a_subnormal_extent_is_refused_naming_the_file(tmp_path):
         box.vertices * 1e-300, box.faces, process=False)), voxelize_mesh(box))
 
 
-@pytest.mark.parametrize('header', ['OFF\n8 12 0\n', 'OFF 8 12 0\n', 'OFF8 12 0\n'])
+@pytest.mark.parametrize('header', ['OFF\n8 12 0\n', 'OFF 8 12 0\n', 'OFF8 12 0\n',
+                                    'COFF\n8 12 0\n'])
 def test_a_truncated_off_file_is_refused(tmp_path, header):
     # trimesh reads the faces a cut-off download still has without a word: 6 of a box's 12
     # triangles made a hollow grid of 1287 voxels instead of 8448
@@ -212,9 +219,12 @@ def test_a_truncated_off_file_is_refused(tmp_path, header):
     with pytest.raises(MeshError, match=r'cut.off: truncated OFF file: its header declares 12 '
                                         r'faces, it ends after 6'):
         load_mesh(cut)
+    cut.write_text(header + ''.join(body.splitlines(keepends=True)[:8 + 11]))   # one face short
+    with pytest.raises(MeshError, match=r'ends after 11'):
+        load_mesh(cut)
 
 
-@pytest.mark.parametrize('index', [9, -1])
+@pytest.mark.parametrize('index', [9, 4, -1])
 def test_a_ply_face_index_outside_the_vertices_is_refused(tmp_path, index):
     # past the end was a raw IndexError out of load_mesh (a traceback from beo-train), a
     # negative index wrapped around to another vertex without a word
@@ -304,3 +314,35 @@ def test_an_off_file_with_faces_of_five_corners_loads(tmp_path):
     path.write_text(path.read_text().replace('5 9 8 7 6 5', '5 9 8 7'))
     with pytest.raises(MeshError, match='prism.off: cannot parse mesh'):
         load_mesh(path)
+
+
+# ---------------------------------------------------------------- mutation audit
+def _no_samples(monkeypatch, counts=None):
+    def sample(mesh, count, seed=None):
+        if counts is not None:
+            counts.append(count)
+        return np.zeros((0, 3)), np.zeros(0, np.int64)
+    monkeypatch.setattr(trimesh.sample, 'sample_surface', sample)
+
+
+def test_the_vertices_are_marked_besides_the_samples(monkeypatch):
+    _no_samples(monkeypatch)
+    g = voxelize_mesh(trimesh.creation.box((1, 2, 4)), 32, fill=False)
+    # the 8 corners of a box 8 x 16 x 32 voxels, centred
+    want = {(x, y, z) for x in (12, 19) for y in (8, 23) for z in (0, 31)}
+    assert set(map(tuple, np.argwhere(g))) == want
+
+
+def test_at_least_1000_samples_however_low_the_density(monkeypatch):
+    counts = []
+    _no_samples(monkeypatch, counts)
+    voxelize_mesh(trimesh.creation.box((1, 1, 1)), 16, density=0.1)   # 154 asked for
+    assert counts == [1000]
+
+
+def test_the_seed_chooses_the_samples():
+    box = trimesh.creation.box((1, 1, 1))
+    a, b = (voxelize_mesh(box, 32, fill=False, density=0.5, seed=s) for s in (0, 1))
+    assert (a != b).any()
+    np.testing.assert_array_equal(voxelize_mesh(box, 32, fill=False, density=0.5, seed=0), a)
+    assert voxelize_mesh(box, 16, seed=None).sum() == 16 ** 3   # None: fresh samples, accepted

@@ -122,6 +122,7 @@ def test_load_scene_moves_double_map_coordinates_before_rounding_to_float32(tmp_
 @pytest.mark.parametrize('label_type,values,match', [
     ('I', b'-1', 'not integers'),          # a cast wrapped it to 4294967295: an object label
     ('F', b'nan', 'not integers'), ('F', b'20.5', 'not integers'), ('F', b'-3', 'not integers'),
+    ('F', b'4294967296', 'not integers'),  # 2^32: a cast wrapped it to 0, invalid
 ])
 def test_load_scene_refuses_labels_that_are_not_label_numbers(tmp_path, label_type, values,
                                                                match):
@@ -137,12 +138,12 @@ def test_load_scene_refuses_labels_that_are_not_label_numbers(tmp_path, label_ty
     assert load_scene(path).labels.tolist() == [20, 31]
 
 
-@pytest.mark.parametrize('field', ['x', 'label'])
+@pytest.mark.parametrize('field', ['x', 'label', 'rgb'])
 def test_load_scene_refuses_fields_with_count_2(tmp_path, field):
-    counts = {'x': b'2 1 1 1', 'label': b'1 1 1 2'}[field]
+    counts = {'x': b'2 1 1 1 1', 'label': b'1 1 1 2 1', 'rgb': b'1 1 1 1 2'}[field]
     path = tmp_path / 'c2.pcd'
-    path.write_bytes(b'FIELDS x y z label\nSIZE 4 4 4 4\nTYPE F F F U\nCOUNT ' + counts
-                     + b'\nWIDTH 1\nHEIGHT 1\nDATA ascii\n0 0 1 1 20\n')
+    path.write_bytes(b'FIELDS x y z label rgb\nSIZE 4 4 4 4 4\nTYPE F F F U U\nCOUNT ' + counts
+                     + b'\nWIDTH 1\nHEIGHT 1\nDATA ascii\n0 0 1 1 20 7\n')
     with pytest.raises(PCDError, match=rf"c2\.pcd: field '{field}' has COUNT 2"):
         load_scene(path)
 
@@ -188,7 +189,7 @@ def test_fit_table_plane_orientation():
     # a camera placed below the plane flips the orientation
     n3, d3 = fit_table_plane(scene, sensor_origin=-2 * d * up)
     assert n3 @ up < -0.999
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match='need at least 3 finite points'):
         fit_table_plane(np.zeros((2, 3)))
     # no plane in collinear or identical points (an IndexError inside before)
     line = np.linspace(0, 1, 200)[:, None] * [1.0, 0.2, 0.1] + [0, 0, 1]
@@ -230,7 +231,7 @@ def test_object_view_on_table_and_stacked():
     x = object_view(objs[3], up, d, occluders=scene_occluders(scene, 3))
     assert np.all(x.grid[w.grid == UNKNOWN] == UNKNOWN)
     assert len(scene_occluders(scene, 3)) == 3000
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match='up must be a finite non-zero 3-vector'):
         object_view(objs[2], [0, 0, 0], d)
 
 
@@ -391,6 +392,7 @@ def test_table_plane_refuses_a_strip_of_table():
 @pytest.mark.parametrize('kw', [dict(distance_threshold=0.0), dict(distance_threshold=-0.01),
                                 dict(distance_threshold=float('nan')),
                                 dict(distance_threshold=True), dict(distance_threshold='0.01'),
+                                dict(distance_threshold=float('inf')),
                                 dict(iterations=0), dict(iterations=-5), dict(iterations=2.5)])
 def test_table_plane_names_bad_options(kw):
     # before: 'no plane among the ... support points (collinear or all at one place?)', or
@@ -398,3 +400,110 @@ def test_table_plane_names_bad_options(kw):
     scene, _, _ = synthetic_scene()
     with pytest.raises(ValueError, match=f'^{next(iter(kw))} must be a positive'):
         fit_table_plane(scene, **kw)
+
+
+# ---------------------------------------------------------------- mutation audit
+def test_load_scene_normalises_the_viewpoint_quaternion_and_refuses_nan(tmp_path):
+    from beo_ros.core.scans import quaternion_matrix
+    scene, _, _ = synthetic_scene()
+    q = np.array([0.8, 0.3, -0.4, 0.33])
+    q /= np.linalg.norm(q)
+    t = np.array([0.4, -1.0, 2.0])
+    moved = scene.points.astype(np.float64) @ quaternion_matrix(q).T + t
+    fields = {'x': moved[:, 0], 'y': moved[:, 1], 'z': moved[:, 2], 'label': scene.labels}
+    write_pcd(tmp_path / 'vp2.pcd', fields, viewpoint=(*t, *(2 * q)))   # same rotation
+    np.testing.assert_allclose(load_scene(tmp_path / 'vp2.pcd').points, scene.points, atol=1e-5)
+    write_pcd(tmp_path / 'nan.pcd', fields, viewpoint=(0, 0, np.nan, 1, 0, 0, 0))
+    with pytest.raises(PCDError, match=r'nan\.pcd: VIEWPOINT .* not a pose'):
+        load_scene(tmp_path / 'nan.pcd')
+
+
+def test_load_scene_unpacks_a_float_typed_rgb_field(tmp_path):
+    # PCL packs rgb into a float32 (TYPE F SIZE 4): the bits are the colour, not the value
+    scene, _, _ = synthetic_scene()
+    r, g, b = (scene.rgb[:, i].astype(np.uint32) for i in range(3))
+    packed = ((r << 16) | (g << 8) | b).view(np.float32)
+    fields = {'x': scene.points[:, 0], 'y': scene.points[:, 1], 'z': scene.points[:, 2],
+              'label': scene.labels, 'rgb': packed}
+    write_pcd(tmp_path / 'frgb.pcd', fields)
+    np.testing.assert_array_equal(load_scene(tmp_path / 'frgb.pcd').rgb, scene.rgb)
+
+
+def test_label_ranges_at_their_bounds():
+    # 1-9 table, 10-19 neither, >= 20 objects; 0 (invalid) is no table point even when finite;
+    # an object with exactly min_points points is kept
+    scene, up, d = synthetic_scene()
+    table = np.flatnonzero(scene.labels == 1)
+    scene.labels[table] = 9                      # the whole table labelled 9
+    scene.labels[table[:5]] = 0
+    scene.labels[table[5:8]] = 10
+    scene.labels[table[8:12]] = 19
+    obj4 = np.flatnonzero(scene.labels == 31)[:10]
+    scene.labels[obj4] = 40                      # object 4: exactly MIN_POINTS (10) points
+    from beo_ros.core.scans import label_summary
+    assert label_summary(scene) == dict(small_objects={}, unassigned_points=7,
+                                        table_points=4000 - 12)
+    with pytest.warns(ScanWarning, match='ignored 7 points with labels 10-19') as rec:
+        objs = segment_objects(scene)
+    assert 'left out' not in str(rec[0].message)
+    assert list(objs) == [2, 3, 4] and len(objs[4]) == 10
+    assert label_summary(scene, min_points=11)['small_objects'] == {4: 10}
+    # labels 10-19 are no object: not an occluder of one either
+    assert len(scene_occluders(scene, 2)) == 1000
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter('error', ScanWarning)
+        n, dd = fit_table_plane(scene)           # from the table labelled 9, without a warning
+    assert n @ up > 0.9999 and dd == pytest.approx(d, abs=0.005)
+
+
+def test_three_table_points_are_enough_for_the_table_fit():
+    scene, up, d = synthetic_scene()
+    table = scene.points.astype(np.float64) @ up + d
+    on = np.flatnonzero((scene.labels == 1) & (np.abs(table) < 1e-4))
+    pts = scene.points[on].astype(np.float64)
+    # three of them far apart (a wide triangle), the rest of the table unlabelled
+    i = np.argmax(pts[:, 0])
+    j = np.argmin(pts[:, 0])
+    k = np.argmax(np.abs(np.cross(pts - pts[i], pts[j] - pts[i])).sum(axis=1))
+    scene.labels[scene.labels == 1] = 0
+    scene.labels[on[[i, j, k]]] = 1
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter('error', ScanWarning)
+        n, dd = fit_table_plane(scene)
+    assert n @ up > np.cos(np.radians(1.0)) and dd == pytest.approx(d, abs=0.005)
+
+
+@pytest.mark.parametrize('deg,ok', [(3.0, False), (7.0, True)])
+def test_table_plane_view_angle_bound(deg, ok):
+    # the sensor must see the plane at MIN_VIEW_ANGLE_DEG (5) or more from its centre
+    u, v = np.meshgrid(np.linspace(-0.5, 0.5, 30), np.linspace(0.5, 1.5, 30))
+    h = np.tan(np.radians(deg))                 # centroid (0, h, 1): seen at deg
+    plane = np.c_[u.ravel(), np.full(u.size, h), v.ravel()]
+    if ok:
+        n, dd = fit_table_plane(plane)
+        np.testing.assert_allclose(n, [0, -1, 0], atol=1e-9)
+        assert dd == pytest.approx(h)
+    else:
+        with pytest.raises(ValueError, match=r'edge-on \(3\.0 deg'):
+            fit_table_plane(plane)
+
+
+def test_object_view_takes_an_up_of_any_length():
+    scene, up, d = synthetic_scene()
+    box = segment_objects(scene)[2]
+    ref = object_view(box, up, d)
+    v = object_view(box, 2.5 * up, 2.5 * d)     # the same plane
+    np.testing.assert_array_equal(v.grid, ref.grid)
+    np.testing.assert_allclose(v.grid_to_input, ref.grid_to_input, atol=1e-12)
+
+
+def test_object_view_refuses_fewer_than_min_points_above_the_table():
+    scene, up, d = synthetic_scene()
+    box = segment_objects(scene)[2]
+    leak = box[:30] - np.outer(box[:30] @ up + d + 0.04, up)
+    with pytest.raises(ValueError, match=r'30 of the 39 points .* leaving fewer than 10'):
+        object_view(np.r_[box[:9], leak], up, d)
+    with pytest.warns(ScanWarning, match='dropped 30 of 40'):
+        assert object_view(np.r_[box[:10], leak], up, d).n_points == 10

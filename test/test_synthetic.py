@@ -177,9 +177,88 @@ def test_primitive_shapes():
      'view angles must be finite'),                                     # 'arange: cannot ...'
     (lambda occ: render_surface_points(occ.astype(float), 0.5, 0.0, 0.1, 0.3, ray_spacing=0),
      'ray_spacing must be a positive'),                                 # divide by zero
+    (lambda occ: partial_view(occ, 0.1, 0.3, ray_spacing=np.inf), 'ray_spacing must be a positive'),
+    (lambda occ: render_surface_points(occ[:, :, :4].astype(float), 0.5, 0.0, 0.1, 0.3),
+     r'field must be \(N, N, N\)'),
+    # the grid's bounding sphere is 0.87 m (sqrt(3) * 4 voxels of 0.125 m): 0.9 m is less than
+    # a voxel beyond it
+    (lambda occ: render_surface_points(occ.astype(float), 0.5, 0.0, 0.1, 0.3, distance=0.9),
+     'inside the grid'),
 ])
 def test_views_refuse_what_is_no_view(call, match):
     occ = np.zeros((8, 8, 8), bool)
     occ[3:5, 3:5, 3:5] = True
     with pytest.raises(ValueError, match=match):
         call(occ)
+
+
+# ---------------------------------------------------------------- mutation audit
+def box(lo, hi):
+    occ = np.zeros((N,) * 3, dtype=bool)
+    occ[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = True
+    return occ
+
+
+def test_render_view_points_turns_the_object_by_the_yaw():
+    # a bar along x, turned by 90 deg about +z: along y
+    occ = box((2, 7, 7), (14, 9, 9))
+    pts, _ = render_view_points(occ, np.pi / 2, 0.3, 0.4)
+    extent = np.ptp(pts, axis=0)
+    assert extent[1] > 0.6 and extent[0] < 0.25, extent
+
+
+def test_render_view_points_noise_is_in_metres():
+    occ = cube()
+    ref, _ = render_view_points(occ, 0.0, 0.3, 0.4, rng=np.random.default_rng(0))
+    noisy, _ = render_view_points(occ, 0.0, 0.3, 0.4, noise=0.01, rng=np.random.default_rng(0))
+    assert noisy.shape == ref.shape
+    dev = (noisy - ref).astype(np.float64)
+    assert 0.008 < dev.std() < 0.012, dev.std()
+
+
+def test_render_surface_points_depth_noise_is_in_metres_along_the_ray():
+    occ = cube()
+    ref, origin = render_surface_points(occ, 0.5, 0.0, 0.0, 0.0, distance=2.0)
+    noisy, _ = render_surface_points(occ, 0.5, 0.0, 0.0, 0.0, distance=2.0, noise=0.01,
+                                     rng=np.random.default_rng(0))
+    assert noisy.shape == ref.shape
+    ray = ref - origin
+    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+    dev = (noisy - ref).astype(np.float64)
+    along = np.einsum('ij,ij->i', dev, ray)
+    assert 0.008 < along.std() < 0.012, along.std()
+    np.testing.assert_allclose(dev - along[:, None] * ray, 0, atol=1e-5)
+
+
+def test_render_surface_points_reaches_a_surface_beyond_the_centre():
+    # a block on the far side of the grid centre from the sensor (+x): its face toward the
+    # sensor is at x = 5.5 voxels, 2 voxels behind the centre 7.5
+    occ = box((2, 5, 5), (6, 11, 11))
+    pts, _ = render_surface_points(occ, 0.5, 0.0, 0.0, 0.0, distance=2.0, size=1.0)
+    assert len(pts) > 50
+    np.testing.assert_allclose(np.median(pts[:, 0]), (5.5 - 7.5) / N, atol=0.05 / N)
+
+
+def test_partial_view_of_nothing_is_all_free_from_any_direction():
+    # the rays cover the grid's bounding sphere: its corners too
+    for az, el in ((0.0, 0.0), (0.3, 0.5), (np.pi / 4, np.arctan(1 / np.sqrt(2)))):
+        assert (partial_view(np.zeros((N,) * 3, bool), az, el) == 0).all()
+
+
+def test_random_partial_view_draws_yaw_and_azimuth_over_the_whole_turn():
+    draws = [random_partial_view(cube(), np.random.default_rng(s))[1:3] for s in range(30)]
+    yaws, azs = np.array(draws).T
+    assert yaws.max() > 1.5 * np.pi and azs.max() > 1.5 * np.pi
+
+
+def test_primitive_shapes_are_boxes_and_upright_cylinders():
+    X, y, _ = primitive_shapes(N, 5)
+    for row, label in zip(X, y):
+        occ = row.reshape((N,) * 3) > 0.5
+        idx = np.argwhere(occ)
+        lo, hi = idx.min(axis=0), idx.max(axis=0) + 1
+        full = occ[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]].all()
+        assert full == (label == 0)               # a box fills its bounding box
+        assert hi[2] - lo[2] < N                  # bounded in height
+        # every horizontal slice is the same (a prism along z)
+        assert (occ[:, :, lo[2]:hi[2]] == occ[:, :, lo[2]:lo[2] + 1]).all()

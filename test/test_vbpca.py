@@ -634,3 +634,139 @@ def test_float32_convergence_allows_for_the_rounding_of_the_bound():
     assert est.converged_
     assert principal_cosines(Q, est.components_.T).min() > 0.9999
     assert est.noise_variance_ < 1e-4 * np.var(X)
+
+
+# ---------------------------------------------------------------- mutation audit
+@pytest.mark.parametrize('n,d', [(8, 20), (40, 6)], ids=['dual', 'primal'])
+def test_pca_init_is_the_top_principal_subspace(n, d):
+    # both eigen-decompositions (the (n, n) Gram for n < d, the (d, d) scatter otherwise) give
+    # W = V_k s_k / sqrt(n) and the discarded variance per entry as the initial noise variance
+    rng = np.random.default_rng(5)
+    X = rng.normal(size=(n, 3)) @ rng.normal(size=(3, d)) * 3 + rng.normal(size=(n, d)) + 2
+    k = 3
+    Xc = X - X.mean(axis=0)
+    _, s, Vt = np.linalg.svd(Xc, full_matrices=False)
+    want = Vt[:k].T * (s[:k] / np.sqrt(n))
+    mu, W, v, _ = VBPCA(k, dtype=np.float64)._init_params(X, None, k)
+    np.testing.assert_allclose(mu, X.mean(axis=0))
+    np.testing.assert_allclose(W @ W.T, want @ want.T, atol=1e-9)       # signs are free
+    np.testing.assert_allclose(W.T @ W, np.diag(s[:k] ** 2 / n), atol=1e-9)
+    np.testing.assert_allclose(v, (s[k:] ** 2).sum() / (n * d), rtol=1e-9)
+    # the caller's floor of the noise variance holds from the start
+    assert VBPCA(k, dtype=np.float64, min_noise_variance=50.0)._init_params(X, None, k)[2] == 50.0
+
+
+def _brute_force_sq(X, M, W, Sw, Xm, Sx, mu, mu_var):
+    """sum over observed (j, i) of E[(y_ji - w_i . x_j - mu_i)^2] under the factorised posterior;
+    Sw (d, k, k), Sx (n, k, k), mu_var (d,)."""
+    r = X - Xm @ W.T - mu
+    var = (np.einsum('ia,jab,ib->ji', W, Sx, W) + np.einsum('ja,iab,jb->ji', Xm, Sw, Xm)
+           + np.einsum('iab,jba->ji', Sw, Sx) + mu_var)
+    return float((M * (r ** 2 + var)).sum())
+
+
+@pytest.mark.parametrize('masked', [False, True], ids=['full', 'missing'])
+def test_expected_squared_error_matches_brute_force(masked, monkeypatch):
+    # the noise variance and the bound use sq, the expected squared error of the observed
+    # entries, expanded into sufficient statistics: checked at every iteration against the
+    # entry-by-entry expectation of the posterior passed to the bound
+    X, _, _ = planted(n=40, d=9, seed=2)
+    M = (np.random.default_rng(6).random(X.shape) > 0.3 if masked
+         else np.ones(X.shape, bool))
+    n, d = X.shape
+    calls = []
+    name = '_bound_missing' if masked else '_bound_full'
+    orig = getattr(VBPCA, name)
+
+    def spy(*args):
+        calls.append(args)
+        return orig(*args)
+
+    monkeypatch.setattr(VBPCA, name, staticmethod(spy))
+    fit_quiet(VBPCA(4, max_iter=6, init='random', random_state=0, dtype=np.float64), X,
+              mask=M if masked else None)
+    assert len(calls) == 6
+    for args in calls:
+        if masked:
+            _, k, _, sq, Sx, Xm, Sw, W, _, mu, mu_var, _ = args
+        else:
+            _, _, k, _, sq, Sx, Xm, Sw, W, _, mu, mu_var, _ = args
+            Sx, Sw = np.broadcast_to(Sx, (n, k, k)), np.broadcast_to(Sw, (d, k, k))
+            mu_var = np.full(d, mu_var)
+        np.testing.assert_allclose(sq, _brute_force_sq(X, M, W, Sw, Xm, Sx, mu, mu_var),
+                                   rtol=1e-9)
+
+
+@pytest.mark.parametrize('masked', [False, True], ids=['full', 'missing'])
+def test_constant_data_keeps_one_collapsed_component(masked):
+    # no variance: the floors fall back to unit variance (else v = 0), and ARD collapses every
+    # column, of which the model still keeps one
+    X = np.tile(np.arange(6.0), (10, 1))
+    mask = np.random.default_rng(0).random(X.shape) > 0.2 if masked else None
+    est = fit_quiet(VBPCA(3), X, mask=mask)
+    assert est.n_components_ == 1 and est.components_.shape == (1, 6)
+    assert 0 < est.noise_variance_ < 1e-6
+    np.testing.assert_allclose(est.mean_, np.arange(6.0), atol=1e-6)
+    assert np.isfinite(est.transform(X)).all()
+
+
+def test_a_feature_never_observed_follows_the_mean_prior():
+    rng = np.random.default_rng(0)
+    X = rng.normal(size=(40, 3)) @ rng.normal(size=(3, 10)) + 0.1 * rng.normal(size=(40, 10)) + 2
+    M = rng.random(X.shape) > 0.2
+    M[:, 4] = False
+    est = VBPCA(5, dtype=np.float64, mean_prior_variance=2.0).fit(np.where(M, X, np.nan), mask=M)
+    assert est.n_components_ == RANK and np.isfinite(est.noise_variance_)
+    assert est.mean_[4] == 0 and est.mean_variance_[4] == 2.0
+    assert np.isfinite(est.transform(np.where(M, X, np.nan), mask=M)).all()
+
+
+def test_masked_posterior_counts_each_samples_observed_entries():
+    est, X, _, _ = _posterior_case()
+    M = np.random.default_rng(7).random(X.shape) > 0.4
+    k = est.n_components_
+    W = est.components_.T.astype(np.float64)
+    Sw = est.loading_covariance_.astype(np.float64)
+    v = est.noise_variance_
+    got_m, got_S = est.posterior(np.where(M, X, np.nan), mask=M)
+    for j in range(len(X)):
+        o = M[j]
+        S = np.linalg.inv(np.eye(k) + (W[o].T @ W[o] + o.sum() * Sw) / v)
+        np.testing.assert_allclose(got_S[j], S, rtol=1e-6, atol=1e-10)
+        np.testing.assert_allclose(got_m[j], S @ W[o].T @ (X[j, o] - est.mean_[o]) / v,
+                                   rtol=1e-6, atol=1e-8)
+
+
+def test_masked_score_samples_is_the_marginal_of_the_observed_entries():
+    X, _, _ = planted(n=30, d=12)
+    est = VBPCA(n_components=RANK, dtype=np.float64).fit(X)
+    est.loading_covariance_ = np.zeros_like(est.loading_covariance_)
+    M = np.random.default_rng(8).random(X.shape) > 0.3
+    W = est.components_.T.astype(np.float64)
+    want = []
+    for j in range(len(X)):
+        o = M[j]
+        C = W[o] @ W[o].T + est.noise_variance_ * np.eye(o.sum())
+        r = X[j, o] - est.mean_[o]
+        want.append(-0.5 * (o.sum() * np.log(2 * np.pi) + np.linalg.slogdet(C)[1]
+                            + r @ np.linalg.solve(C, r)))
+    np.testing.assert_allclose(est.score_samples(np.where(M, X, np.nan), mask=M), want,
+                               rtol=1e-6)
+
+
+def test_fit_takes_bool_data_as_numbers_and_refuses_object_arrays():
+    X = np.random.default_rng(0).random((30, 8)) > 0.5
+    a = fit_quiet(VBPCA(3, dtype=np.float64), X)
+    b = fit_quiet(VBPCA(3, dtype=np.float64), X.astype(np.float64))
+    np.testing.assert_array_equal(a.components_, b.components_)
+    # the query methods cast an object array of numbers; fit takes no object arrays
+    with pytest.raises(ValueError, match='X must hold real numbers, got dtype object'):
+        VBPCA(3).fit(X.astype(np.float64).astype(object))
+
+
+@pytest.mark.parametrize('n,d', [(3, 10), (5, 40)])
+def test_n_samples_give_at_most_n_minus_1_components(n, d):
+    # centred, n samples span n - 1 dimensions: a random start with n columns kept n
+    X = np.random.default_rng(0).normal(size=(n, d))
+    est = fit_quiet(VBPCA(8, init='random', random_state=0, dtype=np.float64), X)
+    assert est.n_components_ == n - 1

@@ -119,7 +119,8 @@ def _labels(values, path) -> np.ndarray:
     else:
         bad = np.zeros(v.shape, bool)
     with np.errstate(invalid='ignore'):
-        bad |= (v < 0) | (v > np.iinfo(np.uint32).max)
+        # a float64 bound: in float32 the uint32 maximum rounds to 2^32, which then passed
+        bad |= (v < 0) | (v >= np.float64(2 ** 32))
     if bad.any():
         raise PCDError(f'{path}: label field has {int(bad.sum())} value(s) that are not integers '
                        f'in [0, 2^32), e.g. {v[bad][0]!r}')
