@@ -1385,6 +1385,9 @@ def test_coarse_to_fine_keeps_both_modes_and_scores_them_exactly(pose_case):
         assert len(yaws) == 2 * (2 * int(round(5 / step)) + 1)
         centres = deg.reshape(2, -1)[:, len(yaws) // 4]
         assert np.allclose((centres + 2.5) % 5 - 2.5, 0, atol=1e-6), deg
+    # a coarse step no larger than the step: every yaw is scored
+    _, _, per = bank.engine.search(g, 5.0, coarse_step_deg=5.0, exhaustive=False)
+    assert len(per[0][0]) == 72
     est = bank.estimate(g, exhaustive=False)
     ys = [h.yaw for h in est.hypotheses if h.label == est.label]
     assert len(ys) >= 2
@@ -1415,6 +1418,12 @@ def test_top_yaw_modes_separates_by_angle():
     scores = np.array([9, 10, 8, 7, 6, 5, 4, 3], dtype=float)
     assert top_yaw_modes(yaws, scores, 3) == [1, 3]        # 359 and 1 are 12-13 deg from 11
     assert top_yaw_modes(yaws, scores, 3, min_sep_deg=5) == [1, 3, 6]
+    # modes exactly min_sep_deg apart are separated, whatever the rounding of their radians
+    deg = np.deg2rad(np.arange(360.0))
+    for a in (0, 58, 100, 300):
+        s = np.zeros(360)
+        s[a], s[(a + 20) % 360] = 2.0, 1.0
+        assert top_yaw_modes(deg, s, 2, min_sep_deg=20) == [a, (a + 20) % 360]
     # on a regular circular grid the index-based top_modes picks what it picks among the
     # grid's local maxima
     from beo_ros.core.inference import top_modes
@@ -2759,6 +2768,11 @@ def test_likelihood_features_are_per_voxel(tiny):
         assert ex['n_known'] == np.count_nonzero(part >= 0)
         assert f['loglik'] == pytest.approx(ex['loglik'] / ex['n_known'], rel=1e-9)
         assert f['coarse_loglik'] == pytest.approx(pooled[c] / (N ** 3 / 8), rel=1e-9)
+        # the hypotheses: the 3 best stage-1 modes
+        assert len(per[c]['hypotheses']) == 1   # a given yaw
+    _, per = tiny.features(part)
+    for c in range(eng.C):
+        assert len(per[c]['hypotheses']) == 3
 
 
 def test_features_of_a_prediction_with_no_occupied_known_voxel(tiny):
@@ -2788,6 +2802,11 @@ def test_predictive_variance_formula(tiny):
     m = ex['m']
     want = ((W @ S) * W).sum(axis=1) + eng.v[c] + m @ Sw @ m + np.trace(Sw @ S) + mu_var
     np.testing.assert_allclose(var, want, rtol=1e-5)
+    # the occupancy probability: P(occupancy >= 0.5) under N(mean, var)
+    from scipy.stats import norm
+    prob, _, _ = eng.predictive(ex, c, Sw, mu_var)
+    np.testing.assert_allclose(prob, norm.sf(0.5, mean.astype(np.float64), np.sqrt(want)),
+                               rtol=1e-4, atol=1e-6)
     np.testing.assert_allclose(mean, W @ m + eng.mu[c], rtol=1e-5, atol=1e-6)
 
 
