@@ -1385,6 +1385,9 @@ def test_coarse_to_fine_keeps_both_modes_and_scores_them_exactly(pose_case):
         assert len(yaws) == 2 * (2 * int(round(5 / step)) + 1)
         centres = deg.reshape(2, -1)[:, len(yaws) // 4]
         assert np.allclose((centres + 2.5) % 5 - 2.5, 0, atol=1e-6), deg
+    # a coarse step no larger than the step: every yaw is scored
+    _, _, per = bank.engine.search(g, 5.0, coarse_step_deg=5.0, exhaustive=False)
+    assert len(per[0][0]) == 72
     est = bank.estimate(g, exhaustive=False)
     ys = [h.yaw for h in est.hypotheses if h.label == est.label]
     assert len(ys) >= 2
@@ -1415,6 +1418,12 @@ def test_top_yaw_modes_separates_by_angle():
     scores = np.array([9, 10, 8, 7, 6, 5, 4, 3], dtype=float)
     assert top_yaw_modes(yaws, scores, 3) == [1, 3]        # 359 and 1 are 12-13 deg from 11
     assert top_yaw_modes(yaws, scores, 3, min_sep_deg=5) == [1, 3, 6]
+    # modes exactly min_sep_deg apart are separated, whatever the rounding of their radians
+    deg = np.deg2rad(np.arange(360.0))
+    for a in (0, 58, 100, 300):
+        s = np.zeros(360)
+        s[a], s[(a + 20) % 360] = 2.0, 1.0
+        assert top_yaw_modes(deg, s, 2, min_sep_deg=20) == [a, (a + 20) % 360]
     # on a regular circular grid the index-based top_modes picks what it picks among the
     # grid's local maxima
     from beo_ros.core.inference import top_modes
@@ -1769,6 +1778,53 @@ def test_exact_probes_recover_yaws_the_pooled_optimum_misses(pose_case):
     assert np.median(with_) < np.median(without) - 1.0, (np.round(without, 1), np.round(with_, 1))
     assert np.mean(with_ <= 5) >= np.mean(without <= 5) + 0.25
     assert (with_ < without - 1).sum() > 3 * (with_ > without + 1).sum()
+
+
+@pytest.mark.parametrize('landscape, window, want', [
+    ({d: -(d - 4) ** 2 for d in range(-20, 21)}, 10.0, 4),      # up to the peak
+    ({d: -(d + 3) ** 2 for d in range(-20, 21)}, 10.0, -3),     # nothing up: down
+    ({d: -(d - 8) ** 2 for d in range(-20, 21)}, 5.0, 5),       # at most +-window
+    # equal values (the plateaus of the nearest-neighbour rotation) are walked across
+    ({**{d: -10.0 for d in range(-20, 21)}, 0: 0, 1: 0, 2: 0, 3: 1, 4: 0.5}, 10.0, 3),
+    # downward only when upward found nothing better
+    ({**{d: -10.0 for d in range(-20, 21)}, 0: 0, 1: 1, 2: 0.5, -1: 2, -2: 3}, 10.0, 1),
+])
+def test_climb_of_the_exact_likelihood(tiny, monkeypatch, landscape, window, want):
+    # the climb of ModelBank._climb on a made-up likelihood of whole degrees
+    def exact(obs, c, yaw, per_c):
+        return {'loglik': float(landscape[int(round(np.rad2deg(yaw)))])}
+
+    monkeypatch.setattr(tiny, '_exact', exact)
+    best = tiny._climb(None, 0, {'yaw': 0.0, 'exact': exact(None, 0, 0.0, None)}, 1.0, window)
+    assert np.rad2deg(best['yaw']) == pytest.approx(want)
+    assert best['exact']['loglik'] == landscape[want]
+
+
+def test_stage2_rescores_the_windows_around_the_best_stage1_modes(tiny, monkeypatch):
+    # _refine re-scores the class with all its components every stage2_step_deg within
+    # +-stage2_window_deg of its stage2_modes best stage-1 modes, and nowhere else
+    from beo_ros.core.inference import top_yaw_modes
+    _, part = views()
+    _, per = tiny.features(part)
+    eng = tiny.engine
+    calls = []
+    real = eng.scores
+
+    def scores(pooled, yaws, c=None, full=False, rows=None):
+        if full:
+            calls.append((np.rad2deg(np.asarray(yaws)), rows))
+        return real(pooled, yaws, c, full, rows)
+
+    monkeypatch.setattr(eng, 'scores', scores)
+    sy, sl = per[1]['searched']
+    modes = np.rad2deg(sy[top_yaw_modes(sy, sl, 2)])
+    assert yaw_error(np.deg2rad(modes[0]), np.deg2rad(modes[1])) > np.deg2rad(25)
+    tiny._refine(part, 1, per[1], 2.0, 0.0, 2.0, stage2_modes=2, stage2_window_deg=10.0)
+    (yaws, rows), = calls
+    assert len(yaws) == 180
+    got = np.sort(yaws[rows])
+    want = np.unique(np.round((modes[:, None] + np.arange(-10, 11, 2)) % 360, 6))
+    np.testing.assert_allclose(got, want, atol=1e-6)
 
 
 def test_shipped_model_answers_unknown_for_dense_clutter():
@@ -2408,6 +2464,59 @@ def test_stratified_folds_deal_every_class_evenly_and_repeat_with_the_seed():
                    for s in range(5, 10))
 
 
+def test_hypothesis_quality_is_the_yaw_error_and_the_completion_iou_in_the_observed_frame(tiny):
+    # the out-of-fold records: per class hypothesis, the yaw error and the IoU of its
+    # completion (the prediction turned into the observed frame by the hypothesis' yaw, the
+    # observed voxels kept) with the rotated truth
+    from beo_ros.core.synthetic import random_partial_view
+    from beo_ros.core.training import _hypothesis_quality
+    from _shapes import asymmetric_shapes
+    X, _ = asymmetric_shapes(1, np.random.default_rng(3))
+    occ = X[0].reshape((N,) * 3) > 0.5
+    grid, yaw, _, _, rotated = random_partial_view(occ, np.random.default_rng(2))
+    assert 0.3 < yaw_error(yaw, 0.0) < np.pi - 0.3
+    per = [dict(yaw=yaw, exact=dict(pred=occ.ravel().astype(np.float32))),   # the truth
+           dict(yaw=yaw - 0.5, exact=dict(pred=np.zeros(N ** 3, np.float32)))]   # nothing
+    q = _hypothesis_quality(tiny.engine, grid, per, yaw, rotated)
+    np.testing.assert_allclose(q['yaw_err'], [0.0, 0.5], atol=1e-12)
+    assert q['iou'][0] == 1.0
+    assert q['iou'][1] == pytest.approx((grid == 1).sum() / rotated.sum())
+    assert 0 < q['iou'][1] < 1
+
+
+def test_out_of_fold_class_models_never_see_the_objects_they_score(monkeypatch):
+    # each fold's class models are fitted on the other folds' objects only, and every object
+    # is scored once, by the models of its own fold
+    import beo_ros.core.training as training
+    from beo_ros.core.grid import GridSpec
+    X, y, names = primitive_shapes(N, 3, np.random.default_rng(0))
+    index = {x.tobytes(): i for i, x in enumerate(X)}
+    assert len(index) == len(X)
+    log = []
+    real_fit, real_views = training.fit_class_models, training.view_features
+
+    def fit(Xf, *a, **k):
+        log.append(('fit', {index[x.tobytes()] for x in Xf}))
+        return real_fit(Xf, *a, **k)
+
+    def views_of(bank, Xv, *a, **k):
+        log.append(('view', index[Xv[0].tobytes()]))
+        return real_views(bank, Xv, *a, **k)
+
+    monkeypatch.setattr(training, 'fit_class_models', fit)
+    monkeypatch.setattr(training, 'view_features', views_of)
+    training._out_of_fold_rows(X, y, names, GridSpec(size=N), 2, None, None, 2, 1, 3, 0, False)
+    scored, trained = [], None
+    for kind, what in log:
+        if kind == 'fit':
+            trained = what
+            assert len(what) == len(X) - 2   # 3 folds of 2 objects per class
+        else:
+            assert what not in trained
+            scored.append(what)
+    assert sorted(scored) == list(range(len(X)))
+
+
 def test_cholesky_terms_match_numpy_and_refuse_an_indefinite_matrix():
     from beo_ros.core.inference import cholesky_terms
     rng = np.random.default_rng(4)
@@ -2645,6 +2754,38 @@ def test_features_equal_a_direct_computation_at_yaw_zero(tiny):
         assert f['dt_error'] == pytest.approx(np.sqrt(np.mean(edt[p & known] ** 2)), rel=1e-5)
 
 
+def test_likelihood_features_are_per_voxel(tiny):
+    # loglik: the exact log-likelihood per known voxel; coarse_loglik: the stage-1 pooled
+    # log-likelihood per pooled cell (N^3 / 8 of them), both of the class's best yaw
+    from beo_ros.core.inference import FEATURE_NAMES
+    _, part = views()
+    eng = tiny.engine
+    feats, per = tiny.features(part, yaw=0.4)
+    pooled = eng.scores(eng.pooled(part), [0.4])[0]
+    for c in range(eng.C):
+        f = dict(zip(FEATURE_NAMES, feats[c]))
+        ex = eng.exact(part, c, 0.4)
+        assert ex['n_known'] == np.count_nonzero(part >= 0)
+        assert f['loglik'] == pytest.approx(ex['loglik'] / ex['n_known'], rel=1e-9)
+        assert f['coarse_loglik'] == pytest.approx(pooled[c] / (N ** 3 / 8), rel=1e-9)
+        # the hypotheses: the 3 best stage-1 modes
+        assert len(per[c]['hypotheses']) == 1   # a given yaw
+    _, per = tiny.features(part)
+    for c in range(eng.C):
+        assert len(per[c]['hypotheses']) == 3
+
+
+def test_features_of_a_prediction_with_no_occupied_known_voxel(tiny):
+    # no predicted-occupied known voxel: no distance to average, the dt error is the grid size
+    # (as far as anything can be), and recall 0
+    _, part = views()
+    eng = tiny.engine
+    ex = dict(eng.exact(part, 0, 0.0))
+    ex['pred'] = np.zeros_like(ex['pred'])
+    f = eng.features(ex, 0, 0.0, np.ones(eng.d, np.float32))
+    assert f[5] == eng.n and f[3] == 0.0 and f[4] == 0.0
+
+
 def test_predictive_variance_formula(tiny):
     # var_i = w_i^T S w_i + v + m^T Sw m + tr(Sw S) + mu_var_i, S = G^-1 (loadings, noise, the
     # loadings' posterior covariance Sw and the mean's variance)
@@ -2661,6 +2802,11 @@ def test_predictive_variance_formula(tiny):
     m = ex['m']
     want = ((W @ S) * W).sum(axis=1) + eng.v[c] + m @ Sw @ m + np.trace(Sw @ S) + mu_var
     np.testing.assert_allclose(var, want, rtol=1e-5)
+    # the occupancy probability: P(occupancy >= 0.5) under N(mean, var)
+    from scipy.stats import norm
+    prob, _, _ = eng.predictive(ex, c, Sw, mu_var)
+    np.testing.assert_allclose(prob, norm.sf(0.5, mean.astype(np.float64), np.sqrt(want)),
+                               rtol=1e-4, atol=1e-6)
     np.testing.assert_allclose(mean, W @ m + eng.mu[c], rtol=1e-5, atol=1e-6)
 
 
@@ -2671,6 +2817,39 @@ def test_completion_variance_includes_the_class_predictive_variance(tiny):
     e = tiny.estimate(part, yaw=0.0)
     assert e.variance[part < 0].min() >= min(m.noise_variance for m in tiny.models)
     assert (e.variance[part >= 0] == 0).all()
+
+
+def test_completion_is_the_probability_weighted_mixture_of_the_likely_classes(tiny):
+    # Bayesian model averaging over the classes of probability >= min_prob (at most
+    # max_classes), weights renormalised; the variance is the mixture's (predictive variances
+    # plus the spread of the class means); observed voxels are kept, with no variance
+    _, part = views()
+    eng = tiny.engine
+    assert tiny.occupancy_calibration is None
+    _, per = tiny.features(part, yaw=0.4)
+    for c in range(eng.C):
+        eng.add_prediction(per[c]['exact'], part, c)
+    obs = []
+    for c, m in enumerate(tiny.models):
+        p, mean, var = eng.predictive(per[c]['exact'], c, m.loading_covariance.astype(np.float64),
+                                      m.mean_variance)
+        obs.append([eng.to_observed(a, 0.4).reshape(part.shape).astype(np.float64)
+                    for a in (p, mean, var)])
+    hidden, seen = part < 0, part >= 0
+    assert hidden.any()
+    for probs, w in (([0.6, 0.2], [0.75, 0.25]), ([0.9, 0.1], [0.9, 0.1]),
+                     ([0.95, 0.05], [1.0, 0.0]), ([0.02, 0.03], [0.0, 1.0])):
+        prob, var = tiny._completion(part, per, np.array(probs), int(np.argmax(probs)))
+        want_p = w[0] * obs[0][0] + w[1] * obs[1][0]
+        m1 = w[0] * obs[0][1] + w[1] * obs[1][1]
+        m2 = sum(wc * (o[2] + o[1] ** 2) for wc, o in zip(w, obs))
+        np.testing.assert_allclose(prob[hidden], want_p[hidden], rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(var[hidden], (m2 - m1 ** 2)[hidden], rtol=1e-4, atol=1e-6)
+        np.testing.assert_array_equal(prob[seen], (part == 1)[seen])
+        assert (var[seen] == 0).all()
+    # max_classes: only the most probable
+    prob, _ = tiny._completion(part, per, np.array([0.6, 0.4]), 0, max_classes=1)
+    np.testing.assert_allclose(prob[hidden], obs[0][0][hidden], rtol=1e-5, atol=1e-6)
 
 
 def test_completion_of_a_rotated_partial_view_matches_the_shape(pose_case):

@@ -93,6 +93,36 @@ def test_training_rows_are_the_true_pose_and_its_turns(trained, monkeypatch):
     assert np.mean(match[turn == 0] > match[turn == 2]) > 0.9
 
 
+def test_training_views_are_turned_by_the_true_yaw_and_quarter_turns_with_a_small_jitter(
+        monkeypatch):
+    # turn t of a row: the view turned into the model's frame by its true yaw + t x 90 deg
+    # (counter-clockwise, as ModelBank._verify_turns asks), within +-5 deg of jitter
+    import beo_ros.core.training as training
+    from beo_ros.core.training import verifier_training_set
+    X, _ = asymmetric_shapes(2, np.random.default_rng(0))
+    log = []
+    real_view = training.random_partial_view
+
+    def view(occ, rng):
+        out = real_view(occ, rng)
+        log.append(out[1])
+        return out
+
+    def turned(grid, yaws):
+        log.append(np.asarray(yaws, dtype=np.float64))
+        return np.zeros((len(yaws), 3 * (N // 2) ** 3), np.float32)
+
+    monkeypatch.setattr(training, 'random_partial_view', view)
+    monkeypatch.setattr(training, 'turned_features', turned)
+    _, turn, _ = verifier_training_set(X, N, views=3, seed=0)
+    assert len(log) == 2 * len(X) * 3
+    off = np.array([np.rad2deg((yaws - yaw - np.arange(4) * np.pi / 2 + np.pi) % (2 * np.pi)
+                               - np.pi) for yaw, yaws in zip(log[::2], log[1::2])])
+    assert np.abs(off).max() <= 5.0
+    assert np.abs(off).max() > 2.0   # jittered
+    np.testing.assert_array_equal(turn, np.tile(np.arange(4), len(off)))
+
+
 def test_exported_trees_give_scikit_learns_probabilities(trained):
     from sklearn.ensemble import HistGradientBoostingClassifier
     X, y, F, turn, obj, v = trained
@@ -229,6 +259,53 @@ def test_estimate_takes_the_turn_with_the_best_combined_score(bank, monkeypatch)
     assert bank.estimate(g).yaw == pytest.approx(plain.yaw)
     # a given yaw is never turned
     assert bank.estimate(g, yaw=0.3).yaw == pytest.approx(0.3)
+
+
+def _view():
+    X, _ = asymmetric_shapes(1, np.random.default_rng(9))
+    return random_partial_view(X[0].reshape((N,) * 3) > 0.5, np.random.default_rng(2))[0]
+
+
+def test_the_verifiers_rows_are_the_counter_clockwise_quarter_turns(bank, monkeypatch):
+    # row t of the verifier's features is the refined yaw + t x 90 deg: a verifier sure of
+    # row 1 turns the yaw by +90 deg, of row 3 by -90 deg
+    g = _view()
+    plain = bank.estimate(g, verify=False)
+    monkeypatch.setattr(bank.verifier, 'weight', 1e9)
+    for row, turn in ((1, 90.0), (3, -90.0)):
+        def sure(c, F, row=row):
+            lp = np.full((len(F), 4), np.log(1e-6))
+            lp[row, 0] = np.log(1 - 3e-6)
+            return lp
+        monkeypatch.setattr(bank.verifier, 'predict_log_proba', sure)
+        got = bank.estimate(g).yaw
+        assert np.rad2deg(yaw_error(got, plain.yaw + np.deg2rad(turn))) < 1e-6
+
+
+def test_a_turn_wins_by_likelihood_plus_weight_times_log_probability(bank, monkeypatch):
+    # the score of turn t: exact log-likelihood + weight x log P(turn 0 | row t); a turn of a
+    # lower likelihood wins just above the weight that makes up the difference, not below
+    g = _view()
+    _, per = bank.features(g)
+    c = int(np.argmax([p['exact']['loglik'] for p in per]))
+    per_c = bank._refine(g, c, per[c])
+    y0, ll0 = per_c['yaw'], per_c['exact']['loglik']
+    ll = [bank.engine.exact(g, c, y0 + t * np.pi / 2, with_prediction=False)['loglik']
+          for t in range(4)]
+    t = int(np.argmin(ll))   # a turn of a lower likelihood than the refined yaw's
+    assert ll[t] < ll0
+    logp = np.log(np.full(4, 0.01))
+    logp[0], logp[t] = np.log(0.3), np.log(0.6)
+    monkeypatch.setattr(bank.verifier, 'predict_log_proba',
+                        lambda c, F: np.stack([logp, np.zeros(4), np.zeros(4), np.zeros(4)], 1))
+    w = (ll0 - ll[t]) / (logp[t] - logp[0])
+    monkeypatch.setattr(bank.verifier, 'weight', 1.01 * w)
+    out = bank._verify_turns(g, c, dict(per_c))
+    assert out['turned'] == t and out['yaw'] == pytest.approx(y0 + t * np.pi / 2)
+    assert out['exact']['loglik'] == pytest.approx(ll[t])
+    monkeypatch.setattr(bank.verifier, 'weight', 0.99 * w)
+    out = bank._verify_turns(g, c, dict(per_c))
+    assert 'turned' not in out and out['yaw'] == y0
 
 
 def test_the_real_verifier_does_not_hurt_on_asymmetric_shapes(bank):
