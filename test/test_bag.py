@@ -1243,3 +1243,55 @@ def test_the_clock_range_of_a_bag_is_that_of_its_last_stamp(ros_env_context, tmp
     assert f'({2**63 - 1} ns)' in str(e.value), e.value
     stats = bag.replay(tmp_path / 'edge', node, all_topics=True, rate=0, clock_hz=10.0)
     assert stats.messages == 2 and stats.clock_messages == 2
+
+
+def test_detect_storage_reads_a_quoted_storage_identifier(tmp_path):
+    for quoted in ("'mcap'", '"sqlite3"'):
+        (tmp_path / 'metadata.yaml').write_text(
+            f'rosbag2_bagfile_information:\n  storage_identifier: {quoted}\n')
+        assert bag.detect_storage(tmp_path) == quoted.strip('\'"')
+
+
+def test_a_connection_without_stored_qos_is_reliable_and_not_latched():
+    """A bag that stores no offered QoS profiles for a topic (older recorders)."""
+    from types import SimpleNamespace
+    for ext in (None, SimpleNamespace(offered_qos_profiles=[])):
+        conn = SimpleNamespace(ext=ext)
+        assert bag.recorded_reliable(conn) and not bag.recorded_latched(conn)
+
+
+@pytest.mark.parametrize('storage', bag.STORAGES)
+def test_info_of_a_bag_without_messages_starts_at_0(tmp_path, storage):
+    with bag.BagWriter(tmp_path / 'b', storage) as w:
+        w.add_topic('/s', 'std_msgs/msg/String')
+    info = bag.bag_info(tmp_path / 'b')
+    assert (info['start_ns'], info['duration_s'], info['message_count']) == (0, 0.0, 0)
+
+
+def test_an_empty_write_ahead_log_beside_a_db3_holds_nothing_and_is_not_refused(tmp_path):
+    """A -wal file of 0 bytes (a WAL-mode database after its checkpoint) is no sign of
+    messages missing from the database."""
+    with bag.BagWriter(tmp_path / 'b', 'sqlite3') as w:
+        w.write('/s', String(data='x'), 10)
+    db = bag._bag_file(tmp_path / 'b')
+    db.with_name(db.name + '-wal').write_bytes(b'')
+    assert bag.storage.unmerged_wal(tmp_path / 'b') is None
+    assert [t for _, _, t, _ in bag.read_bag(tmp_path / 'b')] == [10]
+
+
+def test_an_mcap_file_of_its_magic_only_is_refused_as_without_footer(tmp_path):
+    f = tmp_path / 'm.mcap'
+    f.write_bytes(bag.MCAP_MAGIC)
+    with pytest.raises(ValueError, match='no mcap footer'):
+        list(bag.read_bag(f))
+
+
+def test_a_single_file_bag_whose_metadata_does_not_read_gets_rosbags_own_error(tmp_path):
+    """The list of a bag's files is for split recordings; with one file rosbags' error says it."""
+    with bag.BagWriter(tmp_path / 'b', 'sqlite3') as w:
+        w.write('/s', String(data='x'), 10)
+    meta = tmp_path / 'b' / 'metadata.yaml'
+    meta.write_text(meta.read_text()[:40] + '\n  - [')
+    with pytest.raises(Exception) as e:
+        list(bag.read_bag(tmp_path / 'b'))
+    assert 'the files of the bag' not in str(e.value)

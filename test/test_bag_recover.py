@@ -577,3 +577,104 @@ def test_an_mcap_file_without_its_footer_is_refused_naming_beo_bag_recover(
         assert bag.replay_main([str(target), '--all-topics', '--rate', '0']) == 2
         assert capsys.readouterr().err.endswith(f'beo-replay: cannot read {target}: {why}\n')
     assert bag.recover_bag(file, tmp_path / 'new')['topics'] == {'/a': 1}
+
+
+def test_an_mcap_file_of_its_header_only_recovers_nothing_and_one_without_a_header_is_refused(
+        tmp_path):
+    """Cut right after its header record (all of it there): an empty bag, nothing lost. A
+    record other than a header after the magic (here a footer) is no mcap file to recover."""
+    data, _ = _three_chunk_bag(tmp_path, close=False)
+    second = _records(data)[1][1]   # the header ends where the next record starts
+    src = tmp_path / 'head.mcap'
+    src.write_bytes(bytes(data[:second]))
+    assert bag.recover_bag(src, tmp_path / 'new') == {
+        'messages': 0, 'topics': {}, 'storage': 'mcap', 'lost_bytes': 0}
+    src.write_bytes(bag.MCAP_MAGIC + b'\x02' + bytes(8))
+    with pytest.raises(ValueError, match='cut off before the end of its header record'):
+        bag.recover_bag(src, tmp_path / 'new2')
+    assert not (tmp_path / 'new2').exists()
+
+
+def test_a_whole_record_at_the_end_of_a_killed_mcap_file_is_not_lost(tmp_path):
+    """A record of no body (9 bytes: opcode and length) that ends the file is whole."""
+    data, _ = _three_chunk_bag(tmp_path, close=False)
+    data_end = [pos for op, pos in _records(data) if op == 0x0f][0]
+    src = tmp_path / 'tail.mcap'   # killed after its data: no data end, no summary
+    src.write_bytes(bytes(data[:data_end]) + b'\x0c' + bytes(8))   # an (empty) metadata record
+    summary = bag.recover_bag(src, tmp_path / 'new')
+    assert summary['messages'] == 12 and summary['lost_bytes'] == 0
+
+
+def test_a_record_of_an_unknown_opcode_ends_what_is_recovered(tmp_path):
+    """The third chunk's opcode flipped from 0x06 to 0x16 (none of mcap's): damage, its bytes
+    and all after them are lost, as counted in lost_bytes."""
+    data, chunks = _three_chunk_bag(tmp_path, close=False)
+    data[chunks[2]] ^= 0x10
+    src = tmp_path / 'op.mcap'
+    src.write_bytes(bytes(data))
+    summary = bag.recover_bag(src, tmp_path / 'new')
+    assert summary['messages'] == 8 and summary['lost_bytes'] == len(data) - chunks[2]
+
+
+@pytest.mark.parametrize('storage', bag.STORAGES)
+def test_the_recovered_bag_keeps_each_topics_recorded_qos(tmp_path, storage):
+    """Reliable or best effort, latched or not: as the source recorded them."""
+    from rosbags.rosbag2 import Reader
+    from std_msgs.msg import String
+    src = tmp_path / 'qos'
+    qos = {'/rel': (True, False), '/be': (False, False), '/latched': (True, True)}
+    with bag.BagWriter(src, storage) as w:
+        for topic, (reliable, latched) in qos.items():
+            w.add_topic(topic, 'std_msgs/msg/String', reliable=reliable, transient_local=latched)
+            w.write(topic, String(data=topic), 10)
+    bag.recover_bag(src, tmp_path / 'new')
+    with Reader(tmp_path / 'new') as r:
+        assert {c.topic: (bag.recorded_reliable(c), bag.recorded_latched(c))
+                for c in r.connections} == qos
+
+
+def test_a_damaged_message_of_a_type_beo_ros_does_not_know_ends_what_is_recovered(tmp_path):
+    """Its CDR bytes are checked against the bag's own definition (the installed typestore
+    has no such type)."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+    store = get_typestore(Stores.EMPTY)
+    store.register(get_types_from_msg('int32 a\n', 'my_pkg/msg/Thing'))
+    src = tmp_path / 'other'
+    with bag.BagWriter(src, 'mcap') as w:
+        w.add_topic('/t', 'my_pkg/msg/Thing', msgdef='int32 a\n',
+                    rihs01=store.hash_rihs01('my_pkg/msg/Thing'))
+        for batch in range(3):   # a chunk per commit
+            for i in range(2):
+                w.write('/t', bytes([0, 1, 0, 0, i, 0, 0, 0]), 10 * batch + i)
+            w.commit()
+    data = bytearray(bag._bag_file(src).read_bytes()[:-37])   # never closed
+    chunks = [pos for op, pos in _records(data) if op == 0x06]
+    assert len(chunks) == 3
+    # the third chunk's first message: its CDR header's second byte (see the test above)
+    data[chunks[2] + 9 + 28 + 4 + 8 + 9 + 22 + 1] ^= 0xFF
+    (tmp_path / 'cut.mcap').write_bytes(bytes(data))
+    summary = bag.recover_bag(tmp_path / 'cut.mcap', tmp_path / 'new')
+    assert summary['messages'] == 4
+    assert [t for _, _, t, _ in bag.read_bag(tmp_path / 'new')] == [0, 1, 10, 11]
+
+
+def test_a_new_bag_directory_that_another_process_made_meanwhile_is_not_removed(tmp_path,
+                                                                              monkeypatch):
+    """recover_bag removes the new bag after a failure only if it made its directory: one
+    that appeared between the check that it does not exist and the open is someone else's."""
+    from std_msgs.msg import String
+    src = tmp_path / 'src'
+    with bag.BagWriter(src, 'mcap') as w:
+        w.write('/s', String(data='x'), 10)
+    dst = tmp_path / 'new'
+    real_open = bag.BagWriter.open
+
+    def racing_open(self):
+        dst.mkdir()
+        (dst / 'theirs').write_text('keep')
+        return real_open(self)
+
+    monkeypatch.setattr(bag.BagWriter, 'open', racing_open)
+    with pytest.raises(bag.BagWriteError, match='exists already'):
+        bag.recover_bag(src, dst)
+    assert (dst / 'theirs').read_text() == 'keep'

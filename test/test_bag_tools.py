@@ -710,3 +710,70 @@ def test_a_relative_bag_topic_is_type_checked_by_its_full_name(ros_env_context, 
                                        r'std_msgs/msg/String\) and one topic plays in one type'):
         bag.replay(t, player, all_topics=True, rate=0)
     assert bag.replay(t, player, topics='/one', rate=0).messages == 1
+
+
+def _fake_replay_node():
+    return SimpleNamespace(get_topic_names_and_types=lambda: [],
+                           resolve_topic_name=lambda t: t if t.startswith('/') else '/' + t)
+
+
+def test_replay_times_messages_by_stamp_over_rate(tmp_path, monkeypatch):
+    """rate 4: a message 10 ms after the first (bag time) is due 2.5 ms after the pass began."""
+    write_test_bag(tmp_path / 'b', 'sqlite3', n=3, extra_topic=False)   # stamps 10 ms apart
+    monkeypatch.setattr(bag.player, '_publisher',
+                        lambda node, msgtype, topic, qos, depth, latched=False:
+                        FakePublisher(topic, depth))
+    deadlines = []
+
+    def no_sleep(deadline, stop, tick=None, period=0.05):
+        deadlines.append(deadline)
+        return True
+    monkeypatch.setattr(bag.player, '_sleep_until', no_sleep)
+    bag.replay(tmp_path / 'b', _fake_replay_node(), rate=4.0)
+    assert np.allclose(np.subtract(deadlines, deadlines[0]), [0, 0.0025, 0.005])
+
+
+def test_wait_for_subscribers_counts_each_topics_subscribers_and_waits_for_clock(monkeypatch):
+    """wait_subscribers=2 with one subscriber times out; with the data topics matched and no
+    /clock subscriber, the wait lasts CLOCK_GRACE_S more (a use_sim_time node may be starting)."""
+    stats = bag.ReplayStats(bag='b', storage='sqlite3', rate=1.0)
+    pubs = {'/a': FakePublisher('/a', 10)}   # one subscriber
+    with pytest.raises(TimeoutError, match='for 2 subscriber'):
+        bag.player._wait_for_subscribers(pubs, None, 2, 0.05, None, stats)
+    monkeypatch.setattr(bag.player, 'CLOCK_GRACE_S', 0.2)
+    clock = SimpleNamespace(get_subscription_count=lambda: 0)
+    assert bag.player._wait_for_subscribers(pubs, clock, 1, 5.0, None, stats)
+    assert stats.waited_s >= 0.2
+
+
+def test_make_qos_of_a_latched_topic_is_reliable_even_when_best_effort_is_asked():
+    from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
+    q = bag.player.make_qos('best_effort', 5, latched=True)
+    assert (q.reliability, q.durability, q.depth) == (
+        ReliabilityPolicy.RELIABLE, DurabilityPolicy.TRANSIENT_LOCAL, 5)
+    assert bag.player.make_qos('best_effort').reliability == ReliabilityPolicy.BEST_EFFORT
+
+
+@pytest.mark.parametrize('rate', [float('inf'), -1.0, float('nan')])
+def test_replay_refuses_a_rate_that_is_not_a_finite_number_at_least_0(tmp_path, rate):
+    with pytest.raises(ValueError, match='rate must be a finite number >= 0'):
+        bag.replay(tmp_path / 'b', _fake_replay_node(), rate=rate)
+
+
+def test_a_bag_whose_last_stamp_is_the_last_clock_time_plays_with_the_clock(tmp_path,
+                                                                            monkeypatch):
+    """/clock holds MAX_NS itself: only a stamp past it is refused."""
+    from std_msgs.msg import String
+    from beo_ros.ros.bag.scenes import MAX_NS
+    with bag.BagWriter(tmp_path / 'b', 'sqlite3') as w:
+        w.write('/chatter', String(data='x'), MAX_NS)
+    monkeypatch.setattr(bag.player, '_publisher',
+                        lambda node, msgtype, topic, qos, depth, latched=False:
+                        FakePublisher(topic, depth))
+    stats = bag.replay(tmp_path / 'b', _fake_replay_node(), all_topics=True, rate=0,
+                       clock_hz=10.0)
+    assert stats.messages == 1 and stats.clock_messages == 1
+    with bag.BagWriter(tmp_path / 'c', 'sqlite3') as w:
+        w.write('/chatter', String(data='x'), MAX_NS + 1)
+    with pytest.raises(bag.player.ClockRangeError):
+        bag.replay(tmp_path / 'c', _fake_replay_node(), all_topics=True, rate=0, clock_hz=10.0)
