@@ -449,7 +449,7 @@ def test_bad_inputs_are_rejected_and_node_keeps_answering(harness):
     assert c['service_failures'] > 0 and c['rejected'] > c['service_failures'], c
 
 
-def test_parameters_validated_and_runtime_changeable(harness, tmp_path):
+def test_parameters_validated_and_runtime_changeable(harness, tmp_path, capfd):
     node = harness.node
 
     def set_(name, value):
@@ -507,6 +507,16 @@ def test_parameters_validated_and_runtime_changeable(harness, tmp_path):
     r = harness.call(harness.classify, harness.good_request())
     assert r.success, r.message
     assert node._diag_timer.timer_period_ns == 500_000_000   # re-timed
+    # ... from now: a longer period would otherwise begin after one more of the old ones
+    assert set_('diagnostics_period', 60.0).successful
+    assert node._diag_timer.time_until_next_call() > 30e9
+    # base_frame without tf2_ros (not on PyPI): said once set, up_vector is used
+    import beo_ros.ros.node as node_module
+    if node_module.tf2_ros is None:
+        capfd.readouterr()
+        assert set_('base_frame', 'base_link').successful
+        assert 'base_frame is set but tf2_ros is not installed' in capfd.readouterr().err
+        assert set_('base_frame', '').successful
     # min_points <= max_points, whichever of them changes
     assert set_('max_points', 50).successful
     r = set_('max_points', 49)
@@ -1694,6 +1704,31 @@ def test_superseded_reloads_start_no_processes(ros_context, ros_tiny_model_dir, 
         assert _wait(lambda: node._serving_dir == dirs[-1] and not _reloading())
         assert len(made) == 2 and node._pool is made[-1]
         assert node.counters()['reload_failures'] == 0
+    finally:
+        node.destroy_node()
+
+
+def test_model_dir_set_back_while_a_reload_starts_cancels_it(ros_context, ros_tiny_model_dir,
+                                                              tmp_path):
+    """model_dir set to other models, then back to those answering while the reload starts
+    its processes: that reload is cancelled (its processes stopped once started), and the
+    models answering stay."""
+    import shutil
+    from beo_ros.ros.node import BeoNode
+    node = BeoNode(context=ros_context, parameter_overrides=[
+        Parameter('model_dir', value=ros_tiny_model_dir),
+        Parameter('worker_processes', value=1), Parameter('workers', value=1)])
+    try:
+        serving, pool = node._serving_dir, node._pool
+        gate = threading.Event()
+        made = _gated_reloads(node, gate)
+        shutil.copytree(ros_tiny_model_dir, tmp_path / 'm')
+        for value in (str(tmp_path / 'm'), ros_tiny_model_dir):
+            assert node.set_parameters([Parameter('model_dir', value=value)])[0].successful
+        gate.set()
+        assert _wait(lambda: not _reloading())
+        assert len(made) <= 1 and node._pool is pool and node._serving_dir == serving
+        assert node.get_parameter('model_dir').value == ros_tiny_model_dir
     finally:
         node.destroy_node()
 
