@@ -215,11 +215,11 @@ def test_malformed_clouds_raise_named_error(pts, breaker, match):
 
 
 def test_xyz_to_cloud_rejects_bad_shapes():
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r'points must be \(n, 3\), got shape \(4, 2\)'):
         xyz_to_cloud(np.zeros((4, 2)), Header())
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="field 'p' has 3 values for 4 points"):
         xyz_to_cloud(np.zeros((4, 3)), Header(), {'p': np.zeros(3)})
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="duplicate field name 'x'"):
         xyz_to_cloud(np.zeros((4, 3)), Header(), {'x': np.zeros(4)})
     # 3 points without coordinates were an empty cloud (size 0), not an error
     with pytest.raises(ValueError, match=r'must be \(n, 3\), got shape \(3, 0\)'):
@@ -246,7 +246,7 @@ def test_pose_round_trip():
     for r in (np.diag([1, -1, -1]), np.diag([-1, 1, -1]), np.diag([-1, -1, 1])):  # 180 deg
         np.testing.assert_allclose(quaternion_to_rotation(rotation_to_quaternion(r)), r,
                                    atol=1e-12)
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match='16 non-finite entries'):
         matrix_to_pose(np.full((4, 4), np.nan))
     with pytest.raises(ValueError, match=r'shape \(3, 4\)'):
         matrix_to_pose(np.eye(4)[:3])
@@ -269,7 +269,7 @@ def test_yaw_quaternion_rotates_about_up(up):
     if up == (0, 0, 1):
         np.testing.assert_allclose(r[:2, :2], [[math.cos(yaw), -math.sin(yaw)],
                                                [math.sin(yaw), math.cos(yaw)]], atol=1e-12)
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match='up must be a finite non-zero vector'):
         yaw_quaternion(1.0, (0, 0, 0))
 
 
