@@ -777,3 +777,69 @@ def test_a_bag_whose_last_stamp_is_the_last_clock_time_plays_with_the_clock(tmp_
         w.write('/chatter', String(data='x'), MAX_NS + 1)
     with pytest.raises(bag.player.ClockRangeError):
         bag.replay(tmp_path / 'c', _fake_replay_node(), all_topics=True, rate=0, clock_hz=10.0)
+
+
+@pytest.mark.parametrize('name, why', [
+    # rcl's reason alone: not its 'topic name ... is invalid: ' or 'Invalid topic name: '
+    # prefix, its ', at FILE.c:LINE' suffix, or the caret lines below
+    ('{foo}', 'unknown substitution: {foo}'),
+    ('/a//b', "topic name must not contain repeated '/'"),
+    ('/~', "topic name must not have tilde '~' unless it is the first character"),
+    # expands ('{ns}' is '/'), and only the expanded name is invalid
+    ('a/{ns}', "topic name must not end with a '/'")])
+def test_check_topic_name_gives_rcls_reason_on_one_line(name, why):
+    from beo_ros.ros.bag.msgtypes import check_topic_name
+    with pytest.raises(ValueError) as e:
+        check_topic_name(name)
+    assert str(e.value) == f'bad topic name {name!r}: {why}'
+
+
+def test_check_topic_and_node_names():
+    from beo_ros.ros.bag.msgtypes import check_node_name, check_topic_name
+    assert check_topic_name('~/x', 'player') == '/player/x'   # the node's private namespace
+    assert check_topic_name('{node}/x', 'player') == '/player/x'
+    assert check_node_name('beo_replay') == 'beo_replay'
+    for name, why in (('bad-name', "node name must not contain characters other than "
+                                   "alphanumerics or '_'"),
+                      ('1abc', 'node name must not start with a number')):
+        with pytest.raises(ValueError) as e:
+            check_node_name(name)
+        assert str(e.value) == f'bad node name {name!r}: {why}'
+
+
+def test_message_type_names_of_topics_messages_services_and_actions():
+    from beo_ros.ros.bag.msgtypes import import_msg_class, msgtype_of, normalize_msgtype
+    for name, full in ((' std_msgs/String\n', 'std_msgs/msg/String'),
+                       ('lifecycle_msgs.srv.GetState_Event', 'lifecycle_msgs/srv/GetState_Event'),
+                       ('pkg/action/Fib_FeedbackMessage', 'pkg/action/Fib_FeedbackMessage')):
+        assert normalize_msgtype(name) == full
+    for name in ('pkg/foo/Type', 'pkg/msg/sub/Type', 'String'):
+        with pytest.raises(ValueError, match=f'not a message type name: {name!r}'):
+            normalize_msgtype(name)
+    # an action's feedback topic type (no action package is installed: a stand-in class)
+    feedback = type('Fib_FeedbackMessage', (), {'__module__': 'pkg.action._fib'})
+    assert msgtype_of(feedback) == 'pkg/action/Fib_FeedbackMessage'
+    with pytest.raises(KeyError, match='std_msgs/msg/NoSuchType is not installed'):
+        import_msg_class('std_msgs/msg/NoSuchType')   # the module is, the class is not
+    from beo_ros.ros.bag.msgtypes import _referenced_types
+    assert _referenced_types([('goal', (2, 'pkg/action/Fib_Goal')), ('n', (1, ('int32', 0)))]
+                             ) == {'pkg/action/Fib_Goal'}
+
+
+def test_definitions_of_a_message_named_like_a_service_part_and_of_a_srv_field(monkeypatch,
+                                                                               tmp_path):
+    # a msg type whose name ends in _Event is read from its .msg file (only srv types are
+    # parts of a .srv file); a .srv field of a message type of its own package, named
+    # relatively, is that package's msg type (rosbags files it under pkg/srv/msg/)
+    from beo_ros.ros.bag.msgtypes import _definition, types_from_msg
+    share = tmp_path / 'share' / 'foo_msgs'
+    (share / 'msg').mkdir(parents=True)
+    (share / 'msg' / 'Door_Event').with_suffix('.msg').write_text('int32 a\n')
+    (share / 'srv').mkdir()
+    (share / 'srv' / 'Open.srv').write_text('Door door\n--- \nbool ok\n')   # (a blank after ---)
+    monkeypatch.setenv('AMENT_PREFIX_PATH', str(tmp_path))
+    assert _definition('foo_msgs/msg/Door_Event') == 'int32 a\n'
+    assert _definition('foo_msgs/srv/Open_Request') == 'Door door\n'
+    assert _definition('foo_msgs/srv/Open_Response') == '\nbool ok\n'
+    types = types_from_msg(_definition('foo_msgs/srv/Open_Request'), 'foo_msgs/srv/Open_Request')
+    assert types['foo_msgs/srv/Open_Request'][1][0][1][1] == 'foo_msgs/msg/Door'

@@ -219,7 +219,7 @@ def test_malformed_clouds_raise_named_error(pts, breaker, match):
 
 
 def test_xyz_to_cloud_rejects_bad_shapes():
-    with pytest.raises(ValueError, match=r'must be \(n, 3\), got shape \(4, 2\)'):
+    with pytest.raises(ValueError, match=r'points must be \(n, 3\), got shape \(4, 2\)'):
         xyz_to_cloud(np.zeros((4, 2)), Header())
     with pytest.raises(ValueError, match="field 'p' has 3 values for 4 points"):
         xyz_to_cloud(np.zeros((4, 3)), Header(), {'p': np.zeros(3)})
@@ -412,3 +412,52 @@ def test_matrix_to_pose_gives_a_unit_quaternion_of_a_rounded_rotation():
     t[:3, :3] = quaternion_to_rotation([0.3, -0.2, 0.5, 0.8]).astype(np.float32)
     o = matrix_to_pose(t).orientation
     assert abs(np.linalg.norm([o.x, o.y, o.z, o.w]) - 1) < 1e-12
+
+
+def test_object_markers_box_label_and_lifetime():
+    # the label floats 0.08 m above the highest completed point along the unit up vector
+    # (here a camera optical frame's -y, given with length 2), the box has the estimate's pose
+    # and dimensions (at least 1 cm), each marker the lifetime rounded to the nanosecond
+    from types import SimpleNamespace
+
+    from visualization_msgs.msg import Marker
+
+    from beo_ros.ros.markers import delete_all_markers, delete_markers, object_markers
+    centre = np.array([1.0, 2.0, 3.0])
+    pose = Pose()
+    pose.position.x, pose.position.y, pose.position.z = centre
+    pose.orientation.z, pose.orientation.w = math.sin(0.3), math.cos(0.3)
+    out = SimpleNamespace(pose=pose, label='chair', probability=0.874)
+    pts = centre + np.array([[0.0, -0.5, 0.1], [0.0, 0.3, 0.0], [0.2, 0.0, -0.1]])
+    est = SimpleNamespace(dimensions=np.array([0.3, 0.0, 0.2]), completed_points=pts)
+    h = Header(frame_id='cam')
+    box, text = object_markers(est, out, h, 3, [0.0, -2.0, 0.0], lifetime=1.001).markers
+    assert (box.ns, box.id, box.type, box.action) == ('beo', 6, Marker.CUBE, Marker.ADD)
+    assert (text.ns, text.id, text.type) == ('beo', 7, Marker.TEXT_VIEW_FACING)
+    assert box.header.frame_id == text.header.frame_id == 'cam'
+    np.testing.assert_allclose(pose_to_matrix(box.pose), pose_to_matrix(pose), atol=1e-12)
+    assert (box.scale.x, box.scale.y, box.scale.z) == (0.3, 0.01, 0.2)
+    p = text.pose.position
+    np.testing.assert_allclose([p.x, p.y, p.z], centre + [0.0, -0.58, 0.0], atol=1e-12)
+    assert text.pose.orientation.w == 1.0 and text.text == 'chair 87%'
+    for m in (box, text):
+        assert (m.lifetime.sec, m.lifetime.nanosec) == (1, 1_000_000)   # 1000999999.9999999 ns
+    # no completed points above the centre, or none at all: just above the centre
+    for completed in (centre - [[0.0, 0.0, 0.4]], None):
+        est = SimpleNamespace(dimensions=np.array([0.3, 0.2, 0.2]), completed_points=completed)
+        _, text = object_markers(est, out, h, 0, [0.0, 0.0, 1.0], lifetime=2.5).markers
+        p = text.pose.position
+        np.testing.assert_allclose([p.x, p.y, p.z], centre + [0.0, 0.0, 0.08], atol=1e-12)
+        assert (text.lifetime.sec, text.lifetime.nanosec) == (2, 500_000_000)
+    assert [(m.ns, m.id, m.action) for m in delete_markers(h, 3).markers] == [
+        ('beo', 6, Marker.DELETE), ('beo', 7, Marker.DELETE)]
+    (every,) = delete_all_markers(h).markers
+    assert (every.ns, every.action, every.header.frame_id) == ('beo', Marker.DELETEALL, 'cam')
+
+
+@pytest.mark.parametrize('interval, seconds', [
+    (None, 1.0), (float('inf'), 1.0), (float('nan'), 1.0), (0.2, 1.0), (0.5, 1.5)])
+def test_auto_marker_lifetime(interval, seconds):
+    # three intervals between estimates, at least 1 s (also with no finite interval yet)
+    from beo_ros.ros.markers import auto_lifetime
+    assert auto_lifetime(interval) == pytest.approx(seconds)

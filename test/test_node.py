@@ -449,32 +449,42 @@ def test_bad_inputs_are_rejected_and_node_keeps_answering(harness):
     assert c['service_failures'] > 0 and c['rejected'] > c['service_failures'], c
 
 
-def test_parameters_validated_and_runtime_changeable(harness, tmp_path):
+def test_parameters_validated_and_runtime_changeable(harness, tmp_path, capfd):
     node = harness.node
 
     def set_(name, value):
         return node.set_parameters([Parameter(name, value=value)])[0]
 
-    for name, value, why in (('yaw_step_deg', 100.0, ''), ('yaw_step_deg', 0.01, ''),
+    # rclpy refuses what is out of a descriptor's range or read-only before the callback
+    rng, ro = 'out of range', 'read-only'
+    for name, value, why in (('yaw_step_deg', 100.0, rng), ('yaw_step_deg', 0.01, rng),
                              # within rclpy's 1e-6 tolerance of the range, outside it
                              ('yaw_step_deg', 0.04999996, '[0.05, 45]'),
                              ('yaw_step_deg', 45.00004, '[0.05, 45]'),
-                             ('min_points', 5, ''),   # the core needs 10 points
-                             ('completion_threshold', 1.5, ''),
+                             ('min_points', 5, rng),   # the core needs 10 points
+                             ('completion_threshold', 1.5, rng),
                              ('up_vector', [0.0, 0.0, 0.0], 'non-zero'),
                              # length 1.3e-9, but no component at the core's 1e-9
                              ('up_vector', [9e-10, 9e-10, 0.0], 'non-zero'),
                              ('up_vector', [0.0, 1.0], '3 elements'),
+                             ('up_vector', [0.0, 0.0, 1.0, 0.0], '3 elements'),
                              ('sensor_origin', [0.0, float('inf'), 0.0], 'finite'),
+                             ('sensor_origin', [0.0, float('nan'), 0.0], 'finite'),
                              ('sensor_origin', [1e300, 0.0, 0.0], 'within'),
+                             ('sensor_origin', [0.0, -1e300, 0.0], 'within'),
                              ('up_vector', [1e200, 0.0, 0.0], 'within'),
                              ('completion_threshold', 0.0, '(0, 1]'),
-                             ('min_points', 10 ** 9, ''),
+                             ('min_points', 10 ** 9, rng),
                              ('min_points', 60000, 'max_points'),
+                             ('max_points', 9, rng), ('outlier_neighbors', 0, rng),
+                             ('cluster_tolerance', -0.1, rng), ('marker_lifetime', -1.0, rng),
+                             ('diagnostics_period', 0.05, rng),
+                             ('estimate_timeout', 3601.0, rng),
                              ('model_dir', str(tmp_path / 'nope'), 'nope'),
-                             ('input_topics', ['/other'], ''),
-                             ('workers', 2, ''), ('workers', 0, ''), ('blas_threads', 2, ''),
-                             ('worker_processes', 1, ''),
+                             ('input_topics', ['/other'], ro),
+                             ('input_reliability', 'reliable', ro),
+                             ('workers', 2, ro), ('workers', 0, ro), ('blas_threads', 2, ro),
+                             ('worker_processes', 1, ro),
                              ('estimate_timeout', 0.01, 'at least 1 s')):
         r = set_(name, value)
         assert not r.successful, (name, value)
@@ -484,13 +494,36 @@ def test_parameters_validated_and_runtime_changeable(harness, tmp_path):
     r = set_('model_dir', str(empty))
     assert not r.successful and 'empty_models' in r.reason
     assert node.get_parameter('yaw_step_deg').value == 1.0
-    for name, value in (('yaw_step_deg', 10.0), ('up_vector', [0.0, 0.0, 2.0]),
+    # the bounds themselves, and negative components (a camera optical frame's up is -y)
+    for name, value in (('sensor_origin', [1e6, -1e6, 0.0]), ('up_vector', [0.0, -1.0, 0.0]),
+                        ('up_vector', [1e-9, 0.0, 0.0]), ('estimate_timeout', 0.0),
+                        ('estimate_timeout', 1.0), ('completion_threshold', 1.0),
+                        ('sensor_origin', [0.0, 0.0, 0.0]),
+                        ('yaw_step_deg', 10.0), ('up_vector', [0.0, 0.0, 2.0]),
                         ('completion_threshold', 0.4), ('publish_completed', False),
                         ('min_points', 50), ('diagnostics_period', 0.5)):
         assert set_(name, value).successful, name
         assert node.get_parameter(name).value == value
     r = harness.call(harness.classify, harness.good_request())
     assert r.success, r.message
+    assert node._diag_timer.timer_period_ns == 500_000_000   # re-timed
+    # ... from now: a longer period would otherwise begin after one more of the old ones
+    assert set_('diagnostics_period', 60.0).successful
+    assert node._diag_timer.time_until_next_call() > 30e9
+    # base_frame without tf2_ros (not on PyPI): said once set, up_vector is used
+    import beo_ros.ros.node as node_module
+    if node_module.tf2_ros is None:
+        capfd.readouterr()
+        assert set_('base_frame', 'base_link').successful
+        assert 'base_frame is set but tf2_ros is not installed' in capfd.readouterr().err
+        assert set_('base_frame', '').successful
+    # min_points <= max_points, whichever of them changes
+    assert set_('max_points', 50).successful
+    r = set_('max_points', 49)
+    assert not r.successful and 'min_points (50) must not exceed max_points (49)' in r.reason
+    assert set_('max_points', 2_000_000).successful
+    r = set_('min_points', 1_000_001)
+    assert not r.successful and rng in r.reason
     # large clouds are downsampled to max_points (counted), not rejected
     assert set_('max_points', 200).successful
     r = harness.call(harness.classify, harness.good_request())
@@ -1341,7 +1374,8 @@ def test_bad_parameter_override_refuses_to_start(ros_context, ros_tiny_model_dir
               Parameter('yaw_step_deg', value=0.0499999999), Parameter('min_points', value=5),
               Parameter('input_reliability', value='reliable '),
               Parameter('estimate_timeout', value=0.01), Parameter('outlier_mads', value=-1.0),
-              Parameter('input_topics', value=['/bad topic'])):
+              Parameter('input_topics', value=['/bad topic']),
+              Parameter('sensor_origin', value=[0.0, float('nan'), 0.0])):
         extra = [Parameter('max_points', value=50)] if p.name == 'min_points' else []
         with pytest.raises(StartupError, match=p.name):
             BeoNode(context=ros_context, parameter_overrides=base + [p] + extra)
@@ -1670,6 +1704,31 @@ def test_superseded_reloads_start_no_processes(ros_context, ros_tiny_model_dir, 
         assert _wait(lambda: node._serving_dir == dirs[-1] and not _reloading())
         assert len(made) == 2 and node._pool is made[-1]
         assert node.counters()['reload_failures'] == 0
+    finally:
+        node.destroy_node()
+
+
+def test_model_dir_set_back_while_a_reload_starts_cancels_it(ros_context, ros_tiny_model_dir,
+                                                              tmp_path):
+    """model_dir set to other models, then back to those answering while the reload starts
+    its processes: that reload is cancelled (its processes stopped once started), and the
+    models answering stay."""
+    import shutil
+    from beo_ros.ros.node import BeoNode
+    node = BeoNode(context=ros_context, parameter_overrides=[
+        Parameter('model_dir', value=ros_tiny_model_dir),
+        Parameter('worker_processes', value=1), Parameter('workers', value=1)])
+    try:
+        serving, pool = node._serving_dir, node._pool
+        gate = threading.Event()
+        made = _gated_reloads(node, gate)
+        shutil.copytree(ros_tiny_model_dir, tmp_path / 'm')
+        for value in (str(tmp_path / 'm'), ros_tiny_model_dir):
+            assert node.set_parameters([Parameter('model_dir', value=value)])[0].successful
+        gate.set()
+        assert _wait(lambda: not _reloading())
+        assert len(made) <= 1 and node._pool is pool and node._serving_dir == serving
+        assert node.get_parameter('model_dir').value == ros_tiny_model_dir
     finally:
         node.destroy_node()
 

@@ -136,6 +136,36 @@ def test_ament_index_finds_interfaces_in_venv(monkeypatch):
     assert str(share).startswith(sys.prefix)
 
 
+def test_ensure_ament_prefix_of_beo_ros_alone_unset_variable_and_relative_path(monkeypatch,
+                                                                               tmp_path):
+    # beo_ros registered without beo_interfaces counts too; an unset variable gets the prefix
+    # alone (no empty entry: 'prefix:' would add the current directory); a relative prefix
+    # is listed absolute (it would name another directory after a chdir)
+    index = tmp_path / 'venv' / 'share' / 'ament_index' / 'resource_index' / 'packages'
+    index.mkdir(parents=True)
+    (index / 'beo_ros').write_text('')
+    monkeypatch.delenv('AMENT_PREFIX_PATH', raising=False)
+    monkeypatch.chdir(tmp_path)
+    assert ensure_ament_prefix('venv') == str(tmp_path / 'venv')
+    assert os.environ['AMENT_PREFIX_PATH'] == str(tmp_path / 'venv')
+
+
+@pytest.mark.parametrize('domain, refused', [(0, False), (232, False), (233, True)])
+def test_check_domain_id_refuses_a_domain_past_the_dds_ports(domain, refused):
+    # Fast DDS ends the process (exit 1, nothing on stderr) for a domain over 232: its ports
+    # 7400 + 250 * domain + ... would pass 65535
+    from beo_ros.ros.env import check_domain_id
+
+    class Context:
+        def get_domain_id(self):
+            return domain
+    if refused:
+        with pytest.raises(ValueError, match=f'ROS_DOMAIN_ID {domain} is over 232'):
+            check_domain_id(Context())
+    else:
+        assert check_domain_id(Context()) is None
+
+
 # --- requirements.txt is the only place that pins versions --------------------------------
 
 PIN = re.compile(r'(==|>=|<=|~=|!=|<|>|===)\s*\d')
