@@ -45,6 +45,18 @@ def test_missing_model_dir_exits_nonzero(tmp_path, ros_domain_id):
         assert 'Traceback' not in proc.stderr, proc.stderr
 
 
+def _feed_until(done, proc, executor, pub, cloud, timeout=90.0):
+    """Publish ``cloud`` every 0.5 s and spin ``executor`` until ``done()`` or ``timeout`` s;
+    the node process ``proc`` must stay up meanwhile."""
+    t0, last = time.monotonic(), float('-inf')
+    while not done() and time.monotonic() - t0 < timeout:
+        assert proc.poll() is None, proc.communicate()
+        if time.monotonic() - last > 0.5:
+            pub.publish(cloud)
+            last = time.monotonic()
+        executor.spin_once(timeout_sec=0.05)
+
+
 @pytest.mark.usefixtures('ros_interfaces')
 def test_node_process_streams_and_stops_on_sigint(ros_tiny_model_dir, ros_domain_id,
                                                   monkeypatch):
@@ -80,13 +92,7 @@ def test_node_process_streams_and_stops_on_sigint(ros_tiny_model_dir, ros_domain
         executor = SingleThreadedExecutor(context=ctx)
         executor.add_node(node)
         t0 = time.monotonic()
-        last = 0.0
-        while not got.is_set() and time.monotonic() - t0 < 90:
-            assert proc.poll() is None, proc.communicate()
-            if time.monotonic() - last > 0.5:
-                pub.publish(cloud)
-                last = time.monotonic()
-            executor.spin_once(timeout_sec=0.05)
+        _feed_until(got.is_set, proc, executor, pub, cloud)
         if not got.is_set():
             proc.send_signal(signal.SIGINT)
             out, err = proc.communicate(timeout=30)
@@ -145,14 +151,7 @@ def test_a_signal_deletes_the_markers_before_the_node_exits(ros_tiny_model_dir, 
         cloud = xyz_to_cloud(box_view(), Header(frame_id='camera'))
         executor = SingleThreadedExecutor(context=ctx)
         executor.add_node(node)
-        t0 = time.monotonic()
-        last = 0.0
-        while Marker.ADD not in actions and time.monotonic() - t0 < 90:
-            assert proc.poll() is None, proc.communicate()
-            if time.monotonic() - last > 0.5:
-                pub.publish(cloud)
-                last = time.monotonic()
-            executor.spin_once(timeout_sec=0.05)
+        _feed_until(lambda: Marker.ADD in actions, proc, executor, pub, cloud)
         assert Marker.ADD in actions, 'no markers from the node process'
         proc.send_signal(sig)
         end = time.monotonic() + 30
