@@ -1476,8 +1476,9 @@ def main(args=None):
     except Exception:
         if rclpy.ok():
             raise
-        # a signal shut rclpy down while the node was starting (e.g. creating a publisher on
-        # the dead context): a normal shutdown
+        # rclpy was shut down while the node was starting (e.g. creating a publisher on the
+        # dead context; not by a signal since main's own handlers, which leave it up): a
+        # normal shutdown
     finally:
         interrupts.executor = None   # not spinning any more: nothing to wake
         try:
