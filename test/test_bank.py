@@ -2539,6 +2539,24 @@ def test_hypothesis_quality_is_the_yaw_error_and_the_completion_iou_in_the_obser
     assert 0 < q['iou'][1] < 1
 
 
+def test_view_features_refine_the_three_classes_of_the_largest_likelihood(monkeypatch):
+    # of five classes, the pose refinement goes to the three whose likelihood feature
+    # (column 0) is largest, as estimate() would refine the chosen one
+    import beo_ros.core.training as training
+    refined = []
+    f = np.zeros((5, 3))
+    f[:, 0] = [3.0, 1.0, 5.0, 0.0, 4.0]
+    fake = SimpleNamespace(spec=SimpleNamespace(size=N),
+                           features=lambda grid: (f, [{} for _ in range(5)]),
+                           _refine=lambda grid, c, per_c: refined.append(c) or per_c,
+                           engine=None)
+    monkeypatch.setattr(training, '_hypothesis_quality', lambda *a: {})
+    X, _ = asymmetric_shapes(1, np.random.default_rng(0))
+    out, skipped = training.view_features(fake, X[:1], np.random.default_rng(0), complete=False)
+    assert skipped == 0 and len(out['partial'][0]) == 1
+    assert refined == [2, 4, 0]
+
+
 def test_out_of_fold_class_models_never_see_the_objects_they_score(monkeypatch):
     # each fold's class models are fitted on the other folds' objects only, and every object
     # is scored once, by the models of its own fold
