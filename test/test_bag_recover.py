@@ -682,6 +682,25 @@ def test_a_damaged_message_of_a_type_beo_ros_does_not_know_ends_what_is_recovere
     assert [t for _, _, t, _ in bag.read_bag(tmp_path / 'new')] == [0, 1, 10, 11]
 
 
+def test_a_definition_the_bag_gives_in_another_format_is_not_read_as_a_msg_file(tmp_path):
+    """Only a ros2msg definition in the bag is used: one labelled ros2idl (here .msg text, as
+    if an IDL file) of a type that is not installed leaves the type unknown."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+    store = get_typestore(Stores.EMPTY)
+    store.register(get_types_from_msg('int32 a\n', 'my_pkg/msg/Thing'))
+    src = tmp_path / 'other'
+    with bag.BagWriter(src, 'mcap') as w:
+        w.add_topic('/t', 'my_pkg/msg/Thing', msgdef='int32 a\n',
+                    rihs01=store.hash_rihs01('my_pkg/msg/Thing'))
+        w.write('/t', bytes([0, 1, 0, 0, 7, 0, 0, 0]), 1)
+    data = bytearray(bag._bag_file(src).read_bytes()[:-37])   # never closed
+    at = data.index(b'ros2msg', data.index(b'my_pkg/msg/Thing'))   # the schema's encoding
+    data[at:at + 7] = b'ros2idl'
+    (tmp_path / 'cut.mcap').write_bytes(bytes(data))
+    with pytest.raises(KeyError, match='no message definition found for my_pkg/msg/Thing'):
+        bag.recover_bag(tmp_path / 'cut.mcap', tmp_path / 'new')
+
+
 def test_a_new_bag_directory_that_another_process_made_meanwhile_is_not_removed(tmp_path,
                                                                               monkeypatch):
     """recover_bag removes the new bag after a failure only if it made its directory: one
