@@ -251,6 +251,9 @@ def test_replay_rate_loop_topics_and_stop(ros_env_context, tmp_path):
     assert time.monotonic() - t < 0.9     # rate 0: no sleeping
     assert stats.loops == 3 and stats.messages == 45
     assert stats.topics['/chatter'].count == 15 and stats.topics['/beo/input'].count == 30
+    # the bytes are counted per topic too (CDR payloads, as in the total)
+    assert stats.topics['/chatter'].bytes > 0
+    assert stats.topics['/chatter'].bytes + stats.topics['/beo/input'].bytes == stats.bytes
 
     stats = bag.replay(p, node, rate=10.0, topics=['/chatter'])
     assert stats.messages == 5 and set(stats.topics) == {'/chatter'}

@@ -334,6 +334,30 @@ def test_a_chunk_damaged_inside_ends_what_is_recovered(tmp_path, damage):
     assert stamps == ([] if damage == 'channel type' else [0, 1, 2, 3, 10, 11, 12, 13])
 
 
+def test_a_damaged_last_record_loses_only_itself(tmp_path):
+    """A killed file whose last record is a whole chunk that rosbags cannot read (the type
+    name of a schema first written in it is damaged): every record before it is recovered
+    (the bisection's upper end, when not all records read, is the record before the last)."""
+    from std_msgs.msg import Int32, String
+    src = tmp_path / 'two_types'
+    with bag.BagWriter(src, 'mcap') as w:
+        for batch in range(2):
+            w.write('/s', String(data=str(batch)), batch)
+            w.commit()
+        w.write('/i', Int32(data=2), 2)   # its schema and channel in the third chunk
+        w.commit()
+    data = bytearray(bag._bag_file(src).read_bytes())
+    records = _records(data)
+    last = [pos for op, pos in records if op == 0x06][-1]
+    del data[last + 9 + int.from_bytes(data[last + 1:last + 9], 'little'):]   # killed
+    data[data.index(b'std_msgs/msg/Int32') + 10] = ord('?')   # std_msgs/m?g/Int32
+    cut = tmp_path / 'damaged.mcap'
+    cut.write_bytes(bytes(data))
+    summary = bag.recover_bag(cut, tmp_path / 'new')
+    assert summary['topics'] == {'/s': 2}
+    assert summary['lost_bytes'] == len(data) - last   # the record before it is kept
+
+
 def test_a_closed_mcap_file_whose_index_is_damaged_is_read_by_scanning(tmp_path):
     """Before: MemoryError, OverflowError or struct.error tracebacks from the summary."""
     data, _ = _three_chunk_bag(tmp_path, close=True)
@@ -656,6 +680,25 @@ def test_a_damaged_message_of_a_type_beo_ros_does_not_know_ends_what_is_recovere
     summary = bag.recover_bag(tmp_path / 'cut.mcap', tmp_path / 'new')
     assert summary['messages'] == 4
     assert [t for _, _, t, _ in bag.read_bag(tmp_path / 'new')] == [0, 1, 10, 11]
+
+
+def test_a_definition_the_bag_gives_in_another_format_is_not_read_as_a_msg_file(tmp_path):
+    """Only a ros2msg definition in the bag is used: one labelled ros2idl (here .msg text, as
+    if an IDL file) of a type that is not installed leaves the type unknown."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+    store = get_typestore(Stores.EMPTY)
+    store.register(get_types_from_msg('int32 a\n', 'my_pkg/msg/Thing'))
+    src = tmp_path / 'other'
+    with bag.BagWriter(src, 'mcap') as w:
+        w.add_topic('/t', 'my_pkg/msg/Thing', msgdef='int32 a\n',
+                    rihs01=store.hash_rihs01('my_pkg/msg/Thing'))
+        w.write('/t', bytes([0, 1, 0, 0, 7, 0, 0, 0]), 1)
+    data = bytearray(bag._bag_file(src).read_bytes()[:-37])   # never closed
+    at = data.index(b'ros2msg', data.index(b'my_pkg/msg/Thing'))   # the schema's encoding
+    data[at:at + 7] = b'ros2idl'
+    (tmp_path / 'cut.mcap').write_bytes(bytes(data))
+    with pytest.raises(KeyError, match='no message definition found for my_pkg/msg/Thing'):
+        bag.recover_bag(tmp_path / 'cut.mcap', tmp_path / 'new')
 
 
 def test_a_new_bag_directory_that_another_process_made_meanwhile_is_not_removed(tmp_path,

@@ -8,6 +8,7 @@ import warnings
 from decimal import Decimal
 from fractions import Fraction
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -1827,6 +1828,60 @@ def test_stage2_rescores_the_windows_around_the_best_stage1_modes(tiny, monkeypa
     np.testing.assert_allclose(got, want, atol=1e-6)
 
 
+def test_stage2_keeps_only_the_modes_it_scored(tiny):
+    # outside the stage-2 windows the re-scored likelihood is -inf: a window too narrow for a
+    # second mode (min separation 20 deg) gives one hypothesis, never a yaw scored -inf
+    _, part = views()
+    _, per = tiny.features(part)
+    ref = tiny._refine(part, 1, per[1], 2.0, 0.0, 2.0, stage2_modes=1, stage2_window_deg=4.0)
+    assert len(ref['hypotheses']) == 1
+    assert np.isfinite(ref['hypotheses'][0][1])
+    assert ref['yaw'] == ref['hypotheses'][0][0]
+
+
+def _refine_on(tiny, monkeypatch, loglik, step_deg, window_deg, probe_deg):
+    """The yaw (deg, from the stage-1 yaw) that ``_refine`` of class 1 of a view picks on the
+    made-up exact log-likelihood ``loglik(deg from the stage-1 yaw)``, without stage 2."""
+    _, part = views()
+    _, per = tiny.features(part)
+    y0 = per[1]['yaw']
+    monkeypatch.setattr(tiny, '_exact', lambda obs, c, yaw, per_c: {
+        'loglik': float(loglik(np.rad2deg(yaw - y0)))})
+    monkeypatch.setattr(tiny.engine, 'add_prediction', lambda ex, obs, c: ex)
+    start = dict(per[1], exact=tiny._exact(None, 1, y0, per[1]))
+    best = tiny._refine(part, 1, start, step_deg, window_deg, stage2_step_deg=None,
+                        probe_deg=probe_deg)
+    return float(np.rad2deg(best['yaw'] - y0))
+
+
+def test_exact_probes_look_on_both_sides_and_keep_the_best(tiny, monkeypatch):
+    # probes at +-10, +-20 deg of the stage-1 yaw, then a climb of +-3 deg (which finds
+    # nothing better here): the best probe, on the negative side, wins
+    scores = {0: -9.0, 10: -6.0, -10: -4.0, 20: -2.0, -20: 0.0}
+    got = _refine_on(tiny, monkeypatch, lambda d: scores.get(int(round(d)), -10.0), 1.0, 3.0,
+                     (10, 20))
+    assert got == pytest.approx(-20.0)
+
+
+def test_refinement_climbs_in_whole_degrees_then_in_the_finer_step(tiny, monkeypatch):
+    # the peak is 2.5 deg off: the 1 deg climb stops at 2 deg (3 deg is no better), the 0.5 deg
+    # climb within +-1 deg of that reaches 2.5 (either climb alone would stop at 2 or 1 deg)
+    got = _refine_on(tiny, monkeypatch, lambda d: -(d - 2.5) ** 2, 0.5, 3.0, ())
+    assert got == pytest.approx(2.5)
+
+
+def test_hypotheses_lead_with_the_refined_yaw_then_the_other_classes_by_score():
+    # the chosen class's modes first, the best one at the refined yaw with its pooled score,
+    # then each other class's best mode, best score first (not class order)
+    # (tiny has two classes: four names are enough for the bank's own _hypotheses)
+    four = SimpleNamespace(classes=['a', 'b', 'c', 'd'])
+    per = [{'yaw': 0.0, 'hypotheses': [(0.125 * c, -100.0 + c), (1.0 + 0.125 * c, -200.0)]}
+           for c in range(4)]
+    hyps = ModelBank._hypotheses(four, None, per, 0, 0.0625, 1.0)
+    assert hyps == [('a', 0.0625, -100.0), ('a', 1.0, -200.0), ('d', 0.375, -97.0),
+                    ('c', 0.25, -98.0), ('b', 0.125, -99.0)]
+
+
 def test_shipped_model_answers_unknown_for_dense_clutter():
     # The shipped ModelNet10 bank's robust bound (median - 8 MAD of the out-of-fold
     # log-likelihood) rejects dense random clutter (20 % of the voxels and more; measured:
@@ -2482,6 +2537,24 @@ def test_hypothesis_quality_is_the_yaw_error_and_the_completion_iou_in_the_obser
     assert q['iou'][0] == 1.0
     assert q['iou'][1] == pytest.approx((grid == 1).sum() / rotated.sum())
     assert 0 < q['iou'][1] < 1
+
+
+def test_view_features_refine_the_three_classes_of_the_largest_likelihood(monkeypatch):
+    # of five classes, the pose refinement goes to the three whose likelihood feature
+    # (column 0) is largest, as estimate() would refine the chosen one
+    import beo_ros.core.training as training
+    refined = []
+    f = np.zeros((5, 3))
+    f[:, 0] = [3.0, 1.0, 5.0, 0.0, 4.0]
+    fake = SimpleNamespace(spec=SimpleNamespace(size=N),
+                           features=lambda grid: (f, [{} for _ in range(5)]),
+                           _refine=lambda grid, c, per_c: refined.append(c) or per_c,
+                           engine=None)
+    monkeypatch.setattr(training, '_hypothesis_quality', lambda *a: {})
+    X, _ = asymmetric_shapes(1, np.random.default_rng(0))
+    out, skipped = training.view_features(fake, X[:1], np.random.default_rng(0), complete=False)
+    assert skipped == 0 and len(out['partial'][0]) == 1
+    assert refined == [2, 4, 0]
 
 
 def test_out_of_fold_class_models_never_see_the_objects_they_score(monkeypatch):

@@ -93,6 +93,16 @@ def test_training_rows_are_the_true_pose_and_its_turns(trained, monkeypatch):
     assert np.mean(match[turn == 0] > match[turn == 2]) > 0.9
 
 
+def test_each_chunk_of_verifier_views_has_its_own_random_stream(monkeypatch):
+    # two copies of one object in chunks of one: the same seed must still give each chunk
+    # other views (one stream for all chunks repeated them)
+    monkeypatch.setattr('beo_ros.core.training.VERIFIER_CHUNK', 1)
+    X, _ = asymmetric_shapes(1, np.random.default_rng(0))
+    F, _, obj = verifier_training_set(X[[0, 0]], N, views=1, seed=0)
+    np.testing.assert_array_equal(obj, np.repeat([0, 1], 4))
+    assert not np.array_equal(F[obj == 0], F[obj == 1])
+
+
 def test_training_views_are_turned_by_the_true_yaw_and_quarter_turns_with_a_small_jitter(
         monkeypatch):
     # turn t of a row: the view turned into the model's frame by its true yaw + t x 90 deg
@@ -306,6 +316,27 @@ def test_a_turn_wins_by_likelihood_plus_weight_times_log_probability(bank, monke
     monkeypatch.setattr(bank.verifier, 'weight', 0.99 * w)
     out = bank._verify_turns(g, c, dict(per_c))
     assert 'turned' not in out and out['yaw'] == y0
+
+
+def test_a_turn_the_verifier_rates_no_higher_than_the_refined_yaw_is_not_solved(bank,
+                                                                                  monkeypatch):
+    # only the turns the verifier prefers to the refined yaw are solved: on a tie none is,
+    # however much more likely it would be
+    g = _view()
+    _, per = bank.features(g)
+    per_c = bank._refine(g, 0, per[0])
+    solved = []
+
+    def exact(obs, c, yaw, per_c):
+        solved.append(yaw)
+        return {'loglik': per_c['exact']['loglik'] + 100.0}
+
+    monkeypatch.setattr(bank, '_exact', exact)
+    monkeypatch.setattr(bank.engine, 'add_prediction', lambda ex, obs, c: ex)
+    monkeypatch.setattr(bank.verifier, 'predict_log_proba',
+                        lambda c, F: np.full((len(F), 4), np.log(0.25)))
+    out = bank._verify_turns(g, 0, dict(per_c))
+    assert solved == [] and 'turned' not in out and out['yaw'] == per_c['yaw']
 
 
 def test_the_real_verifier_does_not_hurt_on_asymmetric_shapes(bank):
