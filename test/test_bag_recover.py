@@ -657,16 +657,22 @@ def test_the_recovered_bag_keeps_each_topics_recorded_qos(tmp_path, storage):
                 for c in r.connections} == qos
 
 
-def test_a_damaged_message_of_a_type_beo_ros_does_not_know_ends_what_is_recovered(tmp_path):
-    """Its CDR bytes are checked against the bag's own definition (the installed typestore
-    has no such type)."""
+def _add_thing_topic(w):
+    """Topic /t of type my_pkg/msg/Thing (int32 a), which is not installed, with its
+    definition and hash, on BagWriter ``w``."""
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
     store = get_typestore(Stores.EMPTY)
     store.register(get_types_from_msg('int32 a\n', 'my_pkg/msg/Thing'))
+    w.add_topic('/t', 'my_pkg/msg/Thing', msgdef='int32 a\n',
+                rihs01=store.hash_rihs01('my_pkg/msg/Thing'))
+
+
+def test_a_damaged_message_of_a_type_beo_ros_does_not_know_ends_what_is_recovered(tmp_path):
+    """Its CDR bytes are checked against the bag's own definition (the installed typestore
+    has no such type)."""
     src = tmp_path / 'other'
     with bag.BagWriter(src, 'mcap') as w:
-        w.add_topic('/t', 'my_pkg/msg/Thing', msgdef='int32 a\n',
-                    rihs01=store.hash_rihs01('my_pkg/msg/Thing'))
+        _add_thing_topic(w)
         for batch in range(3):   # a chunk per commit
             for i in range(2):
                 w.write('/t', bytes([0, 1, 0, 0, i, 0, 0, 0]), 10 * batch + i)
@@ -685,13 +691,9 @@ def test_a_damaged_message_of_a_type_beo_ros_does_not_know_ends_what_is_recovere
 def test_a_definition_the_bag_gives_in_another_format_is_not_read_as_a_msg_file(tmp_path):
     """Only a ros2msg definition in the bag is used: one labelled ros2idl (here .msg text, as
     if an IDL file) of a type that is not installed leaves the type unknown."""
-    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-    store = get_typestore(Stores.EMPTY)
-    store.register(get_types_from_msg('int32 a\n', 'my_pkg/msg/Thing'))
     src = tmp_path / 'other'
     with bag.BagWriter(src, 'mcap') as w:
-        w.add_topic('/t', 'my_pkg/msg/Thing', msgdef='int32 a\n',
-                    rihs01=store.hash_rihs01('my_pkg/msg/Thing'))
+        _add_thing_topic(w)
         w.write('/t', bytes([0, 1, 0, 0, 7, 0, 0, 0]), 1)
     data = bytearray(bag._bag_file(src).read_bytes()[:-37])   # never closed
     at = data.index(b'ros2msg', data.index(b'my_pkg/msg/Thing'))   # the schema's encoding
