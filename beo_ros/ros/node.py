@@ -36,6 +36,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.duration import Duration
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.exceptions import ParameterUninitializedException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -71,6 +72,7 @@ except ImportError:  # tf2_ros is not on PyPI; parameters are used instead
     tf2_ros = None
 
 LOG_THROTTLE_SEC = 5.0
+MARKER_ACK_WAIT = 1.0  # s a shutting-down node waits for its DELETEALL to be acknowledged
 LATENCY_WINDOW = 200  # samples kept per stage for the p50 in diagnostics
 # seconds destroy_node gives a spinning executor to take the answers of the calls it waited for
 ANSWER_WAIT = 1.0
@@ -1271,6 +1273,10 @@ class BeoNode(Node):
         self._marked.clear()
         try:
             self._pub_markers.publish(delete_all_markers(self._diag_header()))
+            # the node is about to go: without the acknowledgement, destroying the publisher
+            # right away lost the DELETEALL about one time in five (beo-node on Ctrl-C)
+            if not self._pub_markers.wait_for_all_acked(Duration(seconds=MARKER_ACK_WAIT)):
+                log.debug(f'markers deleted, not acknowledged within {MARKER_ACK_WAIT:g} s')
         except Exception as e:  # noqa: BLE001 - best effort: they expire anyway
             log.debug(f'markers not deleted: {type(e).__name__}: {e}')
 
