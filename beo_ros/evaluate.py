@@ -460,8 +460,11 @@ def _is_training_data(bank, X, y, names) -> bool:
     recorded = bank.training.get('data_sha256')
     if not recorded:
         return False
-    kept = (np.asarray(X) > 0.5).any(axis=1)
-    return training_data_hash(X[kept], np.asarray(y)[kept], names) == recorded
+    try:   # the objects beo-train would have kept, by its own rule
+        X, y, _ = drop_empty_objects(X, np.asarray(y), names)
+    except ValueError:   # a class with no occupied object: no training set of beo-train's
+        return False
+    return training_data_hash(X, y, names) == recorded
 
 
 def _cross_validate(args, X, y, names, n, class_prior, rng):
